@@ -1,0 +1,78 @@
+//! Engine benchmarks: influence-matrix assembly throughput and the sample job end to end.
+//!
+//! `cargo bench --bench engine` (criterion). Assembly throughput is reported in non-zeros per
+//! second ("elements").
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use preston::io::job::Job;
+use preston::io::pipeline;
+use preston::solver::influence::InfluenceMatrix;
+use preston::solver::observer::Silent;
+use preston::solver::path::raster::{serpentine, RasterAxis};
+use preston::solver::tif::{GaussianTif, InfluenceFunction, Tif};
+use std::path::Path;
+
+/// A `side x side` mm map at 0.5 mm pitch and a 1 mm dwell raster over it.
+fn grid_case(side_mm: f64) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
+    let n = (side_mm / 0.5) as usize + 1;
+    let (mut x, mut y) = (Vec::with_capacity(n * n), Vec::with_capacity(n * n));
+    for iy in 0..n {
+        for ix in 0..n {
+            x.push(ix as f64 * 0.5);
+            y.push(iy as f64 * 0.5);
+        }
+    }
+    let bbox = preston::solver::map::BoundingBox::of_points(&x, &y).unwrap();
+    let path = serpentine(&bbox, 1.0, RasterAxis::X).unwrap();
+    (x, y, path.x_mm().to_vec(), path.y_mm().to_vec())
+}
+
+fn assembly(c: &mut Criterion) {
+    let mut group = c.benchmark_group("assembly");
+    group.sample_size(10);
+    let gaussian = Tif::Gaussian(GaussianTif::new(2.0, 10.0, 6.0).unwrap());
+    let measured = Tif::Grid(
+        preston::io::readers::read_tif(
+            &Path::new(env!("CARGO_MANIFEST_DIR")).join("data/tif_fluid_jet_10mm.csv"),
+        )
+        .unwrap(),
+    );
+    for side in [100.0, 200.0] {
+        let (x, y, dx, dy) = grid_case(side);
+        for (name, tif) in [("gaussian", &gaussian), ("measured", &measured)] {
+            let nnz = InfluenceMatrix::assemble(&x, &y, &dx, &dy, tif, &Silent)
+                .unwrap()
+                .nnz();
+            group.throughput(Throughput::Elements(nnz as u64));
+            group.bench_with_input(
+                BenchmarkId::new(name, format!("{}map_{}dwell", x.len(), dx.len())),
+                &(),
+                |b, _| {
+                    b.iter(|| InfluenceMatrix::assemble(&x, &y, &dx, &dy, tif, &Silent).unwrap())
+                },
+            );
+            let _ = tif.support_radius_mm();
+        }
+    }
+    group.finish();
+}
+
+fn sample_job(c: &mut Criterion) {
+    let mut group = c.benchmark_group("sample_job");
+    group.sample_size(10);
+    let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/job.toml");
+    let job = Job::load(&job_path).unwrap();
+    group.bench_function("prepare (read + assemble)", |b| {
+        b.iter(|| pipeline::prepare(&job, &job_path, &Silent).unwrap())
+    });
+    group.bench_function("prepare + solve", |b| {
+        b.iter(|| {
+            let p = pipeline::prepare(&job, &job_path, &Silent).unwrap();
+            pipeline::solve(p, &job, &Silent).unwrap()
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, assembly, sample_job);
+criterion_main!(benches);

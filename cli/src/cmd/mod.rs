@@ -1,0 +1,4 @@
+pub mod fit;
+pub mod register;
+pub mod solve;
+pub mod surface;

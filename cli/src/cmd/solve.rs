@@ -1,0 +1,206 @@
+//! `preston solve`: dwell times and feeds for a map, a TIF and a dwell path.
+
+use crate::progress::Bars;
+use anyhow::Context;
+use preston_io::job::Job;
+use preston_io::pipeline;
+use preston_solver::path::raster::RasterAxis;
+use preston_solver::tif::GaussianTif;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Exit code when the solver did not converge (outputs are written, flagged in report.json).
+pub const EXIT_NOT_CONVERGED: u8 = 3;
+
+/// Raster direction on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum Along {
+    /// Lines along x.
+    X,
+    /// Lines along y.
+    Y,
+}
+
+/// Arguments of `preston solve`. Flags override the job file.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Job file (TOML) holding all inputs; flags below override it.
+    #[arg(long, value_name = "JOB.toml")]
+    pub job: Option<PathBuf>,
+    /// Error map CSV `x_mm,y_mm,z_nm`.
+    #[arg(long, value_name = "M.csv")]
+    pub map: Option<PathBuf>,
+    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s`.
+    #[arg(long, value_name = "T.csv", conflicts_with = "gaussian_sigma_mm")]
+    pub tif: Option<PathBuf>,
+    /// Gaussian TIF instead of a file: sigma, mm.
+    #[arg(long, requires = "gaussian_peak_nm_per_s")]
+    pub gaussian_sigma_mm: Option<f64>,
+    /// Gaussian TIF peak removal rate, nm/s.
+    #[arg(long, requires = "gaussian_sigma_mm")]
+    pub gaussian_peak_nm_per_s: Option<f64>,
+    /// Gaussian TIF truncation radius, mm (default 3 sigma).
+    #[arg(long, requires = "gaussian_sigma_mm")]
+    pub gaussian_truncation_mm: Option<f64>,
+    /// Dwell points CSV `x_mm,y_mm` in path order.
+    #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm")]
+    pub dwell: Option<PathBuf>,
+    /// Generate a serpentine raster at this pitch (mm) over the map extended by the TIF radius.
+    #[arg(long)]
+    pub raster_pitch_mm: Option<f64>,
+    /// Direction of the generated raster lines.
+    #[arg(long, value_enum)]
+    pub raster_along: Option<Along>,
+    /// Fastest feed, mm/min.
+    #[arg(long = "v-max", value_name = "MM_PER_MIN")]
+    pub v_max_mm_per_min: Option<f64>,
+    /// Slowest feed, mm/min (0 = no limit).
+    #[arg(long = "v-min", value_name = "MM_PER_MIN")]
+    pub v_min_mm_per_min: Option<f64>,
+    /// Weight of total dwell time in the objective (nm^2 per s).
+    #[arg(long)]
+    pub rho: Option<f64>,
+    /// Weight of dwell-time differences along the path (nm^2/s^2).
+    #[arg(long)]
+    pub lambda: Option<f64>,
+    /// Find the smallest total dwell within --min-time-tolerance of the rho = 0 optimum.
+    #[arg(long)]
+    pub min_time: bool,
+    /// Relative objective tolerance of --min-time (default 0.001).
+    #[arg(long)]
+    pub min_time_tolerance: Option<f64>,
+    /// Relative optimality tolerance of the solver.
+    #[arg(long)]
+    pub tolerance: Option<f64>,
+    /// Iteration limit of the solver.
+    #[arg(long)]
+    pub max_iterations: Option<usize>,
+    /// Exit 0 even when the solver stops before converging (the status is still reported).
+    #[arg(long)]
+    pub accept_best_iterate: bool,
+    /// Output directory for dwell.csv, residual.csv and report.json.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+impl Args {
+    /// The job with every flag applied over the job file.
+    fn into_job(self) -> anyhow::Result<(Job, PathBuf, PathBuf, bool)> {
+        let (mut job, job_path) = match &self.job {
+            Some(p) => (Job::load(p)?, p.clone()),
+            None => (Job::default(), PathBuf::from("<command line>")),
+        };
+        if let Some(m) = self.map {
+            job.map.file = Some(m);
+        }
+        if let Some(t) = self.tif {
+            job.tif.file = Some(t);
+            job.tif.gaussian = None;
+        }
+        if let (Some(sigma), Some(peak)) = (self.gaussian_sigma_mm, self.gaussian_peak_nm_per_s) {
+            let trunc = self.gaussian_truncation_mm.unwrap_or(3.0 * sigma);
+            job.tif.gaussian = Some(GaussianTif::new(sigma, peak, trunc)?);
+            job.tif.file = None;
+        }
+        if let Some(d) = self.dwell {
+            job.dwell.file = Some(d);
+            job.dwell.raster_pitch_mm = None;
+        }
+        if let Some(p) = self.raster_pitch_mm {
+            job.dwell.raster_pitch_mm = Some(p);
+            job.dwell.file = None;
+        }
+        if let Some(a) = self.raster_along {
+            job.dwell.raster_along = match a {
+                Along::X => RasterAxis::X,
+                Along::Y => RasterAxis::Y,
+            };
+        }
+        if let Some(v) = self.v_max_mm_per_min {
+            job.machine.v_max_mm_per_min = Some(v);
+        }
+        if let Some(v) = self.v_min_mm_per_min {
+            job.machine.v_min_mm_per_min = Some(v);
+        }
+        if let Some(r) = self.rho {
+            job.objective.rho = r;
+        }
+        if let Some(l) = self.lambda {
+            job.objective.lambda = l;
+        }
+        if self.min_time {
+            job.solver.min_time = true;
+        }
+        if let Some(t) = self.min_time_tolerance {
+            job.solver.min_time_tolerance = t;
+        }
+        if let Some(t) = self.tolerance {
+            job.solver.tolerance = t;
+        }
+        if let Some(k) = self.max_iterations {
+            job.solver.max_iterations = k;
+        }
+        Ok((job, job_path, self.out, self.accept_best_iterate))
+    }
+}
+
+/// Runs `preston solve`.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let (job, job_path, out, accept_best) = args.into_job()?;
+    let bars = Bars::new();
+    let prepared = pipeline::prepare(&job, &job_path, &bars)?;
+    let solved = pipeline::solve(prepared, &job, &bars)?;
+    pipeline::write_outputs(&solved, &out)
+        .with_context(|| format!("writing outputs to {}", out.display()))?;
+    let r = &solved.report;
+    eprintln!(
+        "preston solve: {} map points, {} dwell points, {} non-zeros{}",
+        r.m,
+        r.n,
+        r.nnz,
+        if r.skipped_rows > 0 {
+            format!(", {} map rows skipped (empty or NaN z_nm)", r.skipped_rows)
+        } else {
+            String::new()
+        }
+    );
+    if r.unreachable_dwell_points > 0 {
+        eprintln!(
+            "  warning: {} dwell points have no map point in the tool's reach; their dwell is at its lower bound",
+            r.unreachable_dwell_points
+        );
+    }
+    eprintln!(
+        "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, piston {:.3} nm",
+        r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.piston_nm
+    );
+    eprintln!(
+        "  total dwell {:.2} s, feed {:.1} .. {:.1} mm/min",
+        r.total_dwell_s, r.min_feed_mm_per_min, r.max_feed_mm_per_min
+    );
+    if let Some(mt) = &r.min_time {
+        eprintln!(
+            "  minimum time: {:.2} s instead of {:.2} s at rho = 0 (objective {:.6e} vs {:.6e}, tolerance {})",
+            r.total_dwell_s, mt.total_dwell_rho0_s, r.objective, mt.objective_rho0, mt.tolerance
+        );
+    }
+    eprintln!(
+        "  solver {} ({} iterations, status {}), build {:.3} s, solve {:.3} s; wrote {}",
+        r.solver,
+        r.iterations,
+        r.status,
+        r.build_seconds,
+        r.solve_seconds,
+        out.display()
+    );
+    if !solved.solution.status.is_converged() {
+        eprintln!(
+            "  warning: the solver did not converge (status {}); outputs hold the best iterate",
+            r.status
+        );
+        if !accept_best {
+            return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

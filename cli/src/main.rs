@@ -1,0 +1,58 @@
+//! `preston`: dwell-time computation for deterministic sub-aperture polishing.
+//!
+//! A thin binary: each subcommand lives in `cmd/<name>.rs`, parses its arguments with clap,
+//! converts them into library settings and calls the library.
+
+mod cmd;
+mod progress;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+/// Dwell-time computation for deterministic sub-aperture polishing of optics.
+#[derive(Debug, Parser)]
+#[command(name = "preston", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Compute dwell times and feeds for a map, a TIF and a dwell path.
+    Solve(cmd::solve::Args),
+    /// Fit an XY-polynomial surface to measured points (x_mm,y_mm,z_mm).
+    Fit(cmd::fit::Args),
+    /// Register measured points to a design surface (ICP): transform and form error map.
+    Register(cmd::register::Args),
+    /// Evaluate a surface (sag, normal, principal curvatures) on a grid or at points.
+    Surface(cmd::surface::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Solve(args) => cmd::solve::run(args),
+        Command::Fit(args) => cmd::fit::run(args),
+        Command::Register(args) => cmd::register::run(args),
+        Command::Surface(args) => cmd::surface::run(args),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            if is_broken_pipe(&e) {
+                return ExitCode::SUCCESS;
+            }
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+/// A closed pipe (for example `preston ... | head`) is not an error.
+fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+    })
+}

@@ -1,0 +1,394 @@
+//! `preston fit`, `preston register` and `preston surface` end to end, through files, with known
+//! answers: coefficients that generated the points, a rigid transform that displaced them, and
+//! the closed-form sag of a sphere.
+
+use std::fmt::Write as _;
+use std::path::Path;
+use std::process::{Command, Output};
+
+/// Coefficients recovered from noise-free points, relative to the largest coefficient.
+const FIT_COEF_TOL: f64 = 1e-9;
+/// Translations of a noise-free registration, um (the issue asks 1e-6 mm).
+const TRANSLATION_TOL_UM: f64 = 1e-3;
+/// Rotations of a noise-free registration, arcsec (1e-8 rad = 2e-3 arcsec).
+const ROTATION_TOL_ARCSEC: f64 = 2e-3;
+/// Sag written by `preston surface` against the closed form, mm.
+const SAG_TOL_MM: f64 = 1e-12;
+
+fn preston(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_preston"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn ok(out: &Output) {
+    assert!(
+        out.status.success(),
+        "exit {:?}\nstderr: {}",
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// Sag of the test freeform: a conic (c, k) plus `sum coef (x/R)^m (y/R)^n`.
+const C: f64 = 1.0 / 800.0;
+const K: f64 = -0.5;
+const R_NORM: f64 = 40.0;
+const TERMS: [(u32, u32, f64); 6] = [
+    (1, 1, 0.02),
+    (2, 1, -0.015),
+    (0, 3, 0.01),
+    (3, 0, 0.008),
+    (2, 2, -0.004),
+    (1, 3, 0.003),
+];
+
+fn sag(x: f64, y: f64) -> f64 {
+    let r2 = x * x + y * y;
+    let conic = C * r2 / (1.0 + (1.0 - (1.0 + K) * C * C * r2).sqrt());
+    conic
+        + TERMS
+            .iter()
+            .map(|&(m, n, a)| a * (x / R_NORM).powi(m as i32) * (y / R_NORM).powi(n as i32))
+            .sum::<f64>()
+}
+
+fn surface_json() -> String {
+    let terms: Vec<String> = TERMS
+        .iter()
+        .map(|(m, n, a)| format!(r#"{{"m":{m},"n":{n},"coef_mm":{a}}}"#))
+        .collect();
+    format!(
+        r#"{{"type":"xy_polynomial","curvature_per_mm":{C},"conic":{K},"norm_radius_mm":{R_NORM},"terms":[{}]}}"#,
+        terms.join(",")
+    )
+}
+
+/// Grid points `(x, y, sag)` over a 60 x 60 mm aperture.
+fn design_points() -> Vec<[f64; 3]> {
+    let mut p = Vec::new();
+    for j in 0..21 {
+        for i in 0..21 {
+            let (x, y) = (-30.0 + 3.0 * i as f64, -30.0 + 3.0 * j as f64);
+            p.push([x, y, sag(x, y)]);
+        }
+    }
+    p
+}
+
+fn write_points(path: &Path, pts: &[[f64; 3]]) {
+    let mut text = String::from("x_mm,y_mm,z_mm\n");
+    for p in pts {
+        writeln!(text, "{:.17e},{:.17e},{:.17e}", p[0], p[1], p[2]).unwrap();
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+/// Rotation matrix of the rotation vector `w` (rad), Rodrigues' formula.
+fn rotation(w: [f64; 3]) -> [[f64; 3]; 3] {
+    let th = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    let k = [w[0] / th, w[1] / th, w[2] / th];
+    let (s, c) = th.sin_cos();
+    let mut r = [[0.0; 3]; 3];
+    let kx = [[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]];
+    for a in 0..3 {
+        for b in 0..3 {
+            let kk: f64 = (0..3).map(|q| kx[a][q] * kx[q][b]).sum();
+            r[a][b] = f64::from(u8::from(a == b)) + s * kx[a][b] + (1.0 - c) * kk;
+        }
+    }
+    r
+}
+
+#[test]
+fn fit_recovers_generating_coefficients() {
+    let dir = tempfile::tempdir().unwrap();
+    let pts_path = dir.path().join("points.csv");
+    write_points(&pts_path, &design_points());
+    let out = dir.path().join("surface.json");
+    let c = C.to_string();
+    let k = K.to_string();
+    let r = preston(&[
+        "fit",
+        "--points",
+        s(&pts_path),
+        "--order",
+        "4",
+        "--norm-radius-mm",
+        "40",
+        "--curvature-per-mm",
+        &c,
+        "--conic",
+        &k,
+        "--out",
+        s(&out),
+    ]);
+    ok(&r);
+    let summary: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert!(summary["rms_nm"].as_f64().unwrap() < 1e-3, "{summary}");
+    assert!(summary["pv_nm"].as_f64().unwrap() < 1e-2, "{summary}");
+    let surface: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(surface["type"], "xy_polynomial");
+    let terms = surface["terms"].as_array().unwrap();
+    // Order 4 has 14 monomials with 1 <= m + n <= 4.
+    assert_eq!(terms.len(), 14);
+    let scale = TERMS.iter().map(|t| t.2.abs()).fold(0.0, f64::max);
+    for t in terms {
+        let (m, n) = (t["m"].as_u64().unwrap(), t["n"].as_u64().unwrap());
+        let want = TERMS
+            .iter()
+            .find(|&&(tm, tn, _)| u64::from(tm) == m && u64::from(tn) == n)
+            .map_or(0.0, |t| t.2);
+        let got = t["coef_mm"].as_f64().unwrap();
+        assert!(
+            (got - want).abs() < FIT_COEF_TOL * scale,
+            "x^{m} y^{n}: {got} vs {want}"
+        );
+    }
+}
+
+#[test]
+fn register_extracts_a_known_transform_and_feeds_solve() {
+    let dir = tempfile::tempdir().unwrap();
+    let surface = dir.path().join("design.json");
+    std::fs::write(&surface, surface_json()).unwrap();
+    // The true installation error M: p_design = Rot p_measured + t.
+    let arcsec = std::f64::consts::PI / (180.0 * 3600.0);
+    let w_arcsec = [40.0, -25.0, 60.0];
+    let t_um = [12.0, -30.0, 8.0];
+    let rot = rotation([w_arcsec[0] * arcsec, w_arcsec[1] * arcsec, w_arcsec[2] * arcsec]);
+    // A form error of 80 nm along z with zero mean over the grid (three periods per side),
+    // then the measured points p = Rot^T (p_design + e - t).
+    let form_nm = |x: f64, y: f64| {
+        80.0 * (2.0 * std::f64::consts::PI * x / 20.0).cos()
+            * (2.0 * std::f64::consts::PI * y / 20.0).cos()
+    };
+    let measured: Vec<[f64; 3]> = design_points()
+        .iter()
+        .map(|p| {
+            let q = [
+                p[0] - t_um[0] * 1e-3,
+                p[1] - t_um[1] * 1e-3,
+                p[2] + form_nm(p[0], p[1]) * 1e-6 - t_um[2] * 1e-3,
+            ];
+            let mut m = [0.0; 3];
+            for (a, ma) in m.iter_mut().enumerate() {
+                *ma = (0..3).map(|b| rot[b][a] * q[b]).sum();
+            }
+            m
+        })
+        .collect();
+    let pts = dir.path().join("measured.csv");
+    write_points(&pts, &measured);
+
+    // Noise-free and without form error first: the transform to rounding.
+    let exact: Vec<[f64; 3]> = design_points()
+        .iter()
+        .map(|p| {
+            let q = [
+                p[0] - t_um[0] * 1e-3,
+                p[1] - t_um[1] * 1e-3,
+                p[2] - t_um[2] * 1e-3,
+            ];
+            let mut m = [0.0; 3];
+            for (a, ma) in m.iter_mut().enumerate() {
+                *ma = (0..3).map(|b| rot[b][a] * q[b]).sum();
+            }
+            m
+        })
+        .collect();
+    let exact_pts = dir.path().join("exact.csv");
+    write_points(&exact_pts, &exact);
+    let out_exact = dir.path().join("reg_exact");
+    ok(&preston(&[
+        "register",
+        "--surface",
+        s(&surface),
+        "--points",
+        s(&exact_pts),
+        "--out",
+        s(&out_exact),
+    ]));
+    let tf: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out_exact.join("transform.json")).unwrap(),
+    )
+    .unwrap();
+    for a in 0..3 {
+        let t = tf["translation_um"][a].as_f64().unwrap();
+        let w = tf["rotation_arcsec"][a].as_f64().unwrap();
+        assert!((t - t_um[a]).abs() < TRANSLATION_TOL_UM, "t[{a}] = {t} um");
+        assert!(
+            (w - w_arcsec[a]).abs() < ROTATION_TOL_ARCSEC,
+            "w[{a}] = {w} arcsec"
+        );
+    }
+    assert!(tf["rms_nm"].as_f64().unwrap() < 1e-3, "{tf}");
+    assert!(tf["iterations"].as_u64().unwrap() <= 10);
+    // The matrix maps measured points onto the design surface.
+    let m = &tf["matrix"];
+    let p = exact[100];
+    let mapped: Vec<f64> = (0..3)
+        .map(|a| {
+            (0..3).map(|b| m[a][b].as_f64().unwrap() * p[b]).sum::<f64>()
+                + m[a][3].as_f64().unwrap()
+        })
+        .collect();
+    assert!((mapped[2] - sag(mapped[0], mapped[1])).abs() < 1e-9);
+
+    // With the form error: the map written is the form error, and `preston solve` reads it.
+    let out = dir.path().join("reg");
+    ok(&preston(&[
+        "register",
+        "--surface",
+        s(&surface),
+        "--points",
+        s(&pts),
+        "--out",
+        s(&out),
+    ]));
+    let text = std::fs::read_to_string(out.join("form_error.csv")).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("x_mm,y_mm,z_nm"));
+    let mut sum_sq = 0.0;
+    let mut max_dev: f64 = 0.0;
+    let mut count = 0usize;
+    for line in lines {
+        let v: Vec<f64> = line.split(',').map(|c| c.parse().unwrap()).collect();
+        // Along the normal the 80 nm z error shrinks by the cosine of the slope (< 5 %).
+        max_dev = max_dev.max((v[2] - form_nm(v[0], v[1])).abs());
+        sum_sq += v[2] * v[2];
+        count += 1;
+    }
+    assert_eq!(count, 441);
+    assert!(max_dev < 6.0, "form error off by {max_dev} nm");
+    let rms_written = (sum_sq / count as f64).sqrt();
+
+    let solve_out = dir.path().join("solve");
+    let r = preston(&[
+        "solve",
+        "--map",
+        s(&out.join("form_error.csv")),
+        "--gaussian-sigma-mm",
+        "3",
+        "--gaussian-peak-nm-per-s",
+        "20",
+        "--raster-pitch-mm",
+        "3",
+        "--v-max",
+        "3000",
+        "--out",
+        s(&solve_out),
+    ]);
+    ok(&r);
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(solve_out.join("report.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(report["m"], 441);
+    // The solver's RMS is about the mean; the written map has (nearly) zero mean.
+    let rms_before = report["rms_before_nm"].as_f64().unwrap();
+    assert!((rms_before - rms_written).abs() < 0.05 * rms_written);
+    assert!(report["rms_after_nm"].as_f64().unwrap() < rms_before);
+}
+
+#[test]
+fn surface_grid_matches_the_closed_form_sphere() {
+    let dir = tempfile::tempdir().unwrap();
+    let surface = dir.path().join("sphere.json");
+    let radius = 250.0;
+    std::fs::write(
+        &surface,
+        format!(r#"{{"type":"conic","curvature_per_mm":{},"conic":0.0}}"#, 1.0 / radius),
+    )
+    .unwrap();
+    let out = dir.path().join("grid.csv");
+    ok(&preston(&[
+        "surface",
+        "--surface",
+        s(&surface),
+        "--x-min-mm",
+        "-20",
+        "--x-max-mm",
+        "20",
+        "--y-min-mm",
+        "-10",
+        "--y-max-mm",
+        "10",
+        "--step-mm",
+        "5",
+        "--out",
+        s(&out),
+    ]));
+    let text = std::fs::read_to_string(&out).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some("x_mm,y_mm,z_mm,nx,ny,nz,k1_per_mm,k2_per_mm")
+    );
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 9 * 5);
+    for v in rows {
+        let (x, y) = (v[0], v[1]);
+        let z = radius - (radius * radius - x * x - y * y).sqrt();
+        assert!((v[2] - z).abs() < SAG_TOL_MM, "sag at ({x},{y})");
+        // The normal of a sphere points from the surface point to the centre (0, 0, R).
+        let n = [-x / radius, -y / radius, (radius - z) / radius];
+        for a in 0..3 {
+            assert!((v[3 + a] - n[a]).abs() < 1e-12);
+        }
+        // Both principal curvatures are 1/R.
+        assert!((v[6] - 1.0 / radius).abs() < 1e-12 && (v[7] - 1.0 / radius).abs() < 1e-12);
+    }
+}
+
+#[test]
+fn geometry_commands_reject_bad_input_without_output() {
+    let dir = tempfile::tempdir().unwrap();
+    // Three collinear points cannot determine an order-2 polynomial.
+    let pts = dir.path().join("few.csv");
+    std::fs::write(&pts, "x_mm,y_mm,z_mm\n0,0,0\n1,1,0\n2,2,0\n").unwrap();
+    let out = dir.path().join("s.json");
+    let r = preston(&["fit", "--points", s(&pts), "--order", "2", "--out", s(&out)]);
+    assert_eq!(r.status.code(), Some(2));
+    assert!(!out.exists());
+    // A surface file with an unknown type names the problem.
+    let bad = dir.path().join("bad.json");
+    std::fs::write(&bad, r#"{"type":"torus","radius_mm":3}"#).unwrap();
+    let grid = dir.path().join("g.csv");
+    let r = preston(&[
+        "surface",
+        "--surface",
+        s(&bad),
+        "--points",
+        s(&pts),
+        "--out",
+        s(&grid),
+    ]);
+    assert_eq!(r.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&r.stderr).contains("bad.json"));
+    assert!(!grid.exists());
+    // A point outside the conic's domain (r > R for a sphere) is an error, not a NaN.
+    let sphere = dir.path().join("sphere.json");
+    std::fs::write(&sphere, r#"{"type":"conic","curvature_per_mm":0.1}"#).unwrap();
+    let far = dir.path().join("far.csv");
+    std::fs::write(&far, "x_mm,y_mm\n0,0\n20,0\n").unwrap();
+    let r = preston(&[
+        "surface",
+        "--surface",
+        s(&sphere),
+        "--points",
+        s(&far),
+        "--out",
+        s(&grid),
+    ]);
+    assert_eq!(r.status.code(), Some(2));
+    assert!(!grid.exists());
+}

@@ -1,0 +1,202 @@
+//! `preston solve` end to end: the sample job, and bad input that must fail cleanly.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn preston() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_preston"))
+}
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../data")
+        .join(name)
+}
+
+#[test]
+fn sample_job_end_to_end() {
+    let out = tempfile::tempdir().unwrap();
+    let status = preston()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.path().join("report.json")).unwrap())
+            .unwrap();
+    for key in [
+        "m",
+        "n",
+        "nnz",
+        "skipped_rows",
+        "rms_before_nm",
+        "pv_before_nm",
+        "rms_after_nm",
+        "pv_after_nm",
+        "total_dwell_s",
+        "piston_nm",
+        "objective",
+        "max_bound_violation_s",
+        "min_feed_mm_per_min",
+        "max_feed_mm_per_min",
+        "build_seconds",
+        "solve_seconds",
+        "solver",
+        "iterations",
+        "status",
+    ] {
+        assert!(report.get(key).is_some(), "report.json lacks {key}");
+    }
+    assert_eq!(report["m"], 9672);
+    assert_eq!(report["status"], "converged");
+    let before = report["rms_before_nm"].as_f64().unwrap();
+    let after = report["rms_after_nm"].as_f64().unwrap();
+    assert!(after < 0.05 * before, "RMS {before} -> {after}");
+    assert!(report["max_feed_mm_per_min"].as_f64().unwrap() <= 3000.0 * (1.0 + 1e-9));
+
+    // dwell.csv: feed = ds / dwell * 60 on every row; residual.csv consistent with report.
+    let dwell = std::fs::read_to_string(out.path().join("dwell.csv")).unwrap();
+    let mut lines = dwell.lines();
+    assert_eq!(
+        lines.next(),
+        Some("x_mm,y_mm,ds_mm,dwell_s,feed_mm_per_min")
+    );
+    let mut rows = 0;
+    for l in lines {
+        let v: Vec<f64> = l.split(',').map(|c| c.parse().unwrap()).collect();
+        assert!((v[4] - v[2] / v[3] * 60.0).abs() <= 1e-9 * v[4].abs().max(1.0));
+        rows += 1;
+    }
+    assert_eq!(rows, report["n"].as_u64().unwrap() as usize);
+    let residual = std::fs::read_to_string(out.path().join("residual.csv")).unwrap();
+    assert!(residual.starts_with("x_mm,y_mm,z_nm,removal_nm,residual_nm\n"));
+    let res: Vec<f64> = residual
+        .lines()
+        .skip(1)
+        .map(|l| l.rsplit(',').next().unwrap().parse().unwrap())
+        .collect();
+    let mean = res.iter().sum::<f64>() / res.len() as f64;
+    let rms = (res.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / res.len() as f64).sqrt();
+    assert!((rms - after).abs() < 1e-9 * after);
+}
+
+/// Runs `preston solve` with flags and expects failure, a message containing every `needle`
+/// and no file in the output directory.
+fn expect_failure(args: &[&str], needles: &[&str]) {
+    let out = tempfile::tempdir().unwrap();
+    let target = out.path().join("result");
+    let o = preston()
+        .arg("solve")
+        .args(args)
+        .arg("--out")
+        .arg(&target)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "expected failure for {args:?}");
+    for n in needles {
+        assert!(stderr.contains(n), "stderr lacks `{n}`: {stderr}");
+    }
+    assert!(
+        !target.exists() || std::fs::read_dir(&target).unwrap().next().is_none(),
+        "output written despite the error"
+    );
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> String {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p.to_string_lossy().to_string()
+}
+
+#[test]
+fn bad_input_fails_cleanly() {
+    let d = tempfile::tempdir().unwrap();
+    let tif = data("tif_fluid_jet_10mm.csv").to_string_lossy().to_string();
+    let good_map = write(
+        d.path(),
+        "map.csv",
+        "x_mm,y_mm,z_nm\n0,0,1\n1,0,2\n0,1,3\n1,1,4\n",
+    );
+    let common = ["--raster-pitch-mm", "1"];
+
+    let missing = write(d.path(), "missing.csv", "x_mm,z_nm\n0,1\n");
+    expect_failure(
+        &[
+            &["--map", &missing, "--tif", &tif, "--v-max", "3000"][..],
+            &common,
+        ]
+        .concat(),
+        &["missing.csv", "missing column `y_mm`"],
+    );
+    let nonnum = write(d.path(), "nonnum.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,abc\n");
+    expect_failure(
+        &[
+            &["--map", &nonnum, "--tif", &tif, "--v-max", "3000"][..],
+            &common,
+        ]
+        .concat(),
+        &["nonnum.csv", "line 3", "z_nm", "not a number"],
+    );
+    let irregular = write(
+        d.path(),
+        "tif.csv",
+        "x_mm,y_mm,rate_nm_per_s\n0,0,1\n1,0,1\n3,0,1\n0,1,1\n1,1,1\n3,1,1\n",
+    );
+    expect_failure(
+        &[
+            &["--map", &good_map, "--tif", &irregular, "--v-max", "3000"][..],
+            &common,
+        ]
+        .concat(),
+        &["tif.csv", "regular grid"],
+    );
+    let empty = write(d.path(), "empty.csv", "x_mm,y_mm,z_nm\n");
+    expect_failure(
+        &[
+            &["--map", &empty, "--tif", &tif, "--v-max", "3000"][..],
+            &common,
+        ]
+        .concat(),
+        &["empty.csv", "no data rows"],
+    );
+    expect_failure(
+        &[
+            &["--map", &good_map, "--tif", &tif, "--v-max", "0"][..],
+            &common,
+        ]
+        .concat(),
+        &["v_max_mm_per_min", "positive"],
+    );
+    expect_failure(
+        &[
+            &["--map", &good_map, "--tif", &tif, "--v-max=-5"][..],
+            &common,
+        ]
+        .concat(),
+        &["v_max_mm_per_min"],
+    );
+    expect_failure(
+        &[
+            &[
+                "--map", &good_map, "--tif", &tif, "--v-max", "100", "--v-min", "200",
+            ][..],
+            &common,
+        ]
+        .concat(),
+        &["v_min_mm_per_min", "exceeds"],
+    );
+    let job = write(
+        d.path(),
+        "job.toml",
+        "[machine]\nv_max_mm_per_min = 1\nspeed = 2\n",
+    );
+    expect_failure(&["--job", &job], &["job.toml", "speed"]);
+}

@@ -1,0 +1,187 @@
+//! Job files (TOML): everything a solve needs in one place. Unknown keys are errors, and file
+//! paths are relative to the job file's directory.
+//!
+//! ```toml
+//! [map]
+//! file = "mirror_error_118x8mm.csv"      # x_mm,y_mm,z_nm
+//!
+//! [tif]
+//! file = "tif_fluid_jet_10mm.csv"        # x_mm,y_mm,rate_nm_per_s; or instead:
+//! # gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 10.0, truncation_radius_mm = 6.0 }
+//!
+//! [dwell]
+//! raster_pitch_mm = 1.0                  # or: file = "path.csv" (x_mm,y_mm in path order)
+//! raster_along = "x"
+//!
+//! [machine]
+//! v_max_mm_per_min = 3000.0
+//! v_min_mm_per_min = 0.0
+//!
+//! [objective]
+//! rho = 0.0
+//! lambda = 0.0
+//!
+//! [solver]
+//! solver = "auto"
+//! min_time = false
+//! ```
+
+use crate::error::{Error, Result};
+use preston_solver::dwell::{FeedLimits, Settings};
+use preston_solver::path::raster::RasterAxis;
+use preston_solver::tif::GaussianTif;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// A solve job as written in a TOML file.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Job {
+    /// The error map.
+    #[serde(default)]
+    pub map: MapSource,
+    /// The tool influence function.
+    #[serde(default)]
+    pub tif: TifSource,
+    /// The dwell points.
+    #[serde(default)]
+    pub dwell: DwellSource,
+    /// Feed limits (`v_max_mm_per_min` required unless given on the command line).
+    #[serde(default)]
+    pub machine: MachineSection,
+    /// Weights of the objective.
+    #[serde(default)]
+    pub objective: ObjectiveWeights,
+    /// Solver settings.
+    #[serde(default)]
+    pub solver: Settings,
+}
+
+/// Where the map comes from.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapSource {
+    /// CSV file `x_mm,y_mm,z_nm`.
+    pub file: Option<PathBuf>,
+}
+
+/// Where the TIF comes from: a grid file or a Gaussian model (exactly one).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TifSource {
+    /// CSV file `x_mm,y_mm,rate_nm_per_s` on a regular grid.
+    pub file: Option<PathBuf>,
+    /// A truncated Gaussian model.
+    pub gaussian: Option<GaussianTif>,
+}
+
+/// Where the dwell points come from: a file or a generated raster (exactly one).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DwellSource {
+    /// CSV file `x_mm,y_mm` in path order.
+    pub file: Option<PathBuf>,
+    /// Pitch of a generated serpentine raster over the map's bounding box extended by the TIF
+    /// radius, mm.
+    pub raster_pitch_mm: Option<f64>,
+    /// Direction of the generated raster's lines.
+    #[serde(default)]
+    pub raster_along: RasterAxis,
+}
+
+/// Machine limits as written in a job (each may be overridden on the command line).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MachineSection {
+    /// Fastest feed, mm/min.
+    pub v_max_mm_per_min: Option<f64>,
+    /// Slowest feed, mm/min (0 = none).
+    pub v_min_mm_per_min: Option<f64>,
+}
+
+/// Weights of the objective terms.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ObjectiveWeights {
+    /// Weight of the total dwell time (nm^2 per s), >= 0.
+    pub rho: f64,
+    /// Weight of the squared differences of consecutive dwell times (nm^2/s^2), >= 0.
+    pub lambda: f64,
+}
+
+impl Job {
+    /// Reads a job file; relative paths in it are resolved against its directory.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let mut job = Self::parse(&text, path)?;
+        let base = path.parent().unwrap_or_else(|| Path::new("."));
+        for p in [&mut job.map.file, &mut job.tif.file, &mut job.dwell.file]
+            .into_iter()
+            .flatten()
+        {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        }
+        Ok(job)
+    }
+
+    /// Parses job text; `path` names it in messages.
+    pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        toml::from_str(text).map_err(|e| Error::Job {
+            file: path.to_path_buf(),
+            why: e.to_string().trim_end().to_string(),
+        })
+    }
+
+    /// The feed limits, once command-line overrides are applied.
+    pub fn feed_limits(&self) -> std::result::Result<FeedLimits, preston_solver::Error> {
+        let v_max = self.machine.v_max_mm_per_min.ok_or_else(|| {
+            preston_solver::Error::invalid(
+                "v_max_mm_per_min",
+                "is required (job [machine] or --v-max)",
+            )
+        })?;
+        let limits = FeedLimits {
+            v_max_mm_per_min: v_max,
+            v_min_mm_per_min: self.machine.v_min_mm_per_min.unwrap_or(0.0),
+        };
+        limits.validate()?;
+        Ok(limits)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_keys_are_named() {
+        let e = Job::parse(
+            "[machine]\nv_max_mm_per_min = 1\nvmin = 2\n",
+            Path::new("j.toml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("j.toml") && e.contains("vmin"), "{e}");
+        let e = Job::parse("[solver]\nsolver = \"fastest\"\n", Path::new("j.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("fastest"), "{e}");
+    }
+
+    #[test]
+    fn full_job_parses() {
+        let j = Job::parse(
+            "[map]\nfile='m.csv'\n[tif]\ngaussian={sigma_mm=2.0,peak_rate_nm_per_s=10.0,truncation_radius_mm=6.0}\n\
+             [dwell]\nraster_pitch_mm=1.0\nraster_along='y'\n[machine]\nv_max_mm_per_min=3000\n\
+             [objective]\nrho=0.5\n[solver]\nmin_time=true\n",
+            Path::new("j.toml"),
+        )
+        .unwrap();
+        assert_eq!(j.dwell.raster_along, RasterAxis::Y);
+        assert_eq!(j.objective.rho, 0.5);
+        assert!(j.solver.min_time);
+        assert_eq!(j.feed_limits().unwrap().v_max_mm_per_min, 3000.0);
+    }
+}

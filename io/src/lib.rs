@@ -1,0 +1,17 @@
+//! Preston I/O: CSV readers and writers (units in every header), job files, reports, and the
+//! atomic output that guarantees a file appears whole or not at all.
+#![warn(missing_docs)]
+#![deny(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+#![cfg_attr(test, allow(clippy::unwrap_used, clippy::expect_used, clippy::panic))]
+
+pub mod atomic;
+pub mod error;
+pub mod readers;
+pub mod report;
+pub mod surface;
+pub mod table;
+pub mod writers;
+
+pub use error::{Error, Result};
+pub mod job;
+pub mod pipeline;

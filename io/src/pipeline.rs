@@ -1,0 +1,195 @@
+//! The solve pipeline: job -> inputs -> influence matrix -> problem -> solution -> output files.
+
+use crate::atomic::commit_all;
+use crate::error::{Error, Result};
+use crate::job::Job;
+use crate::readers::{read_dwell, read_map, read_tif};
+use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
+use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
+use preston_solver::dwell::{self, DwellBounds, Problem, Solution};
+use preston_solver::influence::InfluenceMatrix;
+use preston_solver::map::HeightMap;
+use preston_solver::observer::Observer;
+use preston_solver::path::{raster, DwellPath};
+use preston_solver::tif::{InfluenceFunction, Tif};
+use std::path::Path;
+use std::time::Instant;
+
+/// Everything read and built for a solve, before the solver runs.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The error map (rows with an empty/NaN height removed).
+    pub map: HeightMap,
+    /// Map rows skipped.
+    pub skipped_rows: usize,
+    /// The TIF.
+    pub tif: Tif,
+    /// The dwell path.
+    pub path: DwellPath,
+    /// Path length per dwell point, mm.
+    pub ds_mm: Vec<f64>,
+    /// Dwell times of a previous solution read with the path, if the file had them.
+    pub previous_dwell_s: Option<Vec<f64>>,
+    /// The validated problem.
+    pub problem: Problem,
+    /// Seconds spent reading and assembling.
+    pub build_seconds: f64,
+}
+
+/// A finished solve: the solution and what to write.
+#[derive(Debug, Clone)]
+pub struct Solved {
+    /// The inputs.
+    pub prepared: Prepared,
+    /// The solver's answer.
+    pub solution: Solution,
+    /// Predicted removal at the map points, nm.
+    pub removal_nm: Vec<f64>,
+    /// The report.
+    pub report: Report,
+}
+
+/// Loads the TIF a job names (exactly one of a file or a Gaussian model).
+pub fn load_tif(job: &Job, job_path: &Path) -> Result<Tif> {
+    match (&job.tif.file, &job.tif.gaussian) {
+        (Some(f), None) => Ok(Tif::Grid(read_tif(f)?)),
+        (None, Some(g)) => {
+            g.validate().map_err(|e| Error::engine(job_path, e))?;
+            Ok(Tif::Gaussian(g.clone()))
+        }
+        (Some(_), Some(_)) => Err(Error::Job {
+            file: job_path.to_path_buf(),
+            why: "[tif] gives both `file` and `gaussian`; choose one".into(),
+        }),
+        (None, None) => Err(Error::Job {
+            file: job_path.to_path_buf(),
+            why: "no TIF: set [tif] file or gaussian (or --tif / --gaussian-sigma-mm)".into(),
+        }),
+    }
+}
+
+/// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
+pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Prepared> {
+    let start = Instant::now();
+    job.solver
+        .validate()
+        .map_err(|e| Error::engine(job_path, e))?;
+    let limits = job.feed_limits().map_err(|e| Error::engine(job_path, e))?;
+    let map_path = job.map.file.as_deref().ok_or_else(|| Error::Job {
+        file: job_path.to_path_buf(),
+        why: "no map: set [map] file (or --map)".into(),
+    })?;
+    let map_file = read_map(map_path)?;
+    let tif = load_tif(job, job_path)?;
+    let (path, previous_dwell_s) = match (&job.dwell.file, job.dwell.raster_pitch_mm) {
+        (Some(f), None) => {
+            let d = read_dwell(f)?;
+            (d.path, d.dwell_s)
+        }
+        (None, Some(pitch)) => {
+            let bbox = map_file
+                .map
+                .bounding_box_mm()
+                .ok_or_else(|| Error::Empty {
+                    file: map_path.to_path_buf(),
+                    why: "no data rows".into(),
+                })?
+                .expanded(tif.nominal_radius_mm());
+            let p = raster::serpentine(&bbox, pitch, job.dwell.raster_along)
+                .map_err(|e| Error::engine(job_path, e))?;
+            (p, None)
+        }
+        (Some(_), Some(_)) => {
+            return Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "[dwell] gives both `file` and `raster_pitch_mm`; choose one".into(),
+            })
+        }
+        (None, None) => {
+            return Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "no dwell points: set [dwell] file or raster_pitch_mm (or --dwell / --raster-pitch-mm)"
+                    .into(),
+            })
+        }
+    };
+    let ds_mm = path.ds_mm();
+    let bounds =
+        DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
+    let map = map_file.map;
+    let influence = InfluenceMatrix::assemble(
+        map.x_mm(),
+        map.y_mm(),
+        path.x_mm(),
+        path.y_mm(),
+        &tif,
+        observer,
+    )?;
+    let problem = Problem::new(
+        influence,
+        map.z_nm().to_vec(),
+        bounds,
+        job.objective.rho,
+        job.objective.lambda,
+    )
+    .map_err(|e| Error::engine(job_path, e))?;
+    Ok(Prepared {
+        map,
+        skipped_rows: map_file.skipped_rows,
+        tif,
+        path,
+        ds_mm,
+        previous_dwell_s,
+        problem,
+        build_seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Runs the solver on prepared inputs and builds the report.
+pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
+    let solution = dwell::solve(&prepared.problem, &job.solver, observer)?;
+    let removal_nm = prepared.problem.influence().removal_nm(&solution.dwell_s)?;
+    let report = Report::new(
+        &prepared.problem,
+        &solution,
+        &removal_nm,
+        &prepared.ds_mm,
+        prepared.skipped_rows,
+        prepared.build_seconds,
+    );
+    Ok(Solved {
+        prepared,
+        solution,
+        removal_nm,
+        report,
+    })
+}
+
+/// Writes `dwell.csv`, `residual.csv` and `report.json` into `out_dir` (created if needed). All
+/// three are fully written to temporary files before any is renamed into place.
+pub fn write_outputs(solved: &Solved, out_dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
+    let p = &solved.prepared;
+    let feeds = feeds_mm_per_min(&p.ds_mm, &solved.solution.dwell_s);
+    let residual = centred_residual_nm(p.map.z_nm(), &solved.removal_nm);
+    let staged = vec![
+        stage_dwell_csv(
+            &out_dir.join("dwell.csv"),
+            p.path.x_mm(),
+            p.path.y_mm(),
+            &p.ds_mm,
+            &solved.solution.dwell_s,
+            &feeds,
+        )?,
+        stage_residual_csv(
+            &out_dir.join("residual.csv"),
+            p.map.x_mm(),
+            p.map.y_mm(),
+            p.map.z_nm(),
+            &solved.removal_nm,
+            &residual,
+        )?,
+        stage_report(&out_dir.join("report.json"), &solved.report)?,
+    ];
+    commit_all(staged)
+}

@@ -1,0 +1,149 @@
+//! `report.json`: what a solve achieved, in the keys of the engine contract.
+
+use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
+use preston_solver::map::HeightStats;
+use serde::{Deserialize, Serialize};
+
+/// The report of one solve (or simulation). Key names are a contract: tests and benchmarks
+/// outside the project read them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    /// Number of measurement points used.
+    pub m: usize,
+    /// Number of dwell points.
+    pub n: usize,
+    /// Non-zeros of the influence matrix.
+    pub nnz: usize,
+    /// Map rows skipped for an empty or NaN height.
+    pub skipped_rows: usize,
+    /// RMS of the error map about its mean, nm.
+    pub rms_before_nm: f64,
+    /// PV of the error map, nm.
+    pub pv_before_nm: f64,
+    /// RMS of the predicted residual about its mean, nm.
+    pub rms_after_nm: f64,
+    /// PV of the predicted residual, nm.
+    pub pv_after_nm: f64,
+    /// Sum of the dwell times, s.
+    pub total_dwell_s: f64,
+    /// Uniform extra removal, nm (the optimal free piston `c = mean(R t - z)`).
+    pub piston_nm: f64,
+    /// `0.5 ||R t - z - c||^2` at the optimal piston, nm^2.
+    pub objective: f64,
+    /// Largest violation of the dwell bounds, s.
+    pub max_bound_violation_s: f64,
+    /// Slowest feed on the path, mm/min.
+    pub min_feed_mm_per_min: f64,
+    /// Fastest feed on the path, mm/min.
+    pub max_feed_mm_per_min: f64,
+    /// Time to read inputs and assemble `R`, s.
+    pub build_seconds: f64,
+    /// Time in the solver, s.
+    pub solve_seconds: f64,
+    /// Solver that produced the dwell times (`qp`, `first-order`, `simulate`, ...).
+    pub solver: String,
+    /// Solver iterations.
+    pub iterations: usize,
+    /// How the solve ended (`converged`, `max_iterations`, ...).
+    pub status: String,
+    /// Projected-gradient (KKT) residual, when the solver computes one.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub kkt_residual: Option<f64>,
+    /// Proven upper bound on `objective - optimum`, when the solver gives one.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub objective_gap_bound: Option<f64>,
+    /// The `rho = 0` optimum a minimum-time solve started from.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub min_time: Option<MinTimeReport>,
+    /// Dwell points with no measurement point in the tool's reach (dwell at lower bound).
+    pub unreachable_dwell_points: usize,
+}
+
+/// Feed at each dwell point, mm/min: `ds / dwell * 60` (0 where `ds` is 0).
+pub fn feeds_mm_per_min(ds_mm: &[f64], dwell_s: &[f64]) -> Vec<f64> {
+    ds_mm
+        .iter()
+        .zip(dwell_s)
+        .map(|(&d, &t)| {
+            if d > 0.0 && t > 0.0 {
+                d / t * 60.0
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// Name of a solver in reports.
+pub fn solver_name(kind: SolverKind) -> String {
+    serde_json::to_value(kind)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_string))
+        .unwrap_or_else(|| format!("{kind:?}"))
+}
+
+/// Name of a status in reports.
+pub fn status_name(status: Status) -> String {
+    serde_json::to_value(status)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_string))
+        .unwrap_or_else(|| format!("{status:?}"))
+}
+
+/// Residual about its mean, nm: `(z - h) - mean(z - h)`.
+pub fn centred_residual_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
+    let e: Vec<f64> = z_nm.iter().zip(removal_nm).map(|(z, h)| z - h).collect();
+    let mean = if e.is_empty() {
+        0.0
+    } else {
+        e.iter().sum::<f64>() / e.len() as f64
+    };
+    e.into_iter().map(|v| v - mean).collect()
+}
+
+impl Report {
+    /// Builds the report of `solution` on `problem`; `removal_nm` is `R t`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        problem: &Problem,
+        solution: &Solution,
+        removal_nm: &[f64],
+        ds_mm: &[f64],
+        skipped_rows: usize,
+        build_seconds: f64,
+    ) -> Self {
+        let before = HeightStats::of(problem.z_nm());
+        let after = HeightStats::of(&centred_residual_nm(problem.z_nm(), removal_nm));
+        let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
+        let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
+        Self {
+            m: problem.m(),
+            n: problem.n(),
+            nnz: problem.influence().nnz(),
+            skipped_rows,
+            rms_before_nm: before.rms_nm,
+            pv_before_nm: before.pv_nm,
+            rms_after_nm: after.rms_nm,
+            pv_after_nm: after.pv_nm,
+            total_dwell_s: solution.dwell_s.iter().sum(),
+            piston_nm: solution.piston_nm,
+            objective: solution.objective,
+            max_bound_violation_s: problem.bounds().max_violation_s(&solution.dwell_s),
+            min_feed_mm_per_min: moving
+                .iter()
+                .copied()
+                .fold(f64::INFINITY, f64::min)
+                .min(f64::MAX),
+            max_feed_mm_per_min: moving.iter().copied().fold(0.0, f64::max),
+            build_seconds,
+            solve_seconds: solution.solve_seconds,
+            solver: solver_name(solution.solver),
+            iterations: solution.iterations,
+            status: status_name(solution.status),
+            kkt_residual: solution.kkt_residual,
+            objective_gap_bound: solution.objective_gap_bound,
+            min_time: solution.min_time,
+            unreachable_dwell_points: problem.influence().empty_columns().len(),
+        }
+    }
+}

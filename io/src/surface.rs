@@ -1,0 +1,216 @@
+//! Files of the geometry commands: surface JSON, point clouds (`x_mm,y_mm,z_mm`), the fit
+//! summary, `transform.json` and surface evaluations. Key and column names are a contract.
+
+use crate::atomic::{stage, Staged};
+use crate::error::{Error, Result};
+use crate::table::{read_table, ColumnSpec};
+use crate::writers::stage_json;
+use preston_solver::fit::FitResult;
+use preston_solver::registration::Registration;
+use preston_solver::surface::{Surface, XyTerm};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Reads and validates a surface JSON document (`{"type": "xy_polynomial", ...}`).
+pub fn read_surface(path: &Path) -> Result<Surface> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let surface: Surface = serde_json::from_str(&text).map_err(|e| Error::Json {
+        file: path.to_path_buf(),
+        why: e.to_string(),
+    })?;
+    surface.validate().map_err(|e| Error::engine(path, e))?;
+    Ok(surface)
+}
+
+/// Stages a surface JSON document.
+pub fn stage_surface(path: &Path, surface: &Surface) -> Result<Staged> {
+    stage_json(path, surface)
+}
+
+/// A 3-D point cloud, mm.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PointCloud {
+    /// x, mm.
+    pub x_mm: Vec<f64>,
+    /// y, mm.
+    pub y_mm: Vec<f64>,
+    /// z, mm.
+    pub z_mm: Vec<f64>,
+}
+
+impl PointCloud {
+    /// The points as `[x, y, z]`.
+    pub fn points(&self) -> Vec<[f64; 3]> {
+        self.x_mm
+            .iter()
+            .zip(&self.y_mm)
+            .zip(&self.z_mm)
+            .map(|((x, y), z)| [*x, *y, *z])
+            .collect()
+    }
+}
+
+/// Reads points `x_mm,y_mm,z_mm` (every cell a finite number; at least one row).
+pub fn read_points(path: &Path) -> Result<PointCloud> {
+    let mut t = read_table(
+        path,
+        &[
+            ColumnSpec::required("x_mm"),
+            ColumnSpec::required("y_mm"),
+            ColumnSpec::required("z_mm"),
+        ],
+    )?;
+    if t.is_empty() {
+        return Err(Error::Empty {
+            file: path.to_path_buf(),
+            why: "no data rows".into(),
+        });
+    }
+    Ok(PointCloud {
+        x_mm: t.take(0).unwrap_or_default(),
+        y_mm: t.take(1).unwrap_or_default(),
+        z_mm: t.take(2).unwrap_or_default(),
+    })
+}
+
+/// What `preston fit` prints: the fitted surface's parameters and the quality of the fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitSummary {
+    /// RMS of the fit residual, nm.
+    pub rms_nm: f64,
+    /// PV of the fit residual, nm.
+    pub pv_nm: f64,
+    /// Condition estimate of the column-scaled least-squares matrix.
+    pub condition_number: f64,
+    /// Number of points fitted.
+    pub points: usize,
+    /// Levenberg-Marquardt iterations (0 when the conic was fixed).
+    pub iterations: usize,
+    /// Vertex curvature of the conic base, 1/mm.
+    pub curvature_per_mm: f64,
+    /// Conic constant of the base.
+    pub conic: f64,
+    /// Normalisation radius, mm.
+    pub norm_radius_mm: f64,
+    /// The fitted terms `{"m", "n", "coef_mm"}`.
+    pub terms: Vec<XyTerm>,
+}
+
+impl FitSummary {
+    /// The summary of a fit.
+    pub fn of(fit: &FitResult) -> Self {
+        Self {
+            rms_nm: fit.rms_nm,
+            pv_nm: fit.pv_nm,
+            condition_number: fit.condition_number,
+            points: fit.points,
+            iterations: fit.iterations,
+            curvature_per_mm: fit.surface.curvature_per_mm,
+            conic: fit.surface.conic,
+            norm_radius_mm: fit.surface.norm_radius_mm,
+            terms: fit.surface.terms.clone(),
+        }
+    }
+}
+
+/// `transform.json` of `preston register`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TransformFile {
+    /// `M`, row-major 4 x 4: `p_design = M p_measured` (homogeneous, mm).
+    pub matrix: [[f64; 4]; 4],
+    /// Rotation vector `[rx, ry, rz]` of `M`'s rotation, arcsec.
+    pub rotation_arcsec: [f64; 3],
+    /// Translation `[tx, ty, tz]` of `M`, um.
+    pub translation_um: [f64; 3],
+    /// RMS of the form error, nm.
+    pub rms_nm: f64,
+    /// Gauss-Newton iterations.
+    pub iterations: usize,
+    /// Whether a stopping test was met.
+    pub converged: bool,
+    /// Number of points registered.
+    pub points: usize,
+    /// Probe radius compensated, mm.
+    pub probe_radius_mm: f64,
+}
+
+impl TransformFile {
+    /// The file content for a registration.
+    pub fn of(reg: &Registration, probe_radius_mm: f64) -> Self {
+        Self {
+            matrix: reg.matrix(),
+            rotation_arcsec: reg.rotation_arcsec(),
+            translation_um: reg.translation_um(),
+            rms_nm: reg.rms_nm,
+            iterations: reg.iterations,
+            converged: reg.converged,
+            points: reg.form_error_nm.len(),
+            probe_radius_mm,
+        }
+    }
+}
+
+/// Stages a CSV file with the given header names and equally long columns.
+pub fn stage_columns_csv(path: &Path, headers: &[&str], columns: &[&[f64]]) -> Result<Staged> {
+    let rows = columns.iter().map(|c| c.len()).min().unwrap_or(0);
+    stage(path, |w| {
+        writeln!(w, "{}", headers.join(","))?;
+        let mut line = String::new();
+        for r in 0..rows {
+            line.clear();
+            for (k, c) in columns.iter().enumerate() {
+                if k > 0 {
+                    line.push(',');
+                }
+                line.push_str(&format!("{}", c[r]));
+            }
+            writeln!(w, "{line}")?;
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    #[test]
+    fn surface_and_points_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("s.json");
+        std::fs::write(
+            &p,
+            r#"{"type":"xy_polynomial","curvature_per_mm":0.001,"conic":-1,"norm_radius_mm":50,"terms":[{"m":1,"n":1,"coef_mm":0.1}]}"#,
+        )
+        .unwrap();
+        let s = read_surface(&p).unwrap();
+        stage_surface(&dir.path().join("t.json"), &s)
+            .unwrap()
+            .commit()
+            .unwrap();
+        assert_eq!(read_surface(&dir.path().join("t.json")).unwrap(), s);
+        std::fs::write(&p, r#"{"type":"xy_polynomial","norm_radius_mm":-1}"#).unwrap();
+        assert!(read_surface(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("norm_radius_mm"));
+        std::fs::write(&p, r#"{"type":"torus"}"#).unwrap();
+        assert!(matches!(read_surface(&p), Err(Error::Json { .. })));
+
+        let c = dir.path().join("p.csv");
+        let mut f = std::fs::File::create(&c).unwrap();
+        writeln!(f, "z_mm,x_mm,y_mm\n3,1,2\n6,4,5").unwrap();
+        let pc = read_points(&c).unwrap();
+        assert_eq!(pc.points(), vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+        let out = dir.path().join("o.csv");
+        stage_columns_csv(&out, &["a_mm", "b_nm"], &[&[1.0, 2.5], &[3.0, -4.0]])
+            .unwrap()
+            .commit()
+            .unwrap();
+        assert_eq!(
+            std::fs::read_to_string(&out).unwrap(),
+            "a_mm,b_nm\n1,3\n2.5,-4\n"
+        );
+    }
+}

@@ -1,0 +1,691 @@
+//! Acceleration limits inside the dwell optimisation, by sequential convex programming (SCP).
+//!
+//! The feed at dwell point `j` is `v_j = ds_j / t_j` (mm/s, `ds_j` from
+//! [`DwellPath::ds_mm`]). With constant acceleration between consecutive dwell points `j` and
+//! `j+1`, a distance `s_j = |P_{j+1} - P_j|` apart, the machine needs
+//! `|v_{j+1}^2 - v_j^2| <= 2 a_max s_j` (kinematics of uniform acceleration, `v^2 = u^2 + 2 a s`).
+//! In dwell time this is not convex. Each SCP iteration linearises `v^2 = ds^2 / t^2` around the
+//! current dwell times, adds the two linear rows per segment to the Clarabel QP of [`super::qp`]
+//! together with a relative trust region `|t - t_k| <= tau t_k`, and solves. The trust region
+//! halves after a step that violates the true constraint by more than the tolerance or worsens
+//! the objective, and grows after a good step. The loop stops when the true constraint holds within
+//! `constraint_tolerance` (1%) and the objective changes by less than `objective_tolerance`.
+//!
+//! **Lines.** Consecutive dwell points are on the same line unless the segment between them is a
+//! *connecting move*: a segment at both of whose ends the path turns by more than
+//! `corner_angle_deg` (the step between raster lines, for example). Connecting moves carry no
+//! constraint (the machine reorients there); every other segment does. With the default 60 deg a
+//! serpentine raster splits into its lines; a spiral is one line.
+//!
+//! **Start.** The SCP starts from a point that satisfies the limits: interval propagation of
+//! `u_j = v_j^2` along each line (forward: reachable sets; backward: the value nearest to the
+//! feed-limited optimum). An empty reachable set proves that no feed schedule meets the limits
+//! inside the dwell bounds; that is an [`Error::InvalidInput`] naming the point.
+
+use super::qp::{self, ExtraRows};
+use super::{DwellBounds, Problem, Settings, Solution, SolverKind, Status};
+use crate::error::{Error, Result};
+use crate::observer::{IterationInfo, Observer, Stage};
+use crate::path::DwellPath;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Acceleration limit and SCP settings. Job files may set any field.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AccelLimits {
+    /// Largest tangential acceleration of the machine along a line, mm/s^2.
+    pub a_max_mm_per_s2: f64,
+    /// A segment at both of whose ends the path turns by more than this angle, degrees, is a
+    /// connecting move without a constraint (see the module documentation).
+    pub corner_angle_deg: f64,
+    /// Relative tolerance on the constraint: achieved `|dv^2| / (2 s) <= (1 + tol) a_max`.
+    pub constraint_tolerance: f64,
+    /// The objective has settled when it changes by less than this fraction between iterations.
+    pub objective_tolerance: f64,
+    /// Largest number of SCP iterations (QP solves after the feed-limited reference).
+    pub max_iterations: usize,
+    /// Initial relative trust region `tau`: `|t_j - t_j^k| <= tau t_j^k`.
+    pub trust_region: f64,
+}
+
+impl Default for AccelLimits {
+    fn default() -> Self {
+        Self {
+            a_max_mm_per_s2: 1000.0,
+            corner_angle_deg: 60.0,
+            constraint_tolerance: 0.01,
+            objective_tolerance: 1e-4,
+            max_iterations: 50,
+            trust_region: 0.5,
+        }
+    }
+}
+
+impl AccelLimits {
+    /// Limits with `a_max` (mm/s^2) and default SCP settings.
+    pub fn new(a_max_mm_per_s2: f64) -> Self {
+        Self {
+            a_max_mm_per_s2,
+            ..Self::default()
+        }
+    }
+
+    /// Checks every field's range.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.a_max_mm_per_s2.is_finite() && self.a_max_mm_per_s2 > 0.0) {
+            return Err(Error::invalid(
+                "a_max_mm_per_s2",
+                format!("must be positive and finite, got {}", self.a_max_mm_per_s2),
+            ));
+        }
+        if !(self.corner_angle_deg.is_finite()
+            && self.corner_angle_deg >= 0.0
+            && self.corner_angle_deg <= 180.0)
+        {
+            return Err(Error::invalid(
+                "corner_angle_deg",
+                format!("must be in [0, 180], got {}", self.corner_angle_deg),
+            ));
+        }
+        for (name, v) in [
+            ("constraint_tolerance", self.constraint_tolerance),
+            ("objective_tolerance", self.objective_tolerance),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v < 1.0) {
+                return Err(Error::invalid(name, format!("must be in (0, 1), got {v}")));
+            }
+        }
+        if !(self.trust_region.is_finite() && self.trust_region > 0.0 && self.trust_region <= 1.0) {
+            return Err(Error::invalid(
+                "trust_region",
+                format!("must be in (0, 1], got {}", self.trust_region),
+            ));
+        }
+        if self.max_iterations == 0 {
+            return Err(Error::invalid("max_iterations", "must be at least 1"));
+        }
+        Ok(())
+    }
+}
+
+/// What the acceleration-limited solve achieved, next to the feed-limited-only optimum.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AccelReport {
+    /// The limit imposed, mm/s^2.
+    pub a_max_mm_per_s2: f64,
+    /// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` over constrained segments of the result, mm/s^2.
+    pub max_accel_mm_per_s2: f64,
+    /// The same for the feed-limited-only optimum, mm/s^2.
+    pub max_accel_reference_mm_per_s2: f64,
+    /// SCP iterations (QP solves after the reference).
+    pub scp_iterations: usize,
+    /// Segments that carry the constraint.
+    pub constrained_segments: usize,
+    /// Segments whose acceleration is within 1% of the limit (binding).
+    pub binding_segments: usize,
+    /// RMS of the predicted residual about its mean, nm: `sqrt(2 objective / m)`.
+    pub rms_after_nm: f64,
+    /// The same for the feed-limited-only optimum, nm.
+    pub rms_after_reference_nm: f64,
+    /// `0.5 ||R t - z - c||^2` of the result, nm^2.
+    pub objective: f64,
+    /// The same for the feed-limited-only optimum, nm^2.
+    pub objective_reference: f64,
+    /// Price of the limit: `objective - objective_reference`, nm^2 (non-negative up to solver
+    /// tolerance when `rho = lambda = 0`).
+    pub objective_gap: f64,
+    /// How the SCP ended.
+    pub status: Status,
+}
+
+/// The acceleration-limited solution with its report and the feed-limited reference.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AccelSolution {
+    /// The dwell times that meet the limit (the best point found that meets it within tolerance).
+    pub solution: Solution,
+    /// What was achieved.
+    pub report: AccelReport,
+    /// The feed-limited-only optimum the SCP started from.
+    pub reference: Solution,
+}
+
+/// Segment lengths `s_j = |P_{j+1} - P_j|`, mm (n - 1 entries).
+pub fn segment_lengths_mm(path: &DwellPath) -> Vec<f64> {
+    path.x_mm()
+        .windows(2)
+        .zip(path.y_mm().windows(2))
+        .map(|(x, y)| match (x, y) {
+            ([x0, x1], [y0, y1]) => (x1 - x0).hypot(y1 - y0),
+            _ => 0.0,
+        })
+        .collect()
+}
+
+/// Turn angle of the path at each point, degrees: the angle between the incoming and outgoing
+/// segments (0 at the two ends and where a segment has zero length).
+pub fn turn_angles_deg(path: &DwellPath) -> Vec<f64> {
+    let (x, y) = (path.x_mm(), path.y_mm());
+    let n = path.len();
+    let mut out = vec![0.0; n];
+    for j in 1..n.saturating_sub(1) {
+        let (ax, ay) = (x[j] - x[j - 1], y[j] - y[j - 1]);
+        let (bx, by) = (x[j + 1] - x[j], y[j + 1] - y[j]);
+        let (la, lb) = (ax.hypot(ay), bx.hypot(by));
+        if la > 0.0 && lb > 0.0 {
+            let c = ((ax * bx + ay * by) / (la * lb)).clamp(-1.0, 1.0);
+            out[j] = c.acos().to_degrees();
+        }
+    }
+    out
+}
+
+/// For each segment `(j, j+1)`: true when it carries the acceleration constraint, false for a
+/// connecting move (the path turns by more than `corner_angle_deg` at both of its ends).
+pub fn constrained_segments(path: &DwellPath, corner_angle_deg: f64) -> Vec<bool> {
+    let turn = turn_angles_deg(path);
+    turn.windows(2)
+        .map(|w| !(w[0] > corner_angle_deg && w[1] > corner_angle_deg))
+        .collect()
+}
+
+/// Acceleration of each segment under constant acceleration between dwell points,
+/// `a_j = |v_{j+1}^2 - v_j^2| / (2 s_j)` with `v = ds / t`, mm/s^2; `None` for connecting moves,
+/// zero-length segments and dwell times that are not positive.
+pub fn segment_accelerations_mm_per_s2(
+    path: &DwellPath,
+    dwell_s: &[f64],
+    corner_angle_deg: f64,
+) -> Vec<Option<f64>> {
+    let ds = path.ds_mm();
+    let seg = segment_lengths_mm(path);
+    let cons = constrained_segments(path, corner_angle_deg);
+    let v2 = |j: usize| -> Option<f64> {
+        let t = *dwell_s.get(j)?;
+        let d = *ds.get(j)?;
+        (t > 0.0).then(|| (d / t) * (d / t))
+    };
+    (0..seg.len())
+        .map(|j| {
+            if !cons[j] || seg[j] <= 0.0 {
+                return None;
+            }
+            Some((v2(j + 1)? - v2(j)?).abs() / (2.0 * seg[j]))
+        })
+        .collect()
+}
+
+/// Largest segment acceleration (see [`segment_accelerations_mm_per_s2`]), mm/s^2; 0 if none.
+pub fn max_acceleration_mm_per_s2(path: &DwellPath, dwell_s: &[f64], corner_angle_deg: f64) -> f64 {
+    segment_accelerations_mm_per_s2(path, dwell_s, corner_angle_deg)
+        .into_iter()
+        .flatten()
+        .fold(0.0, f64::max)
+}
+
+/// The kinematic data of the constraint: per point `ds`, per segment `2 a_max s` and whether it
+/// is constrained.
+struct Kinematics {
+    ds: Vec<f64>,
+    cap: Vec<f64>,
+    constrained: Vec<bool>,
+}
+
+impl Kinematics {
+    fn new(path: &DwellPath, limits: &AccelLimits) -> Self {
+        let seg = segment_lengths_mm(path);
+        Self {
+            ds: path.ds_mm(),
+            cap: seg
+                .iter()
+                .map(|s| 2.0 * limits.a_max_mm_per_s2 * s)
+                .collect(),
+            constrained: constrained_segments(path, limits.corner_angle_deg),
+        }
+    }
+
+    fn v2(&self, j: usize, t: &[f64]) -> f64 {
+        let d = self.ds[j];
+        if d == 0.0 {
+            0.0
+        } else {
+            (d / t[j]) * (d / t[j])
+        }
+    }
+
+    /// Largest `|dv^2| / cap - 1` over constrained segments (<= 0: the limit holds).
+    fn violation(&self, t: &[f64]) -> f64 {
+        let mut worst = f64::NEG_INFINITY;
+        for j in 0..self.cap.len() {
+            if !self.constrained[j] {
+                continue;
+            }
+            let g = (self.v2(j + 1, t) - self.v2(j, t)).abs();
+            let r = if self.cap[j] > 0.0 {
+                g / self.cap[j] - 1.0
+            } else if g > 0.0 {
+                f64::INFINITY
+            } else {
+                -1.0
+            };
+            worst = worst.max(r);
+        }
+        if worst == f64::NEG_INFINITY {
+            -1.0
+        } else {
+            worst
+        }
+    }
+}
+
+/// Solves the dwell problem with the acceleration limit: first the feed-limited optimum
+/// ([`super::solve`]), then the SCP. `settings` apply to each QP; the SCP minimises the contract
+/// objective (minimum-time mode applies to the reference only).
+pub fn solve(
+    problem: &Problem,
+    path: &DwellPath,
+    limits: &AccelLimits,
+    settings: &Settings,
+    observer: &dyn Observer,
+) -> Result<AccelSolution> {
+    limits.validate()?;
+    settings.validate()?;
+    let start = Instant::now();
+    let n = problem.n();
+    if path.len() != n {
+        return Err(Error::LengthMismatch {
+            what: "dwell path",
+            got: path.len(),
+            expected: n,
+        });
+    }
+    let kin = Kinematics::new(path, limits);
+    let bounds = problem.bounds();
+    let (lo_u, hi_u) = speed_boxes(&kin, bounds)?;
+    let reachable = forward_reachable(&kin, &lo_u, &hi_u, limits)?;
+
+    let reference = super::solve(problem, settings, observer)?;
+    let settle_scale = 1e-12 * 0.5 * problem.z_nm().iter().map(|z| z * z).sum::<f64>();
+    let tol = limits.constraint_tolerance;
+
+    let mut t = feasible_start(&kin, &reachable, &reference.dwell_s, bounds);
+    let mut best_t = t.clone();
+    let mut best_f = problem.evaluate(&t)?.full_objective;
+    let mut prev_f = best_f;
+    let mut tau = limits.trust_region;
+    let mut status = Status::MaxIterations;
+    let mut iterations = 0;
+    let mut qp_iterations = reference.iterations;
+
+    if kin.violation(&reference.dwell_s) <= tol {
+        // The feed-limited optimum already meets the limit.
+        best_t = reference.dwell_s.clone();
+        status = reference.status;
+    } else {
+        observer.start(Stage::Loop, limits.max_iterations as u64);
+        while iterations < limits.max_iterations {
+            iterations += 1;
+            let (trust, rows) = linearise(&kin, &t, bounds, tau)?;
+            let (st, t_new, it) = qp::solve_with_rows(problem, &trust, &rows, settings, observer)?;
+            qp_iterations += it;
+            observer.advance(Stage::Loop, 1);
+            if !st.is_converged() {
+                // Restart from the best point with a smaller region.
+                t = best_t.clone();
+                prev_f = best_f;
+                tau *= 0.5;
+                if tau < 1e-6 {
+                    break;
+                }
+                continue;
+            }
+            let mut t_new = t_new;
+            bounds.project(&mut t_new);
+            let f = problem.evaluate(&t_new)?.full_objective;
+            let viol = kin.violation(&t_new);
+            observer.iteration(&IterationInfo {
+                iteration: iterations,
+                objective: f,
+                kkt_residual: None,
+            });
+            let feasible = viol <= tol;
+            let settled =
+                (f - prev_f).abs() <= limits.objective_tolerance * f.abs().max(settle_scale);
+            if feasible && f <= best_f {
+                best_f = f;
+                best_t = t_new.clone();
+            }
+            if feasible && settled {
+                status = Status::Converged;
+                if f > best_f {
+                    // Settled at a point no better than the best: return the best.
+                } else {
+                    best_t = t_new;
+                }
+                break;
+            }
+            if !feasible || f > prev_f {
+                tau = (tau * 0.5).max(1e-6);
+            } else {
+                tau = (tau * 1.5).min(limits.trust_region);
+            }
+            prev_f = f;
+            t = t_new;
+        }
+        observer.finish(Stage::Loop);
+    }
+
+    let eval = problem.evaluate(&best_t)?;
+    let ref_eval_obj = reference.objective;
+    let m = problem.m() as f64;
+    let max_a = max_acceleration_mm_per_s2(path, &best_t, limits.corner_angle_deg);
+    let accels = segment_accelerations_mm_per_s2(path, &best_t, limits.corner_angle_deg);
+    let report = AccelReport {
+        a_max_mm_per_s2: limits.a_max_mm_per_s2,
+        max_accel_mm_per_s2: max_a,
+        max_accel_reference_mm_per_s2: max_acceleration_mm_per_s2(
+            path,
+            &reference.dwell_s,
+            limits.corner_angle_deg,
+        ),
+        scp_iterations: iterations,
+        constrained_segments: kin.constrained.iter().filter(|&&c| c).count(),
+        binding_segments: accels
+            .iter()
+            .flatten()
+            .filter(|&&a| a >= 0.99 * limits.a_max_mm_per_s2)
+            .count(),
+        rms_after_nm: (2.0 * eval.objective / m).max(0.0).sqrt(),
+        rms_after_reference_nm: (2.0 * ref_eval_obj / m).max(0.0).sqrt(),
+        objective: eval.objective,
+        objective_reference: ref_eval_obj,
+        objective_gap: eval.objective - ref_eval_obj,
+        status,
+    };
+    let solution = Solution {
+        status,
+        solver: SolverKind::Qp,
+        piston_nm: eval.piston_nm,
+        objective: eval.objective,
+        dwell_s: best_t,
+        iterations: qp_iterations,
+        solve_seconds: start.elapsed().as_secs_f64(),
+        kkt_residual: None,
+        objective_gap_bound: None,
+        min_time: reference.min_time,
+    };
+    Ok(AccelSolution {
+        solution,
+        report,
+        reference,
+    })
+}
+
+/// Boxes on `u_j = v_j^2` implied by the dwell bounds: `[(ds/ub)^2, (ds/lb)^2]`, mm^2/s^2.
+fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
+    let n = kin.ds.len();
+    let mut lo = vec![0.0; n];
+    let mut hi = vec![0.0; n];
+    for j in 0..n {
+        let d = kin.ds[j];
+        if d == 0.0 {
+            continue;
+        }
+        let lb = bounds.lower_s()[j];
+        if !(lb > 0.0) {
+            return Err(Error::invalid(
+                "dwell lower bound",
+                format!(
+                    "point {j}: acceleration limits need a positive lower dwell bound \
+                     (a finite maximum feed), got {lb} s"
+                ),
+            ));
+        }
+        let ub = bounds.upper(j);
+        lo[j] = if ub.is_finite() {
+            (d / ub).powi(2)
+        } else {
+            0.0
+        };
+        hi[j] = (d / lb).powi(2);
+    }
+    Ok((lo, hi))
+}
+
+/// Forward reachable intervals of `u_j` along each line; an empty one is an error.
+fn forward_reachable(
+    kin: &Kinematics,
+    lo: &[f64],
+    hi: &[f64],
+    limits: &AccelLimits,
+) -> Result<Vec<(f64, f64)>> {
+    let n = lo.len();
+    let mut out = Vec::with_capacity(n);
+    out.push((lo[0], hi[0]));
+    for j in 0..n.saturating_sub(1) {
+        let (plo, phi) = out[j];
+        let (mut a, mut b) = (lo[j + 1], hi[j + 1]);
+        if kin.constrained[j] {
+            a = a.max(plo - kin.cap[j]);
+            b = b.min(phi + kin.cap[j]);
+        }
+        if a > b * (1.0 + 1e-12) + 1e-300 {
+            let fmt = |u: f64| u.max(0.0).sqrt() * 60.0;
+            return Err(Error::invalid(
+                "a_max_mm_per_s2",
+                format!(
+                    "no feed schedule meets {} mm/s^2 within the feed limits: dwell point {} \
+                     needs a feed in [{:.6}, {:.6}] mm/min but from point {} only \
+                     [{:.6}, {:.6}] mm/min can be reached over {:.6} mm",
+                    limits.a_max_mm_per_s2,
+                    j + 1,
+                    fmt(lo[j + 1]),
+                    fmt(hi[j + 1]),
+                    j,
+                    fmt(plo - kin.cap[j]),
+                    fmt(phi + kin.cap[j]),
+                    kin.cap[j] / (2.0 * limits.a_max_mm_per_s2)
+                ),
+            ));
+        }
+        out.push((a, b.max(a)));
+    }
+    Ok(out)
+}
+
+/// Backward pass: `u_j` nearest to the target inside the reachable interval and within `cap` of
+/// `u_{j+1}`; returns dwell times `t_j = ds_j / sqrt(u_j)`.
+fn feasible_start(
+    kin: &Kinematics,
+    reach: &[(f64, f64)],
+    target_t: &[f64],
+    bounds: &DwellBounds,
+) -> Vec<f64> {
+    let n = reach.len();
+    let target_u = |j: usize| -> f64 {
+        let t = target_t.get(j).copied().unwrap_or(0.0);
+        if t > 0.0 {
+            (kin.ds[j] / t).powi(2)
+        } else {
+            f64::INFINITY
+        }
+    };
+    let mut u = vec![0.0; n];
+    for j in (0..n).rev() {
+        let (mut a, mut b) = reach[j];
+        if j + 1 < n && kin.constrained[j] {
+            a = a.max(u[j + 1] - kin.cap[j]);
+            b = b.min(u[j + 1] + kin.cap[j]);
+        }
+        u[j] = if a <= b {
+            target_u(j).clamp(a, b)
+        } else {
+            0.5 * (a + b)
+        };
+    }
+    let mut t: Vec<f64> = (0..n)
+        .map(|j| {
+            if kin.ds[j] == 0.0 || u[j] <= 0.0 {
+                if kin.ds[j] == 0.0 {
+                    target_t.get(j).copied().unwrap_or(0.0)
+                } else {
+                    bounds.upper(j)
+                }
+            } else {
+                kin.ds[j] / u[j].sqrt()
+            }
+        })
+        .collect();
+    bounds.project(&mut t);
+    t
+}
+
+/// The trust-region box and the linearised rows around `t`.
+fn linearise(
+    kin: &Kinematics,
+    t: &[f64],
+    bounds: &DwellBounds,
+    tau: f64,
+) -> Result<(DwellBounds, ExtraRows)> {
+    let n = t.len();
+    let lower: Vec<f64> = (0..n)
+        .map(|j| bounds.lower_s()[j].max(t[j] * (1.0 - tau)))
+        .collect();
+    let upper: Vec<f64> = (0..n)
+        .map(|j| bounds.upper(j).min(t[j] * (1.0 + tau)).max(lower[j]))
+        .collect();
+    let trust = DwellBounds::new(lower, Some(upper))?;
+    // p_j(t) = ds_j^2 / t_j^2, p'_j = -2 ds_j^2 / t_j^3.
+    let p = |j: usize| kin.v2(j, t);
+    let dp = |j: usize| {
+        if kin.ds[j] == 0.0 {
+            0.0
+        } else {
+            -2.0 * p(j) / t[j]
+        }
+    };
+    let mut rows = ExtraRows {
+        by_column: vec![Vec::new(); n],
+        rhs: Vec::new(),
+    };
+    for j in 0..n.saturating_sub(1) {
+        if !kin.constrained[j] {
+            continue;
+        }
+        let cap = kin.cap[j];
+        // Scale each row by 1 / cap (or by 1 / |g0| scale where cap is 0).
+        let scale = if cap > 0.0 {
+            1.0 / cap
+        } else {
+            1.0 / (p(j) + p(j + 1)).max(1e-12)
+        };
+        let g0 = p(j + 1) - p(j);
+        let (a1, a0) = (dp(j + 1), -dp(j));
+        let lin0 = a1 * t[j + 1] + a0 * t[j];
+        // g0 + a1 (t1 - t1k) + a0 (t0 - t0k) <= cap
+        let r_up = rows.rhs.len();
+        rows.rhs.push(scale * (cap - g0 + lin0));
+        rows.by_column[j + 1].push((r_up, scale * a1));
+        rows.by_column[j].push((r_up, scale * a0));
+        // -(...) <= cap
+        let r_dn = rows.rhs.len();
+        rows.rhs.push(scale * (cap + g0 - lin0));
+        rows.by_column[j + 1].push((r_dn, -scale * a1));
+        rows.by_column[j].push((r_dn, -scale * a0));
+    }
+    Ok((trust, rows))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dwell::FeedLimits;
+    use crate::influence::InfluenceMatrix;
+    use crate::observer::Silent;
+    use crate::tif::GaussianTif;
+
+    /// A 1-D line of dwell points over a map with a deep trench: the feed-limited optimum slows
+    /// sharply, so a small acceleration limit binds.
+    fn trench_problem(a_free: bool) -> (Problem, DwellPath) {
+        let pitch = 0.5;
+        let n = 41;
+        let xs: Vec<f64> = (0..n).map(|j| j as f64 * pitch).collect();
+        let path = DwellPath::new(xs.clone(), vec![0.0; n]).unwrap();
+        let mx: Vec<f64> = (0..161).map(|i| -2.0 + i as f64 * 0.15).collect();
+        let my = vec![0.0; mx.len()];
+        let z: Vec<f64> = mx
+            .iter()
+            .map(|&x| 50.0 + 400.0 * (-(x - 10.0f64).powi(2) / 2.0).exp())
+            .collect();
+        let tif = GaussianTif::new(1.0, 100.0, 3.0).unwrap();
+        let r = InfluenceMatrix::assemble(&mx, &my, &xs, &vec![0.0; n], &tif, &Silent).unwrap();
+        let lim = FeedLimits {
+            v_max_mm_per_min: 600.0,
+            v_min_mm_per_min: if a_free { 0.0 } else { 6.0 },
+        };
+        let b = DwellBounds::from_feeds(&path.ds_mm(), &lim).unwrap();
+        (Problem::new(r, z, b, 0.0, 0.0).unwrap(), path)
+    }
+
+    #[test]
+    fn lines_split_at_raster_steps() {
+        // Two lines of three points joined by a step in y.
+        let p = DwellPath::new(
+            vec![0.0, 1.0, 2.0, 2.0, 1.0, 0.0],
+            vec![0.0, 0.0, 0.0, 1.0, 1.0, 1.0],
+        )
+        .unwrap();
+        let c = constrained_segments(&p, 60.0);
+        assert_eq!(c, vec![true, true, false, true, true]);
+        let whole = constrained_segments(&p, 180.0);
+        assert!(whole.iter().all(|&b| b));
+    }
+
+    #[test]
+    fn segment_acceleration_matches_kinematics() {
+        // Uniform pitch 1 mm, ds = 1 mm: v = 1/t; from 10 to 20 mm/s over 1 mm: (400-100)/2.
+        let p = DwellPath::new(vec![0.0, 1.0, 2.0], vec![0.0; 3]).unwrap();
+        let a = segment_accelerations_mm_per_s2(&p, &[0.1, 0.05, 0.05], 60.0);
+        assert!((a[0].unwrap() - 150.0).abs() < 1e-9);
+        assert!(a[1].unwrap().abs() < 1e-9);
+    }
+
+    #[test]
+    fn scp_meets_binding_limit() {
+        let (problem, path) = trench_problem(false);
+        let settings = Settings::default();
+        let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
+        let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
+        let a_max = 0.2 * a_free;
+        let limits = AccelLimits::new(a_max);
+        let out = solve(&problem, &path, &limits, &settings, &Silent).unwrap();
+        let a = max_acceleration_mm_per_s2(&path, &out.solution.dwell_s, 60.0);
+        assert!(
+            a <= a_max * (1.0 + limits.constraint_tolerance),
+            "{a} > {a_max}"
+        );
+        assert!(out.report.binding_segments > 0, "{:?}", out.report);
+        assert!(out.solution.objective >= free.objective * (1.0 - 1e-6));
+        assert_eq!(out.solution.status, Status::Converged, "{:?}", out.report);
+        assert!(problem.bounds().max_violation_s(&out.solution.dwell_s) < 1e-12);
+    }
+
+    #[test]
+    fn impossible_limits_are_errors() {
+        // Point 1 must be slow (>= 1 s dwell), its neighbours fast, 1 mm apart, tiny a_max.
+        let path = DwellPath::new(vec![0.0, 1.0, 2.0], vec![0.0; 3]).unwrap();
+        let b = DwellBounds::new(vec![0.01, 1.0, 0.01], Some(vec![0.011, 2.0, 0.011])).unwrap();
+        let r = nalgebra_sparse::CscMatrix::identity(3);
+        let problem =
+            Problem::new(InfluenceMatrix::from_csc(r), vec![1.0; 3], b, 0.0, 0.0).unwrap();
+        let err = solve(
+            &problem,
+            &path,
+            &AccelLimits::new(1.0),
+            &Settings::default(),
+            &Silent,
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("no feed schedule"), "{err}");
+    }
+}

@@ -1,0 +1,396 @@
+//! Dwell-time optimisation: the problem contract, solver settings and solutions.
+//!
+//! The contract (engine issue): minimise over `t` and a free piston `c`
+//! `0.5 ||R t - z - c 1||^2 + rho sum(t) + 0.5 lambda ||D t||^2` subject to
+//! `ds_j / v_max <= t_j <= ds_j / v_min`, where `D` differences consecutive dwell times.
+
+pub mod accel;
+pub mod bounds;
+pub mod qp;
+
+pub use bounds::{DwellBounds, FeedLimits};
+
+use crate::error::{Error, Result};
+use crate::influence::InfluenceMatrix;
+use crate::map::HeightStats;
+use crate::observer::Observer;
+use serde::{Deserialize, Serialize};
+
+/// A validated dwell problem: the influence matrix, the error map, bounds and weights.
+#[derive(Debug, Clone)]
+pub struct Problem {
+    influence: InfluenceMatrix,
+    z_nm: Vec<f64>,
+    bounds: DwellBounds,
+    rho: f64,
+    lambda: f64,
+}
+
+impl Problem {
+    /// Builds the problem; `z_nm` has one entry per row of `R`, the bounds one per column,
+    /// `rho >= 0` (nm^2 per s of dwell) and `lambda >= 0` (nm^2/s^2) finite.
+    pub fn new(
+        influence: InfluenceMatrix,
+        z_nm: Vec<f64>,
+        bounds: DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> Result<Self> {
+        if z_nm.len() != influence.nrows() {
+            return Err(Error::LengthMismatch {
+                what: "z_nm",
+                got: z_nm.len(),
+                expected: influence.nrows(),
+            });
+        }
+        if z_nm.is_empty() {
+            return Err(Error::invalid("map", "has no points"));
+        }
+        if bounds.len() != influence.ncols() {
+            return Err(Error::LengthMismatch {
+                what: "dwell bounds",
+                got: bounds.len(),
+                expected: influence.ncols(),
+            });
+        }
+        if let Some((i, z)) = z_nm.iter().enumerate().find(|(_, z)| !z.is_finite()) {
+            return Err(Error::NonFinite {
+                what: "map",
+                index: i,
+                detail: format!("z_nm={z}"),
+            });
+        }
+        for (name, v) in [("rho", rho), ("lambda", lambda)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(Error::invalid(name, format!("must be >= 0, got {v}")));
+            }
+        }
+        Ok(Self {
+            influence,
+            z_nm,
+            bounds,
+            rho,
+            lambda,
+        })
+    }
+
+    /// The influence matrix `R` (m x n).
+    pub fn influence(&self) -> &InfluenceMatrix {
+        &self.influence
+    }
+
+    /// The height error to remove, nm.
+    pub fn z_nm(&self) -> &[f64] {
+        &self.z_nm
+    }
+
+    /// The dwell-time bounds.
+    pub fn bounds(&self) -> &DwellBounds {
+        &self.bounds
+    }
+
+    /// Weight of the total dwell time, `rho`.
+    pub fn rho(&self) -> f64 {
+        self.rho
+    }
+
+    /// Weight of the smoothness term, `lambda`.
+    pub fn lambda(&self) -> f64 {
+        self.lambda
+    }
+
+    /// Number of measurement points `m`.
+    pub fn m(&self) -> usize {
+        self.influence.nrows()
+    }
+
+    /// Number of dwell points `n`.
+    pub fn n(&self) -> usize {
+        self.influence.ncols()
+    }
+
+    /// The same problem with other weights (used by the minimum-time mode).
+    pub fn with_weights(&self, rho: f64, lambda: f64) -> Result<Self> {
+        Self::new(
+            self.influence.clone(),
+            self.z_nm.clone(),
+            self.bounds.clone(),
+            rho,
+            lambda,
+        )
+    }
+
+    /// The problem without the listed columns (sorted, unique), and the kept column indices.
+    /// The removed dwell points' lower-bound removal is not included (callers put them at the
+    /// lower bound only when their columns are empty).
+    pub fn without_columns(&self, removed: &[usize]) -> Result<(Self, Vec<usize>)> {
+        let csc = self.influence.csc();
+        let n = csc.ncols();
+        let mut keep = vec![true; n];
+        for &j in removed {
+            if let Some(k) = keep.get_mut(j) {
+                *k = false;
+            }
+        }
+        let kept: Vec<usize> = (0..n).filter(|&j| keep[j]).collect();
+        let (off, rows, vals) = csc.csc_data();
+        let mut new_off = Vec::with_capacity(kept.len() + 1);
+        new_off.push(0);
+        let mut new_rows = Vec::new();
+        let mut new_vals = Vec::new();
+        for &j in &kept {
+            let (a, b) = (off[j], off[j + 1]);
+            new_rows.extend_from_slice(&rows[a..b]);
+            new_vals.extend_from_slice(&vals[a..b]);
+            new_off.push(new_rows.len());
+        }
+        let sub = nalgebra_sparse::CscMatrix::try_from_csc_data(
+            csc.nrows(),
+            kept.len(),
+            new_off,
+            new_rows,
+            new_vals,
+        )
+        .map_err(|e| Error::Numerical {
+            stage: "column selection",
+            why: e.to_string(),
+        })?;
+        let lower: Vec<f64> = kept.iter().map(|&j| self.bounds.lower_s()[j]).collect();
+        let upper = self
+            .bounds
+            .upper_s()
+            .map(|u| kept.iter().map(|&j| u[j]).collect());
+        let problem = Self::new(
+            InfluenceMatrix::from_csc(sub),
+            self.z_nm.clone(),
+            DwellBounds::new(lower, upper)?,
+            self.rho,
+            self.lambda,
+        )?;
+        Ok((problem, kept))
+    }
+
+    /// Evaluates a dwell vector: removal, optimal piston and the contract's objective terms.
+    pub fn evaluate(&self, dwell_s: &[f64]) -> Result<Evaluation> {
+        let removal_nm = self.influence.removal_nm(dwell_s)?;
+        let m = removal_nm.len() as f64;
+        // Optimal piston: c = mean(R t - z).
+        let piston_nm = removal_nm
+            .iter()
+            .zip(&self.z_nm)
+            .map(|(h, z)| h - z)
+            .sum::<f64>()
+            / m;
+        let residual_sq: f64 = removal_nm
+            .iter()
+            .zip(&self.z_nm)
+            .map(|(h, z)| {
+                let r = h - z - piston_nm;
+                r * r
+            })
+            .sum();
+        let smooth_sq: f64 = dwell_s.windows(2).map(|w| (w[1] - w[0]).powi(2)).sum();
+        let total_dwell_s: f64 = dwell_s.iter().sum();
+        Ok(Evaluation {
+            objective: 0.5 * residual_sq,
+            full_objective: 0.5 * residual_sq
+                + self.rho * total_dwell_s
+                + 0.5 * self.lambda * smooth_sq,
+            piston_nm,
+            total_dwell_s,
+            removal_nm,
+        })
+    }
+
+    /// Statistics of the error map before polishing.
+    pub fn stats_before(&self) -> HeightStats {
+        HeightStats::of(&self.z_nm)
+    }
+}
+
+/// What a dwell vector achieves on a problem.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Evaluation {
+    /// `0.5 ||R t - z - c||^2` at the optimal piston `c` (nm^2).
+    pub objective: f64,
+    /// The whole contract objective, with the `rho` and `lambda` terms.
+    pub full_objective: f64,
+    /// Optimal piston `c = mean(R t - z)`, nm: the uniform extra layer removed.
+    pub piston_nm: f64,
+    /// Sum of dwell times, s.
+    pub total_dwell_s: f64,
+    /// Predicted removal `R t` at the measurement points, nm.
+    pub removal_nm: Vec<f64>,
+}
+
+/// Which solver to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum SolverChoice {
+    /// Sparse interior-point QP (Clarabel).
+    Qp,
+    /// Choose by problem size.
+    #[default]
+    Auto,
+}
+
+/// The solver that produced a solution.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SolverKind {
+    /// Clarabel interior-point QP.
+    Qp,
+}
+
+/// How a solve ended. Not converging is a status, not an error.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Status {
+    /// Converged to the requested tolerance.
+    Converged,
+    /// Converged to a reduced tolerance.
+    AlmostConverged,
+    /// Stopped at the iteration limit.
+    MaxIterations,
+    /// Stopped at the time limit.
+    TimeLimit,
+    /// The problem has no feasible point.
+    Infeasible,
+    /// The solver hit a numerical difficulty and stopped.
+    NumericalError,
+}
+
+impl Status {
+    /// True for the statuses whose dwell times can be trusted as optimal.
+    pub fn is_converged(self) -> bool {
+        matches!(self, Status::Converged | Status::AlmostConverged)
+    }
+}
+
+/// Solver settings. Every field has a default; job files may set any of them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Settings {
+    /// Which solver to run.
+    pub solver: SolverChoice,
+    /// Minimum-time mode: find the smallest total dwell whose objective is within
+    /// `min_time_tolerance` (relative) of the `rho = 0` optimum.
+    pub min_time: bool,
+    /// Relative objective tolerance of the minimum-time mode (0.001 = 0.1%).
+    pub min_time_tolerance: f64,
+    /// Relative optimality tolerance.
+    pub tolerance: f64,
+    /// Iteration limit.
+    pub max_iterations: usize,
+    /// Wall-clock limit of one solve, s.
+    pub time_limit_s: f64,
+    /// Print the solver's iteration log (Clarabel prints it on stdout).
+    pub verbose: bool,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            solver: SolverChoice::Auto,
+            min_time: false,
+            min_time_tolerance: 1e-3,
+            tolerance: 1e-8,
+            max_iterations: 200,
+            time_limit_s: f64::INFINITY,
+            verbose: false,
+        }
+    }
+}
+
+impl Settings {
+    /// Checks every field's range.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.min_time_tolerance.is_finite() && self.min_time_tolerance > 0.0) {
+            return Err(Error::invalid(
+                "min_time_tolerance",
+                format!("must be positive, got {}", self.min_time_tolerance),
+            ));
+        }
+        if !(self.tolerance.is_finite() && self.tolerance > 0.0 && self.tolerance < 1.0) {
+            return Err(Error::invalid(
+                "tolerance",
+                format!("must be in (0, 1), got {}", self.tolerance),
+            ));
+        }
+        if self.max_iterations == 0 {
+            return Err(Error::invalid("max_iterations", "must be at least 1"));
+        }
+        if self.time_limit_s.is_nan() || self.time_limit_s <= 0.0 {
+            return Err(Error::invalid(
+                "time_limit_s",
+                format!("must be positive, got {}", self.time_limit_s),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The minimum-time stage's account of the `rho = 0` optimum it started from.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MinTimeReport {
+    /// Objective of the `rho = 0` optimum.
+    pub objective_rho0: f64,
+    /// Total dwell of the `rho = 0` optimum, s.
+    pub total_dwell_rho0_s: f64,
+    /// Relative tolerance allowed on the objective.
+    pub tolerance: f64,
+}
+
+/// A solver's answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Solution {
+    /// How the solve ended.
+    pub status: Status,
+    /// Which solver ran.
+    pub solver: SolverKind,
+    /// Dwell times, s, one per dwell point, inside the bounds.
+    pub dwell_s: Vec<f64>,
+    /// Optimal piston `c`, nm.
+    pub piston_nm: f64,
+    /// `0.5 ||R t - z - c||^2` at the optimal piston, nm^2.
+    pub objective: f64,
+    /// Iterations taken (summed over stages).
+    pub iterations: usize,
+    /// Wall-clock solve time, s.
+    pub solve_seconds: f64,
+    /// Projected-gradient (KKT) residual of the returned point, when computed.
+    pub kkt_residual: Option<f64>,
+    /// Upper bound on `objective - optimum`, when the solver proves one.
+    pub objective_gap_bound: Option<f64>,
+    /// The `rho = 0` stage of a minimum-time solve.
+    pub min_time: Option<MinTimeReport>,
+}
+
+/// Solves the problem with the solver the settings choose.
+///
+/// Dwell points that no measurement point can feel (empty columns of `R`) do not change the
+/// residual; without the smoothness term (`lambda = 0`) they are taken out of the solve and put on
+/// their lower bound, which keeps them from making the problem degenerate.
+pub fn solve(problem: &Problem, settings: &Settings, observer: &dyn Observer) -> Result<Solution> {
+    settings.validate()?;
+    let empty = problem.influence().empty_columns();
+    if problem.lambda() > 0.0 || empty.is_empty() {
+        return dispatch(problem, settings, observer);
+    }
+    let (reduced, kept) = problem.without_columns(&empty)?;
+    let mut sol = dispatch(&reduced, settings, observer)?;
+    let mut dwell_s = problem.bounds().lower_s().to_vec();
+    for (&j, &t) in kept.iter().zip(&sol.dwell_s) {
+        if let Some(slot) = dwell_s.get_mut(j) {
+            *slot = t;
+        }
+    }
+    sol.dwell_s = dwell_s;
+    Ok(sol)
+}
+
+fn dispatch(problem: &Problem, settings: &Settings, observer: &dyn Observer) -> Result<Solution> {
+    match settings.solver {
+        SolverChoice::Qp | SolverChoice::Auto => qp::solve(problem, settings, observer),
+    }
+}

@@ -1,0 +1,68 @@
+//! The one error type of the engine library.
+
+use thiserror::Error;
+
+/// Everything the engine can reject. Messages name the quantity, point or index at fault.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum Error {
+    /// An input value is outside its valid range (for example a non-positive feed limit).
+    #[error("invalid {what}: {why}")]
+    InvalidInput {
+        /// The quantity at fault, with its unit (for example `v_max_mm_per_min`).
+        what: String,
+        /// Why it was rejected.
+        why: String,
+    },
+    /// A point carries a non-finite coordinate or value.
+    #[error("{what} point {index} is not finite ({detail})")]
+    NonFinite {
+        /// Which set of points (map, dwell, TIF, ...).
+        what: &'static str,
+        /// Zero-based index of the point.
+        index: usize,
+        /// The offending values.
+        detail: String,
+    },
+    /// Array lengths that must agree do not.
+    #[error("length mismatch: {what} has {got} entries, expected {expected}")]
+    LengthMismatch {
+        /// What was being checked.
+        what: &'static str,
+        /// Length supplied.
+        got: usize,
+        /// Length required.
+        expected: usize,
+    },
+    /// Samples that must lie on a regular grid do not.
+    #[error("{what} is not on a regular grid: {why}")]
+    NotRegularGrid {
+        /// Which data (for example the TIF).
+        what: &'static str,
+        /// Which sample or spacing broke the grid.
+        why: String,
+    },
+    /// A geometric computation has no valid answer (outside the surface's domain, degenerate points).
+    #[error("geometry: {0}")]
+    Geometry(String),
+    /// The numerical back end failed outright (not the same as not converging, which is a status).
+    #[error("numerical failure in {stage}: {why}")]
+    Numerical {
+        /// The stage that failed (assembly, QP set-up, factorisation, ...).
+        stage: &'static str,
+        /// What the back end reported.
+        why: String,
+    },
+}
+
+/// Result alias of the engine library.
+pub type Result<T> = std::result::Result<T, Error>;
+
+impl Error {
+    /// Shorthand for [`Error::InvalidInput`].
+    pub fn invalid(what: impl Into<String>, why: impl Into<String>) -> Self {
+        Error::InvalidInput {
+            what: what.into(),
+            why: why.into(),
+        }
+    }
+}

@@ -1,0 +1,490 @@
+//! The influence matrix `R` (m x n, nm/s): `R[i, j]` is the removal rate at measurement point `i`
+//! while the tool dwells at point `j`, so the removal is `h = R t` for dwell times `t` (s).
+//!
+//! Assembly visits, for every dwell point, only the measurement points inside the TIF's support
+//! radius, found with a strip index over the map; columns are built in parallel (rayon) and
+//! concatenated in column order, so the matrix is identical for any thread count.
+
+use crate::error::{Error, Result};
+use crate::observer::{Observer, Stage};
+use crate::tif::InfluenceFunction;
+use nalgebra_sparse::CscMatrix;
+use rayon::prelude::*;
+
+/// Dwell columns handled by one rayon task.
+const COLUMNS_PER_TASK: usize = 64;
+/// Dwell columns assembled before their entries are appended to the matrix (bounds peak memory).
+const COLUMNS_PER_BLOCK: usize = 16_384;
+
+/// The sparse influence matrix, stored by columns (one column per dwell point).
+#[derive(Debug, Clone, PartialEq)]
+pub struct InfluenceMatrix {
+    csc: CscMatrix<f64>,
+}
+
+impl InfluenceMatrix {
+    /// Assembles `R[i, j] = tif(x_i - X_j, y_i - Y_j)` for map points `(x_i, y_i)` and dwell points
+    /// `(X_j, Y_j)`, keeping only non-zero entries.
+    pub fn assemble<T: InfluenceFunction + ?Sized>(
+        map_x_mm: &[f64],
+        map_y_mm: &[f64],
+        dwell_x_mm: &[f64],
+        dwell_y_mm: &[f64],
+        tif: &T,
+        observer: &dyn Observer,
+    ) -> Result<Self> {
+        Self::assemble_with(
+            map_x_mm,
+            map_y_mm,
+            dwell_x_mm,
+            dwell_y_mm,
+            tif.support_radius_mm(),
+            |_j, _i, dx, dy| tif.rate_nm_per_s(dx, dy),
+            observer,
+        )
+    }
+
+    /// Assembles with a general kernel `rate(j, i, dx_mm, dy_mm)` (nm/s) for dwell point `j` and
+    /// measurement point `i` at plan offset `(dx, dy) = (x_i - X_j, y_i - Y_j)`; only pairs within
+    /// `search_radius_mm` in the plan are visited. Per-dwell-point TIFs and tangent-frame offsets on
+    /// curved parts use this entry point.
+    pub fn assemble_with<K>(
+        map_x_mm: &[f64],
+        map_y_mm: &[f64],
+        dwell_x_mm: &[f64],
+        dwell_y_mm: &[f64],
+        search_radius_mm: f64,
+        kernel: K,
+        observer: &dyn Observer,
+    ) -> Result<Self>
+    where
+        K: Fn(usize, usize, f64, f64) -> f64 + Sync,
+    {
+        let m = map_x_mm.len();
+        let n = dwell_x_mm.len();
+        if map_y_mm.len() != m {
+            return Err(Error::LengthMismatch {
+                what: "map y_mm",
+                got: map_y_mm.len(),
+                expected: m,
+            });
+        }
+        if dwell_y_mm.len() != n {
+            return Err(Error::LengthMismatch {
+                what: "dwell y_mm",
+                got: dwell_y_mm.len(),
+                expected: n,
+            });
+        }
+        if !(search_radius_mm.is_finite() && search_radius_mm > 0.0) {
+            return Err(Error::invalid(
+                "TIF support radius",
+                format!("must be positive and finite, got {search_radius_mm} mm"),
+            ));
+        }
+        let index = StripIndex::new(map_x_mm, map_y_mm, search_radius_mm);
+        observer.start(Stage::Assembly, n as u64);
+
+        let mut col_offsets = Vec::with_capacity(n + 1);
+        col_offsets.push(0usize);
+        let mut row_indices: Vec<usize> = Vec::new();
+        let mut values: Vec<f64> = Vec::new();
+
+        let mut block_start = 0;
+        while block_start < n {
+            let block_end = (block_start + COLUMNS_PER_BLOCK).min(n);
+            let tasks: Vec<ColumnBlock> = (block_start..block_end)
+                .into_par_iter()
+                .step_by(COLUMNS_PER_TASK)
+                .map(|first| {
+                    let last = (first + COLUMNS_PER_TASK).min(block_end);
+                    let block = assemble_columns(
+                        &index,
+                        dwell_x_mm,
+                        dwell_y_mm,
+                        first..last,
+                        search_radius_mm,
+                        &kernel,
+                    );
+                    observer.advance(Stage::Assembly, (last - first) as u64);
+                    block
+                })
+                .collect();
+            for task in tasks {
+                let base = row_indices.len();
+                col_offsets.extend(task.col_ends.iter().map(|e| base + e));
+                row_indices.extend_from_slice(&task.rows);
+                values.extend_from_slice(&task.values);
+            }
+            block_start = block_end;
+        }
+        row_indices.shrink_to_fit();
+        values.shrink_to_fit();
+        observer.finish(Stage::Assembly);
+        let csc =
+            CscMatrix::try_from_csc_data(m, n, col_offsets, row_indices, values).map_err(|e| {
+                Error::Numerical {
+                    stage: "influence assembly",
+                    why: e.to_string(),
+                }
+            })?;
+        Ok(Self { csc })
+    }
+
+    /// Wraps an existing CSC matrix (m measurement points x n dwell points).
+    pub fn from_csc(csc: CscMatrix<f64>) -> Self {
+        Self { csc }
+    }
+
+    /// The matrix in compressed sparse column form.
+    pub fn csc(&self) -> &CscMatrix<f64> {
+        &self.csc
+    }
+
+    /// Number of measurement points (rows).
+    pub fn nrows(&self) -> usize {
+        self.csc.nrows()
+    }
+
+    /// Number of dwell points (columns).
+    pub fn ncols(&self) -> usize {
+        self.csc.ncols()
+    }
+
+    /// Number of stored non-zero entries.
+    pub fn nnz(&self) -> usize {
+        self.csc.nnz()
+    }
+
+    /// Dwell points whose column is empty: no measurement point lies in the tool's reach.
+    pub fn empty_columns(&self) -> Vec<usize> {
+        self.csc
+            .col_offsets()
+            .windows(2)
+            .enumerate()
+            .filter(|(_, w)| matches!(w, [a, b] if a == b))
+            .map(|(j, _)| j)
+            .collect()
+    }
+
+    /// Removal `h = R t`, nm, for dwell times `t` (s). Sequential, so bit-identical for any
+    /// thread count.
+    pub fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
+        if dwell_s.len() != self.ncols() {
+            return Err(Error::LengthMismatch {
+                what: "dwell_s",
+                got: dwell_s.len(),
+                expected: self.ncols(),
+            });
+        }
+        let mut h = vec![0.0; self.nrows()];
+        for (col, &t) in self.csc.col_iter().zip(dwell_s) {
+            for (&i, &r) in col.row_indices().iter().zip(col.values()) {
+                if let Some(hi) = h.get_mut(i) {
+                    *hi += r * t;
+                }
+            }
+        }
+        Ok(h)
+    }
+
+    /// `g = R^T y`, one dot product per column (in parallel; each entry is summed in a fixed order).
+    pub fn transpose_mul(&self, y: &[f64]) -> Result<Vec<f64>> {
+        if y.len() != self.nrows() {
+            return Err(Error::LengthMismatch {
+                what: "R^T y input",
+                got: y.len(),
+                expected: self.nrows(),
+            });
+        }
+        let offsets = self.csc.col_offsets();
+        let rows = self.csc.row_indices();
+        let vals = self.csc.values();
+        Ok((0..self.ncols())
+            .into_par_iter()
+            .map(|j| {
+                let (a, b) = (offsets[j], offsets[j + 1]);
+                rows[a..b]
+                    .iter()
+                    .zip(&vals[a..b])
+                    .map(|(&i, &v)| v * y.get(i).copied().unwrap_or(0.0))
+                    .sum()
+            })
+            .collect())
+    }
+}
+
+/// Entries of a run of consecutive columns; `col_ends[k]` is the end of column k within `rows`.
+struct ColumnBlock {
+    col_ends: Vec<usize>,
+    rows: Vec<usize>,
+    values: Vec<f64>,
+}
+
+fn assemble_columns<K>(
+    index: &StripIndex,
+    dwell_x: &[f64],
+    dwell_y: &[f64],
+    columns: std::ops::Range<usize>,
+    radius: f64,
+    kernel: &K,
+) -> ColumnBlock
+where
+    K: Fn(usize, usize, f64, f64) -> f64 + Sync,
+{
+    let mut block = ColumnBlock {
+        col_ends: Vec::with_capacity(columns.len()),
+        rows: Vec::new(),
+        values: Vec::new(),
+    };
+    let mut scratch: Vec<(usize, f64)> = Vec::new();
+    let r2 = radius * radius;
+    for j in columns {
+        let (cx, cy) = match (dwell_x.get(j), dwell_y.get(j)) {
+            (Some(&x), Some(&y)) => (x, y),
+            _ => break,
+        };
+        scratch.clear();
+        index.for_each_near(cx, cy, radius, |i, px, py| {
+            let dx = px - cx;
+            let dy = py - cy;
+            if dx * dx + dy * dy <= r2 {
+                let v = kernel(j, i, dx, dy);
+                if v != 0.0 {
+                    scratch.push((i, v));
+                }
+            }
+        });
+        if !scratch.windows(2).all(|w| w[0].0 < w[1].0) {
+            scratch.sort_unstable_by_key(|e| e.0);
+        }
+        block.rows.extend(scratch.iter().map(|e| e.0));
+        block.values.extend(scratch.iter().map(|e| e.1));
+        block.col_ends.push(block.rows.len());
+    }
+    block
+}
+
+/// Map points bucketed into horizontal strips; within a strip sorted by x (then by index), so a
+/// disc query is one binary search per strip. For a row-major map (y-major, x ascending) the
+/// visited indices come out ascending and need no sort.
+struct StripIndex {
+    y0: f64,
+    strip_height: f64,
+    strip_start: Vec<usize>,
+    xs: Vec<f64>,
+    ys: Vec<f64>,
+    ids: Vec<usize>,
+}
+
+impl StripIndex {
+    fn new(x: &[f64], y: &[f64], radius: f64) -> Self {
+        let m = x.len();
+        let (y_lo, y_hi) = y
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        let (x_lo, x_hi) = x
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        if m == 0 || y_hi.is_nan() || y_hi < y_lo {
+            return Self {
+                y0: 0.0,
+                strip_height: 1.0,
+                strip_start: vec![0, 0],
+                xs: Vec::new(),
+                ys: Vec::new(),
+                ids: Vec::new(),
+            };
+        }
+        // Strip height near the mean point spacing, between radius/64 and radius.
+        let area = ((x_hi - x_lo).max(radius) * (y_hi - y_lo).max(radius)).max(f64::MIN_POSITIVE);
+        let spacing = (area / m as f64).sqrt();
+        let strip_height = spacing.clamp(radius / 64.0, radius);
+        let n_strips = (((y_hi - y_lo) / strip_height).floor() as usize).saturating_add(1);
+        let strip_of = |v: f64| -> usize {
+            (((v - y_lo) / strip_height).floor().max(0.0) as usize).min(n_strips - 1)
+        };
+        let mut counts = vec![0usize; n_strips + 1];
+        for &v in y {
+            counts[strip_of(v) + 1] += 1;
+        }
+        for s in 0..n_strips {
+            counts[s + 1] += counts[s];
+        }
+        let strip_start = counts.clone();
+        let mut fill = counts;
+        let mut ids = vec![0usize; m];
+        for (i, &v) in y.iter().enumerate() {
+            let s = strip_of(v);
+            ids[fill[s]] = i;
+            fill[s] += 1;
+        }
+        for s in 0..n_strips {
+            ids[strip_start[s]..strip_start[s + 1]]
+                .sort_by(|&a, &b| x[a].total_cmp(&x[b]).then(a.cmp(&b)));
+        }
+        let xs = ids.iter().map(|&i| x[i]).collect();
+        let ys = ids.iter().map(|&i| y[i]).collect();
+        Self {
+            y0: y_lo,
+            strip_height,
+            strip_start,
+            xs,
+            ys,
+            ids,
+        }
+    }
+
+    /// Calls `f(index, x, y)` for every point whose strip and x-range can lie within `radius` of
+    /// `(cx, cy)` (a superset of the disc; callers test the distance).
+    #[inline]
+    fn for_each_near(&self, cx: f64, cy: f64, radius: f64, mut f: impl FnMut(usize, f64, f64)) {
+        let n_strips = self.strip_start.len() - 1;
+        let lo = ((cy - radius - self.y0) / self.strip_height).floor();
+        let hi = ((cy + radius - self.y0) / self.strip_height).floor();
+        if lo.is_nan() || hi.is_nan() || hi < 0.0 || lo >= n_strips as f64 || lo > hi {
+            return;
+        }
+        let s0 = lo.max(0.0) as usize;
+        let s1 = (hi as usize).min(n_strips - 1);
+        for s in s0..=s1 {
+            let band_lo = self.y0 + s as f64 * self.strip_height;
+            let band_hi = band_lo + self.strip_height;
+            let dy = if cy < band_lo {
+                band_lo - cy
+            } else if cy > band_hi {
+                cy - band_hi
+            } else {
+                0.0
+            };
+            if dy > radius {
+                continue;
+            }
+            let half = (radius * radius - dy * dy).max(0.0).sqrt();
+            let (a, b) = (self.strip_start[s], self.strip_start[s + 1]);
+            let xs = &self.xs[a..b];
+            let first = xs.partition_point(|&x| x < cx - half);
+            let last = xs.partition_point(|&x| x <= cx + half);
+            for k in a + first..a + last {
+                f(self.ids[k], self.xs[k], self.ys[k]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::observer::Silent;
+    use crate::tif::{GaussianTif, GridTif};
+
+    fn scattered(n: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
+        // Deterministic pseudo-random points in [0, 20) x [0, 10) (splitmix64).
+        let mut s = seed;
+        let mut next = || {
+            s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = s;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..n).map(|_| (20.0 * next(), 10.0 * next())).unzip()
+    }
+
+    #[test]
+    fn entries_equal_direct_tif_and_nnz_matches_brute_force() {
+        let (mx, my) = scattered(700, 1);
+        let (dx, dy) = scattered(90, 2);
+        let tif = GaussianTif::new(1.0, 5.0, 2.5).unwrap();
+        let r = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap();
+        let mut brute = 0;
+        for j in 0..dx.len() {
+            for i in 0..mx.len() {
+                let v = tif.rate_nm_per_s(mx[i] - dx[j], my[i] - dy[j]);
+                if v != 0.0 {
+                    brute += 1;
+                }
+                let got = r
+                    .csc()
+                    .get_entry(i, j)
+                    .map(|e| e.into_value())
+                    .unwrap_or(0.0);
+                assert_eq!(got, v, "entry ({i},{j})");
+            }
+        }
+        assert_eq!(r.nnz(), brute);
+        assert!(brute > 1000);
+    }
+
+    #[test]
+    fn grid_tif_on_grid_map_matches_brute_force() {
+        // Row-major 41 x 21 map at 0.5 mm, a 5 x 5 pyramid-ish TIF at pitch 0.7 mm.
+        let mut mx = Vec::new();
+        let mut my = Vec::new();
+        for iy in 0..21 {
+            for ix in 0..41 {
+                mx.push(ix as f64 * 0.5);
+                my.push(iy as f64 * 0.5);
+            }
+        }
+        let rates: Vec<f64> = (0..25)
+            .map(|k| {
+                let (ix, iy) = ((k % 5) as f64 - 2.0, (k / 5) as f64 - 2.0);
+                (3.0 - ix.abs() - iy.abs()).max(0.0)
+            })
+            .collect();
+        let tif = GridTif::new(-1.4, -1.4, 0.7, 0.7, 5, 5, rates).unwrap();
+        let (dx, dy) = scattered(60, 7);
+        let r = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap();
+        let mut brute = 0;
+        for j in 0..dx.len() {
+            for i in 0..mx.len() {
+                let v = tif.rate_nm_per_s(mx[i] - dx[j], my[i] - dy[j]);
+                brute += usize::from(v != 0.0);
+                let got = r
+                    .csc()
+                    .get_entry(i, j)
+                    .map(|e| e.into_value())
+                    .unwrap_or(0.0);
+                assert_eq!(got, v);
+            }
+        }
+        assert_eq!(r.nnz(), brute);
+    }
+
+    #[test]
+    fn removal_is_linear_and_adjoint_holds() {
+        let (mx, my) = scattered(300, 3);
+        let (dx, dy) = scattered(40, 4);
+        let tif = GaussianTif::new(1.5, 2.0, 4.5).unwrap();
+        let r = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap();
+        let t1: Vec<f64> = (0..40).map(|j| 1.0 + j as f64 * 0.1).collect();
+        let t2: Vec<f64> = (0..40).map(|j| (j as f64).sin().abs()).collect();
+        let h1 = r.removal_nm(&t1).unwrap();
+        let h2 = r.removal_nm(&t2).unwrap();
+        let sum: Vec<f64> = t1.iter().zip(&t2).map(|(a, b)| 2.0 * a + 3.0 * b).collect();
+        let hs = r.removal_nm(&sum).unwrap();
+        for i in 0..300 {
+            assert!((hs[i] - (2.0 * h1[i] + 3.0 * h2[i])).abs() <= 1e-12 * hs[i].abs().max(1.0));
+        }
+        let y: Vec<f64> = (0..300).map(|i| (i as f64 * 0.37).cos()).collect();
+        let g = r.transpose_mul(&y).unwrap();
+        let lhs: f64 = h1.iter().zip(&y).map(|(a, b)| a * b).sum();
+        let rhs: f64 = g.iter().zip(&t1).map(|(a, b)| a * b).sum();
+        assert!((lhs - rhs).abs() <= 1e-12 * lhs.abs().max(1.0));
+    }
+
+    #[test]
+    fn far_dwell_points_give_empty_columns() {
+        let mx = vec![0.0, 1.0];
+        let my = vec![0.0, 0.0];
+        let tif = GaussianTif::new(1.0, 1.0, 3.0).unwrap();
+        let r =
+            InfluenceMatrix::assemble(&mx, &my, &[0.5, 100.0], &[0.0, 0.0], &tif, &Silent).unwrap();
+        assert_eq!(r.empty_columns(), vec![1]);
+    }
+}

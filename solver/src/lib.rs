@@ -1,0 +1,24 @@
+//! Preston engine: dwell-time computation for deterministic sub-aperture polishing.
+//!
+//! Data flow: inputs ([`map::HeightMap`], [`tif`], [`path::DwellPath`]) -> influence matrix
+//! ([`influence::InfluenceMatrix`]) -> dwell problem ([`dwell::Problem`]) -> solve
+//! ([`dwell::solve`]) -> [`dwell::Solution`]. Units: lengths mm, heights nm, time s, rates nm/s,
+//! feeds mm/min.
+#![warn(missing_docs)]
+#![deny(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+#![cfg_attr(test, allow(clippy::unwrap_used, clippy::expect_used, clippy::panic))]
+
+pub mod dwell;
+pub mod error;
+pub mod fit;
+pub mod influence;
+mod lstsq;
+pub mod machine;
+pub mod map;
+pub mod observer;
+pub mod path;
+pub mod registration;
+pub mod surface;
+pub mod tif;
+
+pub use error::{Error, Result};

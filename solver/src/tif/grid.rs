@@ -1,0 +1,432 @@
+//! A TIF sampled on a regular grid, evaluated by bilinear interpolation and zero outside the grid.
+
+use super::InfluenceFunction;
+use crate::error::{Error, Result};
+use serde::{Deserialize, Serialize};
+
+/// Relative tolerance for deciding that sample coordinates lie on one grid line.
+pub const GRID_COORD_REL_TOL: f64 = 1e-6;
+
+/// Removal rates on a regular grid of offsets from the tool centre.
+///
+/// Node `(ix, iy)` sits at `(x0_mm + ix * pitch_x_mm, y0_mm + iy * pitch_y_mm)`; `rates` is row-major
+/// (`rates[iy * nx + ix]`). Between nodes the rate is bilinear; outside the grid it is zero.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "GridTifSpec")]
+pub struct GridTif {
+    x0_mm: f64,
+    y0_mm: f64,
+    pitch_x_mm: f64,
+    pitch_y_mm: f64,
+    nx: usize,
+    ny: usize,
+    rates_nm_per_s: Vec<f64>,
+    #[serde(skip)]
+    support_radius_mm: f64,
+    #[serde(skip)]
+    inv_pitch: (f64, f64),
+}
+
+impl GridTif {
+    /// Builds the grid from its origin, pitches, shape and row-major rates.
+    ///
+    /// Needs at least 2 x 2 nodes, positive pitches, finite non-negative rates and at least one
+    /// positive rate.
+    pub fn new(
+        x0_mm: f64,
+        y0_mm: f64,
+        pitch_x_mm: f64,
+        pitch_y_mm: f64,
+        nx: usize,
+        ny: usize,
+        rates_nm_per_s: Vec<f64>,
+    ) -> Result<Self> {
+        if nx < 2 || ny < 2 {
+            return Err(Error::NotRegularGrid {
+                what: "TIF",
+                why: format!("needs at least 2 x 2 samples, got {nx} x {ny}"),
+            });
+        }
+        if !(pitch_x_mm.is_finite()
+            && pitch_x_mm > 0.0
+            && pitch_y_mm.is_finite()
+            && pitch_y_mm > 0.0)
+        {
+            return Err(Error::NotRegularGrid {
+                what: "TIF",
+                why: format!("pitches must be positive, got {pitch_x_mm} x {pitch_y_mm} mm"),
+            });
+        }
+        if !(x0_mm.is_finite() && y0_mm.is_finite()) {
+            return Err(Error::invalid("TIF grid origin", "not finite"));
+        }
+        let expected = nx
+            .checked_mul(ny)
+            .ok_or_else(|| Error::invalid("TIF grid", "too large"))?;
+        if rates_nm_per_s.len() != expected {
+            return Err(Error::LengthMismatch {
+                what: "TIF rates",
+                got: rates_nm_per_s.len(),
+                expected,
+            });
+        }
+        let mut any_positive = false;
+        for (k, &v) in rates_nm_per_s.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(Error::NonFinite {
+                    what: "TIF",
+                    index: k,
+                    detail: format!("rate_nm_per_s={v}"),
+                });
+            }
+            if v < 0.0 {
+                return Err(Error::invalid(
+                    "TIF rate_nm_per_s",
+                    format!(
+                        "negative rate {v} at x_mm={}, y_mm={}: a tool cannot add material",
+                        x0_mm + (k % nx) as f64 * pitch_x_mm,
+                        y0_mm + (k / nx) as f64 * pitch_y_mm
+                    ),
+                ));
+            }
+            any_positive |= v > 0.0;
+        }
+        if !any_positive {
+            return Err(Error::invalid("TIF rate_nm_per_s", "all rates are zero"));
+        }
+        let mut g = Self {
+            x0_mm,
+            y0_mm,
+            pitch_x_mm,
+            pitch_y_mm,
+            nx,
+            ny,
+            rates_nm_per_s,
+            support_radius_mm: 0.0,
+            inv_pitch: (1.0 / pitch_x_mm, 1.0 / pitch_y_mm),
+        };
+        g.support_radius_mm = g.compute_support_radius();
+        Ok(g)
+    }
+
+    /// Builds the grid from scattered samples `(x_mm, y_mm, rate)` in any order.
+    ///
+    /// The distinct x and y values (to [`GRID_COORD_REL_TOL`] of the pitch) must be equally spaced
+    /// and every grid node must be given exactly once.
+    pub fn from_samples(x_mm: &[f64], y_mm: &[f64], rate_nm_per_s: &[f64]) -> Result<Self> {
+        let n = x_mm.len();
+        if y_mm.len() != n || rate_nm_per_s.len() != n {
+            return Err(Error::LengthMismatch {
+                what: "TIF samples",
+                got: y_mm.len().min(rate_nm_per_s.len()),
+                expected: n,
+            });
+        }
+        for (i, (&x, &y)) in x_mm.iter().zip(y_mm).enumerate() {
+            if !(x.is_finite() && y.is_finite()) {
+                return Err(Error::NonFinite {
+                    what: "TIF",
+                    index: i,
+                    detail: format!("x_mm={x}, y_mm={y}"),
+                });
+            }
+        }
+        let (x0, px, nx) = axis_of(x_mm, "x")?;
+        let (y0, py, ny) = axis_of(y_mm, "y")?;
+        if nx.checked_mul(ny) != Some(n) {
+            return Err(Error::NotRegularGrid {
+                what: "TIF",
+                why: format!(
+                    "{n} samples do not fill the {nx} x {ny} grid of their distinct coordinates"
+                ),
+            });
+        }
+        let mut rates = vec![f64::NAN; n];
+        for (k, ((&x, &y), &v)) in x_mm.iter().zip(y_mm).zip(rate_nm_per_s).enumerate() {
+            let ix = ((x - x0) / px).round() as usize;
+            let iy = ((y - y0) / py).round() as usize;
+            let slot = rates
+                .get_mut(iy * nx + ix)
+                .ok_or_else(|| Error::NotRegularGrid {
+                    what: "TIF",
+                    why: format!("sample {k} at ({x}, {y}) mm is off the grid"),
+                })?;
+            if !slot.is_nan() {
+                return Err(Error::NotRegularGrid {
+                    what: "TIF",
+                    why: format!("sample {k} at ({x}, {y}) mm repeats a grid node"),
+                });
+            }
+            *slot = v;
+        }
+        Self::new(x0, y0, px, py, nx, ny, rates)
+    }
+
+    /// Grid shape `(nx, ny)`.
+    pub fn shape(&self) -> (usize, usize) {
+        (self.nx, self.ny)
+    }
+
+    /// Grid pitches `(x, y)`, mm.
+    pub fn pitch_mm(&self) -> (f64, f64) {
+        (self.pitch_x_mm, self.pitch_y_mm)
+    }
+
+    /// Coordinates of node `(0, 0)`, mm.
+    pub fn origin_mm(&self) -> (f64, f64) {
+        (self.x0_mm, self.y0_mm)
+    }
+
+    /// Row-major rates, nm/s.
+    pub fn rates_nm_per_s(&self) -> &[f64] {
+        &self.rates_nm_per_s
+    }
+
+    /// Largest sampled rate, nm/s.
+    pub fn peak_rate_nm_per_s(&self) -> f64 {
+        self.rates_nm_per_s.iter().copied().fold(0.0, f64::max)
+    }
+
+    /// Volumetric removal rate of the bilinear interpolant, mm^3/s (trapezoid rule is exact for it).
+    pub fn volume_rate_mm3_per_s(&self) -> f64 {
+        // The integral of a bilinear interpolant over a cell is the mean of its corners times the
+        // cell area; summing cells gives the 2-D trapezoid rule with weights 1/4, 1/2, 1.
+        let mut s = 0.0;
+        for iy in 0..self.ny {
+            let wy = if iy == 0 || iy + 1 == self.ny {
+                0.5
+            } else {
+                1.0
+            };
+            for ix in 0..self.nx {
+                let wx = if ix == 0 || ix + 1 == self.nx {
+                    0.5
+                } else {
+                    1.0
+                };
+                s += wx * wy * self.node(ix, iy);
+            }
+        }
+        s * self.pitch_x_mm * self.pitch_y_mm * 1e-6
+    }
+
+    #[inline]
+    fn node(&self, ix: usize, iy: usize) -> f64 {
+        self.rates_nm_per_s
+            .get(iy * self.nx + ix)
+            .copied()
+            .unwrap_or(0.0)
+    }
+
+    /// Farthest point from the tool centre of any cell with a non-zero corner.
+    fn compute_support_radius(&self) -> f64 {
+        let mut r2 = 0.0_f64;
+        for iy in 0..self.ny - 1 {
+            for ix in 0..self.nx - 1 {
+                let nonzero = self.node(ix, iy) != 0.0
+                    || self.node(ix + 1, iy) != 0.0
+                    || self.node(ix, iy + 1) != 0.0
+                    || self.node(ix + 1, iy + 1) != 0.0;
+                if nonzero {
+                    for (cx, cy) in [(ix, iy), (ix + 1, iy), (ix, iy + 1), (ix + 1, iy + 1)] {
+                        let x = self.x0_mm + cx as f64 * self.pitch_x_mm;
+                        let y = self.y0_mm + cy as f64 * self.pitch_y_mm;
+                        r2 = r2.max(x * x + y * y);
+                    }
+                }
+            }
+        }
+        r2.sqrt()
+    }
+}
+
+/// The serialised form of a [`GridTif`]; deserialising validates it through [`GridTif::new`].
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct GridTifSpec {
+    x0_mm: f64,
+    y0_mm: f64,
+    pitch_x_mm: f64,
+    pitch_y_mm: f64,
+    nx: usize,
+    ny: usize,
+    rates_nm_per_s: Vec<f64>,
+}
+
+impl TryFrom<GridTifSpec> for GridTif {
+    type Error = Error;
+    fn try_from(s: GridTifSpec) -> Result<Self> {
+        GridTif::new(
+            s.x0_mm,
+            s.y0_mm,
+            s.pitch_x_mm,
+            s.pitch_y_mm,
+            s.nx,
+            s.ny,
+            s.rates_nm_per_s,
+        )
+    }
+}
+
+/// Distinct sorted values of one coordinate: `(first, pitch, count)`; they must be equally spaced.
+fn axis_of(v: &[f64], name: &str) -> Result<(f64, f64, usize)> {
+    let mut s: Vec<f64> = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let (lo, hi) = match (s.first(), s.last()) {
+        (Some(&lo), Some(&hi)) => (lo, hi),
+        _ => {
+            return Err(Error::NotRegularGrid {
+                what: "TIF",
+                why: "no samples".into(),
+            })
+        }
+    };
+    let span = hi - lo;
+    let tol = GRID_COORD_REL_TOL * span.max(f64::MIN_POSITIVE);
+    let mut distinct: Vec<f64> = Vec::new();
+    for &a in &s {
+        match distinct.last() {
+            Some(&d) if (a - d).abs() <= tol => {}
+            _ => distinct.push(a),
+        }
+    }
+    let count = distinct.len();
+    if count < 2 {
+        return Err(Error::NotRegularGrid {
+            what: "TIF",
+            why: format!("only one distinct {name} value"),
+        });
+    }
+    let pitch = span / (count - 1) as f64;
+    for (k, &d) in distinct.iter().enumerate() {
+        let expected = lo + k as f64 * pitch;
+        if (d - expected).abs() > GRID_COORD_REL_TOL * pitch.max(span) + 1e-3 * pitch {
+            return Err(Error::NotRegularGrid {
+                what: "TIF",
+                why: format!(
+                    "{name} values are not equally spaced: {name}={d} mm where {expected} mm was expected (pitch {pitch} mm)"
+                ),
+            });
+        }
+    }
+    Ok((lo, pitch, count))
+}
+
+impl InfluenceFunction for GridTif {
+    #[inline]
+    fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+        let fx = (dx_mm - self.x0_mm) * self.inv_pitch.0;
+        let fy = (dy_mm - self.y0_mm) * self.inv_pitch.1;
+        let max_x = (self.nx - 1) as f64;
+        let max_y = (self.ny - 1) as f64;
+        // Outside the grid (this also rejects NaN).
+        if !(fx >= 0.0 && fx <= max_x && fy >= 0.0 && fy <= max_y) {
+            return 0.0;
+        }
+        // Cell index, clamped so the far edge uses the last cell with weight 1 on its far nodes.
+        let ix = (fx.floor() as usize).min(self.nx - 2);
+        let iy = (fy.floor() as usize).min(self.ny - 2);
+        let ax = fx - ix as f64;
+        let ay = fy - iy as f64;
+        let base = iy * self.nx + ix;
+        let r = &self.rates_nm_per_s;
+        let (v00, v10, v01, v11) = match (
+            r.get(base),
+            r.get(base + 1),
+            r.get(base + self.nx),
+            r.get(base + self.nx + 1),
+        ) {
+            (Some(a), Some(b), Some(c), Some(d)) => (*a, *b, *c, *d),
+            _ => return 0.0,
+        };
+        (1.0 - ay) * ((1.0 - ax) * v00 + ax * v10) + ay * ((1.0 - ax) * v01 + ax * v11)
+    }
+
+    fn support_radius_mm(&self) -> f64 {
+        self.support_radius_mm
+    }
+
+    /// Half-width of the grid: the largest |coordinate| of its edges.
+    fn nominal_radius_mm(&self) -> f64 {
+        let x1 = self.x0_mm + (self.nx - 1) as f64 * self.pitch_x_mm;
+        let y1 = self.y0_mm + (self.ny - 1) as f64 * self.pitch_y_mm;
+        [self.x0_mm, x1, self.y0_mm, y1]
+            .iter()
+            .fold(0.0, |a: f64, v| a.max(v.abs()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 3 x 2 grid at pitch (1, 2) mm from (-1, 0):
+    /// row y=0: 0 1 2 ; row y=2: 4 5 6.
+    fn small() -> GridTif {
+        GridTif::new(
+            -1.0,
+            0.0,
+            1.0,
+            2.0,
+            3,
+            2,
+            vec![0.0, 1.0, 2.0, 4.0, 5.0, 6.0],
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn bilinear_matches_hand_values() {
+        let g = small();
+        // Nodes are reproduced exactly.
+        assert_eq!(g.rate_nm_per_s(-1.0, 0.0), 0.0);
+        assert_eq!(g.rate_nm_per_s(0.0, 0.0), 1.0);
+        assert_eq!(g.rate_nm_per_s(1.0, 2.0), 6.0);
+        // Centre of the first cell: mean of 0, 1, 4, 5 = 2.5.
+        assert!((g.rate_nm_per_s(-0.5, 1.0) - 2.5).abs() < 1e-14);
+        // (0.25, 0.5): cell ix=1, ax=0.25, ay=0.25:
+        // 0.75*(0.75*1 + 0.25*2) + 0.25*(0.75*5 + 0.25*6) = 0.75*1.25 + 0.25*5.25 = 2.25.
+        assert!((g.rate_nm_per_s(0.25, 0.5) - 2.25).abs() < 1e-14);
+        // Outside: zero.
+        assert_eq!(g.rate_nm_per_s(1.0001, 1.0), 0.0);
+        assert_eq!(g.rate_nm_per_s(0.0, -0.001), 0.0);
+        assert_eq!(g.rate_nm_per_s(f64::NAN, 0.0), 0.0);
+    }
+
+    #[test]
+    fn scattered_samples_any_order() {
+        let xs = [1.0, -1.0, 0.0, 0.0, 1.0, -1.0];
+        let ys = [2.0, 0.0, 0.0, 2.0, 0.0, 2.0];
+        let vs = [6.0, 0.0, 1.0, 5.0, 2.0, 4.0];
+        let g = GridTif::from_samples(&xs, &ys, &vs).unwrap();
+        assert_eq!(g, small());
+    }
+
+    #[test]
+    fn rejects_irregular_and_bad_values() {
+        // Unequal spacing in x.
+        let xs = [0.0, 1.0, 3.0, 0.0, 1.0, 3.0];
+        let ys = [0.0, 0.0, 0.0, 1.0, 1.0, 1.0];
+        let vs = [1.0; 6];
+        assert!(matches!(
+            GridTif::from_samples(&xs, &ys, &vs),
+            Err(Error::NotRegularGrid { .. })
+        ));
+        // A missing node.
+        assert!(GridTif::from_samples(&xs[..5], &ys[..5], &vs[..5]).is_err());
+        // Negative and all-zero rates.
+        assert!(GridTif::new(0.0, 0.0, 1.0, 1.0, 2, 2, vec![1.0, -1.0, 0.0, 0.0]).is_err());
+        assert!(GridTif::new(0.0, 0.0, 1.0, 1.0, 2, 2, vec![0.0; 4]).is_err());
+    }
+
+    #[test]
+    fn volume_of_bilinear_pyramid() {
+        // 3 x 3 grid, pitch 1, centre node 1, others 0: a pyramid of base 2 x 2 whose bilinear
+        // volume is 4 cells * (1/4 * 1) = 1 (nm mm^2), i.e. 1e-6 mm^3/s.
+        let mut r = vec![0.0; 9];
+        r[4] = 1.0;
+        let g = GridTif::new(-1.0, -1.0, 1.0, 1.0, 3, 3, r).unwrap();
+        assert!((g.volume_rate_mm3_per_s() - 1e-6).abs() < 1e-18);
+        assert!((g.support_radius_mm() - 2f64.sqrt()).abs() < 1e-15);
+    }
+}

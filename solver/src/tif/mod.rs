@@ -1,0 +1,62 @@
+//! Tool influence functions (TIF): the removal rate, nm/s, at an offset from the tool centre.
+//!
+//! Preston's law gives the local removal rate `dz/dt = K p v` (Preston 1927); a TIF is that rate
+//! integrated over the tool's contact patch for a tool held still, sampled or modelled in the
+//! tool's frame.
+
+pub mod gaussian;
+pub mod grid;
+
+pub use gaussian::GaussianTif;
+pub use grid::GridTif;
+
+use serde::{Deserialize, Serialize};
+
+/// A removal footprint: rate in nm/s at offset `(dx_mm, dy_mm)` from the tool centre.
+pub trait InfluenceFunction: Send + Sync {
+    /// Removal rate, nm/s, at offset `(dx_mm, dy_mm)` = measurement point minus tool centre.
+    fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64;
+
+    /// Radius, mm, outside which the rate is exactly zero.
+    fn support_radius_mm(&self) -> f64;
+
+    /// The tool's nominal radius, mm, by which generated dwell rasters extend past the map: the
+    /// half-width of a measured grid, the truncation radius of a model.
+    fn nominal_radius_mm(&self) -> f64 {
+        self.support_radius_mm()
+    }
+}
+
+/// The TIF models a job can name.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Tif {
+    /// Sampled on a regular grid, bilinear in between, zero outside.
+    Grid(GridTif),
+    /// Truncated Gaussian.
+    Gaussian(GaussianTif),
+}
+
+impl InfluenceFunction for Tif {
+    #[inline]
+    fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+        match self {
+            Tif::Grid(g) => g.rate_nm_per_s(dx_mm, dy_mm),
+            Tif::Gaussian(g) => g.rate_nm_per_s(dx_mm, dy_mm),
+        }
+    }
+
+    fn support_radius_mm(&self) -> f64 {
+        match self {
+            Tif::Grid(g) => g.support_radius_mm(),
+            Tif::Gaussian(g) => g.support_radius_mm(),
+        }
+    }
+
+    fn nominal_radius_mm(&self) -> f64 {
+        match self {
+            Tif::Grid(g) => g.nominal_radius_mm(),
+            Tif::Gaussian(g) => g.nominal_radius_mm(),
+        }
+    }
+}
