@@ -108,6 +108,9 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
         .has_headers(true)
         .flexible(false)
         .trim(csv::Trim::All)
+        // Records end at '\n' only; a Windows '\r' before it is trimmed as whitespace. This keeps
+        // the reported line numbers right for CRLF files (csv counts '\r' and '\n' separately).
+        .terminator(csv::Terminator::Any(b'\n'))
         .from_reader(reader);
     let headers = rdr.byte_headers().map_err(|e| csv_error(path, &e))?.clone();
     let names: Vec<String> = headers

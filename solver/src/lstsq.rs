@@ -150,8 +150,7 @@ impl Reduced {
         let p = self.scale.len();
         let smax = self.sigma.iter().copied().fold(0.0, f64::max);
         let mut coef = vec![0.0; p];
-        for k in 0..p {
-            let s = self.sigma[k];
+        for (k, (c, &s)) in coef.iter_mut().zip(&self.sigma).enumerate() {
             if !(s > rcond * smax) {
                 continue;
             }
@@ -159,13 +158,13 @@ impl Reduced {
             for i in 0..p {
                 utb += self.u[(i, k)] * self.qb[i];
             }
-            coef[k] = utb * s / (s * s + lambda);
+            *c = utb * s / (s * s + lambda);
         }
         (0..p)
             .map(|j| {
                 let mut y = 0.0;
-                for k in 0..p {
-                    y += self.v[(j, k)] * coef[k];
+                for (k, c) in coef.iter().enumerate() {
+                    y += self.v[(j, k)] * c;
                 }
                 y / self.scale[j]
             })

@@ -92,7 +92,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     };
     let n = x.len();
-    let mut cols: Vec<Vec<f64>> = vec![Vec::with_capacity(n); 6];
+    let mut cols: Vec<Vec<f64>> = (0..6).map(|_| Vec::with_capacity(n)).collect();
     for (&xi, &yi) in x.iter().zip(&y) {
         let d = surface
             .derivs(xi, yi)

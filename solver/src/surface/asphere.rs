@@ -84,7 +84,7 @@ impl EvenAsphere {
             h += a * p * u * u;
             p *= u;
         }
-        Ok(base.add(RhoDerivs {
+        Ok(base.plus(RhoDerivs {
             value: h,
             d1: h1 / r2,
             d2: h2 / (r2 * r2),

@@ -17,7 +17,7 @@ pub struct RhoDerivs {
 
 impl RhoDerivs {
     /// Sum of two functions of `rho`.
-    pub fn add(self, o: Self) -> Self {
+    pub fn plus(self, o: Self) -> Self {
         Self {
             value: self.value + o.value,
             d1: self.d1 + o.d1,

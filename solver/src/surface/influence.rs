@@ -101,8 +101,7 @@ pub fn assemble_on_surface<T: InfluenceFunction + ?Sized>(
         normal.push(d.normal());
     }
     let mut axes = Vec::with_capacity(n);
-    for j in 0..n {
-        let nj = normal[j];
+    for (j, &nj) in normal.iter().enumerate() {
         let path_dir = match frame {
             TifFrame::MachineX => None,
             TifFrame::PathTangent if n >= 2 => {
