@@ -34,6 +34,8 @@ pub struct Prepared {
     pub problem: Problem,
     /// Seconds spent reading and assembling.
     pub build_seconds: f64,
+    /// Warnings about the inputs, for the report and stderr.
+    pub warnings: Vec<String>,
 }
 
 /// A finished solve: the solution and what to write.
@@ -113,6 +115,10 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
             })
         }
     };
+    let mut warnings = Vec::new();
+    if let Some(w) = tif_wider_than_map(&map_file.map, &tif, map_path) {
+        warnings.push(w);
+    }
     let ds_mm = path.ds_mm();
     let bounds =
         DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
@@ -142,6 +148,24 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         previous_dwell_s,
         problem,
         build_seconds: start.elapsed().as_secs_f64(),
+        warnings,
+    })
+}
+
+/// A warning when the TIF's footprint (twice its support radius) is wider than the map in both
+/// x and y: the solve still works, but every dwell point then touches most of the map and the
+/// dwell map cannot resolve the error's shape.
+pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option<String> {
+    let bbox = map.bounding_box_mm()?;
+    let width_mm = bbox.x_max_mm - bbox.x_min_mm;
+    let height_mm = bbox.y_max_mm - bbox.y_min_mm;
+    let footprint_mm = 2.0 * tif.support_radius_mm();
+    (footprint_mm > width_mm.max(height_mm)).then(|| {
+        format!(
+            "the TIF footprint ({footprint_mm:.3} mm across) is wider than the map {} \
+             ({width_mm:.3} x {height_mm:.3} mm): the tool cannot shape features smaller than itself",
+            map_path.display()
+        )
     })
 }
 
@@ -149,7 +173,7 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let solution = dwell::solve(&prepared.problem, &job.solver, observer)?;
     let removal_nm = prepared.problem.influence().removal_nm(&solution.dwell_s)?;
-    let report = Report::new(
+    let mut report = Report::new(
         &prepared.problem,
         &solution,
         &removal_nm,
@@ -157,6 +181,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         prepared.skipped_rows,
         prepared.build_seconds,
     );
+    report.warnings.clone_from(&prepared.warnings);
     Ok(Solved {
         prepared,
         solution,

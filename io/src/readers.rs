@@ -5,7 +5,6 @@ use crate::table::{read_table, ColumnSpec};
 use preston_solver::map::HeightMap;
 use preston_solver::path::DwellPath;
 use preston_solver::tif::GridTif;
-use std::collections::HashMap;
 use std::path::Path;
 
 /// A map as read from `x_mm,y_mm,z_nm`, with the count of rows skipped for an empty or NaN height.
@@ -112,24 +111,40 @@ pub fn read_dwell(path: &Path) -> Result<DwellFile> {
     Ok(DwellFile { path: dp, dwell_s })
 }
 
-/// Rejects two rows with bit-identical coordinates, naming both lines.
+/// Rejects two rows with bit-identical coordinates (+0.0 and -0.0 alike), naming both lines (the
+/// earliest repeat in file order). Sorts 32-bit row indices by coordinates: 4 bytes per row, so
+/// large maps stream through with little memory on top of their values.
 fn check_duplicates(path: &Path, x: &[f64], y: &[f64], lines: &[u64]) -> Result<()> {
-    let mut seen: HashMap<(u64, u64), usize> = HashMap::with_capacity(x.len());
-    for (k, (&xi, &yi)) in x.iter().zip(y).enumerate() {
-        // +0.0 and -0.0 are the same point.
-        let key = ((xi + 0.0).to_bits(), (yi + 0.0).to_bits());
-        if let Some(&first) = seen.get(&key) {
-            return Err(Error::DuplicatePoint {
-                file: path.to_path_buf(),
-                line: lines.get(k).copied().unwrap_or(0),
-                first_line: lines.get(first).copied().unwrap_or(0),
-                x_mm: xi,
-                y_mm: yi,
-            });
-        }
-        seen.insert(key, k);
+    let n = u32::try_from(x.len()).map_err(|_| Error::Empty {
+        file: path.to_path_buf(),
+        why: format!(
+            "{} rows: more than a map can hold (at most {})",
+            x.len(),
+            u32::MAX
+        ),
+    })?;
+    let key = |k: u32| {
+        let k = k as usize;
+        ((x[k] + 0.0).to_bits(), (y[k] + 0.0).to_bits())
+    };
+    let mut order: Vec<u32> = (0..n).collect();
+    order.sort_unstable_by(|&a, &b| key(a).cmp(&key(b)).then(a.cmp(&b)));
+    // Among equal neighbours (first, repeat), the repeat that comes first in the file.
+    let repeat = order
+        .windows(2)
+        .filter(|w| key(w[0]) == key(w[1]))
+        .map(|w| (w[1] as usize, w[0] as usize))
+        .min();
+    match repeat {
+        Some((k, first)) => Err(Error::DuplicatePoint {
+            file: path.to_path_buf(),
+            line: lines.get(k).copied().unwrap_or(0),
+            first_line: lines.get(first).copied().unwrap_or(0),
+            x_mm: x[k],
+            y_mm: y[k],
+        }),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 #[cfg(test)]

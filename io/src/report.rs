@@ -57,6 +57,12 @@ pub struct Report {
     pub min_time: Option<MinTimeReport>,
     /// Dwell points with no measurement point in the tool's reach (dwell at lower bound).
     pub unreachable_dwell_points: usize,
+    /// Indices (0-based, path order) of the unreachable dwell points.
+    #[serde(default)]
+    pub unreachable_dwell_indices: Vec<usize>,
+    /// Warnings about the inputs (for example a TIF wider than the map), also printed on stderr.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// Feed at each dwell point, mm/min: `ds / dwell * 60` (0 where `ds` is 0).
@@ -144,6 +150,8 @@ impl Report {
             objective_gap_bound: solution.objective_gap_bound,
             min_time: solution.min_time,
             unreachable_dwell_points: problem.influence().empty_columns().len(),
+            unreachable_dwell_indices: problem.influence().empty_columns(),
+            warnings: Vec::new(),
         }
     }
 }

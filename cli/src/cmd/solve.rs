@@ -164,10 +164,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             String::new()
         }
     );
+    for w in &r.warnings {
+        eprintln!("  warning: {w}");
+    }
     if r.unreachable_dwell_points > 0 {
+        let shown: Vec<String> = r
+            .unreachable_dwell_indices
+            .iter()
+            .take(10)
+            .map(|k| k.to_string())
+            .collect();
         eprintln!(
-            "  warning: {} dwell points have no map point in the tool's reach; their dwell is at its lower bound",
-            r.unreachable_dwell_points
+            "  warning: {} dwell points have no map point in the tool's reach; their dwell is at its lower bound (indices {}{}; all listed in report.json)",
+            r.unreachable_dwell_points,
+            shown.join(", "),
+            if r.unreachable_dwell_points > 10 { ", ..." } else { "" }
         );
     }
     eprintln!(

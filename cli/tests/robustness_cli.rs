@@ -1,0 +1,376 @@
+//! Robustness of `preston solve` (issue 7): every class of bad input fails with a message naming
+//! file, line and column, and writes nothing; accepted oddities (BOM, CRLF) give the same answer;
+//! unreachable dwell points are reported; results do not depend on the thread count; a killed run
+//! leaves no partial file.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn preston() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_preston"))
+}
+
+fn data(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../data")
+        .join(name)
+        .to_string_lossy()
+        .to_string()
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> String {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p.to_string_lossy().to_string()
+}
+
+fn solve(args: &[&str], out: &Path) -> Output {
+    preston()
+        .arg("solve")
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+fn report(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
+}
+
+/// A smooth 21 x 21 map over 20 x 20 mm (1 mm pitch), as CSV text with the given line end.
+fn smooth_map(eol: &str) -> String {
+    let mut s = format!("x_mm,y_mm,z_nm{eol}");
+    for iy in 0..21 {
+        for ix in 0..21 {
+            let (x, y) = (ix as f64, iy as f64);
+            let z = 50.0 + 20.0 * (0.3 * x).sin() * (0.2 * y).cos();
+            s.push_str(&format!("{x},{y},{z}{eol}"));
+        }
+    }
+    s
+}
+
+const GAUSSIAN: [&str; 6] = [
+    "--gaussian-sigma-mm",
+    "2",
+    "--gaussian-peak-nm-per-s",
+    "10",
+    "--v-max",
+    "2000",
+];
+
+/// Expects failure, every needle in stderr, and no file at all in the output directory.
+fn expect_failure(args: &[&str], needles: &[&str]) {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("result");
+    let o = solve(args, &out);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
+    for n in needles {
+        assert!(stderr.contains(n), "stderr lacks `{n}`: {stderr}");
+    }
+    assert!(
+        !out.exists() || std::fs::read_dir(&out).unwrap().next().is_none(),
+        "output written despite the error"
+    );
+}
+
+#[test]
+fn csv_errors_name_file_line_and_column() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path();
+    let raster = ["--raster-pitch-mm", "2"];
+    let with = |map: &str| -> Vec<String> {
+        let mut v = vec!["--map".to_string(), map.to_string()];
+        v.extend(GAUSSIAN.iter().map(|s| s.to_string()));
+        v.extend(raster.iter().map(|s| s.to_string()));
+        v
+    };
+    let run = |map: &str, needles: &[&str]| {
+        let args = with(map);
+        let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+        expect_failure(&args, needles);
+    };
+    // Misspelt header, wrong unit (with a hint), infinity, duplicate point, empty file.
+    run(
+        &write(p, "misspelt.csv", "x_mm,y_nm,z_nm\n0,0,1\n"),
+        &["misspelt.csv", "line 1", "missing column `y_mm`"],
+    );
+    run(
+        &write(p, "units.csv", "x_mm,y_mm,z_um\n0,0,1\n"),
+        &["units.csv", "missing column `z_nm`", "found `z_um`"],
+    );
+    run(
+        &write(p, "inf.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,inf\n"),
+        &["inf.csv", "line 3", "z_nm"],
+    );
+    run(
+        &write(p, "dup.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,2\n0,0,3\n"),
+        &["dup.csv", "line 4", "line 2"],
+    );
+    run(&write(p, "blank.csv", ""), &["blank.csv", "empty"]);
+    run(
+        &write(p, "ragged.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0\n"),
+        &["ragged.csv", "line 3"],
+    );
+    // TIF: negative rate and all-zero rates.
+    let map = write(p, "map.csv", &smooth_map("\n"));
+    for (name, text, needle) in [
+        (
+            "neg_tif.csv",
+            "x_mm,y_mm,rate_nm_per_s\n0,0,1\n1,0,-1\n0,1,1\n1,1,1\n",
+            "negative rate",
+        ),
+        (
+            "zero_tif.csv",
+            "x_mm,y_mm,rate_nm_per_s\n0,0,0\n1,0,0\n0,1,0\n1,1,0\n",
+            "all rates are zero",
+        ),
+    ] {
+        let tif = write(p, name, text);
+        expect_failure(
+            &[
+                "--map",
+                &map,
+                "--tif",
+                &tif,
+                "--v-max",
+                "2000",
+                "--raster-pitch-mm",
+                "1",
+            ],
+            &[name, needle],
+        );
+    }
+}
+
+#[test]
+fn bom_and_crlf_give_the_same_answer() {
+    let d = tempfile::tempdir().unwrap();
+    let unix = write(d.path(), "unix.csv", &smooth_map("\n"));
+    let windows = write(
+        d.path(),
+        "windows.csv",
+        &format!("\u{feff}{}", smooth_map("\r\n")),
+    );
+    let mut outs = Vec::new();
+    for (k, map) in [unix, windows].iter().enumerate() {
+        let out = d.path().join(format!("out{k}"));
+        let mut args = vec!["--map", map.as_str(), "--raster-pitch-mm", "2"];
+        args.extend(GAUSSIAN);
+        let o = solve(&args, &out);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        outs.push(out);
+    }
+    for f in ["dwell.csv", "residual.csv"] {
+        assert_eq!(
+            std::fs::read(outs[0].join(f)).unwrap(),
+            std::fs::read(outs[1].join(f)).unwrap(),
+            "{f} differs between LF and BOM+CRLF input"
+        );
+    }
+}
+
+#[test]
+fn unreachable_dwell_points_are_reported_at_their_lower_bound() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &smooth_map("\n"));
+    // A raster over the map at 2 mm pitch, then two points 500 mm away (out of the 6 mm reach).
+    let mut text = String::from("x_mm,y_mm\n");
+    let mut n = 0;
+    for iy in 0..11 {
+        for k in 0..11 {
+            let ix = if iy % 2 == 0 { k } else { 10 - k };
+            text.push_str(&format!("{},{}\n", 2 * ix, 2 * iy));
+            n += 1;
+        }
+    }
+    text.push_str("520,20\n540,20\n");
+    let dwell = write(d.path(), "dwell.csv", &text);
+    let out = d.path().join("out");
+    let mut args = vec!["--map", map.as_str(), "--dwell", dwell.as_str()];
+    args.extend(GAUSSIAN);
+    let o = solve(&args, &out);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("2 dwell points have no map point"),
+        "{stderr}"
+    );
+    let r = report(&out);
+    assert_eq!(r["unreachable_dwell_points"], 2);
+    assert_eq!(
+        r["unreachable_dwell_indices"],
+        serde_json::json!([n, n + 1])
+    );
+    // Their dwell is the lower bound ds / (v_max / 60).
+    let rows: Vec<Vec<f64>> = std::fs::read_to_string(out.join("dwell.csv"))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    for row in &rows[n..] {
+        let lower = row[2] / (2000.0 / 60.0);
+        assert!((row[3] - lower).abs() <= 1e-9 * lower, "{row:?}");
+    }
+}
+
+#[test]
+fn tif_wider_than_map_is_a_warning() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &smooth_map("\n"));
+    let out = d.path().join("out");
+    // Truncation radius 15 mm: a 30 mm footprint on a 20 mm map.
+    let o = solve(
+        &[
+            "--map",
+            &map,
+            "--gaussian-sigma-mm",
+            "5",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--gaussian-truncation-mm",
+            "15",
+            "--v-max",
+            "2000",
+            "--raster-pitch-mm",
+            "3",
+        ],
+        &out,
+    );
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(stderr.contains("wider than the map"), "{stderr}");
+    let r = report(&out);
+    assert_eq!(r["warnings"].as_array().unwrap().len(), 1);
+    // A 3 sigma = 6 mm footprint of 12 mm does not warn.
+    let out2 = d.path().join("out2");
+    let mut args = vec!["--map", map.as_str(), "--raster-pitch-mm", "2"];
+    args.extend(GAUSSIAN);
+    let o = solve(&args, &out2);
+    assert!(o.status.success());
+    assert!(report(&out2)["warnings"].as_array().unwrap().is_empty());
+}
+
+#[test]
+fn not_converging_is_a_status_and_an_exit_code() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &smooth_map("\n"));
+    let mut args = vec![
+        "--map",
+        map.as_str(),
+        "--raster-pitch-mm",
+        "2",
+        "--max-iterations",
+        "2",
+    ];
+    args.extend(GAUSSIAN);
+    let out = d.path().join("out");
+    let o = solve(&args, &out);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{stderr}");
+    assert!(stderr.contains("did not converge"), "{stderr}");
+    assert_ne!(report(&out)["status"], "converged");
+    args.push("--accept-best-iterate");
+    let o = solve(&args, &d.path().join("out2"));
+    assert!(o.status.success());
+}
+
+/// Report keys that are wall-clock times and may differ between runs.
+const TIMING_KEYS: [&str; 2] = ["build_seconds", "solve_seconds"];
+
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    let d = tempfile::tempdir().unwrap();
+    let mut outs: Vec<PathBuf> = Vec::new();
+    for threads in ["1", "2"] {
+        let out = d.path().join(format!("t{threads}"));
+        let o = preston()
+            .env("RAYON_NUM_THREADS", threads)
+            .args(["solve", "--job", &data("job.toml"), "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        outs.push(out);
+    }
+    for f in ["dwell.csv", "residual.csv"] {
+        assert!(
+            std::fs::read(outs[0].join(f)).unwrap() == std::fs::read(outs[1].join(f)).unwrap(),
+            "{f} differs between 1 and 2 threads"
+        );
+    }
+    let (mut a, mut b) = (report(&outs[0]), report(&outs[1]));
+    for k in TIMING_KEYS {
+        a.as_object_mut().unwrap().remove(k);
+        b.as_object_mut().unwrap().remove(k);
+    }
+    assert_eq!(a, b);
+}
+
+/// Each file written by `preston solve` is whole: `report.json` parses, and each CSV has a final
+/// newline and the header's number of fields on every row. (The three files are renamed one
+/// after another, so a kill between two renames may leave an old and a new file side by side;
+/// each of them is still whole.)
+fn assert_complete(out: &Path) {
+    report(out);
+    for f in ["dwell.csv", "residual.csv"] {
+        let text = std::fs::read_to_string(out.join(f)).unwrap();
+        assert!(text.ends_with('\n'), "{f} truncated");
+        let mut lines = text.lines();
+        let fields = lines.next().unwrap().split(',').count();
+        let mut rows = 0;
+        for l in lines {
+            assert_eq!(l.split(',').count(), fields, "{f}: short row {l}");
+            for c in l.split(',') {
+                c.parse::<f64>().unwrap();
+            }
+            rows += 1;
+        }
+        assert!(rows > 0, "{f} has no rows");
+    }
+}
+
+#[test]
+fn a_killed_solve_leaves_no_partial_output() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let job = data("job.toml");
+    // A complete first run, and its duration.
+    let start = Instant::now();
+    let o = solve(&["--job", &job], &out);
+    let full = start.elapsed();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let first = std::fs::read(out.join("dwell.csv")).unwrap();
+    // Runs with another pitch, killed at fractions of the full duration (the last ones during
+    // or just before writing): each output is the old file or a whole new one, never a part.
+    for fraction in [0.3, 0.8, 0.95, 1.0] {
+        let mut child = preston()
+            .args(["solve", "--job", &job, "--raster-pitch-mm", "1.3", "--out"])
+            .arg(&out)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_secs_f64(full.as_secs_f64() * fraction));
+        let _ = child.kill();
+        let _ = child.wait();
+        assert_complete(&out);
+        let now = std::fs::read(out.join("dwell.csv")).unwrap();
+        // Either the first run's file or the new raster's (a different number of rows).
+        let rows = |b: &[u8]| String::from_utf8_lossy(b).lines().count();
+        assert!(now == first || rows(&now) != rows(&first));
+    }
+    // No stray files with the final names' prefixes other than hidden temporaries.
+    for e in std::fs::read_dir(&out).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().to_string();
+        assert!(
+            ["dwell.csv", "residual.csv", "report.json"].contains(&name.as_str())
+                || (name.starts_with('.') && name.ends_with(".tmp")),
+            "unexpected file {name}"
+        );
+    }
+}
