@@ -24,11 +24,16 @@
 //! [solver]
 //! solver = "auto"
 //! min_time = false
+//!
+//! [surface]                              # optional: a curved part
+//! file = "design.json"                   # surface JSON; the TIF acts in the tangent plane
+//! tif_frame = "path_tangent"             # or "machine_x"
 //! ```
 
 use crate::error::{Error, Result};
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::path::raster::RasterAxis;
+use preston_solver::surface::influence::TifFrame;
 use preston_solver::tif::GaussianTif;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -55,6 +60,19 @@ pub struct Job {
     /// Solver settings.
     #[serde(default)]
     pub solver: Settings,
+    /// The design surface of a curved part (absent: a flat part).
+    #[serde(default)]
+    pub surface: SurfaceSource,
+}
+
+/// The design surface on which the TIF is applied in each dwell point's tangent plane.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SurfaceSource {
+    /// Surface JSON (as written by `preston fit`); absent: a flat part, plan-view offsets.
+    pub file: Option<PathBuf>,
+    /// Orientation of the TIF's x axis in the tangent plane.
+    pub tif_frame: TifFrame,
 }
 
 /// Where the map comes from.
@@ -115,9 +133,14 @@ impl Job {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let mut job = Self::parse(&text, path)?;
         let base = path.parent().unwrap_or_else(|| Path::new("."));
-        for p in [&mut job.map.file, &mut job.tif.file, &mut job.dwell.file]
-            .into_iter()
-            .flatten()
+        for p in [
+            &mut job.map.file,
+            &mut job.tif.file,
+            &mut job.dwell.file,
+            &mut job.surface.file,
+        ]
+        .into_iter()
+        .flatten()
         {
             if p.is_relative() {
                 *p = base.join(&*p);

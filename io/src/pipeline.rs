@@ -5,12 +5,14 @@ use crate::error::{Error, Result};
 use crate::job::Job;
 use crate::readers::{read_dwell, read_map, read_tif};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
+use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{self, DwellBounds, Problem, Solution};
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::{raster, DwellPath};
+use preston_solver::surface::influence::assemble_on_surface;
 use preston_solver::tif::{InfluenceFunction, Tif};
 use std::path::Path;
 use std::time::Instant;
@@ -123,14 +125,30 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let bounds =
         DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
     let map = map_file.map;
-    let influence = InfluenceMatrix::assemble(
-        map.x_mm(),
-        map.y_mm(),
-        path.x_mm(),
-        path.y_mm(),
-        &tif,
-        observer,
-    )?;
+    let influence = match &job.surface.file {
+        None => InfluenceMatrix::assemble(
+            map.x_mm(),
+            map.y_mm(),
+            path.x_mm(),
+            path.y_mm(),
+            &tif,
+            observer,
+        )?,
+        Some(f) => {
+            let surface = read_surface(f)?;
+            assemble_on_surface(
+                &surface,
+                map.x_mm(),
+                map.y_mm(),
+                path.x_mm(),
+                path.y_mm(),
+                &tif,
+                job.surface.tif_frame,
+                observer,
+            )
+            .map_err(|e| Error::engine(f, e))?
+        }
+    };
     let problem = Problem::new(
         influence,
         map.z_nm().to_vec(),

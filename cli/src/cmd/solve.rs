@@ -5,6 +5,7 @@ use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
 use preston_solver::path::raster::RasterAxis;
+use preston_solver::surface::influence::TifFrame;
 use preston_solver::tif::GaussianTif;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -19,6 +20,15 @@ pub enum Along {
     X,
     /// Lines along y.
     Y,
+}
+
+/// TIF orientation on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum Frame {
+    /// The TIF x axis follows the path tangent.
+    PathTangent,
+    /// The TIF x axis is the machine x axis projected into the tangent plane.
+    MachineX,
 }
 
 /// Arguments of `preston solve`. Flags override the job file.
@@ -78,6 +88,12 @@ pub struct Args {
     /// Exit 0 even when the solver stops before converging (the status is still reported).
     #[arg(long)]
     pub accept_best_iterate: bool,
+    /// Design surface JSON of a curved part: the TIF acts in each dwell point's tangent plane.
+    #[arg(long, value_name = "S.json")]
+    pub surface: Option<PathBuf>,
+    /// Orientation of the TIF's x axis on a curved part.
+    #[arg(long, value_enum, requires = "surface")]
+    pub tif_frame: Option<Frame>,
     /// Output directory for dwell.csv, residual.csv and report.json.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -139,6 +155,15 @@ impl Args {
         }
         if let Some(k) = self.max_iterations {
             job.solver.max_iterations = k;
+        }
+        if let Some(f) = self.surface {
+            job.surface.file = Some(f);
+        }
+        if let Some(f) = self.tif_frame {
+            job.surface.tif_frame = match f {
+                Frame::PathTangent => TifFrame::PathTangent,
+                Frame::MachineX => TifFrame::MachineX,
+            };
         }
         Ok((job, job_path, self.out, self.accept_best_iterate))
     }
