@@ -20,6 +20,7 @@ pub mod map;
 pub mod observer;
 pub mod path;
 pub mod registration;
+pub mod simulate;
 pub mod surface;
 pub mod tif;
 
