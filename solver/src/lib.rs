@@ -14,6 +14,7 @@ pub mod dwell;
 pub mod error;
 pub mod fit;
 pub mod influence;
+pub mod iterate;
 mod lstsq;
 pub mod machine;
 pub mod map;

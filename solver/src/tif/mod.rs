@@ -60,3 +60,32 @@ impl InfluenceFunction for Tif {
         }
     }
 }
+
+/// A TIF with every rate multiplied by `factor` (a removal-rate error or a calibration):
+/// `rate'(dx, dy) = factor * rate(dx, dy)`, same support.
+#[derive(Debug, Clone, Copy)]
+pub struct ScaledTif<'a, T: InfluenceFunction + ?Sized> {
+    inner: &'a T,
+    factor: f64,
+}
+
+impl<'a, T: InfluenceFunction + ?Sized> ScaledTif<'a, T> {
+    /// `factor * inner`.
+    pub fn new(inner: &'a T, factor: f64) -> Self {
+        Self { inner, factor }
+    }
+}
+
+impl<T: InfluenceFunction + ?Sized> InfluenceFunction for ScaledTif<'_, T> {
+    fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+        self.factor * self.inner.rate_nm_per_s(dx_mm, dy_mm)
+    }
+
+    fn support_radius_mm(&self) -> f64 {
+        self.inner.support_radius_mm()
+    }
+
+    fn nominal_radius_mm(&self) -> f64 {
+        self.inner.nominal_radius_mm()
+    }
+}
