@@ -57,8 +57,8 @@ pub struct Args {
     /// Slowest feed, mm/min (0 = no limit).
     #[arg(long = "v-min", value_name = "MM_PER_MIN")]
     pub v_min_mm_per_min: Option<f64>,
-    /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a ds
-    /// (sequential convex programming).
+    /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
+    /// the distance between consecutive dwell points (sequential convex programming).
     #[arg(long, value_name = "MM_PER_S2")]
     pub a_max_mm_per_s2: Option<f64>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
