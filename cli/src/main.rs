@@ -27,6 +27,10 @@ enum Command {
     Register(cmd::register::Args),
     /// Evaluate a surface (sag, normal, principal curvatures) on a grid or at points.
     Surface(cmd::surface::Args),
+    /// Write G-code and a point list for CAM from a solved dwell file.
+    Nc(cmd::nc::Args),
+    /// Write the NC program of a rotationally symmetric asphere (rotating workpiece).
+    Asphere(cmd::asphere::Args),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +40,8 @@ fn main() -> ExitCode {
         Command::Fit(args) => cmd::fit::run(args),
         Command::Register(args) => cmd::register::run(args),
         Command::Surface(args) => cmd::surface::run(args),
+        Command::Nc(args) => cmd::nc::run(args),
+        Command::Asphere(args) => cmd::asphere::run(args),
     };
     match result {
         Ok(code) => code,

@@ -16,6 +16,8 @@
 //! [machine]
 //! v_max_mm_per_min = 3000.0
 //! v_min_mm_per_min = 0.0
+//! a_max_mm_per_s2 = 500.0                # optional: acceleration limit (SCP)
+//! corner_angle_deg = 60.0                # optional: lines split at turns sharper than this
 //!
 //! [objective]
 //! rho = 0.0
@@ -31,7 +33,10 @@
 //! ```
 
 use crate::error::{Error, Result};
+use crate::machine::NcSection;
+use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Settings};
+use preston_solver::machine::compensation::NormalDisplacement;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
 use preston_solver::tif::GaussianTif;
@@ -60,6 +65,12 @@ pub struct Job {
     /// Solver settings.
     #[serde(default)]
     pub solver: Settings,
+    /// NC output (`preston nc`): tool radius and axis.
+    #[serde(default)]
+    pub nc: NcSection,
+    /// Normal-displacement compensation (`preston nc`): material table and load.
+    #[serde(default)]
+    pub compensation: Option<NormalDisplacement>,
     /// The design surface of a curved part (absent: a flat part).
     #[serde(default)]
     pub surface: SurfaceSource,
@@ -115,6 +126,14 @@ pub struct MachineSection {
     pub v_max_mm_per_min: Option<f64>,
     /// Slowest feed, mm/min (0 = none).
     pub v_min_mm_per_min: Option<f64>,
+    /// Acceleration limit along a line, mm/s^2: `|v_{j+1}^2 - v_j^2| <= 2 a_max s_j`, imposed by
+    /// sequential convex programming ([`preston_solver::dwell::accel`]); none when absent.
+    #[serde(default)]
+    pub a_max_mm_per_s2: Option<f64>,
+    /// Turn angle, degrees, above which the path splits into lines (connecting moves carry no
+    /// acceleration constraint, the machine stops there); default 60.
+    #[serde(default)]
+    pub corner_angle_deg: Option<f64>,
 }
 
 /// Weights of the objective terms.
@@ -172,6 +191,34 @@ impl Job {
         limits.validate()?;
         Ok(limits)
     }
+
+    /// Corner angle of the machine, degrees (`[machine] corner_angle_deg`, default 60).
+    pub fn corner_angle_deg(&self) -> f64 {
+        self.machine
+            .corner_angle_deg
+            .unwrap_or(AccelLimits::default().corner_angle_deg)
+    }
+
+    /// The acceleration limit with default SCP settings, when `[machine] a_max_mm_per_s2` is set;
+    /// validated.
+    pub fn accel_limits(&self) -> std::result::Result<Option<AccelLimits>, preston_solver::Error> {
+        let Some(a) = self.machine.a_max_mm_per_s2 else {
+            return Ok(None);
+        };
+        let limits = AccelLimits {
+            a_max_mm_per_s2: a,
+            corner_angle_deg: self.corner_angle_deg(),
+            ..AccelLimits::default()
+        };
+        limits.validate()?;
+        if self.solver.min_time {
+            return Err(preston_solver::Error::invalid(
+                "a_max_mm_per_s2",
+                "cannot be combined with min_time (the SCP minimises the residual objective)",
+            ));
+        }
+        Ok(Some(limits))
+    }
 }
 
 #[cfg(test)]
@@ -206,5 +253,30 @@ mod tests {
         assert_eq!(j.objective.rho, 0.5);
         assert!(j.solver.min_time);
         assert_eq!(j.feed_limits().unwrap().v_max_mm_per_min, 3000.0);
+        assert_eq!(j.accel_limits().unwrap(), None);
+    }
+
+    #[test]
+    fn machine_tables_parse() {
+        let j = Job::parse(
+            "[machine]\nv_max_mm_per_min=3000\na_max_mm_per_s2=250\ncorner_angle_deg=45\n\
+             [nc]\ntool_radius_mm=5\ntool_axis={type='fixed',b_deg=10}\n\
+             [compensation]\ngrain_radius_mm=0.01\ngrain_sigma_mm=0.002\nforce_n=20\n\
+             curvature_radius_mm=100\n[compensation.part]\ne_gpa=70\nnu=0.34\nhardness_gpa=0.06\n",
+            Path::new("j.toml"),
+        )
+        .unwrap();
+        let a = j.accel_limits().unwrap().unwrap();
+        assert_eq!((a.a_max_mm_per_s2, a.corner_angle_deg), (250.0, 45.0));
+        assert_eq!(j.nc.tool_radius_mm, Some(5.0));
+        let c = j.compensation.unwrap();
+        assert_eq!((c.force_n, c.part.e_gpa), (20.0, 70.0));
+        assert_eq!(c.grain, NormalDisplacement::default().grain);
+        let bad = Job::parse("[machine]\na_max_mm_per_s2=-1\n", Path::new("j.toml")).unwrap();
+        assert!(bad.accel_limits().is_err());
+        let e = Job::parse("[compensation]\nforce=1\n", Path::new("j.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("force"), "{e}");
     }
 }

@@ -6,6 +6,7 @@
 
 pub mod atomic;
 pub mod error;
+pub mod machine;
 pub mod readers;
 pub mod report;
 pub mod surface;

@@ -9,6 +9,7 @@ use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{self, DwellBounds, Problem, Solution};
 use preston_solver::influence::InfluenceMatrix;
+use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::{raster, DwellPath};
@@ -79,6 +80,7 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         .validate()
         .map_err(|e| Error::engine(job_path, e))?;
     let limits = job.feed_limits().map_err(|e| Error::engine(job_path, e))?;
+    job.accel_limits().map_err(|e| Error::engine(job_path, e))?;
     let map_path = job.map.file.as_deref().ok_or_else(|| Error::Job {
         file: job_path.to_path_buf(),
         why: "no map: set [map] file (or --map)".into(),
@@ -187,9 +189,22 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
     })
 }
 
-/// Runs the solver on prepared inputs and builds the report.
+/// Runs the solver on prepared inputs and builds the report. With `[machine] a_max_mm_per_s2`
+/// the acceleration limit is imposed by sequential convex programming ([`dwell::accel::solve`]);
+/// either way the report gets the machining time and the largest acceleration of the schedule.
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
-    let solution = dwell::solve(&prepared.problem, &job.solver, observer)?;
+    let limits = job.accel_limits()?;
+    let (solution, accel) = match &limits {
+        Some(l) => {
+            let a =
+                dwell::accel::solve(&prepared.problem, &prepared.path, l, &job.solver, observer)?;
+            (a.solution, Some(a.report))
+        }
+        None => (
+            dwell::solve(&prepared.problem, &job.solver, observer)?,
+            None,
+        ),
+    };
     let removal_nm = prepared.problem.influence().removal_nm(&solution.dwell_s)?;
     let mut report = Report::new(
         &prepared.problem,
@@ -200,6 +215,13 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    let schedule = FeedSchedule::new(
+        &prepared.path,
+        &solution.dwell_s,
+        limits.as_ref().map(|l| l.a_max_mm_per_s2),
+        job.corner_angle_deg(),
+    )?;
+    report.set_machine(&schedule, accel.as_ref());
     Ok(Solved {
         prepared,
         solution,

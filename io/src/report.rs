@@ -1,6 +1,8 @@
 //! `report.json`: what a solve achieved, in the keys of the engine contract.
 
+use preston_solver::dwell::accel::AccelReport;
 use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
+use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::map::HeightStats;
 use serde::{Deserialize, Serialize};
 
@@ -63,6 +65,31 @@ pub struct Report {
     /// Warnings about the inputs (for example a TIF wider than the map), also printed on stderr.
     #[serde(default)]
     pub warnings: Vec<String>,
+    /// Machining time of the feed schedule, s: moves `2 s_j / (v_j + v_{j+1})` plus run-in and
+    /// run-out, plus the acceleration ramps when `a_max` is set
+    /// ([`preston_solver::machine::feeds`]). Set by [`Report::set_machine`].
+    #[serde(default)]
+    pub machining_time_s: f64,
+    /// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` between consecutive dwell points on a line,
+    /// mm/s^2 (computed with or without a limit). Set by [`Report::set_machine`].
+    #[serde(default)]
+    pub max_accel_mm_per_s2: f64,
+    /// The acceleration limit imposed, mm/s^2 (absent without one).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub a_max_mm_per_s2: Option<f64>,
+    /// Sequential-convex-programming iterations (QP solves after the feed-limited optimum; 0 when
+    /// that optimum already met the limit). Absent without a limit.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub accel_iterations: Option<usize>,
+    /// RMS of the residual of the feed-limited-only optimum (no acceleration limit), nm: the
+    /// price of the limit is `rms_after_nm - rms_feed_limited_only_nm >= 0`. Absent without a
+    /// limit.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub rms_feed_limited_only_nm: Option<f64>,
+    /// The whole account of the acceleration-limited solve (objectives, binding segments,
+    /// maximum acceleration of the feed-limited optimum). Absent without a limit.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub accel: Option<AccelReport>,
 }
 
 /// Feed at each dwell point, mm/min: `ds / dwell * 60` (0 where `ds` is 0).
@@ -152,6 +179,23 @@ impl Report {
             unreachable_dwell_points: problem.influence().empty_columns().len(),
             unreachable_dwell_indices: problem.influence().empty_columns(),
             warnings: Vec::new(),
+            machining_time_s: 0.0,
+            max_accel_mm_per_s2: 0.0,
+            a_max_mm_per_s2: None,
+            accel_iterations: None,
+            rms_feed_limited_only_nm: None,
+            accel: None,
         }
+    }
+
+    /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the
+    /// acceleration-limited solve's account when there was one.
+    pub fn set_machine(&mut self, schedule: &FeedSchedule, accel: Option<&AccelReport>) {
+        self.machining_time_s = schedule.machining_time_s;
+        self.max_accel_mm_per_s2 = schedule.max_accel_mm_per_s2;
+        self.a_max_mm_per_s2 = accel.map(|a| a.a_max_mm_per_s2);
+        self.accel_iterations = accel.map(|a| a.scp_iterations);
+        self.rms_feed_limited_only_nm = accel.map(|a| a.rms_after_reference_nm);
+        self.accel = accel.cloned();
     }
 }

@@ -237,11 +237,10 @@ impl LoopSettings {
     /// Checks every field.
     pub fn validate(&self) -> Result<()> {
         let a = &self.aperture;
-        if !(a.x_max_mm > a.x_min_mm && a.y_max_mm > a.y_min_mm)
-            || ![a.x_min_mm, a.x_max_mm, a.y_min_mm, a.y_max_mm]
-                .iter()
-                .all(|v| v.is_finite())
-        {
+        let finite = [a.x_min_mm, a.x_max_mm, a.y_min_mm, a.y_max_mm]
+            .iter()
+            .all(|v| v.is_finite());
+        if !(finite && a.x_max_mm > a.x_min_mm && a.y_max_mm > a.y_min_mm) {
             return Err(Error::invalid(
                 "aperture",
                 format!(
@@ -351,7 +350,7 @@ pub struct LoopOutcome {
 /// Path of iteration `k`: lines along x for even `k`, along y for odd `k`, shifted by half a
 /// pitch when `k mod 4 >= 2`.
 pub fn intersection_path(region: &BoundingBox, pitch_mm: f64, k: usize) -> Result<DwellPath> {
-    let along = if k % 2 == 0 {
+    let along = if k.is_multiple_of(2) {
         RasterAxis::X
     } else {
         RasterAxis::Y

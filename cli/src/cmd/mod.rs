@@ -1,4 +1,6 @@
+pub mod asphere;
 pub mod fit;
+pub mod nc;
 pub mod register;
 pub mod solve;
 pub mod surface;

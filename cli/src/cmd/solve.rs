@@ -67,6 +67,14 @@ pub struct Args {
     /// Slowest feed, mm/min (0 = no limit).
     #[arg(long = "v-min", value_name = "MM_PER_MIN")]
     pub v_min_mm_per_min: Option<f64>,
+    /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
+    /// the distance between consecutive dwell points (sequential convex programming).
+    #[arg(long, value_name = "MM_PER_S2")]
+    pub a_max_mm_per_s2: Option<f64>,
+    /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
+    /// and the machining time (default 60).
+    #[arg(long, value_name = "DEG")]
+    pub corner_angle_deg: Option<f64>,
     /// Weight of total dwell time in the objective (nm^2 per s).
     #[arg(long)]
     pub rho: Option<f64>,
@@ -137,6 +145,12 @@ impl Args {
         }
         if let Some(v) = self.v_min_mm_per_min {
             job.machine.v_min_mm_per_min = Some(v);
+        }
+        if let Some(a) = self.a_max_mm_per_s2 {
+            job.machine.a_max_mm_per_s2 = Some(a);
+        }
+        if let Some(c) = self.corner_angle_deg {
+            job.machine.corner_angle_deg = Some(c);
         }
         if let Some(r) = self.rho {
             job.objective.rho = r;
@@ -218,6 +232,20 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         eprintln!(
             "  minimum time: {:.2} s instead of {:.2} s at rho = 0 (objective {:.6e} vs {:.6e}, tolerance {})",
             r.total_dwell_s, mt.total_dwell_rho0_s, r.objective, mt.objective_rho0, mt.tolerance
+        );
+    }
+    eprintln!(
+        "  machining time {:.2} s, max acceleration {:.3} mm/s^2",
+        r.machining_time_s, r.max_accel_mm_per_s2
+    );
+    if let (Some(a), Some(it), Some(rms0)) = (
+        r.a_max_mm_per_s2,
+        r.accel_iterations,
+        r.rms_feed_limited_only_nm,
+    ) {
+        eprintln!(
+            "  acceleration limit {a} mm/s^2: {it} SCP iterations, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
+            r.rms_after_nm
         );
     }
     eprintln!(

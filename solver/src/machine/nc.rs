@@ -202,11 +202,33 @@ impl NcProgram {
 
     /// Writes the G-code program (see the module documentation).
     pub fn write_gcode(&self, w: &mut dyn Write) -> std::io::Result<()> {
+        self.write_gcode_with_notes(&[], w)
+    }
+
+    /// As [`NcProgram::write_gcode`], with extra comment lines (the job summary: input files,
+    /// surface) after the units line; parentheses in a note become brackets.
+    pub fn write_gcode_with_notes(
+        &self,
+        notes: &[String],
+        w: &mut dyn Write,
+    ) -> std::io::Result<()> {
         let s = &self.schedule;
         let (f_lo, f_hi) = s.feed_range_mm_per_min();
         writeln!(w, "%")?;
         writeln!(w, "(PRESTON DWELL PROGRAM)")?;
         writeln!(w, "(UNITS MM, FEED MM/MIN, TIME S, ANGLE DEG)")?;
+        for note in notes {
+            let clean: String = note
+                .chars()
+                .map(|c| match c {
+                    '(' => '[',
+                    ')' => ']',
+                    '\n' | '\r' => ' ',
+                    c => c,
+                })
+                .collect();
+            writeln!(w, "({clean})")?;
+        }
         writeln!(w, "(POINTS {})", self.points.len())?;
         writeln!(
             w,
