@@ -16,3 +16,4 @@ pub mod writers;
 pub use error::{Error, Result};
 pub mod job;
 pub mod pipeline;
+pub mod plots;
