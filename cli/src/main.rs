@@ -27,6 +27,10 @@ enum Command {
     Register(cmd::register::Args),
     /// Evaluate a surface (sag, normal, principal curvatures) on a grid or at points.
     Surface(cmd::surface::Args),
+    /// Tool influence functions: Hertzian sphere, bonnet, Gaussian, measured grid.
+    Tif(cmd::tif::Args),
+    /// Tool paths: raster, intersection, spiral, chord-height, edge-offset.
+    Path(cmd::path::Args),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +40,8 @@ fn main() -> ExitCode {
         Command::Fit(args) => cmd::fit::run(args),
         Command::Register(args) => cmd::register::run(args),
         Command::Surface(args) => cmd::surface::run(args),
+        Command::Tif(args) => cmd::tif::run(args),
+        Command::Path(args) => cmd::path::run(args),
     };
     match result {
         Ok(code) => code,

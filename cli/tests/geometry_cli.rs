@@ -162,7 +162,11 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
     let arcsec = std::f64::consts::PI / (180.0 * 3600.0);
     let w_arcsec = [40.0, -25.0, 60.0];
     let t_um = [12.0, -30.0, 8.0];
-    let rot = rotation([w_arcsec[0] * arcsec, w_arcsec[1] * arcsec, w_arcsec[2] * arcsec]);
+    let rot = rotation([
+        w_arcsec[0] * arcsec,
+        w_arcsec[1] * arcsec,
+        w_arcsec[2] * arcsec,
+    ]);
     // A form error of 80 nm along z with zero mean over the grid (three periods per side),
     // then the measured points p = Rot^T (p_design + e - t).
     let form_nm = |x: f64, y: f64| {
@@ -215,10 +219,9 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
         "--out",
         s(&out_exact),
     ]));
-    let tf: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(out_exact.join("transform.json")).unwrap(),
-    )
-    .unwrap();
+    let tf: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_exact.join("transform.json")).unwrap())
+            .unwrap();
     for a in 0..3 {
         let t = tf["translation_um"][a].as_f64().unwrap();
         let w = tf["rotation_arcsec"][a].as_f64().unwrap();
@@ -235,7 +238,9 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
     let p = exact[100];
     let mapped: Vec<f64> = (0..3)
         .map(|a| {
-            (0..3).map(|b| m[a][b].as_f64().unwrap() * p[b]).sum::<f64>()
+            (0..3)
+                .map(|b| m[a][b].as_f64().unwrap() * p[b])
+                .sum::<f64>()
                 + m[a][3].as_f64().unwrap()
         })
         .collect();
@@ -286,10 +291,9 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
         s(&solve_out),
     ]);
     ok(&r);
-    let report: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(solve_out.join("report.json")).unwrap(),
-    )
-    .unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(solve_out.join("report.json")).unwrap())
+            .unwrap();
     assert_eq!(report["m"], 441);
     // The solver's RMS is about the mean; the written map has (nearly) zero mean.
     let rms_before = report["rms_before_nm"].as_f64().unwrap();
@@ -304,7 +308,10 @@ fn surface_grid_matches_the_closed_form_sphere() {
     let radius = 250.0;
     std::fs::write(
         &surface,
-        format!(r#"{{"type":"conic","curvature_per_mm":{},"conic":0.0}}"#, 1.0 / radius),
+        format!(
+            r#"{{"type":"conic","curvature_per_mm":{},"conic":0.0}}"#,
+            1.0 / radius
+        ),
     )
     .unwrap();
     let out = dir.path().join("grid.csv");

@@ -1,4 +1,6 @@
 pub mod fit;
+pub mod path;
 pub mod register;
 pub mod solve;
 pub mod surface;
+pub mod tif;
