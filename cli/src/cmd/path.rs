@@ -11,7 +11,7 @@ use preston_solver::path::arcs::lines_with_arcs;
 use preston_solver::path::chord_height::{chord_height_line, ChordHeightSettings};
 use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings, SpotProgression};
 use preston_solver::path::intersection::{
-    intersection_lines, iteration_pattern, lines_to_path, raster_lines,
+    clip_to_aperture, intersection_lines, iteration_pattern, lines_to_path, raster_lines,
 };
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::path::spiral::archimedes;
@@ -94,6 +94,9 @@ struct Region {
     /// Join lines by tangent-continuous circular arcs of this radius (at most P/2), mm.
     #[arg(long)]
     arc_radius_mm: Option<f64>,
+    /// Clear-aperture polygon CSV `x_mm,y_mm`: keep only points inside it or within the margin.
+    #[arg(long, value_name = "APERTURE.csv")]
+    aperture: Option<PathBuf>,
 }
 
 impl Region {
@@ -243,6 +246,15 @@ fn write(
     Ok(p)
 }
 
+fn read_polygon(f: &PathBuf) -> anyhow::Result<Vec<[f64; 2]>> {
+    let mut t = read_table(
+        f,
+        &[ColumnSpec::required("x_mm"), ColumnSpec::required("y_mm")],
+    )?;
+    let (x, y) = (t.take(0).unwrap_or_default(), t.take(1).unwrap_or_default());
+    Ok(x.into_iter().zip(y).map(|(x, y)| [x, y]).collect())
+}
+
 fn load_surface(p: &Option<PathBuf>) -> anyhow::Result<Option<Surface>> {
     Ok(match p {
         Some(p) => Some(read_surface(p)?),
@@ -255,9 +267,16 @@ fn raster_path(
     lines: &[preston_solver::path::intersection::Line],
 ) -> anyhow::Result<DwellPath> {
     let step = region.step_mm.unwrap_or(region.pitch_mm);
-    Ok(match region.arc_radius_mm {
+    let path = match region.arc_radius_mm {
         Some(r) => lines_with_arcs(lines, step, r)?,
         None => lines_to_path(lines, step)?,
+    };
+    Ok(match &region.aperture {
+        Some(f) => {
+            let poly = read_polygon(f)?;
+            clip_to_aperture(&path, &poly, region.margin_mm)?
+        }
+        None => path,
     })
 }
 
@@ -330,14 +349,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Kind::EdgeOffset(a) => {
             let surface = load_surface(&a.common.surface)?;
             let edge: Vec<[f64; 2]> = match (&a.edge, a.edge_radius_mm) {
-                (Some(f), _) => {
-                    let mut t = read_table(
-                        f,
-                        &[ColumnSpec::required("x_mm"), ColumnSpec::required("y_mm")],
-                    )?;
-                    let (x, y) = (t.take(0).unwrap_or_default(), t.take(1).unwrap_or_default());
-                    x.into_iter().zip(y).map(|(x, y)| [x, y]).collect()
-                }
+                (Some(f), _) => read_polygon(f)?,
                 (None, Some(r)) => {
                     if !(r.is_finite() && r > 0.0) {
                         bail!("--edge-radius-mm must be positive, got {r}");

@@ -202,6 +202,65 @@ pub fn intersection(region: &BoundingBox, pitch_mm: f64, iteration: usize) -> Re
     lines_to_path(&intersection_lines(region, pitch_mm, iteration)?, pitch_mm)
 }
 
+/// Keeps the points of `path` inside the closed polygon `aperture` (vertices in order, first
+/// not repeated) or within `margin_mm` of its boundary (the clear aperture plus an extension
+/// margin); the order of the kept points is unchanged. Inside is by the even-odd rule.
+pub fn clip_to_aperture(
+    path: &DwellPath,
+    aperture: &[[f64; 2]],
+    margin_mm: f64,
+) -> Result<DwellPath> {
+    if aperture.len() < 3 {
+        return Err(Error::invalid("aperture", "needs at least three vertices"));
+    }
+    if !(margin_mm.is_finite() && margin_mm >= 0.0) {
+        return Err(Error::invalid(
+            "aperture margin_mm",
+            format!("must be non-negative, got {margin_mm}"),
+        ));
+    }
+    let m2 = margin_mm * margin_mm;
+    let n = aperture.len();
+    let keep = |x: f64, y: f64| -> bool {
+        let mut inside = false;
+        let mut near = false;
+        for i in 0..n {
+            let a = aperture[i];
+            let b = aperture[(i + 1) % n];
+            if (a[1] > y) != (b[1] > y) {
+                let xc = a[0] + (y - a[1]) / (b[1] - a[1]) * (b[0] - a[0]);
+                if x < xc {
+                    inside = !inside;
+                }
+            }
+            let (ex, ey) = (b[0] - a[0], b[1] - a[1]);
+            let l2 = ex * ex + ey * ey;
+            let t = if l2 > 0.0 {
+                (((x - a[0]) * ex + (y - a[1]) * ey) / l2).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let (dx, dy) = (a[0] + t * ex - x, a[1] + t * ey - y);
+            near |= dx * dx + dy * dy <= m2;
+        }
+        inside || near
+    };
+    let (mut xs, mut ys) = (Vec::new(), Vec::new());
+    for (&x, &y) in path.x_mm().iter().zip(path.y_mm()) {
+        if keep(x, y) {
+            xs.push(x);
+            ys.push(y);
+        }
+    }
+    if xs.is_empty() {
+        return Err(Error::invalid(
+            "aperture",
+            "no path point lies in the aperture plus margin",
+        ));
+    }
+    DwellPath::new(xs, ys)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -222,6 +281,44 @@ mod tests {
                 RasterAxis::Y => l.start[0],
             })
             .collect()
+    }
+
+    #[test]
+    fn clip_keeps_aperture_plus_margin() {
+        // Unit-pitch raster over [-10, 10]^2 clipped to a triangle plus 1 mm.
+        let region = BoundingBox {
+            x_min_mm: -10.0,
+            x_max_mm: 10.0,
+            y_min_mm: -10.0,
+            y_max_mm: 10.0,
+        };
+        let path = lines_to_path(
+            &raster_lines(&region, 1.0, RasterAxis::X, 0.0).unwrap(),
+            1.0,
+        )
+        .unwrap();
+        let tri = [[0.0, 0.0], [8.0, 0.0], [0.0, 8.0]];
+        let c = clip_to_aperture(&path, &tri, 1.0).unwrap();
+        for (&x, &y) in c.x_mm().iter().zip(c.y_mm()) {
+            // Inside the triangle grown by 1 mm: x >= -1, y >= -1, x + y <= 8 + sqrt(2).
+            assert!(x >= -1.0 - 1e-12 && y >= -1.0 - 1e-12 && x + y <= 8.0 + 2f64.sqrt() + 1e-9);
+        }
+        // Every raster point inside the triangle is kept.
+        let inside = path
+            .x_mm()
+            .iter()
+            .zip(path.y_mm())
+            .filter(|(&x, &y)| x > 0.0 && y > 0.0 && x + y < 8.0)
+            .count();
+        let kept = c
+            .x_mm()
+            .iter()
+            .zip(c.y_mm())
+            .filter(|(&x, &y)| x > 0.0 && y > 0.0 && x + y < 8.0)
+            .count();
+        assert_eq!(inside, kept);
+        assert!(c.len() > kept);
+        assert!(clip_to_aperture(&path, &[[50.0, 50.0], [51.0, 50.0], [50.0, 51.0]], 0.1).is_err());
     }
 
     #[test]
