@@ -250,15 +250,15 @@ fn paths_intersection_spiral_chord_height_edge() {
             "--out",
             s(&out),
         ]));
-        assert_eq!(j["along"], if k % 2 == 0 { "x" } else { "y" });
+        assert_eq!(j["along"], if k & 1 == 0 { "x" } else { "y" });
         let (h, rows) = read_csv(&out);
         assert_eq!(h, header);
         // The first line runs along its axis: the tangent of the first point.
         let t = (rows[0][3], rows[0][4]);
-        assert_eq!(t, if k % 2 == 0 { (1.0, 0.0) } else { (0.0, 1.0) });
+        assert_eq!(t, if k & 1 == 0 { (1.0, 0.0) } else { (0.0, 1.0) });
         // Cross-line coordinate of the first line: lo (K < 2) or lo - P/2 (K >= 2).
-        let c = if k % 2 == 0 { rows[0][1] } else { rows[0][0] };
-        let lo = if k % 2 == 0 { -5.0 } else { -10.0 };
+        let c = if k & 1 == 0 { rows[0][1] } else { rows[0][0] };
+        let lo = if k & 1 == 0 { -5.0 } else { -10.0 };
         let want = if k >= 2 { lo - 0.5 * p } else { lo };
         assert!((c - want).abs() < 1e-12, "k={k} {c}");
         if k == 0 {

@@ -18,7 +18,7 @@ use preston_solver::path::spiral::archimedes;
 use preston_solver::path::{project, DwellPath, ProjectedPath};
 use preston_solver::surface::Surface;
 use serde_json::json;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// Arguments of `preston path`.
@@ -234,11 +234,7 @@ fn axis(a: Along) -> RasterAxis {
     }
 }
 
-fn write(
-    path: &DwellPath,
-    surface: Option<&Surface>,
-    out: &PathBuf,
-) -> anyhow::Result<ProjectedPath> {
+fn write(path: &DwellPath, surface: Option<&Surface>, out: &Path) -> anyhow::Result<ProjectedPath> {
     let p = project(path, surface).context("projecting the path onto the surface")?;
     stage_columns_csv(out, &ProjectedPath::HEADER, &p.columns())?
         .commit()
@@ -246,7 +242,7 @@ fn write(
     Ok(p)
 }
 
-fn read_polygon(f: &PathBuf) -> anyhow::Result<Vec<[f64; 2]>> {
+fn read_polygon(f: &Path) -> anyhow::Result<Vec<[f64; 2]>> {
     let mut t = read_table(
         f,
         &[ColumnSpec::required("x_mm"), ColumnSpec::required("y_mm")],
@@ -342,7 +338,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                        "min_step_mm": c.min_step_mm(), "max_step_mm": c.max_step_mm(),
                        "min_chord_height_um": inner.iter().copied().fold(f64::INFINITY, f64::min) * 1e3,
                        "max_chord_height_um": hs.iter().copied().fold(0.0, f64::max) * 1e3,
-                       "last_chord_height_um": hs.last().copied().unwrap_or(0.0) * 1e3}),
+                       "last_chord_height_um": hs.last().copied().unwrap_or(0.0) * 1e3,
+                       "last_step_mm": c.steps_mm.last().copied().unwrap_or(0.0)}),
                 a.out,
             )
         }

@@ -276,7 +276,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     summary.peak_rate_nm_per_s = grid.peak_rate_nm_per_s();
     summary.grid_volume_rate_mm3_per_min = grid.volume_rate_mm3_per_s() * 60.0;
     summary.fwhm_mm = grid.fwhm_mm();
-    if !(summary.peak_rate_nm_per_s > 0.0) {
+    if summary.peak_rate_nm_per_s.is_nan() || summary.peak_rate_nm_per_s <= 0.0 {
         bail!("the TIF has no positive rate (check K, speed and force)");
     }
     write_grid(&out, &grid)?;

@@ -335,7 +335,7 @@ mod tests {
             conic: 0.6,
         });
         let p = check(&ell, 15.0, -40.0, 40.0);
-        // The vertex region is most curved along this line? Not needed: steps vary with curvature.
+        // The curvature varies along the line, so the steps do too.
         assert!(p.max_step_mm() > p.min_step_mm());
         let free = Surface::XyPolynomial(XyPolynomial {
             curvature_per_mm: 1.0 / 150.0,

@@ -305,7 +305,8 @@ pub fn fit_cubic(points: &[[f64; 2]], t: &[f64]) -> Result<CubicBezier> {
     }
     let det = a11 * a22 - a12 * a12;
     let third = |f: f64| [p0[0] + f * (p3[0] - p0[0]), p0[1] + f * (p3[1] - p0[1])];
-    if !(det.abs() > 1e-12 * (a11 * a22).max(f64::MIN_POSITIVE)) {
+    let floor = 1e-12 * (a11 * a22).max(f64::MIN_POSITIVE);
+    if det.is_nan() || det.abs() <= floor {
         return Ok(CubicBezier {
             p: [p0, third(1.0 / 3.0), third(2.0 / 3.0), p3],
         });
@@ -512,7 +513,7 @@ pub fn edge_offset(edge: &[[f64; 2]], settings: &EdgeOffsetSettings) -> Result<E
                 .map(|&p| spline_distance_mm(&spline, p))
                 .sum::<f64>()
                 / pts.len() as f64;
-            if !(achieved > 0.0) {
+            if achieved.is_nan() || achieved <= 0.0 {
                 return Err(Error::Geometry(format!(
                     "offset curve at {} mm collapsed",
                     line.offset_mm

@@ -104,13 +104,11 @@ pub fn raster_lines(
     }
     let mut lines = Vec::new();
     let mut k = k0;
+    let mut forward = true;
     while k <= k1 {
         let c = base + k * pitch_mm;
-        let (s, e) = if lines.len() % 2 == 0 {
-            (a_lo, a_hi)
-        } else {
-            (a_hi, a_lo)
-        };
+        let (s, e) = if forward { (a_lo, a_hi) } else { (a_hi, a_lo) };
+        forward = !forward;
         lines.push(match along {
             RasterAxis::X => Line {
                 start: [s, c],
@@ -177,12 +175,12 @@ pub fn lines_to_path(lines: &[Line], step_mm: f64) -> Result<DwellPath> {
 
 /// Direction and half-pitch shift of iteration `k`: `(axis, shifted)`.
 pub fn iteration_pattern(iteration: usize) -> (RasterAxis, bool) {
-    let axis = if iteration % 2 == 0 {
+    let axis = if iteration & 1 == 0 {
         RasterAxis::X
     } else {
         RasterAxis::Y
     };
-    (axis, (iteration / 2) % 2 == 1)
+    (axis, (iteration >> 1) & 1 == 1)
 }
 
 /// The lines of intersection iteration `iteration` (see the module documentation).
@@ -330,7 +328,7 @@ mod tests {
             let (axis, shifted) = iteration_pattern(k);
             assert_eq!(
                 axis,
-                if k % 2 == 0 {
+                if k & 1 == 0 {
                     RasterAxis::X
                 } else {
                     RasterAxis::Y
@@ -344,7 +342,7 @@ mod tests {
                     RasterAxis::Y => (l.end[1] - l.start[1], l.end[0] - l.start[0]),
                 };
                 assert_eq!(dc, 0.0);
-                assert!(if i % 2 == 0 { da > 0.0 } else { da < 0.0 });
+                assert!(if i & 1 == 0 { da > 0.0 } else { da < 0.0 });
             }
             let c = positions(&lines, axis);
             // Constant pitch.

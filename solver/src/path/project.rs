@@ -60,6 +60,7 @@ impl ProjectedPath {
 
 /// Projects `path` onto `surface` (or keeps it flat at `z = 0` with `None`); errors where a point
 /// lies outside the surface's domain.
+#[allow(clippy::needless_range_loop)]
 pub fn project(path: &DwellPath, surface: Option<&Surface>) -> Result<ProjectedPath> {
     let (x, y) = (path.x_mm(), path.y_mm());
     let n = path.len();

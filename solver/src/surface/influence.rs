@@ -88,7 +88,7 @@ pub fn assemble_on_surface<T: InfluenceFunction + ?Sized>(
 
 /// As [`assemble_on_surface`] with a per-dwell-point kernel `rate(j, u_mm, w_mm)` (nm/s) of the
 /// tangent-plane offset `(u, w)`, zero beyond `support_radius_mm` (the largest over all `j`).
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 pub fn assemble_on_surface_with<K>(
     surface: &Surface,
     map_x_mm: &[f64],

@@ -471,7 +471,7 @@ mod tests {
         assert!((v - cart).abs() < VOLUME_REL_TOL * v, "{v} vs {cart}");
         let g = t.to_grid(a / 200.0).unwrap();
         assert!((g.volume_rate_mm3_per_s() - v).abs() < VOLUME_REL_TOL * v);
-        // Peak near the patch centre, skewed towards -y? the speed grows with +y (R sin a + y cos a).
+        // The sliding speed grows with +y (R sin a + y cos a), so the footprint leans to +y.
         assert!(t.rate_nm_per_s(0.0, 0.3 * a) > t.rate_nm_per_s(0.0, -0.3 * a));
         assert_eq!(t.rate_nm_per_s(a * 1.0001, 0.0), 0.0);
     }
