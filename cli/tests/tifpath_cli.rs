@@ -154,6 +154,31 @@ fn hertz_tif_closed_form_volume_and_solve() {
     args.extend_from_slice(&["--part-radius-mm", "50", "--out", s(&tif2)]);
     let j2 = ok(&preston(&args));
     assert!(j2["contact_radius_mm"].as_f64().unwrap() < a);
+    // The same convex sphere as a surface JSON (curvature -1/50 in the surface convention):
+    // at any point both principal curvatures are -1/50, so the contact is the same.
+    let sphere = dir.path().join("sphere.json");
+    std::fs::write(
+        &sphere,
+        r#"{"type":"conic","curvature_per_mm":-0.02,"conic":0}"#,
+    )
+    .unwrap();
+    let tif3 = dir.path().join("tif3.csv");
+    let mut args = vec!["tif", "hertz"];
+    args.extend_from_slice(&HERTZ);
+    args.extend_from_slice(&[
+        "--surface",
+        s(&sphere),
+        "--at-mm",
+        "-10,15",
+        "--out",
+        s(&tif3),
+    ]);
+    let j3 = ok(&preston(&args));
+    let (c2, c3) = (
+        j2["contact_radius_mm"].as_f64().unwrap(),
+        j3["contact_radius_mm"].as_f64().unwrap(),
+    );
+    assert!((c2 - c3).abs() < 1e-12 * c2, "{c2} {c3}");
     let bad = dir.path().join("bad.csv");
     let mut args = vec!["tif", "hertz"];
     args.extend_from_slice(&HERTZ);

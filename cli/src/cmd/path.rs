@@ -53,7 +53,8 @@ struct Common {
     out: PathBuf,
 }
 
-fn parse_pair(s: &str) -> Result<(f64, f64), String> {
+/// Parses `A,B` into two finite numbers.
+pub(crate) fn parse_pair(s: &str) -> Result<(f64, f64), String> {
     let mut it = s.split(',');
     let (Some(a), Some(b), None) = (it.next(), it.next(), it.next()) else {
         return Err(format!("expected two numbers A,B, got `{s}`"));

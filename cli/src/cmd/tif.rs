@@ -4,7 +4,7 @@
 
 use anyhow::{bail, Context};
 use preston_io::readers::read_tif;
-use preston_io::surface::stage_columns_csv;
+use preston_io::surface::{read_surface, stage_columns_csv};
 use preston_solver::tif::bonnet::{BonnetParams, BonnetTif};
 use preston_solver::tif::hertz::{sample_on_grid, HertzParams, HertzTif};
 use preston_solver::tif::{GaussianTif, GridTif};
@@ -61,6 +61,17 @@ struct HertzArgs {
     /// Part radius of curvature, mm: positive convex, negative concave; omitted: flat.
     #[arg(long, allow_negative_numbers = true)]
     part_radius_mm: Option<f64>,
+    /// Take the part's principal curvatures from this surface JSON at `--at-mm X,Y`.
+    #[arg(
+        long,
+        value_name = "S.json",
+        conflicts_with = "part_radius_mm",
+        requires = "at_mm"
+    )]
+    surface: Option<PathBuf>,
+    /// Where on `--surface` the tool sits, X,Y mm.
+    #[arg(long, value_parser = crate::cmd::path::parse_pair, allow_hyphen_values = true, requires = "surface", value_name = "X,Y")]
+    at_mm: Option<(f64, f64)>,
     /// Preston coefficient K, mm^2/N (rate mm/s = K * p MPa * v mm/s).
     #[arg(long)]
     preston_k: f64,
@@ -190,9 +201,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 part_nu: a.part_nu,
                 preston_k_mm2_per_n: a.preston_k,
             };
-            let t = match a.part_radius_mm {
-                Some(r) => HertzTif::with_part_radius(&p, r)?,
-                None => HertzTif::flat(&p)?,
+            let t = match (a.part_radius_mm, &a.surface, a.at_mm) {
+                (Some(r), _, _) => HertzTif::with_part_radius(&p, r)?,
+                (None, Some(f), Some((x, y))) => {
+                    let s = read_surface(f)?;
+                    let (k1, k2) = s
+                        .principal_curvatures_per_mm(x, y)
+                        .with_context(|| format!("surface curvature at ({x}, {y}) mm"))?;
+                    HertzTif::with_curvatures(&p, k1, k2)?
+                }
+                _ => HertzTif::flat(&p)?,
             };
             let grid = t.to_grid(a.pitch_mm)?;
             let s = Summary {
