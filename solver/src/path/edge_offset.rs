@@ -307,6 +307,13 @@ pub fn fit_cubic(points: &[[f64; 2]], t: &[f64]) -> Result<CubicBezier> {
     let third = |f: f64| [p0[0] + f * (p3[0] - p0[0]), p0[1] + f * (p3[1] - p0[1])];
     let floor = 1e-12 * (a11 * a22).max(f64::MIN_POSITIVE);
     if det.is_nan() || det.abs() <= floor {
+        // Too few interior points for two control points: least squares with P1 = P2 = Q
+        // (exact through a single interior point), or the straight cubic without any.
+        let w: f64 = a11 + 2.0 * a12 + a22;
+        if w > 0.0 {
+            let q = [(r1[0] + r2[0]) / w, (r1[1] + r2[1]) / w];
+            return Ok(CubicBezier { p: [p0, q, q, p3] });
+        }
         return Ok(CubicBezier {
             p: [p0, third(1.0 / 3.0), third(2.0 / 3.0), p3],
         });
@@ -560,6 +567,68 @@ fn offset_points(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rounded_square_edge_offsets_are_achieved() {
+        // Square of half-side 30 mm with corner radius 10 mm, clockwise, sampled every ~0.5 mm.
+        let mut edge = Vec::new();
+        let (h, rc) = (30.0, 10.0);
+        let corners = [
+            (h - rc, -(h - rc)),
+            (-(h - rc), -(h - rc)),
+            (-(h - rc), h - rc),
+            (h - rc, h - rc),
+        ];
+        for (q, &(cx, cy)) in corners.iter().enumerate() {
+            // Clockwise: each corner arc runs from angle -q*90 deg down by 90 deg.
+            let a0 = -(q as f64) * std::f64::consts::FRAC_PI_2;
+            for i in 0..32 {
+                let a = a0 - std::f64::consts::FRAC_PI_2 * i as f64 / 32.0;
+                edge.push([cx + rc * a.cos(), cy + rc * a.sin()]);
+            }
+            let (nx, ny) = corners[(q + 1) % 4];
+            let end = [
+                cx + rc * (a0 - std::f64::consts::FRAC_PI_2).cos(),
+                cy + rc * (a0 - std::f64::consts::FRAC_PI_2).sin(),
+            ];
+            let start_next = [
+                nx + rc * (a0 - std::f64::consts::FRAC_PI_2).cos(),
+                ny + rc * (a0 - std::f64::consts::FRAC_PI_2).sin(),
+            ];
+            for i in 0..80 {
+                let f = i as f64 / 80.0;
+                edge.push([
+                    end[0] + f * (start_next[0] - end[0]),
+                    end[1] + f * (start_next[1] - end[1]),
+                ]);
+            }
+        }
+        let s = EdgeOffsetSettings {
+            bezier_tolerance_mm: 0.005,
+            ..EdgeOffsetSettings::default()
+        };
+        let t = edge_offset(&edge, &s).unwrap();
+        assert!(
+            t.fit_error_mm <= s.bezier_tolerance_mm,
+            "{} segments, error {}",
+            t.edge.len(),
+            t.fit_error_mm
+        );
+        for (k, l) in t.lines.iter().enumerate() {
+            assert!(
+                (l.achieved_offset_mm - l.offset_mm).abs() < 1e-3 * l.offset_mm,
+                "{l:?}"
+            );
+            // Every point of the line lies inside the square, at least the offset from its sides
+            // minus the fit tolerance, and on the inner side (orientation handled).
+            let end = t.line_starts.get(k + 1).copied().unwrap_or(t.path.len());
+            for j in t.line_starts[k]..end {
+                let (x, y) = (t.path.x_mm()[j], t.path.y_mm()[j]);
+                let margin = h - x.abs().max(y.abs());
+                assert!(margin >= l.offset_mm - 0.01, "line {k} point {j}: {margin}");
+            }
+        }
+    }
 
     #[test]
     fn bezier_exact_on_a_cubic() {
