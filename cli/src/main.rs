@@ -31,6 +31,10 @@ enum Command {
     Nc(cmd::nc::Args),
     /// Write the NC program of a rotationally symmetric asphere (rotating workpiece).
     Asphere(cmd::asphere::Args),
+    /// Tool influence functions: Hertzian sphere, bonnet, Gaussian, measured grid.
+    Tif(cmd::tif::Args),
+    /// Tool paths: raster, intersection, spiral, chord-height, edge-offset.
+    Path(cmd::path::Args),
 }
 
 fn main() -> ExitCode {
@@ -42,6 +46,8 @@ fn main() -> ExitCode {
         Command::Surface(args) => cmd::surface::run(args),
         Command::Nc(args) => cmd::nc::run(args),
         Command::Asphere(args) => cmd::asphere::run(args),
+        Command::Tif(args) => cmd::tif::run(args),
+        Command::Path(args) => cmd::path::run(args),
     };
     match result {
         Ok(code) => code,

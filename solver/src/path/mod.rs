@@ -1,6 +1,15 @@
 //! Dwell paths: the ordered points where the tool dwells, and their path-length shares `ds`.
 
+pub mod arcs;
+pub mod chord_height;
+pub mod edge_offset;
+pub mod intersection;
+pub mod project;
 pub mod raster;
+pub mod spiral;
+
+pub use intersection::intersection;
+pub use project::{project, ProjectedPath};
 
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};

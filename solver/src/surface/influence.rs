@@ -73,6 +73,36 @@ pub fn assemble_on_surface<T: InfluenceFunction + ?Sized>(
     frame: TifFrame,
     observer: &dyn Observer,
 ) -> Result<InfluenceMatrix> {
+    assemble_on_surface_with(
+        surface,
+        map_x_mm,
+        map_y_mm,
+        dwell_x_mm,
+        dwell_y_mm,
+        tif.support_radius_mm(),
+        |_j, u, w| tif.rate_nm_per_s(u, w),
+        frame,
+        observer,
+    )
+}
+
+/// As [`assemble_on_surface`] with a per-dwell-point kernel `rate(j, u_mm, w_mm)` (nm/s) of the
+/// tangent-plane offset `(u, w)`, zero beyond `support_radius_mm` (the largest over all `j`).
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
+pub fn assemble_on_surface_with<K>(
+    surface: &Surface,
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    support_radius_mm: f64,
+    kernel: K,
+    frame: TifFrame,
+    observer: &dyn Observer,
+) -> Result<InfluenceMatrix>
+where
+    K: Fn(usize, f64, f64) -> f64 + Sync,
+{
     if map_x_mm.len() != map_y_mm.len() {
         return Err(Error::LengthMismatch {
             what: "map y_mm",
@@ -123,7 +153,7 @@ pub fn assemble_on_surface<T: InfluenceFunction + ?Sized>(
         };
         axes.push((t, cross(nj, t)));
     }
-    let radius = tif.support_radius_mm() * SEARCH_RADIUS_FACTOR;
+    let radius = support_radius_mm * SEARCH_RADIUS_FACTOR;
     InfluenceMatrix::assemble_with(
         map_x_mm,
         map_y_mm,
@@ -138,7 +168,7 @@ pub fn assemble_on_surface<T: InfluenceFunction + ?Sized>(
             let dz = zi - o[2];
             let u = dx * t[0] + dy * t[1] + dz * t[2];
             let w = dx * b[0] + dy * b[1] + dz * b[2];
-            tif.rate_nm_per_s(u, w)
+            kernel(j, u, w)
         },
         observer,
     )

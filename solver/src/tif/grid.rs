@@ -210,6 +210,126 @@ impl GridTif {
         s * self.pitch_x_mm * self.pitch_y_mm * 1e-6
     }
 
+    /// Rate-weighted centroid of the nodes `(sum r x / sum r, sum r y / sum r)`, mm.
+    pub fn centroid_mm(&self) -> (f64, f64) {
+        let (mut sx, mut sy, mut s) = (0.0, 0.0, 0.0);
+        for iy in 0..self.ny {
+            for ix in 0..self.nx {
+                let v = self.node(ix, iy);
+                sx += v * (self.x0_mm + ix as f64 * self.pitch_x_mm);
+                sy += v * (self.y0_mm + iy as f64 * self.pitch_y_mm);
+                s += v;
+            }
+        }
+        (sx / s, sy / s)
+    }
+
+    /// The same samples with the origin moved so that the rate-weighted centroid is at the tool
+    /// centre `(0, 0)` (a pure shift of the coordinates, no interpolation).
+    pub fn recentred(&self) -> Result<Self> {
+        let (cx, cy) = self.centroid_mm();
+        Self::new(
+            self.x0_mm - cx,
+            self.y0_mm - cy,
+            self.pitch_x_mm,
+            self.pitch_y_mm,
+            self.nx,
+            self.ny,
+            self.rates_nm_per_s.clone(),
+        )
+    }
+
+    /// Bilinear resampling onto a square grid of pitch `pitch_mm` with nodes at `k * pitch`
+    /// covering this grid's extent.
+    pub fn resampled(&self, pitch_mm: f64) -> Result<Self> {
+        if !(pitch_mm.is_finite() && pitch_mm > 0.0) {
+            return Err(Error::invalid(
+                "TIF resampling pitch_mm",
+                format!("must be positive, got {pitch_mm}"),
+            ));
+        }
+        let x1 = self.x0_mm + (self.nx - 1) as f64 * self.pitch_x_mm;
+        let y1 = self.y0_mm + (self.ny - 1) as f64 * self.pitch_y_mm;
+        let k = |v: f64, up: bool| {
+            let f = v / pitch_mm;
+            if up {
+                (f - 1e-9).ceil()
+            } else {
+                (f + 1e-9).floor()
+            }
+        };
+        let (kx0, kx1, ky0, ky1) = (
+            k(self.x0_mm, true),
+            k(x1, false),
+            k(self.y0_mm, true),
+            k(y1, false),
+        );
+        let (nx, ny) = (kx1 - kx0 + 1.0, ky1 - ky0 + 1.0);
+        if !(nx >= 2.0 && ny >= 2.0) || nx * ny > 1e8 {
+            return Err(Error::invalid(
+                "TIF resampling pitch_mm",
+                format!("{pitch_mm} mm gives a {nx} x {ny} grid"),
+            ));
+        }
+        let (nx, ny) = (nx as usize, ny as usize);
+        let mut rates = Vec::with_capacity(nx * ny);
+        for iy in 0..ny {
+            for ix in 0..nx {
+                let x = (kx0 + ix as f64) * pitch_mm;
+                let y = (ky0 + iy as f64) * pitch_mm;
+                rates.push(self.rate_nm_per_s(x, y));
+            }
+        }
+        Self::new(
+            kx0 * pitch_mm,
+            ky0 * pitch_mm,
+            pitch_mm,
+            pitch_mm,
+            nx,
+            ny,
+            rates,
+        )
+    }
+
+    /// The grid with every rate multiplied by `factor` (positive and finite).
+    pub fn scaled(&self, factor: f64) -> Result<Self> {
+        if !(factor.is_finite() && factor > 0.0) {
+            return Err(Error::invalid(
+                "TIF scale factor",
+                format!("must be positive, got {factor}"),
+            ));
+        }
+        Self::new(
+            self.x0_mm,
+            self.y0_mm,
+            self.pitch_x_mm,
+            self.pitch_y_mm,
+            self.nx,
+            self.ny,
+            self.rates_nm_per_s.iter().map(|v| v * factor).collect(),
+        )
+    }
+
+    /// Scaled so that the largest node is `peak_nm_per_s`.
+    pub fn scaled_to_peak(&self, peak_nm_per_s: f64) -> Result<Self> {
+        self.scaled(peak_nm_per_s / self.peak_rate_nm_per_s())
+    }
+
+    /// Scaled so that [`GridTif::volume_rate_mm3_per_s`] is `volume_mm3_per_s`.
+    pub fn scaled_to_volume(&self, volume_mm3_per_s: f64) -> Result<Self> {
+        self.scaled(volume_mm3_per_s / self.volume_rate_mm3_per_s())
+    }
+
+    /// Equivalent-circle full width at half maximum, mm: the diameter of the disc whose area is
+    /// that of the nodes at or above half the peak (node count times cell area), `2 sqrt(A / pi)`.
+    /// For a Gaussian this is `2 sqrt(2 ln 2) sigma` to within about a pitch.
+    pub fn fwhm_mm(&self) -> f64 {
+        let half = 0.5 * self.peak_rate_nm_per_s();
+        let count = self.rates_nm_per_s.iter().filter(|&&v| v >= half).count();
+        let area = count as f64 * self.pitch_x_mm * self.pitch_y_mm;
+        2.0 * (area / std::f64::consts::PI).sqrt()
+    }
+
     #[inline]
     fn node(&self, ix: usize, iy: usize) -> f64 {
         self.rates_nm_per_s
@@ -417,6 +537,55 @@ mod tests {
         // Negative and all-zero rates.
         assert!(GridTif::new(0.0, 0.0, 1.0, 1.0, 2, 2, vec![1.0, -1.0, 0.0, 0.0]).is_err());
         assert!(GridTif::new(0.0, 0.0, 1.0, 1.0, 2, 2, vec![0.0; 4]).is_err());
+    }
+
+    #[test]
+    fn resample_recentre_scale_fwhm() {
+        use crate::tif::{GaussianTif, InfluenceFunction};
+        // A Gaussian sampled off-centre at (0.7, -0.4) mm.
+        let g = GaussianTif::new(1.5, 8.0, 6.0).unwrap();
+        let (n, h) = (81usize, 0.15);
+        let x0 = -6.0;
+        let mut r = Vec::new();
+        for iy in 0..n {
+            for ix in 0..n {
+                let (x, y) = (x0 + ix as f64 * h, x0 + iy as f64 * h);
+                r.push(g.rate_nm_per_s(x - 0.7, y + 0.4));
+            }
+        }
+        let grid = GridTif::new(x0, x0, h, h, n, n, r).unwrap();
+        let (cx, cy) = grid.centroid_mm();
+        // The truncated Gaussian is symmetric about its centre, but the grid clips it: tolerance
+        // is the clipped mass fraction times the span.
+        assert!(
+            (cx - 0.7).abs() < 2e-3 && (cy + 0.4).abs() < 2e-3,
+            "{cx} {cy}"
+        );
+        let c = grid.recentred().unwrap();
+        let (ux, uy) = c.centroid_mm();
+        assert!(ux.abs() < 1e-12 && uy.abs() < 1e-12);
+        assert_eq!(c.rates_nm_per_s(), grid.rates_nm_per_s());
+        // Resampling onto a finer grid keeps the bilinear values at the old nodes' positions.
+        let fine = grid.resampled(0.05).unwrap();
+        for (x, y) in [(0.75, -0.45), (-1.2, 2.1), (3.0, 0.0)] {
+            assert!((fine.rate_nm_per_s(x, y) - grid.rate_nm_per_s(x, y)).abs() < 1e-9);
+        }
+        assert!(
+            (fine.volume_rate_mm3_per_s() - grid.volume_rate_mm3_per_s()).abs()
+                < 1e-3 * grid.volume_rate_mm3_per_s()
+        );
+        let p = grid.scaled_to_peak(20.0).unwrap();
+        assert!((p.peak_rate_nm_per_s() - 20.0).abs() < 1e-12);
+        let v = grid.scaled_to_volume(0.01).unwrap();
+        assert!((v.volume_rate_mm3_per_s() - 0.01).abs() < 1e-15);
+        // FWHM of a Gaussian: 2 sqrt(2 ln 2) sigma, within the node area quantisation (a pitch).
+        let want = 2.0 * (2.0 * 2f64.ln()).sqrt() * 1.5;
+        assert!(
+            (grid.fwhm_mm() - want).abs() < h,
+            "{} {want}",
+            grid.fwhm_mm()
+        );
+        assert!(grid.scaled(0.0).is_err() && grid.resampled(-1.0).is_err());
     }
 
     #[test]

@@ -4,11 +4,16 @@
 //! integrated over the tool's contact patch for a tool held still, sampled or modelled in the
 //! tool's frame.
 
+pub mod bonnet;
+pub mod curvature;
 pub mod gaussian;
 pub mod grid;
+pub mod hertz;
 
+pub use bonnet::{BonnetParams, BonnetTif};
 pub use gaussian::GaussianTif;
 pub use grid::GridTif;
+pub use hertz::{HertzParams, HertzTif};
 
 use serde::{Deserialize, Serialize};
 
