@@ -1,0 +1,38 @@
+//! Arbitrary bytes as a gridded TIF file (`preston_io::readers::read_tif`, which reads a path: the
+//! bytes are written to a per-process file under the temp directory). Errors are fine; a panic is
+//! a bug. An accepted TIF must have at least 2 x 2 nodes, positive finite pitches, one finite
+//! non-negative rate per node and a support radius that is not NaN.
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use preston_io::readers::read_tif;
+use preston_solver::tif::InfluenceFunction;
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+fn scratch() -> &'static PathBuf {
+    static PATH: OnceLock<PathBuf> = OnceLock::new();
+    PATH.get_or_init(|| {
+        std::env::temp_dir().join(format!("preston-fuzz-tif-{}.csv", std::process::id()))
+    })
+}
+
+fuzz_target!(|data: &[u8]| {
+    let path = scratch();
+    std::fs::write(path, data).expect("write the scratch TIF file");
+    let Ok(tif) = read_tif(path) else {
+        return;
+    };
+    let (nx, ny) = tif.shape();
+    assert!(nx >= 2 && ny >= 2, "grid {nx} x {ny}");
+    let (px, py) = tif.pitch_mm();
+    assert!(
+        px.is_finite() && px > 0.0 && py.is_finite() && py > 0.0,
+        "pitches {px} x {py}"
+    );
+    let rates = tif.rates_nm_per_s();
+    assert_eq!(rates.len(), nx * ny);
+    assert!(rates.iter().all(|r| r.is_finite() && *r >= 0.0), "rates {rates:?}");
+    let r = tif.support_radius_mm();
+    assert!(r >= 0.0, "support radius {r}");
+});
