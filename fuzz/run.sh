@@ -37,7 +37,7 @@ for t in "${targets[@]}"; do
         status=1
     fi
     # The summary: last coverage line and libFuzzer's final statistics.
-    grep -E '^#[0-9]+ +DONE' "logs/$t.log" | tail -n 1 || true
+    grep -E '^#[0-9]+[[:space:]]+DONE' "logs/$t.log" | tail -n 1 || true
     grep -E '^stat::(number_of_executed_units|average_exec_per_sec|new_units_added|peak_rss_mb)' \
         "logs/$t.log" || true
 done

@@ -7,6 +7,7 @@
 use libfuzzer_sys::fuzz_target;
 use preston_io::readers::read_tif;
 use preston_solver::tif::InfluenceFunction;
+use std::io::Write;
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
@@ -17,9 +18,22 @@ fn scratch() -> &'static PathBuf {
     })
 }
 
+/// Overwrites the file from offset 0 and then cuts it to length. `std::fs::write` truncates to zero
+/// first, and on ext4 closing a file truncated to zero forces its blocks to disk (`auto_da_alloc`),
+/// which made every execution wait for the disk (about 200 instead of 3,000 executions/s).
+fn write_in_place(path: &PathBuf, data: &[u8]) -> std::io::Result<()> {
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)?;
+    f.write_all(data)?;
+    f.set_len(data.len() as u64)
+}
+
 fuzz_target!(|data: &[u8]| {
     let path = scratch();
-    std::fs::write(path, data).expect("write the scratch TIF file");
+    write_in_place(path, data).expect("write the scratch TIF file");
     let Ok(tif) = read_tif(path) else {
         return;
     };
