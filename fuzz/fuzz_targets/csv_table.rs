@@ -18,7 +18,11 @@ fuzz_target!(|data: &[u8]| {
     let Ok(t) = read_table_from(data, Path::new("fuzz.csv"), &SPECS) else {
         return;
     };
-    assert_eq!(t.columns.len(), SPECS.len(), "one entry per requested column");
+    assert_eq!(
+        t.columns.len(),
+        SPECS.len(),
+        "one entry per requested column"
+    );
     for (k, col) in t.columns.iter().enumerate() {
         let col = col.as_ref().expect("required columns are always present");
         assert_eq!(col.len(), t.lines.len(), "column {k} length vs kept rows");
@@ -28,7 +32,11 @@ fuzz_target!(|data: &[u8]| {
         );
     }
     assert_eq!(t.len(), t.lines.len());
-    assert!(t.lines.iter().all(|&l| l >= 2), "data rows start at line 2: {:?}", t.lines);
+    assert!(
+        t.lines.iter().all(|&l| l >= 2),
+        "data rows start at line 2: {:?}",
+        t.lines
+    );
     assert!(
         t.lines.windows(2).all(|w| w[0] < w[1]),
         "line numbers not strictly increasing: {:?}",

@@ -46,7 +46,10 @@ fuzz_target!(|data: &[u8]| {
     );
     let rates = tif.rates_nm_per_s();
     assert_eq!(rates.len(), nx * ny);
-    assert!(rates.iter().all(|r| r.is_finite() && *r >= 0.0), "rates {rates:?}");
+    assert!(
+        rates.iter().all(|r| r.is_finite() && *r >= 0.0),
+        "rates {rates:?}"
+    );
     let r = tif.support_radius_mm();
     assert!(r >= 0.0, "support radius {r}");
 });
