@@ -52,4 +52,16 @@ fuzz_target!(|data: &[u8]| {
     );
     let r = tif.support_radius_mm();
     assert!(r >= 0.0, "support radius {r}");
+    // Bilinear interpolation reproduces the samples at the grid nodes (to rounding of the node
+    // coordinates: the error is at most a few ulps of the peak rate).
+    let (x0, y0) = tif.origin_mm();
+    let peak = tif.peak_rate_nm_per_s();
+    for (k, &rate) in rates.iter().enumerate().take(256) {
+        let (x, y) = (x0 + (k % nx) as f64 * px, y0 + (k / nx) as f64 * py);
+        let got = tif.rate_nm_per_s(x, y);
+        assert!(
+            (got - rate).abs() <= 1e-9 * peak,
+            "node {k} at ({x}, {y}) mm: rate {got}, sample {rate} (grid {nx} x {ny}, pitch {px} x {py}, origin ({x0}, {y0}))"
+        );
+    }
 });
