@@ -35,6 +35,10 @@ enum Command {
     Tif(cmd::tif::Args),
     /// Tool paths: raster, intersection, spiral, chord-height, edge-offset.
     Path(cmd::path::Args),
+    /// Simulate the removal of a dwell program (discrete dwell or continuous motion).
+    Simulate(cmd::simulate::Args),
+    /// The measure-register-solve-polish loop on a virtual part, or one run on a measured map.
+    Iterate(cmd::iterate::Args),
 }
 
 fn main() -> ExitCode {
@@ -48,6 +52,8 @@ fn main() -> ExitCode {
         Command::Asphere(args) => cmd::asphere::run(args),
         Command::Tif(args) => cmd::tif::run(args),
         Command::Path(args) => cmd::path::run(args),
+        Command::Simulate(args) => cmd::simulate::run(args),
+        Command::Iterate(args) => cmd::iterate::run(args),
     };
     match result {
         Ok(code) => code,

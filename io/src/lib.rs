@@ -17,3 +17,4 @@ pub use error::{Error, Result};
 pub mod job;
 pub mod pipeline;
 pub mod plots;
+pub mod simulation;

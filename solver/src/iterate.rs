@@ -196,6 +196,12 @@ pub struct LoopSettings {
     pub spec_rms_nm: f64,
     /// Stop when the measured PV is at or below this, nm (0: no PV spec).
     pub spec_pv_nm: f64,
+    /// Weight of the total dwell time in each run's objective, nm^2 per s (the contract's `rho`).
+    /// Positive by default: with many more dwell points than measurement points a free piston
+    /// otherwise lets the dwell grow without bound for a vanishing gain.
+    pub rho: f64,
+    /// Weight of dwell-time differences along the path, nm^2/s^2 (the contract's `lambda`).
+    pub lambda: f64,
     /// Dwell solver settings.
     pub solver: Settings,
     /// Registration settings.
@@ -225,6 +231,8 @@ impl Default for LoopSettings {
             max_iterations: 5,
             spec_rms_nm: 0.0,
             spec_pv_nm: 0.0,
+            rho: 0.01,
+            lambda: 0.0,
             solver: Settings::default(),
             register: RegisterSettings::default(),
             disturbances: Disturbances::default(),
@@ -276,6 +284,8 @@ impl LoopSettings {
         for (name, v) in [
             ("spec_rms_nm", self.spec_rms_nm),
             ("spec_pv_nm", self.spec_pv_nm),
+            ("rho", self.rho),
+            ("lambda", self.lambda),
             ("tif_rate_error", self.disturbances.tif_rate_error),
             (
                 "positioning_noise_mm",
@@ -332,6 +342,108 @@ pub struct RunArtifacts {
     pub predicted_removal_nm: Vec<f64>,
     /// Solver status.
     pub status: Status,
+}
+
+impl RunArtifacts {
+    /// RMS of the predicted residual (piston removed), nm.
+    pub fn predicted_rms_nm(&self) -> f64 {
+        let residual: Vec<f64> = self
+            .measured
+            .z_nm()
+            .iter()
+            .zip(&self.predicted_removal_nm)
+            .map(|(z, h)| z - h)
+            .collect();
+        HeightStats::of(&residual).rms_nm
+    }
+}
+
+/// Plans polishing run `k` on a measured map: the intersection path of iteration `k` over
+/// `region`, the influence matrix in the tangent planes of `surface`, and the dwell solve with
+/// the loop's feed limits and solver settings.
+pub fn plan_run(
+    surface: &Surface,
+    measured: &HeightMap,
+    tif: &Tif,
+    region: &BoundingBox,
+    settings: &LoopSettings,
+    k: usize,
+    observer: &dyn Observer,
+) -> Result<RunArtifacts> {
+    let path = intersection_path(region, settings.path_pitch_mm, k)?;
+    let ds = path.ds_mm();
+    let bounds = DwellBounds::from_feeds(&ds, &settings.feed)?;
+    let r = assemble_on_surface(
+        surface,
+        measured.x_mm(),
+        measured.y_mm(),
+        path.x_mm(),
+        path.y_mm(),
+        tif,
+        TifFrame::PathTangent,
+        observer,
+    )?;
+    let problem = Problem::new(
+        r,
+        measured.z_nm().to_vec(),
+        bounds,
+        settings.rho,
+        settings.lambda,
+    )?;
+    let sol = dwell::solve(&problem, &settings.solver, observer)?;
+    let predicted = problem.influence().removal_nm(&sol.dwell_s)?;
+    Ok(RunArtifacts {
+        measured: measured.clone(),
+        path,
+        dwell_s: sol.dwell_s,
+        predicted_removal_nm: predicted,
+        status: sol.status,
+    })
+}
+
+/// One planned run on a real part's measured map: the convergence rows are the measurement
+/// (iteration `k`) and the solver's prediction after the run (iteration `k + 1`).
+pub fn plan_measured(
+    surface: &Surface,
+    measured: &HeightMap,
+    tif: &Tif,
+    settings: &LoopSettings,
+    k: usize,
+    observer: &dyn Observer,
+) -> Result<LoopOutcome> {
+    let bbox = measured
+        .bounding_box_mm()
+        .ok_or_else(|| Error::invalid("map", "has no points"))?;
+    let margin = settings
+        .path_margin_mm
+        .unwrap_or_else(|| tif.nominal_radius_mm());
+    let plan = plan_run(
+        surface,
+        measured,
+        tif,
+        &bbox.expanded(margin),
+        settings,
+        k,
+        observer,
+    )?;
+    let mut first = record(k, measured);
+    first.time_s = plan.dwell_s.iter().sum();
+    first.predicted_rms_nm = Some(plan.predicted_rms_nm());
+    let residual: Vec<f64> = measured
+        .z_nm()
+        .iter()
+        .zip(&plan.predicted_removal_nm)
+        .map(|(z, h)| z - h)
+        .collect();
+    let predicted_map = measured.with_heights(residual)?;
+    let second = record(k + 1, &predicted_map);
+    let met = meets(settings, &second);
+    Ok(LoopOutcome {
+        records: vec![first, second],
+        met_spec: met,
+        last_run: Some(plan),
+        final_measured: predicted_map,
+    })
 }
 
 /// The outcome of the loop.
@@ -479,36 +591,23 @@ pub fn run_virtual(
             met = true;
             break;
         }
-        // Plan.
-        let path = intersection_path(&region, settings.path_pitch_mm, k)?;
-        let ds = path.ds_mm();
-        let bounds = DwellBounds::from_feeds(&ds, &settings.feed)?;
-        let r = assemble_on_surface(
+        let plan = plan_run(
             &part.surface,
-            measured.x_mm(),
-            measured.y_mm(),
-            path.x_mm(),
-            path.y_mm(),
+            &measured,
             tif,
-            TifFrame::PathTangent,
+            &region,
+            settings,
+            k,
             observer,
         )?;
-        let problem = Problem::new(r, measured.z_nm().to_vec(), bounds, 0.0, 0.0)?;
-        let sol = dwell::solve(&problem, &settings.solver, observer)?;
-        let predicted = problem.influence().removal_nm(&sol.dwell_s)?;
-        let residual: Vec<f64> = measured
-            .z_nm()
-            .iter()
-            .zip(&predicted)
-            .map(|(z, h)| z - h)
-            .collect();
         // Polish with disturbances.
         let e = settings.disturbances.tif_rate_error * (2.0 * rng.uniform() - 1.0);
         let sigma = settings.disturbances.positioning_noise_mm;
-        let (px, py): (Vec<f64>, Vec<f64>) = path
+        let (px, py): (Vec<f64>, Vec<f64>) = plan
+            .path
             .x_mm()
             .iter()
-            .zip(path.y_mm())
+            .zip(plan.path.y_mm())
             .map(|(&x, &y)| (x + sigma * rng.normal(), y + sigma * rng.normal()))
             .unzip();
         let actual_tif = ScaledTif::new(tif, 1.0 + e);
@@ -522,21 +621,15 @@ pub fn run_virtual(
             TifFrame::PathTangent,
             observer,
         )?;
-        let removal = actual.removal_nm(&sol.dwell_s)?;
+        let removal = actual.removal_nm(&plan.dwell_s)?;
         for (t, h) in truth.iter_mut().zip(&removal) {
             *t -= h;
         }
-        row.time_s = sol.dwell_s.iter().sum();
-        row.predicted_rms_nm = Some(HeightStats::of(&residual).rms_nm);
+        row.time_s = plan.dwell_s.iter().sum();
+        row.predicted_rms_nm = Some(plan.predicted_rms_nm());
         row.tif_rate_error = Some(e);
         records.push(row);
-        last_run = Some(RunArtifacts {
-            measured: measured.clone(),
-            path,
-            dwell_s: sol.dwell_s,
-            predicted_removal_nm: predicted,
-            status: sol.status,
-        });
+        last_run = Some(plan);
         observer.advance(Stage::Loop, 1);
         measured = measure(
             part,

@@ -1,8 +1,11 @@
 pub mod asphere;
 pub mod fit;
+pub mod iterate;
 pub mod nc;
 pub mod path;
 pub mod register;
+pub mod simulate;
 pub mod solve;
 pub mod surface;
 pub mod tif;
+pub mod tif_source;

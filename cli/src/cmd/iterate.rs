@@ -1,0 +1,202 @@
+//! `preston iterate`: the measure-register-solve-polish loop on a virtual part, or one planned
+//! run on a real part's measured map (`--map`).
+
+use super::tif_source::TifArgs;
+use crate::progress::Bars;
+use anyhow::{bail, Context};
+use preston_io::readers::read_map;
+use preston_io::simulation::write_loop;
+use preston_io::surface::read_surface;
+use preston_solver::dwell::FeedLimits;
+use preston_solver::iterate::{
+    plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
+};
+use preston_solver::map::BoundingBox;
+use preston_solver::surface::{Plane, Surface};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Arguments of `preston iterate`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Design surface JSON (default: the plane z = 0; use a surface whose shape fixes all six
+    /// rigid-body motions for a meaningful registration).
+    #[arg(long, value_name = "S.json")]
+    pub surface: Option<PathBuf>,
+    #[command(flatten)]
+    pub tif: TifArgs,
+    /// Real part: plan one run on this measured map `x_mm,y_mm,z_nm` instead of a virtual loop.
+    #[arg(long, value_name = "M.csv")]
+    pub map: Option<PathBuf>,
+    /// Real part: the loop iteration this run is (chooses the intersection path's direction
+    /// and shift).
+    #[arg(long, default_value_t = 0)]
+    pub iteration: usize,
+    /// Aperture x range, mm (virtual part).
+    #[arg(long, value_delimiter = ',', default_values_t = [-25.0, 25.0], allow_hyphen_values = true)]
+    pub aperture_x_mm: Vec<f64>,
+    /// Aperture y range, mm (virtual part).
+    #[arg(long, value_delimiter = ',', default_values_t = [-25.0, 25.0], allow_hyphen_values = true)]
+    pub aperture_y_mm: Vec<f64>,
+    /// Measurement grid points along x and y (virtual part).
+    #[arg(long, value_delimiter = ',', default_values_t = [51, 51])]
+    pub grid: Vec<usize>,
+    /// Pitch of the intersection raster, mm.
+    #[arg(long, default_value_t = 1.0)]
+    pub pitch_mm: f64,
+    /// Raster extension past the aperture, mm (default: the TIF radius).
+    #[arg(long)]
+    pub margin_mm: Option<f64>,
+    /// Fastest feed, mm/min.
+    #[arg(long = "v-max", default_value_t = 3000.0)]
+    pub v_max_mm_per_min: f64,
+    /// Slowest feed, mm/min (0 = none).
+    #[arg(long = "v-min", default_value_t = 0.0)]
+    pub v_min_mm_per_min: f64,
+    /// Weight of total dwell time in each run's objective, nm^2 per s.
+    #[arg(long, default_value_t = 0.01)]
+    pub rho: f64,
+    /// Weight of dwell-time differences along the path, nm^2/s^2.
+    #[arg(long, default_value_t = 0.0)]
+    pub lambda: f64,
+    /// Polishing runs at most.
+    #[arg(long, default_value_t = 5)]
+    pub iterations: usize,
+    /// Stop when the measured RMS is at or below this, nm.
+    #[arg(long, default_value_t = 0.0)]
+    pub spec_rms_nm: f64,
+    /// Stop when the measured PV is at or below this, nm.
+    #[arg(long, default_value_t = 0.0)]
+    pub spec_pv_nm: f64,
+    /// Virtual part: RMS of the generated form error, nm.
+    #[arg(long, default_value_t = 100.0)]
+    pub form_error_rms_nm: f64,
+    /// Virtual part: highest spatial frequency of the form error, cycles across the aperture.
+    #[arg(long, default_value_t = 2.0)]
+    pub form_error_cycles: f64,
+    /// Virtual part: seed of the form error.
+    #[arg(long, default_value_t = 1)]
+    pub form_error_seed: u64,
+    /// Virtual part: installation rotation vector, arcsec.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0], allow_hyphen_values = true)]
+    pub rotation_arcsec: Vec<f64>,
+    /// Virtual part: installation translation, um.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0], allow_hyphen_values = true)]
+    pub translation_um: Vec<f64>,
+    /// Virtual part: measurement noise (standard deviation along z), nm.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise_nm: f64,
+    /// Largest relative TIF rate error of a run (0.03 = 3%).
+    #[arg(long, default_value_t = 0.0)]
+    pub tif_rate_error: f64,
+    /// Standard deviation of the dwell-position error per axis, mm.
+    #[arg(long, default_value_t = 0.0)]
+    pub positioning_noise_mm: f64,
+    /// Seed of the noise generators.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// Write PNG plots next to the CSVs.
+    #[arg(long)]
+    pub plots: bool,
+    /// Output directory.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+fn pair<T: Copy>(v: &[T], what: &str) -> anyhow::Result<[T; 2]> {
+    match v {
+        [a, b] => Ok([*a, *b]),
+        _ => bail!("--{what} takes two values A,B"),
+    }
+}
+
+fn triple(v: &[f64], what: &str) -> anyhow::Result<[f64; 3]> {
+    match v {
+        [a, b, c] => Ok([*a, *b, *c]),
+        _ => bail!("--{what} takes three values A,B,C"),
+    }
+}
+
+/// Runs `preston iterate`.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let tif = args.tif.load()?;
+    let surface = match &args.surface {
+        Some(p) => read_surface(p)?,
+        None => Surface::Plane(Plane {}),
+    };
+    let [x0, x1] = pair(&args.aperture_x_mm, "aperture-x-mm")?;
+    let [y0, y1] = pair(&args.aperture_y_mm, "aperture-y-mm")?;
+    let settings = LoopSettings {
+        aperture: BoundingBox {
+            x_min_mm: x0,
+            x_max_mm: x1,
+            y_min_mm: y0,
+            y_max_mm: y1,
+        },
+        grid: pair(&args.grid, "grid")?,
+        path_pitch_mm: args.pitch_mm,
+        path_margin_mm: args.margin_mm,
+        feed: FeedLimits {
+            v_max_mm_per_min: args.v_max_mm_per_min,
+            v_min_mm_per_min: args.v_min_mm_per_min,
+        },
+        max_iterations: args.iterations,
+        spec_rms_nm: args.spec_rms_nm,
+        spec_pv_nm: args.spec_pv_nm,
+        rho: args.rho,
+        lambda: args.lambda,
+        disturbances: Disturbances {
+            tif_rate_error: args.tif_rate_error,
+            positioning_noise_mm: args.positioning_noise_mm,
+        },
+        seed: args.seed,
+        ..LoopSettings::default()
+    };
+    settings.validate()?;
+    let bars = Bars::new();
+    let outcome = match &args.map {
+        Some(m) => {
+            let map = read_map(m)?;
+            plan_measured(&surface, &map.map, &tif, &settings, args.iteration, &bars)
+                .with_context(|| format!("planning a run on {}", m.display()))?
+        }
+        None => {
+            let part = VirtualPart {
+                surface,
+                form_error: FormErrorModel {
+                    rms_nm: args.form_error_rms_nm,
+                    max_cycles: args.form_error_cycles,
+                    seed: args.form_error_seed,
+                    ..FormErrorModel::default()
+                },
+                rotation_arcsec: triple(&args.rotation_arcsec, "rotation-arcsec")?,
+                translation_um: triple(&args.translation_um, "translation-um")?,
+                measurement_noise_nm: args.noise_nm,
+            };
+            run_virtual(&part, &tif, &settings, &bars)?
+        }
+    };
+    write_loop(&outcome, &args.out, args.plots)
+        .with_context(|| format!("writing outputs to {}", args.out.display()))?;
+    eprintln!("iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm");
+    for r in &outcome.records {
+        eprintln!(
+            "{},{:.3},{:.3},{:.3},{:.3},{:.2},{}",
+            r.iteration,
+            r.pv_nm,
+            r.rms_nm,
+            r.max_abs_nm,
+            r.mean_abs_nm,
+            r.time_s,
+            r.predicted_rms_nm
+                .map(|v| format!("{v:.3}"))
+                .unwrap_or_default()
+        );
+    }
+    eprintln!(
+        "preston iterate: spec {}; wrote {}",
+        if outcome.met_spec { "met" } else { "not met" },
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

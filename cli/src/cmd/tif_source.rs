@@ -1,0 +1,45 @@
+//! The TIF flags shared by `simulate` and `iterate`: a grid file or a Gaussian model.
+
+use anyhow::{bail, Context};
+use preston_io::readers::read_tif;
+use preston_solver::tif::{GaussianTif, Tif};
+use std::path::PathBuf;
+
+/// Where the TIF comes from.
+#[derive(Debug, clap::Args)]
+pub struct TifArgs {
+    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s`.
+    #[arg(long, value_name = "T.csv", conflicts_with = "gaussian_sigma_mm")]
+    pub tif: Option<PathBuf>,
+    /// Gaussian TIF instead of a file: sigma, mm.
+    #[arg(long, requires = "gaussian_peak_nm_per_s")]
+    pub gaussian_sigma_mm: Option<f64>,
+    /// Gaussian TIF peak removal rate, nm/s.
+    #[arg(long, requires = "gaussian_sigma_mm")]
+    pub gaussian_peak_nm_per_s: Option<f64>,
+    /// Gaussian TIF truncation radius, mm (default 3 sigma).
+    #[arg(long, requires = "gaussian_sigma_mm")]
+    pub gaussian_truncation_mm: Option<f64>,
+}
+
+impl TifArgs {
+    /// The TIF the flags name.
+    pub fn load(&self) -> anyhow::Result<Tif> {
+        match (
+            &self.tif,
+            self.gaussian_sigma_mm,
+            self.gaussian_peak_nm_per_s,
+        ) {
+            (Some(f), _, _) => Ok(Tif::Grid(read_tif(f)?)),
+            (None, Some(sigma), Some(peak)) => {
+                let trunc = self.gaussian_truncation_mm.unwrap_or(3.0 * sigma);
+                Ok(Tif::Gaussian(
+                    GaussianTif::new(sigma, peak, trunc).context("Gaussian TIF")?,
+                ))
+            }
+            _ => bail!(
+                "no TIF: give --tif T.csv or --gaussian-sigma-mm and --gaussian-peak-nm-per-s"
+            ),
+        }
+    }
+}

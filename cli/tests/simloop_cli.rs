@@ -1,0 +1,240 @@
+//! `preston simulate` and `preston iterate` end to end (issue 6): discrete simulation reproduces
+//! the solver's residual, continuous simulation converges as the sampling is refined, the virtual
+//! loop converges and writes its table and plots, a real part's map plans one run.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn preston(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_preston"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn ok(o: &Output) {
+    assert!(
+        o.status.success(),
+        "exit {:?}: {}",
+        o.status.code(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn report(dir: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap()
+}
+
+/// A smooth 26 x 26 map over 25 x 25 mm.
+fn write_map(path: &Path) {
+    let mut t = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..26 {
+        for ix in 0..26 {
+            let (x, y) = (ix as f64, iy as f64);
+            t.push_str(&format!(
+                "{x},{y},{}\n",
+                40.0 + 25.0 * (0.25 * x).sin() * (0.2 * y).cos()
+            ));
+        }
+    }
+    std::fs::write(path, t).unwrap();
+}
+
+const GAUSSIAN: [&str; 4] = ["--gaussian-sigma-mm", "2", "--gaussian-peak-nm-per-s", "10"];
+
+/// Width and height of a PNG from its IHDR chunk.
+fn png_size(path: &Path) -> (u32, u32) {
+    let b = std::fs::read(path).unwrap();
+    assert_eq!(
+        &b[..8],
+        b"\x89PNG\r\n\x1a\n",
+        "{} is not a PNG",
+        path.display()
+    );
+    let be = |k: usize| u32::from_be_bytes([b[k], b[k + 1], b[k + 2], b[k + 3]]);
+    (be(16), be(20))
+}
+
+#[test]
+fn simulate_reproduces_the_solver_and_converges_in_continuous_mode() {
+    let d = tempfile::tempdir().unwrap();
+    let map = d.path().join("map.csv");
+    write_map(&map);
+    let solved = d.path().join("solved");
+    // rho > 0 keeps the free piston (and the dwell) small, as in practice.
+    let mut args = vec![
+        "solve",
+        "--map",
+        s(&map),
+        "--raster-pitch-mm",
+        "1.5",
+        "--v-max",
+        "2000",
+        "--rho",
+        "0.01",
+    ];
+    args.extend(GAUSSIAN);
+    args.extend(["--out", s(&solved)]);
+    ok(&preston(&args));
+    let dwell = solved.join("dwell.csv");
+    let sim = |extra: &[&str], out: &Path| {
+        let mut a = vec!["simulate", "--map", s(&map), "--dwell", s(&dwell)];
+        a.extend(GAUSSIAN);
+        a.extend_from_slice(extra);
+        a.extend(["--out", s(out)]);
+        ok(&preston(&a));
+        report(out)
+    };
+    // Discrete: the solver's own prediction, to the last byte.
+    let discrete = d.path().join("discrete");
+    let r = sim(&["--plots"], &discrete);
+    assert_eq!(
+        std::fs::read(solved.join("residual.csv")).unwrap(),
+        std::fs::read(discrete.join("residual.csv")).unwrap()
+    );
+    let solve_report = report(&solved);
+    let keys = |v: &serde_json::Value| {
+        let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+        k.sort();
+        k
+    };
+    assert_eq!(
+        keys(&r),
+        keys(&solve_report),
+        "report keys differ from preston solve"
+    );
+    assert_eq!(r["solver"], "simulate");
+    assert_eq!(r["rms_after_nm"], solve_report["rms_after_nm"]);
+    for f in ["error_before.png", "removal.png", "residual.png"] {
+        assert_eq!(png_size(&discrete.join(f)), (900, 700));
+    }
+    // Continuous: the residual settles as the samples per dwell point double.
+    let rms: Vec<f64> = [1, 2, 4, 8, 16]
+        .iter()
+        .map(|k| {
+            let out = d.path().join(format!("c{k}"));
+            sim(
+                &[
+                    "--motion",
+                    "continuous",
+                    "--samples-per-point",
+                    &k.to_string(),
+                ],
+                &out,
+            )["rms_after_nm"]
+                .as_f64()
+                .unwrap()
+        })
+        .collect();
+    let steps: Vec<f64> = rms.windows(2).map(|w| (w[1] - w[0]).abs()).collect();
+    assert!(
+        steps[3] < steps[1] && steps[2] < steps[0],
+        "continuous RMS {rms:?} does not settle"
+    );
+    assert!(steps[3] < 0.02 * rms[4] + 1e-9, "{rms:?}");
+}
+
+#[test]
+fn virtual_loop_converges_and_writes_table_and_plots() {
+    let d = tempfile::tempdir().unwrap();
+    let surface = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/design_freeform.json");
+    let out = d.path().join("loop");
+    let mut args = vec![
+        "iterate",
+        "--surface",
+        s(&surface),
+        "--aperture-x-mm=-12,12",
+        "--aperture-y-mm=-10,10",
+        "--grid",
+        "17,15",
+        "--pitch-mm",
+        "1.5",
+        "--iterations",
+        "3",
+        "--form-error-rms-nm",
+        "50",
+        "--rotation-arcsec=20,-15,30",
+        "--translation-um=5,-8,3",
+        "--noise-nm",
+        "0.3",
+        "--tif-rate-error",
+        "0.03",
+        "--positioning-noise-mm",
+        "0.02",
+        "--plots",
+    ];
+    args.extend(GAUSSIAN);
+    args.extend(["--out", s(&out)]);
+    ok(&preston(&args));
+    let table = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
+    let mut lines = table.lines();
+    assert!(lines
+        .next()
+        .unwrap()
+        .starts_with("iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s"));
+    let rows: Vec<Vec<f64>> = lines
+        .map(|l| l.split(',').take(6).map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 4);
+    // The registered form error starts near the generated 50 nm RMS (the installation error of
+    // tens of micrometres is taken out) and decreases run after run.
+    assert!((rows[0][2] - 50.0).abs() < 25.0, "{rows:?}");
+    for w in rows.windows(2) {
+        assert!(w[1][2] < w[0][2], "RMS does not decrease: {rows:?}");
+    }
+    assert!(rows[1][2] < 0.2 * rows[0][2], "{rows:?}");
+    assert!(rows[0][5] > 0.0 && rows[3][5] == 0.0);
+    for f in [
+        "convergence.png",
+        "error_before.png",
+        "removal.png",
+        "residual.png",
+        "dwell.png",
+        "feed.png",
+        "path.png",
+        "final_error.png",
+    ] {
+        assert_eq!(png_size(&out.join(f)), (900, 700), "{f}");
+    }
+}
+
+#[test]
+fn a_measured_map_plans_one_run_and_bad_input_writes_nothing() {
+    let d = tempfile::tempdir().unwrap();
+    let map = d.path().join("map.csv");
+    write_map(&map);
+    let out = d.path().join("real");
+    let mut args = vec![
+        "iterate",
+        "--map",
+        s(&map),
+        "--pitch-mm",
+        "1.5",
+        "--iteration",
+        "1",
+    ];
+    args.extend(GAUSSIAN);
+    args.extend(["--out", s(&out)]);
+    ok(&preston(&args));
+    let table = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
+    assert_eq!(table.lines().count(), 3);
+    // Iteration 1 runs along y: the first two dwell points share x.
+    let dwell = std::fs::read_to_string(out.join("dwell.csv")).unwrap();
+    let first: Vec<Vec<f64>> = dwell
+        .lines()
+        .skip(1)
+        .take(2)
+        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(first[0][0], first[1][0]);
+    // No TIF: exit 2, no output directory.
+    let bad = d.path().join("bad");
+    let o = preston(&["iterate", "--map", s(&map), "--out", s(&bad)]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no TIF"));
+    assert!(!bad.exists());
+}

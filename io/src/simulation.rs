@@ -1,0 +1,324 @@
+//! Simulation and loop outputs: `preston simulate` (the removal a dwell program produces, in the
+//! solver's file formats) and the files of `preston iterate` (convergence table, last run, plots).
+
+use crate::atomic::{commit_all, stage, Staged};
+use crate::error::{Error, Result};
+use crate::plots::{plot_convergence, plot_map, plot_path};
+use crate::readers::{read_dwell, read_map};
+use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
+use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
+use preston_solver::dwell::accel::AccelLimits;
+use preston_solver::dwell::{DwellBounds, FeedLimits, Problem, Solution, SolverKind, Status};
+use preston_solver::influence::InfluenceMatrix;
+use preston_solver::iterate::{IterationRecord, LoopOutcome};
+use preston_solver::machine::feeds::FeedSchedule;
+use preston_solver::map::HeightMap;
+use preston_solver::observer::Observer;
+use preston_solver::path::DwellPath;
+use preston_solver::simulate::{removal_nm, Motion};
+use preston_solver::tif::Tif;
+use std::io::Write;
+use std::path::Path;
+use std::time::Instant;
+
+/// A simulated run: inputs, removal and report.
+#[derive(Debug, Clone)]
+pub struct Simulated {
+    /// The error map.
+    pub map: HeightMap,
+    /// The dwell path.
+    pub path: DwellPath,
+    /// Path length per dwell point, mm.
+    pub ds_mm: Vec<f64>,
+    /// Dwell times, s.
+    pub dwell_s: Vec<f64>,
+    /// Removal at the map points, nm.
+    pub removal_nm: Vec<f64>,
+    /// The report (same keys as `preston solve`; `solver` is `simulate`).
+    pub report: Report,
+}
+
+/// Simulates the dwell program in `dwell_file` (`x_mm,y_mm,dwell_s`, as `preston solve` writes it)
+/// on the map with `tif` under `motion`. With `limits`, `max_bound_violation_s` reports how far
+/// the program is outside the feed limits.
+pub fn simulate(
+    map_file: &Path,
+    tif: &Tif,
+    dwell_file: &Path,
+    motion: Motion,
+    limits: Option<&FeedLimits>,
+    observer: &dyn Observer,
+) -> Result<Simulated> {
+    let start = Instant::now();
+    let map = read_map(map_file)?;
+    let dwell = read_dwell(dwell_file)?;
+    let dwell_s = dwell.dwell_s.ok_or_else(|| Error::MissingColumn {
+        file: dwell_file.to_path_buf(),
+        column: "dwell_s".into(),
+        found: "x_mm,y_mm".into(),
+        hint: "; simulation needs the dwell times of a program (the dwell.csv of preston solve)"
+            .into(),
+    })?;
+    let path = dwell.path;
+    let ds_mm = path.ds_mm();
+    let m = &map.map;
+    let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
+    let build_seconds = start.elapsed().as_secs_f64();
+    let sim_start = Instant::now();
+    let removal = match motion {
+        Motion::Discrete => r.removal_nm(&dwell_s)?,
+        Motion::Continuous { .. } => {
+            removal_nm(m.x_mm(), m.y_mm(), &path, &dwell_s, tif, motion, observer)
+                .map_err(|e| Error::engine(dwell_file, e))?
+        }
+    };
+    let bounds = match limits {
+        Some(l) => DwellBounds::from_feeds(&ds_mm, l),
+        None => DwellBounds::new(vec![0.0; path.len()], None),
+    }
+    .map_err(|e| Error::engine(dwell_file, e))?;
+    let problem = Problem::new(r, m.z_nm().to_vec(), bounds, 0.0, 0.0)
+        .map_err(|e| Error::engine(map_file, e))?;
+    let mean_gap = removal
+        .iter()
+        .zip(m.z_nm())
+        .map(|(h, z)| h - z)
+        .sum::<f64>()
+        / removal.len().max(1) as f64;
+    let objective = 0.5
+        * removal
+            .iter()
+            .zip(m.z_nm())
+            .map(|(h, z)| (h - z - mean_gap).powi(2))
+            .sum::<f64>();
+    let solution = Solution {
+        status: Status::Converged,
+        solver: SolverKind::Qp,
+        dwell_s: dwell_s.clone(),
+        piston_nm: mean_gap,
+        objective,
+        iterations: 0,
+        solve_seconds: sim_start.elapsed().as_secs_f64(),
+        kkt_residual: None,
+        objective_gap_bound: None,
+        min_time: None,
+    };
+    let mut report = Report::new(
+        &problem,
+        &solution,
+        &removal,
+        &ds_mm,
+        map.skipped_rows,
+        build_seconds,
+    );
+    report.solver = match motion {
+        Motion::Discrete => "simulate".into(),
+        Motion::Continuous { samples_per_point } => {
+            format!("simulate-continuous-{samples_per_point}")
+        }
+    };
+    if dwell_s
+        .iter()
+        .zip(&ds_mm)
+        .all(|(t, d)| *t > 0.0 || *d == 0.0)
+    {
+        let schedule = FeedSchedule::new(
+            &path,
+            &dwell_s,
+            None,
+            AccelLimits::default().corner_angle_deg,
+        )
+        .map_err(|e| Error::engine(dwell_file, e))?;
+        report.set_machine(&schedule, None);
+    }
+    Ok(Simulated {
+        map: map.map,
+        path,
+        ds_mm,
+        dwell_s,
+        removal_nm: removal,
+        report,
+    })
+}
+
+/// Writes `residual.csv` and `report.json` of a simulation into `out_dir`; with `plots`, also
+/// `error_before.png`, `removal.png` and `residual.png`.
+pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<()> {
+    std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
+    let residual = centred_residual_nm(sim.map.z_nm(), &sim.removal_nm);
+    commit_all(vec![
+        stage_residual_csv(
+            &out_dir.join("residual.csv"),
+            sim.map.x_mm(),
+            sim.map.y_mm(),
+            sim.map.z_nm(),
+            &sim.removal_nm,
+            &residual,
+        )?,
+        stage_report(&out_dir.join("report.json"), &sim.report)?,
+    ])?;
+    if plots {
+        let (x, y) = (sim.map.x_mm(), sim.map.y_mm());
+        plot_map(
+            &out_dir.join("error_before.png"),
+            "Surface error before",
+            "nm",
+            x,
+            y,
+            sim.map.z_nm(),
+        )?;
+        plot_map(
+            &out_dir.join("removal.png"),
+            "Simulated removal",
+            "nm",
+            x,
+            y,
+            &sim.removal_nm,
+        )?;
+        plot_map(
+            &out_dir.join("residual.png"),
+            "Residual (piston removed)",
+            "nm",
+            x,
+            y,
+            &residual,
+        )?;
+    }
+    Ok(())
+}
+
+/// Header of `convergence.csv` (a contract: checks outside the project read it).
+pub const CONVERGENCE_HEADER: &str = "iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s";
+
+/// Stages `convergence.csv`: one row per measurement, then the solver's prediction and the TIF
+/// rate error applied as extra columns.
+pub fn stage_convergence_csv(path: &Path, records: &[IterationRecord]) -> Result<Staged> {
+    stage(path, |w: &mut dyn Write| {
+        writeln!(w, "{CONVERGENCE_HEADER},predicted_rms_nm,tif_rate_error")?;
+        for r in records {
+            let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
+            writeln!(
+                w,
+                "{},{},{},{},{},{},{},{}",
+                r.iteration,
+                r.pv_nm,
+                r.rms_nm,
+                r.max_abs_nm,
+                r.mean_abs_nm,
+                r.time_s,
+                opt(r.predicted_rms_nm),
+                opt(r.tif_rate_error)
+            )?;
+        }
+        Ok(())
+    })
+}
+
+/// Writes the outputs of a polishing loop into `out_dir`: `convergence.csv`, the last run's
+/// `dwell.csv` and `measured.csv` (`x_mm,y_mm,z_nm`, the map it was planned on), the final
+/// measured map `final_measured.csv`; with `plots`, PNGs of the error before the last run, the
+/// predicted removal, the residual, the dwell-time and feed maps, the path and the convergence.
+pub fn write_loop(outcome: &LoopOutcome, out_dir: &Path, plots: bool) -> Result<()> {
+    std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
+    let mut staged = vec![stage_convergence_csv(
+        &out_dir.join("convergence.csv"),
+        &outcome.records,
+    )?];
+    let fin = &outcome.final_measured;
+    staged.push(crate::writers::stage_map_csv(
+        &out_dir.join("final_measured.csv"),
+        fin.x_mm(),
+        fin.y_mm(),
+        fin.z_nm(),
+    )?);
+    if let Some(run) = &outcome.last_run {
+        let ds = run.path.ds_mm();
+        let feeds = feeds_mm_per_min(&ds, &run.dwell_s);
+        staged.push(stage_dwell_csv(
+            &out_dir.join("dwell.csv"),
+            run.path.x_mm(),
+            run.path.y_mm(),
+            &ds,
+            &run.dwell_s,
+            &feeds,
+        )?);
+        staged.push(crate::writers::stage_map_csv(
+            &out_dir.join("measured.csv"),
+            run.measured.x_mm(),
+            run.measured.y_mm(),
+            run.measured.z_nm(),
+        )?);
+    }
+    commit_all(staged)?;
+    if plots {
+        write_loop_plots(outcome, out_dir)?;
+    }
+    Ok(())
+}
+
+fn write_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<()> {
+    let rec = &outcome.records;
+    let series = |f: fn(&IterationRecord) -> f64| -> Vec<(f64, f64)> {
+        rec.iter().map(|r| (r.iteration as f64, f(r))).collect()
+    };
+    plot_convergence(
+        &out_dir.join("convergence.png"),
+        "Form error per iteration",
+        "nm",
+        &[
+            ("PV", series(|r| r.pv_nm)),
+            ("RMS", series(|r| r.rms_nm)),
+            ("mean |dev|", series(|r| r.mean_abs_nm)),
+        ],
+    )?;
+    let fin = &outcome.final_measured;
+    plot_map(
+        &out_dir.join("final_error.png"),
+        "Measured form error after the last run",
+        "nm",
+        fin.x_mm(),
+        fin.y_mm(),
+        fin.z_nm(),
+    )?;
+    if let Some(run) = &outcome.last_run {
+        let m = &run.measured;
+        let residual = centred_residual_nm(m.z_nm(), &run.predicted_removal_nm);
+        plot_map(
+            &out_dir.join("error_before.png"),
+            "Measured form error before the last run",
+            "nm",
+            m.x_mm(),
+            m.y_mm(),
+            m.z_nm(),
+        )?;
+        plot_map(
+            &out_dir.join("removal.png"),
+            "Predicted removal",
+            "nm",
+            m.x_mm(),
+            m.y_mm(),
+            &run.predicted_removal_nm,
+        )?;
+        plot_map(
+            &out_dir.join("residual.png"),
+            "Predicted residual (piston removed)",
+            "nm",
+            m.x_mm(),
+            m.y_mm(),
+            &residual,
+        )?;
+        let (px, py) = (run.path.x_mm(), run.path.y_mm());
+        plot_map(
+            &out_dir.join("dwell.png"),
+            "Dwell time",
+            "s",
+            px,
+            py,
+            &run.dwell_s,
+        )?;
+        let feeds = feeds_mm_per_min(&run.path.ds_mm(), &run.dwell_s);
+        plot_map(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, &feeds)?;
+        plot_path(&out_dir.join("path.png"), "Tool path", px, py)?;
+    }
+    Ok(())
+}
