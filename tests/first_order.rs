@@ -21,7 +21,14 @@ fn case(nx: usize, ny: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>, Dwell
         ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
     };
     let modes: Vec<(f64, f64, f64, f64)> = (0..6)
-        .map(|_| (next() * 0.4, next() * 0.4, next() * 6.0, 20.0 + 40.0 * next()))
+        .map(|_| {
+            (
+                next() * 0.4,
+                next() * 0.4,
+                next() * 6.0,
+                20.0 + 40.0 * next(),
+            )
+        })
         .collect();
     let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
     for iy in 0..ny {
@@ -46,7 +53,11 @@ fn case(nx: usize, ny: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>, Dwell
 }
 
 fn problem(seed: u64, v_min: f64, rho: f64, lambda: f64) -> Problem {
-    let (x, y, z, path, tif) = case(25, 15, seed);
+    sized_problem(25, 15, seed, v_min, rho, lambda)
+}
+
+fn sized_problem(nx: usize, ny: usize, seed: u64, v_min: f64, rho: f64, lambda: f64) -> Problem {
+    let (x, y, z, path, tif) = case(nx, ny, seed);
     let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
     let limits = FeedLimits {
         v_max_mm_per_min: 3000.0,
@@ -74,16 +85,29 @@ fn assert_agree(p: &Problem) {
     let qp = dwell::solve(p, &settings(SolverChoice::Qp), &Silent).unwrap();
     let fo = dwell::solve(p, &settings(SolverChoice::FirstOrder), &Silent).unwrap();
     assert!(qp.status.is_converged(), "QP {:?}", qp.status);
-    assert!(fo.status.is_converged(), "first-order {:?} after {}", fo.status, fo.iterations);
+    assert!(
+        fo.status.is_converged(),
+        "first-order {:?} after {}",
+        fo.status,
+        fo.iterations
+    );
     assert!(p.bounds().max_violation_s(&fo.dwell_s) == 0.0);
-    let (fq, ff) = (full_objective(p, &qp.dwell_s), full_objective(p, &fo.dwell_s));
+    let (fq, ff) = (
+        full_objective(p, &qp.dwell_s),
+        full_objective(p, &fo.dwell_s),
+    );
     let rel = (ff - fq).abs() / fq.abs().max(1e-300);
-    assert!(rel < AGREE_REL_TOL, "first-order {ff} vs QP {fq}: rel {rel:e}");
+    assert!(
+        rel < AGREE_REL_TOL,
+        "first-order {ff} vs QP {fq}: rel {rel:e}"
+    );
 }
 
 #[test]
 fn first_order_agrees_with_qp_without_v_min() {
-    assert_agree(&problem(3, 0.0, 0.0, 0.0));
+    // rho = 0 without v_min is the worst-conditioned case (a uniform extra layer is nearly free):
+    // a smaller map keeps the test fast.
+    assert_agree(&sized_problem(15, 9, 3, 0.0, 0.0, 0.0));
 }
 
 #[test]
@@ -120,8 +144,14 @@ fn gap_bound_is_honest_on_a_known_optimum() {
         let sol = dwell::solve(&p, &s, &Silent).unwrap();
         let true_gap = full_objective(&p, &sol.dwell_s);
         let bound = sol.objective_gap_bound.unwrap();
-        assert!(bound >= true_gap, "{iters} iterations: bound {bound} < true gap {true_gap}");
-        assert!(bound < last, "the bound did not shrink: {bound} after {last}");
+        assert!(
+            bound >= true_gap,
+            "{iters} iterations: bound {bound} < true gap {true_gap}"
+        );
+        assert!(
+            bound < last,
+            "the bound did not shrink: {bound} after {last}"
+        );
         last = bound;
     }
 }
@@ -142,16 +172,21 @@ fn gap_bound_covers_the_qp_optimum_with_rho() {
         let sol = dwell::solve(&p, &s, &Silent).unwrap();
         let gap = full_objective(&p, &sol.dwell_s) - f_star;
         let bound = sol.objective_gap_bound.unwrap();
-        assert!(bound >= gap, "{iters} iterations: bound {bound} < gap {gap}");
+        assert!(
+            bound >= gap,
+            "{iters} iterations: bound {bound} < gap {gap}"
+        );
         assert!(sol.kkt_residual.unwrap() >= 0.0);
     }
 }
 
 #[test]
 fn first_order_is_independent_of_the_thread_count() {
-    let p = problem(17, 300.0, 0.1, 1.0);
+    // Large enough (m + n above 20,000) that the iteration runs on the whole pool.
+    let p = sized_problem(150, 120, 17, 300.0, 0.1, 1.0);
+    assert!(p.m() + p.n() > 20_000);
     let s = Settings {
-        first_order_max_iterations: 300,
+        first_order_max_iterations: 60,
         ..settings(SolverChoice::FirstOrder)
     };
     let run = |threads: usize| {
@@ -176,19 +211,27 @@ fn first_order_is_independent_of_the_thread_count() {
 
 #[test]
 fn warm_start_from_the_optimum_stops_early() {
-    let p = problem(19, 0.0, 0.0, 0.0);
+    let p = problem(19, 300.0, 0.0, 0.0);
     let s = settings(SolverChoice::FirstOrder);
     let cold = dwell::solve(&p, &s, &Silent).unwrap();
     let warm = dwell::solve_from(&p, &s, &Silent, Some(&cold.dwell_s)).unwrap();
     assert!(warm.status.is_converged());
-    assert!(warm.iterations < cold.iterations / 2, "{} vs {}", warm.iterations, cold.iterations);
+    assert!(
+        warm.iterations < cold.iterations / 2,
+        "{} vs {}",
+        warm.iterations,
+        cold.iterations
+    );
 }
 
 #[test]
 fn auto_picks_by_size_and_min_time_stays_on_qp() {
     let p = problem(3, 0.0, 0.0, 0.0);
     assert_eq!(SolverChoice::Auto.resolve(&p, false), dwell::SolverKind::Qp);
-    assert_eq!(SolverChoice::FirstOrder.resolve(&p, false), dwell::SolverKind::FirstOrder);
+    assert_eq!(
+        SolverChoice::FirstOrder.resolve(&p, false),
+        dwell::SolverKind::FirstOrder
+    );
     let s = Settings {
         min_time: true,
         ..settings(SolverChoice::FirstOrder)

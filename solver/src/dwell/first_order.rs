@@ -176,9 +176,38 @@ impl Data<'_> {
     }
 }
 
+/// Below this many rows plus columns the iteration runs on one thread: rayon's per-call cost
+/// would dominate (the result is the same bits either way).
+const SMALL_PROBLEM: usize = 20_000;
+
 /// Minimises the contract objective for the operator `op` (see the module documentation).
 #[allow(clippy::too_many_arguments)]
 pub fn minimise(
+    op: &dyn LinearOperator,
+    z_nm: &[f64],
+    bounds: &DwellBounds,
+    rho: f64,
+    lambda: f64,
+    settings: &Settings,
+    start: Option<&[f64]>,
+    observer: &dyn Observer,
+) -> Result<FirstOrderResult> {
+    if op.nrows() + op.ncols() < SMALL_PROBLEM && rayon::current_num_threads() > 1 {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .map_err(|e| Error::Numerical {
+                stage: "first-order thread pool",
+                why: e.to_string(),
+            })?;
+        return pool
+            .install(|| minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer));
+    }
+    minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn minimise_here(
     op: &dyn LinearOperator,
     z_nm: &[f64],
     bounds: &DwellBounds,
@@ -394,9 +423,7 @@ fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
         v.iter_mut().for_each(|a| *a /= norm);
         data.gradient(&v, work);
         // Hv (scaled) = S (g(v) - g(0)).
-        let hv: Vec<f64> = (0..n)
-            .map(|j| data.s[j] * (work.g[j] - b[j]))
-            .collect();
+        let hv: Vec<f64> = (0..n).map(|j| data.s[j] * (work.g[j] - b[j])).collect();
         est = v.iter().zip(&hv).map(|(a, b)| a * b).sum::<f64>();
         v = hv;
     }
