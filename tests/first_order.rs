@@ -186,7 +186,7 @@ fn first_order_is_independent_of_the_thread_count() {
     let p = sized_problem(150, 120, 17, 300.0, 0.1, 1.0);
     assert!(p.m() + p.n() > 20_000);
     let s = Settings {
-        first_order_max_iterations: 60,
+        first_order_max_iterations: 20,
         ..settings(SolverChoice::FirstOrder)
     };
     let run = |threads: usize| {

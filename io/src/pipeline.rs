@@ -187,9 +187,34 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
     })
 }
 
+/// The `dwell_s` column of a previous dwell file, checked against the number of dwell points.
+fn read_warm_start(path: &Path, n: usize) -> Result<Vec<f64>> {
+    let file = read_dwell(path)?;
+    let dwell_s = file.dwell_s.ok_or_else(|| Error::MissingColumn {
+        file: path.to_path_buf(),
+        column: "dwell_s".into(),
+        found: "x_mm, y_mm".into(),
+        hint: " (a warm start needs the dwell_s column of a previous dwell.csv)".into(),
+    })?;
+    if dwell_s.len() != n {
+        return Err(Error::Empty {
+            file: path.to_path_buf(),
+            why: format!(
+                "warm start has {} dwell times but the job has {n} dwell points",
+                dwell_s.len()
+            ),
+        });
+    }
+    Ok(dwell_s)
+}
+
 /// Runs the solver on prepared inputs and builds the report.
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
-    let solution = dwell::solve(&prepared.problem, &job.solver, observer)?;
+    let warm = match &job.dwell.warm_start {
+        Some(path) => Some(read_warm_start(path, prepared.problem.n())?),
+        None => None,
+    };
+    let solution = dwell::solve_from(&prepared.problem, &job.solver, observer, warm.as_deref())?;
     let removal_nm = prepared.problem.influence().removal_nm(&solution.dwell_s)?;
     let mut report = Report::new(
         &prepared.problem,
