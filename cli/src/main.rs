@@ -25,6 +25,8 @@ enum Command {
     Fit(cmd::fit::Args),
     /// Register measured points to a design surface (ICP): transform and form error map.
     Register(cmd::register::Args),
+    /// Solve generated problems and the sample job with each solver; print a table.
+    Bench(cmd::bench::Args),
     /// Evaluate a surface (sag, normal, principal curvatures) on a grid or at points.
     Surface(cmd::surface::Args),
 }
@@ -36,6 +38,7 @@ fn main() -> ExitCode {
         Command::Fit(args) => cmd::fit::run(args),
         Command::Register(args) => cmd::register::run(args),
         Command::Surface(args) => cmd::surface::run(args),
+        Command::Bench(args) => cmd::bench::run(args),
     };
     match result {
         Ok(code) => code,

@@ -46,13 +46,21 @@ fn first_order_then_warm_start_on_the_sample_job() {
     let warm = tempfile::tempdir().unwrap();
     let dwell = cold.path().join("dwell.csv");
     let o = solve(
-        &["--solver", "first-order", "--warm-start", dwell.to_str().unwrap()],
+        &[
+            "--solver",
+            "first-order",
+            "--warm-start",
+            dwell.to_str().unwrap(),
+        ],
         warm.path(),
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let w = report(warm.path());
     assert!(w["iterations"].as_u64().unwrap() < r["iterations"].as_u64().unwrap());
-    let (fc, fw) = (r["objective"].as_f64().unwrap(), w["objective"].as_f64().unwrap());
+    let (fc, fw) = (
+        r["objective"].as_f64().unwrap(),
+        w["objective"].as_f64().unwrap(),
+    );
     assert!(fw <= fc * (1.0 + SAMPLE_REL_TOL), "warm {fw} vs cold {fc}");
 }
 
@@ -63,10 +71,20 @@ fn warm_start_without_dwell_times_is_an_input_error() {
     std::fs::write(&bad, "x_mm,y_mm\n0,0\n1,0\n").unwrap();
     let out = dir.path().join("out");
     let o = solve(
-        &["--solver", "first-order", "--warm-start", bad.to_str().unwrap()],
+        &[
+            "--solver",
+            "first-order",
+            "--warm-start",
+            bad.to_str().unwrap(),
+        ],
         &out,
     );
-    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(
+        o.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     assert!(String::from_utf8_lossy(&o.stderr).contains("dwell_s"));
     assert!(!out.join("report.json").exists());
 }

@@ -1,3 +1,4 @@
+pub mod bench;
 pub mod fit;
 pub mod register;
 pub mod solve;
