@@ -238,3 +238,90 @@ fn auto_picks_by_size_and_min_time_stays_on_qp() {
     };
     assert!(dwell::solve(&p, &s, &Silent).is_err());
 }
+
+/// Agreement of the FFT operator with the sparse matrix (issue 2: 1e-9 relative).
+const FFT_REL_TOL: f64 = 1e-9;
+/// Adjoint identity `<R x, y> = <x, R^T y>` to rounding.
+const ADJOINT_REL_TOL: f64 = 1e-12;
+
+#[test]
+fn fft_operator_matches_sparse_and_is_adjoint() {
+    use preston::solver::dwell::fft::FftOperator;
+    use preston::solver::dwell::operator::{LinearOperator, SparseOperator};
+    let (x, y, _, path, tif) = case(40, 30, 23);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let sparse = SparseOperator::new(r.csc());
+    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
+    let (m, n) = (x.len(), path.len());
+    assert_eq!((fft.nrows(), fft.ncols()), (m, n));
+    let t: Vec<f64> = (0..n).map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3).collect();
+    let w: Vec<f64> = (0..m)
+        .map(|i| (((i * 13) % 7) as f64 - 3.0) * 0.7)
+        .collect();
+    let (mut a, mut b) = (vec![0.0; m], vec![0.0; m]);
+    sparse.apply(&t, &mut a);
+    fft.apply(&t, &mut b);
+    let scale = a.iter().fold(0.0_f64, |s, v| s.max(v.abs()));
+    let err = a
+        .iter()
+        .zip(&b)
+        .fold(0.0_f64, |s, (p, q)| s.max((p - q).abs()));
+    assert!(
+        err <= FFT_REL_TOL * scale,
+        "R t differs by {err} (scale {scale})"
+    );
+    let (mut at, mut bt) = (vec![0.0; n], vec![0.0; n]);
+    sparse.apply_transpose(&w, &mut at);
+    fft.apply_transpose(&w, &mut bt);
+    let scale_t = at.iter().fold(0.0_f64, |s, v| s.max(v.abs()));
+    let err_t = at
+        .iter()
+        .zip(&bt)
+        .fold(0.0_f64, |s, (p, q)| s.max((p - q).abs()));
+    assert!(err_t <= FFT_REL_TOL * scale_t, "R^T y differs by {err_t}");
+    for (op, name) in [(&sparse as &dyn LinearOperator, "sparse"), (&fft, "fft")] {
+        let (mut rx, mut rty) = (vec![0.0; m], vec![0.0; n]);
+        op.apply(&t, &mut rx);
+        op.apply_transpose(&w, &mut rty);
+        let lhs: f64 = rx.iter().zip(&w).map(|(p, q)| p * q).sum();
+        let rhs: f64 = t.iter().zip(&rty).map(|(p, q)| p * q).sum();
+        let mag: f64 = rx.iter().zip(&w).map(|(p, q)| (p * q).abs()).sum();
+        assert!(
+            (lhs - rhs).abs() <= ADJOINT_REL_TOL * mag,
+            "{name}: {lhs} vs {rhs}"
+        );
+    }
+    let (cs, cf) = (
+        sparse.centred_column_norms_sq(),
+        fft.centred_column_norms_sq(),
+    );
+    for (p, q) in cs.iter().zip(&cf) {
+        assert!((p - q).abs() <= FFT_REL_TOL * p.abs().max(1.0));
+    }
+}
+
+#[test]
+fn first_order_with_the_fft_operator_matches_the_sparse_one() {
+    use preston::solver::dwell::fft::FftOperator;
+    use preston::solver::dwell::first_order::minimise;
+    use preston::solver::dwell::operator::SparseOperator;
+    let (x, y, z, path, tif) = case(25, 15, 29);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let limits = FeedLimits {
+        v_max_mm_per_min: 3000.0,
+        v_min_mm_per_min: 300.0,
+    };
+    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let s = settings(SolverChoice::FirstOrder);
+    let sparse = SparseOperator::new(r.csc());
+    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
+    let a = minimise(&sparse, &z, &bounds, 0.0, 0.0, &s, None, &Silent).unwrap();
+    let b = minimise(&fft, &z, &bounds, 0.0, 0.0, &s, None, &Silent).unwrap();
+    let rel = (a.full_objective - b.full_objective).abs() / a.full_objective;
+    assert!(
+        rel < AGREE_REL_TOL,
+        "sparse {} vs fft {}",
+        a.full_objective,
+        b.full_objective
+    );
+}

@@ -6,6 +6,7 @@
 
 pub mod accel;
 pub mod bounds;
+pub mod fft;
 pub mod first_order;
 pub mod operator;
 pub mod qp;
