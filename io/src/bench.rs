@@ -72,8 +72,38 @@ pub fn peak_memory_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// The inputs of a generated problem: map points and heights, dwell path, TIF and bounds.
+pub struct GeneratedInputs {
+    /// Map x, mm.
+    pub x_mm: Vec<f64>,
+    /// Map y, mm.
+    pub y_mm: Vec<f64>,
+    /// Height error, nm.
+    pub z_nm: Vec<f64>,
+    /// Dwell path.
+    pub path: preston_solver::path::DwellPath,
+    /// The Gaussian TIF.
+    pub tif: GaussianTif,
+    /// Dwell bounds from `v_max`.
+    pub bounds: DwellBounds,
+}
+
 /// A generated problem with about `n_target` dwell points (see the module documentation).
 pub fn generated_problem(n_target: usize, seed: u64) -> Result<Problem> {
+    let g = generated_inputs(n_target, seed)?;
+    let r = InfluenceMatrix::assemble(
+        &g.x_mm,
+        &g.y_mm,
+        g.path.x_mm(),
+        g.path.y_mm(),
+        &g.tif,
+        &Silent,
+    )?;
+    Ok(Problem::new(r, g.z_nm, g.bounds, 0.0, 0.0)?)
+}
+
+/// The generated inputs with about `n_target` dwell points (see the module documentation).
+pub fn generated_inputs(n_target: usize, seed: u64) -> Result<GeneratedInputs> {
     let tif = GaussianTif::new(TIF_SIGMA_MM, TIF_PEAK_NM_PER_S, 3.0 * TIF_SIGMA_MM)?;
     let radius = 3.0 * TIF_SIGMA_MM;
     let dwell_side = (n_target as f64).sqrt() * DWELL_PITCH_MM;
@@ -121,13 +151,62 @@ pub fn generated_problem(n_target: usize, seed: u64) -> Result<Problem> {
         .ok_or_else(|| preston_solver::Error::invalid("bench map", "has no points"))?
         .expanded(radius);
     let path = serpentine(&bbox, DWELL_PITCH_MM, RasterAxis::X)?;
-    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent)?;
     let limits = FeedLimits {
         v_max_mm_per_min: V_MAX_MM_PER_MIN,
         v_min_mm_per_min: 0.0,
     };
     let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits)?;
-    Ok(Problem::new(r, z, bounds, 0.0, 0.0)?)
+    Ok(GeneratedInputs {
+        x_mm: x,
+        y_mm: y,
+        z_nm: z,
+        path,
+        tif,
+        bounds,
+    })
+}
+
+/// Builds the generated problem with the matrix-free FFT operator (no `R` is formed) and solves
+/// it with the first-order solver.
+pub fn run_generated_fft(n_target: usize, settings: &Settings) -> Result<BenchRow> {
+    use preston_solver::dwell::fft::FftOperator;
+    use preston_solver::dwell::first_order::minimise;
+    use preston_solver::dwell::operator::LinearOperator;
+    let start = Instant::now();
+    let g = generated_inputs(n_target, 1)?;
+    let op = FftOperator::new(
+        &g.x_mm,
+        &g.y_mm,
+        g.path.x_mm(),
+        g.path.y_mm(),
+        MAP_PITCH_MM,
+        &g.tif,
+    )?;
+    let build_seconds = start.elapsed().as_secs_f64();
+    let solve_start = Instant::now();
+    let res = minimise(&op, &g.z_nm, &g.bounds, 0.0, 0.0, settings, None, &Silent)?;
+    let solve_seconds = solve_start.elapsed().as_secs_f64();
+    let mut removal = vec![0.0; op.nrows()];
+    op.apply(&res.dwell_s, &mut removal);
+    let residual: Vec<f64> = removal.iter().zip(&g.z_nm).map(|(h, z)| z - h).collect();
+    let after = HeightStats::of(&residual);
+    let m = op.nrows() as f64;
+    Ok(BenchRow {
+        problem: format!("random-{}", size_label(n_target)),
+        solver: "first-order-fft".into(),
+        m: op.nrows(),
+        n: op.ncols(),
+        nnz: 0,
+        rms_before_nm: HeightStats::of(&g.z_nm).rms_nm,
+        rms_after_nm: after.rms_nm,
+        objective: 0.5 * after.rms_nm * after.rms_nm * m,
+        total_dwell_s: res.dwell_s.iter().sum(),
+        build_seconds,
+        solve_seconds,
+        iterations: res.iterations,
+        status: crate::report::status_name(res.status),
+        peak_memory_mib: peak_memory_mib(),
+    })
 }
 
 /// Builds the generated problem with about `n_target` dwell points and solves it with `solver`.

@@ -14,6 +14,8 @@ pub enum BenchSolvers {
     Qp,
     /// Only the first-order solver.
     FirstOrder,
+    /// Only the first-order solver on the matrix-free FFT operator (nnz shown as 0).
+    FirstOrderFft,
 }
 
 /// Arguments of `preston bench`.
@@ -56,8 +58,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let solvers: Vec<SolverChoice> = match args.solvers {
         BenchSolvers::Both => vec![SolverChoice::Qp, SolverChoice::FirstOrder],
         BenchSolvers::Qp => vec![SolverChoice::Qp],
-        BenchSolvers::FirstOrder => vec![SolverChoice::FirstOrder],
+        BenchSolvers::FirstOrder | BenchSolvers::FirstOrderFft => vec![SolverChoice::FirstOrder],
     };
+    let fft = args.solvers == BenchSolvers::FirstOrderFft;
     let mut rows: Vec<BenchRow> = Vec::new();
     let job = match &args.job {
         Some(p) if p.as_os_str() == "none" => None,
@@ -76,7 +79,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             if s == SolverChoice::Qp && n > args.qp_max_n {
                 continue;
             }
-            let row = bench::run_generated(n, s, &settings)?;
+            let row = if fft {
+                bench::run_generated_fft(n, &settings)?
+            } else {
+                bench::run_generated(n, s, &settings)?
+            };
             eprint!("{}", bench::format_table(std::slice::from_ref(&row)));
             rows.push(row);
         }
