@@ -34,8 +34,11 @@ pub struct FftOperator {
     ifft_x: Arc<dyn Fft<f64>>,
     fft_y: Arc<dyn Fft<f64>>,
     ifft_y: Arc<dyn Fft<f64>>,
-    buffer: Mutex<(Vec<Complex<f64>>, Vec<Complex<f64>>)>,
+    buffer: Mutex<Buffers>,
 }
+
+/// The lattice buffer and the transpose scratch, reused by every product.
+type Buffers = (Vec<Complex<f64>>, Vec<Complex<f64>>);
 
 impl std::fmt::Debug for FftOperator {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -158,11 +161,14 @@ impl FftOperator {
                 let (mut s, mut s2) = (0.0, 0.0);
                 for &(dx, dy, v) in &taps {
                     let (a, b) = (i as isize + dx, j as isize + dy);
-                    if a >= 0 && b >= 0 && (a as usize) < nx && (b as usize) < ny {
-                        if map_of[b as usize * fx + a as usize] {
-                            s += v;
-                            s2 += v * v;
-                        }
+                    if a >= 0
+                        && b >= 0
+                        && (a as usize) < nx
+                        && (b as usize) < ny
+                        && map_of[b as usize * fx + a as usize]
+                    {
+                        s += v;
+                        s2 += v * v;
                     }
                 }
                 (s, s2)
