@@ -6,7 +6,9 @@
 
 use preston::io::simulation::write_loop;
 use preston::solver::dwell::{Settings, SolverChoice};
-use preston::solver::iterate::{run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart};
+use preston::solver::iterate::{
+    run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
+};
 use preston::solver::map::BoundingBox;
 use preston::solver::observer::Silent;
 use preston::solver::tif::{GaussianTif, Tif};

@@ -25,6 +25,8 @@ enum Command {
     Fit(cmd::fit::Args),
     /// Register measured points to a design surface (ICP): transform and form error map.
     Register(cmd::register::Args),
+    /// Solve generated problems and the sample job with each solver; print a table.
+    Bench(cmd::bench::Args),
     /// Evaluate a surface (sag, normal, principal curvatures) on a grid or at points.
     Surface(cmd::surface::Args),
     /// Write G-code and a point list for CAM from a solved dwell file.
@@ -54,6 +56,7 @@ fn main() -> ExitCode {
         Command::Path(args) => cmd::path::run(args),
         Command::Simulate(args) => cmd::simulate::run(args),
         Command::Iterate(args) => cmd::iterate::run(args),
+        Command::Bench(args) => cmd::bench::run(args),
     };
     match result {
         Ok(code) => code,

@@ -116,6 +116,9 @@ pub struct DwellSource {
     /// Direction of the generated raster's lines.
     #[serde(default)]
     pub raster_along: RasterAxis,
+    /// A previous `dwell.csv` (with a `dwell_s` column, same points in the same order) to start
+    /// the first-order solver from.
+    pub warm_start: Option<PathBuf>,
 }
 
 /// Machine limits as written in a job (each may be overridden on the command line).
@@ -156,6 +159,7 @@ impl Job {
             &mut job.map.file,
             &mut job.tif.file,
             &mut job.dwell.file,
+            &mut job.dwell.warm_start,
             &mut job.surface.file,
         ]
         .into_iter()

@@ -189,10 +189,35 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
     })
 }
 
+/// The `dwell_s` column of a previous dwell file, checked against the number of dwell points.
+fn read_warm_start(path: &Path, n: usize) -> Result<Vec<f64>> {
+    let file = read_dwell(path)?;
+    let dwell_s = file.dwell_s.ok_or_else(|| Error::MissingColumn {
+        file: path.to_path_buf(),
+        column: "dwell_s".into(),
+        found: "x_mm, y_mm".into(),
+        hint: " (a warm start needs the dwell_s column of a previous dwell.csv)".into(),
+    })?;
+    if dwell_s.len() != n {
+        return Err(Error::Empty {
+            file: path.to_path_buf(),
+            why: format!(
+                "warm start has {} dwell times but the job has {n} dwell points",
+                dwell_s.len()
+            ),
+        });
+    }
+    Ok(dwell_s)
+}
+
 /// Runs the solver on prepared inputs and builds the report. With `[machine] a_max_mm_per_s2`
 /// the acceleration limit is imposed by sequential convex programming ([`dwell::accel::solve`]);
 /// either way the report gets the machining time and the largest acceleration of the schedule.
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
+    let warm = match &job.dwell.warm_start {
+        Some(path) => Some(read_warm_start(path, prepared.problem.n())?),
+        None => None,
+    };
     let limits = job.accel_limits()?;
     let (solution, accel) = match &limits {
         Some(l) => {
@@ -201,7 +226,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
             (a.solution, Some(a.report))
         }
         None => (
-            dwell::solve(&prepared.problem, &job.solver, observer)?,
+            dwell::solve_from(&prepared.problem, &job.solver, observer, warm.as_deref())?,
             None,
         ),
     };

@@ -1,4 +1,5 @@
 pub mod asphere;
+pub mod bench;
 pub mod fit;
 pub mod iterate;
 pub mod nc;

@@ -4,6 +4,7 @@ use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
+use preston_solver::dwell::SolverChoice;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
 use preston_solver::tif::GaussianTif;
@@ -29,6 +30,17 @@ pub enum Frame {
     PathTangent,
     /// The TIF x axis is the machine x axis projected into the tangent plane.
     MachineX,
+}
+
+/// Solver choice on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum SolverArg {
+    /// Sparse interior-point QP (Clarabel).
+    Qp,
+    /// Accelerated projected gradient with a duality-gap certificate.
+    FirstOrder,
+    /// First-order from 5,000 dwell points or 5e6 non-zeros on, QP below (and for --min-time).
+    Auto,
 }
 
 /// Arguments of `preston solve`. Flags override the job file.
@@ -93,6 +105,13 @@ pub struct Args {
     /// Iteration limit of the solver.
     #[arg(long)]
     pub max_iterations: Option<usize>,
+    /// Which solver to run (default: the job's, else auto).
+    #[arg(long, value_enum)]
+    pub solver: Option<SolverArg>,
+    /// Start the first-order solver from the `dwell_s` column of a previous dwell.csv (same dwell
+    /// points, in the same order).
+    #[arg(long, value_name = "dwell.csv")]
+    pub warm_start: Option<PathBuf>,
     /// Exit 0 even when the solver stops before converging (the status is still reported).
     #[arg(long)]
     pub accept_best_iterate: bool,
@@ -169,6 +188,17 @@ impl Args {
         }
         if let Some(k) = self.max_iterations {
             job.solver.max_iterations = k;
+            job.solver.first_order_max_iterations = k;
+        }
+        if let Some(k) = self.solver {
+            job.solver.solver = match k {
+                SolverArg::Qp => SolverChoice::Qp,
+                SolverArg::FirstOrder => SolverChoice::FirstOrder,
+                SolverArg::Auto => SolverChoice::Auto,
+            };
+        }
+        if let Some(w) = self.warm_start {
+            job.dwell.warm_start = Some(w);
         }
         if let Some(f) = self.surface {
             job.surface.file = Some(f);
@@ -249,8 +279,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     eprintln!(
-        "  solver {} ({} iterations, status {}), build {:.3} s, solve {:.3} s; wrote {}",
+        "  solver {}{} ({} iterations, status {}), build {:.3} s, solve {:.3} s; wrote {}",
         r.solver,
+        match (r.kkt_residual, r.objective_gap_bound) {
+            (Some(k), Some(g)) => format!(" [KKT residual {k:.2e}, objective gap <= {g:.3e} nm^2]"),
+            _ => String::new(),
+        },
         r.iterations,
         r.status,
         r.build_seconds,

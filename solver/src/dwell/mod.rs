@@ -6,6 +6,9 @@
 
 pub mod accel;
 pub mod bounds;
+pub mod fft;
+pub mod first_order;
+pub mod operator;
 pub mod qp;
 
 pub use bounds::{DwellBounds, FeedLimits};
@@ -229,9 +232,38 @@ pub struct Evaluation {
 pub enum SolverChoice {
     /// Sparse interior-point QP (Clarabel).
     Qp,
-    /// Choose by problem size.
+    /// Accelerated projected gradient ([`first_order`]).
+    FirstOrder,
+    /// Choose by problem size: the first-order solver above [`AUTO_FIRST_ORDER_MIN_DWELL`] dwell
+    /// points or [`AUTO_FIRST_ORDER_MIN_NNZ`] non-zeros, the QP otherwise and always in
+    /// minimum-time mode.
     #[default]
     Auto,
+}
+
+/// `auto` picks the first-order solver from this many dwell points on.
+pub const AUTO_FIRST_ORDER_MIN_DWELL: usize = 5_000;
+/// `auto` picks the first-order solver from this many non-zeros of `R` on.
+pub const AUTO_FIRST_ORDER_MIN_NNZ: usize = 5_000_000;
+
+impl SolverChoice {
+    /// The solver this choice runs on `problem` (resolves `auto`).
+    pub fn resolve(self, problem: &Problem, min_time: bool) -> SolverKind {
+        match self {
+            SolverChoice::Qp => SolverKind::Qp,
+            SolverChoice::FirstOrder => SolverKind::FirstOrder,
+            SolverChoice::Auto => {
+                if !min_time
+                    && (problem.n() >= AUTO_FIRST_ORDER_MIN_DWELL
+                        || problem.influence().nnz() >= AUTO_FIRST_ORDER_MIN_NNZ)
+                {
+                    SolverKind::FirstOrder
+                } else {
+                    SolverKind::Qp
+                }
+            }
+        }
+    }
 }
 
 /// The solver that produced a solution.
@@ -240,6 +272,8 @@ pub enum SolverChoice {
 pub enum SolverKind {
     /// Clarabel interior-point QP.
     Qp,
+    /// Accelerated projected gradient with restart ([`first_order`]).
+    FirstOrder,
 }
 
 /// How a solve ended. Not converging is a status, not an error.
@@ -286,6 +320,11 @@ pub struct Settings {
     pub time_limit_s: f64,
     /// Print the solver's iteration log (Clarabel prints it on stdout).
     pub verbose: bool,
+    /// First-order solver: stop when the relative gap bound or the relative KKT residual is
+    /// below this.
+    pub first_order_tolerance: f64,
+    /// First-order solver: iteration limit.
+    pub first_order_max_iterations: usize,
 }
 
 impl Default for Settings {
@@ -298,6 +337,8 @@ impl Default for Settings {
             max_iterations: 200,
             time_limit_s: f64::INFINITY,
             verbose: false,
+            first_order_tolerance: 1e-6,
+            first_order_max_iterations: 20_000,
         }
     }
 }
@@ -315,6 +356,21 @@ impl Settings {
             return Err(Error::invalid(
                 "tolerance",
                 format!("must be in (0, 1), got {}", self.tolerance),
+            ));
+        }
+        if !(self.first_order_tolerance.is_finite()
+            && self.first_order_tolerance > 0.0
+            && self.first_order_tolerance < 1.0)
+        {
+            return Err(Error::invalid(
+                "first_order_tolerance",
+                format!("must be in (0, 1), got {}", self.first_order_tolerance),
+            ));
+        }
+        if self.first_order_max_iterations == 0 {
+            return Err(Error::invalid(
+                "first_order_max_iterations",
+                "must be at least 1",
             ));
         }
         if self.max_iterations == 0 {
@@ -372,13 +428,35 @@ pub struct Solution {
 /// residual; without the smoothness term (`lambda = 0`) they are taken out of the solve and put on
 /// their lower bound, which keeps them from making the problem degenerate.
 pub fn solve(problem: &Problem, settings: &Settings, observer: &dyn Observer) -> Result<Solution> {
+    solve_from(problem, settings, observer, None)
+}
+
+/// As [`solve`], starting the first-order solver from `warm_start_s` (one dwell time per dwell
+/// point, s; projected onto the bounds). The QP ignores the start.
+pub fn solve_from(
+    problem: &Problem,
+    settings: &Settings,
+    observer: &dyn Observer,
+    warm_start_s: Option<&[f64]>,
+) -> Result<Solution> {
     settings.validate()?;
+    if let Some(w) = warm_start_s {
+        if w.len() != problem.n() {
+            return Err(Error::LengthMismatch {
+                what: "warm start dwell_s",
+                got: w.len(),
+                expected: problem.n(),
+            });
+        }
+    }
     let empty = problem.influence().empty_columns();
     if problem.lambda() > 0.0 || empty.is_empty() {
-        return dispatch(problem, settings, observer);
+        return dispatch(problem, settings, observer, warm_start_s);
     }
     let (reduced, kept) = problem.without_columns(&empty)?;
-    let mut sol = dispatch(&reduced, settings, observer)?;
+    let reduced_start: Option<Vec<f64>> =
+        warm_start_s.map(|w| kept.iter().map(|&j| w[j]).collect());
+    let mut sol = dispatch(&reduced, settings, observer, reduced_start.as_deref())?;
     let mut dwell_s = problem.bounds().lower_s().to_vec();
     for (&j, &t) in kept.iter().zip(&sol.dwell_s) {
         if let Some(slot) = dwell_s.get_mut(j) {
@@ -389,8 +467,14 @@ pub fn solve(problem: &Problem, settings: &Settings, observer: &dyn Observer) ->
     Ok(sol)
 }
 
-fn dispatch(problem: &Problem, settings: &Settings, observer: &dyn Observer) -> Result<Solution> {
-    match settings.solver {
-        SolverChoice::Qp | SolverChoice::Auto => qp::solve(problem, settings, observer),
+fn dispatch(
+    problem: &Problem,
+    settings: &Settings,
+    observer: &dyn Observer,
+    start: Option<&[f64]>,
+) -> Result<Solution> {
+    match settings.solver.resolve(problem, settings.min_time) {
+        SolverKind::Qp => qp::solve(problem, settings, observer),
+        SolverKind::FirstOrder => first_order::solve(problem, settings, observer, start),
     }
 }

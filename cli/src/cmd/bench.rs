@@ -1,0 +1,97 @@
+//! `preston bench`: generated problems and the sample job, solved and timed (issue 2).
+
+use preston_io::bench::{self, BenchRow};
+use preston_solver::dwell::{Settings, SolverChoice};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Solvers to compare.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BenchSolvers {
+    /// Both solvers (the QP only up to --qp-max-n dwell points).
+    Both,
+    /// Only the QP.
+    Qp,
+    /// Only the first-order solver.
+    FirstOrder,
+    /// Only the first-order solver on the matrix-free FFT operator (nnz shown as 0).
+    FirstOrderFft,
+}
+
+/// Arguments of `preston bench`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Approximate dwell-point counts of the generated problems (comma separated).
+    #[arg(long, value_delimiter = ',', default_values_t = [2_000usize, 20_000, 200_000])]
+    pub sizes: Vec<usize>,
+    /// Add the 1e6-dwell-point problem.
+    #[arg(long)]
+    pub large: bool,
+    /// Which solvers to run.
+    #[arg(long, value_enum, default_value = "both")]
+    pub solvers: BenchSolvers,
+    /// Largest problem (dwell points) given to the QP.
+    #[arg(long, default_value_t = 20_000)]
+    pub qp_max_n: usize,
+    /// Relative tolerance of the first-order solver (KKT residual or gap bound).
+    #[arg(long)]
+    pub first_order_tolerance: Option<f64>,
+    /// Sample job to include (default data/job.toml when it exists; "none" to skip).
+    #[arg(long, value_name = "JOB.toml")]
+    pub job: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `preston bench`.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let mut sizes = args.sizes.clone();
+    if args.large {
+        sizes.push(1_000_000);
+    }
+    let mut settings = Settings::default();
+    if let Some(t) = args.first_order_tolerance {
+        settings.first_order_tolerance = t;
+    }
+    settings.validate()?;
+    let solvers: Vec<SolverChoice> = match args.solvers {
+        BenchSolvers::Both => vec![SolverChoice::Qp, SolverChoice::FirstOrder],
+        BenchSolvers::Qp => vec![SolverChoice::Qp],
+        BenchSolvers::FirstOrder | BenchSolvers::FirstOrderFft => vec![SolverChoice::FirstOrder],
+    };
+    let fft = args.solvers == BenchSolvers::FirstOrderFft;
+    let mut rows: Vec<BenchRow> = Vec::new();
+    let job = match &args.job {
+        Some(p) if p.as_os_str() == "none" => None,
+        Some(p) => Some(p.clone()),
+        None => Some(PathBuf::from("data/job.toml")).filter(|p| p.exists()),
+    };
+    if let Some(job) = job {
+        for &s in &solvers {
+            let row = bench::run_job(&job, s)?;
+            eprint!("{}", bench::format_table(std::slice::from_ref(&row)));
+            rows.push(row);
+        }
+    }
+    for &n in &sizes {
+        for &s in &solvers {
+            if s == SolverChoice::Qp && n > args.qp_max_n {
+                continue;
+            }
+            let row = if fft {
+                bench::run_generated_fft(n, &settings)?
+            } else {
+                bench::run_generated(n, s, &settings)?
+            };
+            eprint!("{}", bench::format_table(std::slice::from_ref(&row)));
+            rows.push(row);
+        }
+    }
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    } else {
+        print!("{}", bench::format_table(&rows));
+    }
+    Ok(ExitCode::SUCCESS)
+}

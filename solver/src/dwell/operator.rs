@@ -1,0 +1,122 @@
+//! Linear operators `R` (dwell times -> removal) for the first-order solver: the sparse influence
+//! matrix, or a matrix-free FFT convolution on regular grids ([`super::fft`]).
+//!
+//! Every product is computed entry by entry in a fixed order (one dot product per output entry,
+//! outputs distributed over threads), so results are bit-identical for any thread count.
+
+use nalgebra_sparse::{CscMatrix, CsrMatrix};
+use rayon::prelude::*;
+
+/// A linear map `R` from `n` dwell times (s) to `m` removals (nm), with its transpose.
+pub trait LinearOperator: Sync {
+    /// Number of measurement points `m` (rows).
+    fn nrows(&self) -> usize;
+    /// Number of dwell points `n` (columns).
+    fn ncols(&self) -> usize;
+    /// `out = R t`; `t.len() == n`, `out.len() == m`.
+    fn apply(&self, t: &[f64], out: &mut [f64]);
+    /// `out = R^T y`; `y.len() == m`, `out.len() == n`.
+    fn apply_transpose(&self, y: &[f64], out: &mut [f64]);
+    /// Squared norms of the centred columns, `||R_j||^2 - (1' R_j)^2 / m` (the diagonal of
+    /// `R^T P R` with `P = I - 11'/m`), used for the Jacobi scaling.
+    fn centred_column_norms_sq(&self) -> Vec<f64>;
+}
+
+/// The sparse influence matrix as an operator: CSC for `R^T y` (one dot product per column) and a
+/// CSR copy for `R t` (one dot product per row). Memory: about twice the matrix.
+#[derive(Debug, Clone)]
+pub struct SparseOperator<'a> {
+    csc: &'a CscMatrix<f64>,
+    csr: CsrMatrix<f64>,
+}
+
+impl<'a> SparseOperator<'a> {
+    /// Wraps a CSC matrix and builds its CSR copy.
+    pub fn new(csc: &'a CscMatrix<f64>) -> Self {
+        Self {
+            csc,
+            csr: CsrMatrix::from(csc),
+        }
+    }
+}
+
+/// Minimum number of output entries handed to one rayon task.
+const MIN_TASK: usize = 512;
+
+impl LinearOperator for SparseOperator<'_> {
+    fn nrows(&self) -> usize {
+        self.csc.nrows()
+    }
+
+    fn ncols(&self) -> usize {
+        self.csc.ncols()
+    }
+
+    fn apply(&self, t: &[f64], out: &mut [f64]) {
+        let offsets = self.csr.row_offsets();
+        let cols = self.csr.col_indices();
+        let vals = self.csr.values();
+        out.par_iter_mut()
+            .enumerate()
+            .with_min_len(MIN_TASK)
+            .for_each(|(i, o)| {
+                let (a, b) = (offsets[i], offsets[i + 1]);
+                *o = cols[a..b]
+                    .iter()
+                    .zip(&vals[a..b])
+                    .map(|(&j, &v)| v * t.get(j).copied().unwrap_or(0.0))
+                    .sum();
+            });
+    }
+
+    fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
+        let offsets = self.csc.col_offsets();
+        let rows = self.csc.row_indices();
+        let vals = self.csc.values();
+        out.par_iter_mut()
+            .enumerate()
+            .with_min_len(MIN_TASK / 4)
+            .for_each(|(j, o)| {
+                let (a, b) = (offsets[j], offsets[j + 1]);
+                *o = rows[a..b]
+                    .iter()
+                    .zip(&vals[a..b])
+                    .map(|(&i, &v)| v * y.get(i).copied().unwrap_or(0.0))
+                    .sum();
+            });
+    }
+
+    fn centred_column_norms_sq(&self) -> Vec<f64> {
+        let m = self.csc.nrows().max(1) as f64;
+        self.csc
+            .col_iter()
+            .map(|c| {
+                let (s, s2) = c
+                    .values()
+                    .iter()
+                    .fold((0.0, 0.0), |(s, s2), &v| (s + v, s2 + v * v));
+                (s2 - s * s / m).max(0.0)
+            })
+            .collect()
+    }
+}
+
+/// Length of the fixed chunks of [`fixed_sum`]: the chunking does not depend on the thread count.
+const CHUNK: usize = 4096;
+
+/// Sum of `f(k)` for `k` in `0..len`, in fixed chunks summed in parallel and then in order:
+/// bit-identical for any thread count. `partials` is reused scratch space.
+pub(crate) fn fixed_sum<F>(len: usize, partials: &mut Vec<f64>, f: F) -> f64
+where
+    F: Fn(usize) -> f64 + Sync,
+{
+    let chunks = len.div_ceil(CHUNK);
+    (0..chunks)
+        .into_par_iter()
+        .map(|c| {
+            let end = ((c + 1) * CHUNK).min(len);
+            (c * CHUNK..end).map(&f).sum::<f64>()
+        })
+        .collect_into_vec(partials);
+    partials.iter().sum()
+}

@@ -1,0 +1,327 @@
+//! The first-order dwell solver against the QP, its certificate, and its determinism.
+
+use preston::solver::dwell::{self, DwellBounds, FeedLimits, Problem, Settings, SolverChoice};
+use preston::solver::influence::InfluenceMatrix;
+use preston::solver::observer::Silent;
+use preston::solver::path::raster::{serpentine, RasterAxis};
+use preston::solver::path::DwellPath;
+use preston::solver::tif::GaussianTif;
+
+/// Relative agreement of the first-order and QP objectives (issue 2).
+const AGREE_REL_TOL: f64 = 1e-6;
+
+/// A smooth random map on an `nx x ny` grid at 0.5 mm, a Gaussian TIF and a 1 mm raster.
+fn case(nx: usize, ny: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>, DwellPath, GaussianTif) {
+    let mut s = seed;
+    let mut next = move || {
+        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = s;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let modes: Vec<(f64, f64, f64, f64)> = (0..6)
+        .map(|_| {
+            (
+                next() * 0.4,
+                next() * 0.4,
+                next() * 6.0,
+                20.0 + 40.0 * next(),
+            )
+        })
+        .collect();
+    let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
+    for iy in 0..ny {
+        for ix in 0..nx {
+            let (px, py) = (ix as f64 * 0.5, iy as f64 * 0.5);
+            x.push(px);
+            y.push(py);
+            z.push(
+                modes
+                    .iter()
+                    .map(|(kx, ky, ph, a)| a * (kx * px + ky * py + ph).cos())
+                    .sum::<f64>(),
+            );
+        }
+    }
+    let tif = GaussianTif::new(1.5, 8.0, 4.5).unwrap();
+    let bbox = preston::solver::map::BoundingBox::of_points(&x, &y)
+        .unwrap()
+        .expanded(2.0);
+    let path = serpentine(&bbox, 1.0, RasterAxis::X).unwrap();
+    (x, y, z, path, tif)
+}
+
+fn problem(seed: u64, v_min: f64, rho: f64, lambda: f64) -> Problem {
+    sized_problem(25, 15, seed, v_min, rho, lambda)
+}
+
+fn sized_problem(nx: usize, ny: usize, seed: u64, v_min: f64, rho: f64, lambda: f64) -> Problem {
+    let (x, y, z, path, tif) = case(nx, ny, seed);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let limits = FeedLimits {
+        v_max_mm_per_min: 3000.0,
+        v_min_mm_per_min: v_min,
+    };
+    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    Problem::new(r, z, bounds, rho, lambda).unwrap()
+}
+
+fn settings(choice: SolverChoice) -> Settings {
+    Settings {
+        solver: choice,
+        tolerance: 1e-10,
+        first_order_tolerance: 1e-11,
+        first_order_max_iterations: 200_000,
+        ..Settings::default()
+    }
+}
+
+fn full_objective(p: &Problem, t: &[f64]) -> f64 {
+    p.evaluate(t).unwrap().full_objective
+}
+
+fn assert_agree(p: &Problem) {
+    let qp = dwell::solve(p, &settings(SolverChoice::Qp), &Silent).unwrap();
+    let fo = dwell::solve(p, &settings(SolverChoice::FirstOrder), &Silent).unwrap();
+    assert!(qp.status.is_converged(), "QP {:?}", qp.status);
+    assert!(
+        fo.status.is_converged(),
+        "first-order {:?} after {}",
+        fo.status,
+        fo.iterations
+    );
+    assert!(p.bounds().max_violation_s(&fo.dwell_s) == 0.0);
+    let (fq, ff) = (
+        full_objective(p, &qp.dwell_s),
+        full_objective(p, &fo.dwell_s),
+    );
+    let rel = (ff - fq).abs() / fq.abs().max(1e-300);
+    assert!(
+        rel < AGREE_REL_TOL,
+        "first-order {ff} vs QP {fq}: rel {rel:e}"
+    );
+}
+
+#[test]
+fn first_order_agrees_with_qp_without_v_min() {
+    // rho = 0 without v_min is the worst-conditioned case (a uniform extra layer is nearly free):
+    // a smaller map keeps the test fast.
+    assert_agree(&sized_problem(15, 9, 3, 0.0, 0.0, 0.0));
+}
+
+#[test]
+fn first_order_agrees_with_qp_with_v_min() {
+    assert_agree(&problem(5, 300.0, 0.0, 0.0));
+}
+
+#[test]
+fn first_order_agrees_with_qp_with_rho_and_lambda() {
+    assert_agree(&problem(7, 0.0, 0.5, 2.0));
+}
+
+/// On a problem whose optimum is known exactly (`z = R t*` with `t*` strictly inside a bounded
+/// box, so `min f = 0`), the reported bound is at least the true gap `f(t_k) - 0` after any number
+/// of iterations, and it shrinks as the iteration converges.
+#[test]
+fn gap_bound_is_honest_on_a_known_optimum() {
+    let base = problem(9, 300.0, 0.0, 0.0);
+    let t_star: Vec<f64> = (0..base.n())
+        .map(|j| {
+            let (l, u) = (base.bounds().lower_s()[j], base.bounds().upper(j));
+            l + (u - l) * (0.3 + 0.4 * ((j as f64) * 0.37).sin().abs())
+        })
+        .collect();
+    let z = base.influence().removal_nm(&t_star).unwrap();
+    let p = Problem::new(base.influence().clone(), z, base.bounds().clone(), 0.0, 0.0).unwrap();
+    let mut last = f64::INFINITY;
+    for iters in [10, 100, 1000] {
+        let s = Settings {
+            first_order_max_iterations: iters,
+            first_order_tolerance: 1e-15,
+            ..settings(SolverChoice::FirstOrder)
+        };
+        let sol = dwell::solve(&p, &s, &Silent).unwrap();
+        let true_gap = full_objective(&p, &sol.dwell_s);
+        let bound = sol.objective_gap_bound.unwrap();
+        assert!(
+            bound >= true_gap,
+            "{iters} iterations: bound {bound} < true gap {true_gap}"
+        );
+        assert!(
+            bound < last,
+            "the bound did not shrink: {bound} after {last}"
+        );
+        last = bound;
+    }
+}
+
+/// With `rho > 0` the level-set bound makes the dual finite without `v_min`; the reference optimum
+/// is the QP at tight tolerance (an upper bound on the true optimum, so the check is necessary).
+#[test]
+fn gap_bound_covers_the_qp_optimum_with_rho() {
+    let p = problem(13, 0.0, 1.0, 0.0);
+    let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
+    let f_star = full_objective(&p, &qp.dwell_s);
+    for iters in [20, 200] {
+        let s = Settings {
+            first_order_max_iterations: iters,
+            first_order_tolerance: 1e-15,
+            ..settings(SolverChoice::FirstOrder)
+        };
+        let sol = dwell::solve(&p, &s, &Silent).unwrap();
+        let gap = full_objective(&p, &sol.dwell_s) - f_star;
+        let bound = sol.objective_gap_bound.unwrap();
+        assert!(
+            bound >= gap,
+            "{iters} iterations: bound {bound} < gap {gap}"
+        );
+        assert!(sol.kkt_residual.unwrap() >= 0.0);
+    }
+}
+
+#[test]
+fn first_order_is_independent_of_the_thread_count() {
+    // Large enough (m + n above 20,000) that the iteration runs on the whole pool.
+    let p = sized_problem(150, 120, 17, 300.0, 0.1, 1.0);
+    assert!(p.m() + p.n() > 20_000);
+    let s = Settings {
+        first_order_max_iterations: 20,
+        ..settings(SolverChoice::FirstOrder)
+    };
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| dwell::solve(&p, &s, &Silent).unwrap())
+    };
+    let one = run(1);
+    for threads in [2, 3] {
+        let other = run(threads);
+        let same = one
+            .dwell_s
+            .iter()
+            .zip(&other.dwell_s)
+            .all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(same, "{threads} threads changed the dwell times");
+        assert_eq!(one.iterations, other.iterations);
+    }
+}
+
+#[test]
+fn warm_start_from_the_optimum_stops_early() {
+    let p = problem(19, 300.0, 0.0, 0.0);
+    let s = settings(SolverChoice::FirstOrder);
+    let cold = dwell::solve(&p, &s, &Silent).unwrap();
+    let warm = dwell::solve_from(&p, &s, &Silent, Some(&cold.dwell_s)).unwrap();
+    assert!(warm.status.is_converged());
+    assert!(
+        warm.iterations < cold.iterations / 2,
+        "{} vs {}",
+        warm.iterations,
+        cold.iterations
+    );
+}
+
+#[test]
+fn auto_picks_by_size_and_min_time_stays_on_qp() {
+    let p = problem(3, 0.0, 0.0, 0.0);
+    assert_eq!(SolverChoice::Auto.resolve(&p, false), dwell::SolverKind::Qp);
+    assert_eq!(
+        SolverChoice::FirstOrder.resolve(&p, false),
+        dwell::SolverKind::FirstOrder
+    );
+    let s = Settings {
+        min_time: true,
+        ..settings(SolverChoice::FirstOrder)
+    };
+    assert!(dwell::solve(&p, &s, &Silent).is_err());
+}
+
+/// Agreement of the FFT operator with the sparse matrix (issue 2: 1e-9 relative).
+const FFT_REL_TOL: f64 = 1e-9;
+/// Adjoint identity `<R x, y> = <x, R^T y>` to rounding.
+const ADJOINT_REL_TOL: f64 = 1e-12;
+
+#[test]
+fn fft_operator_matches_sparse_and_is_adjoint() {
+    use preston::solver::dwell::fft::FftOperator;
+    use preston::solver::dwell::operator::{LinearOperator, SparseOperator};
+    let (x, y, _, path, tif) = case(40, 30, 23);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let sparse = SparseOperator::new(r.csc());
+    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
+    let (m, n) = (x.len(), path.len());
+    assert_eq!((fft.nrows(), fft.ncols()), (m, n));
+    let t: Vec<f64> = (0..n).map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3).collect();
+    let w: Vec<f64> = (0..m)
+        .map(|i| (((i * 13) % 7) as f64 - 3.0) * 0.7)
+        .collect();
+    let (mut a, mut b) = (vec![0.0; m], vec![0.0; m]);
+    sparse.apply(&t, &mut a);
+    fft.apply(&t, &mut b);
+    let scale = a.iter().fold(0.0_f64, |s, v| s.max(v.abs()));
+    let err = a
+        .iter()
+        .zip(&b)
+        .fold(0.0_f64, |s, (p, q)| s.max((p - q).abs()));
+    assert!(
+        err <= FFT_REL_TOL * scale,
+        "R t differs by {err} (scale {scale})"
+    );
+    let (mut at, mut bt) = (vec![0.0; n], vec![0.0; n]);
+    sparse.apply_transpose(&w, &mut at);
+    fft.apply_transpose(&w, &mut bt);
+    let scale_t = at.iter().fold(0.0_f64, |s, v| s.max(v.abs()));
+    let err_t = at
+        .iter()
+        .zip(&bt)
+        .fold(0.0_f64, |s, (p, q)| s.max((p - q).abs()));
+    assert!(err_t <= FFT_REL_TOL * scale_t, "R^T y differs by {err_t}");
+    for (op, name) in [(&sparse as &dyn LinearOperator, "sparse"), (&fft, "fft")] {
+        let (mut rx, mut rty) = (vec![0.0; m], vec![0.0; n]);
+        op.apply(&t, &mut rx);
+        op.apply_transpose(&w, &mut rty);
+        let lhs: f64 = rx.iter().zip(&w).map(|(p, q)| p * q).sum();
+        let rhs: f64 = t.iter().zip(&rty).map(|(p, q)| p * q).sum();
+        let mag: f64 = rx.iter().zip(&w).map(|(p, q)| (p * q).abs()).sum();
+        assert!(
+            (lhs - rhs).abs() <= ADJOINT_REL_TOL * mag,
+            "{name}: {lhs} vs {rhs}"
+        );
+    }
+    let (cs, cf) = (
+        sparse.centred_column_norms_sq(),
+        fft.centred_column_norms_sq(),
+    );
+    for (p, q) in cs.iter().zip(&cf) {
+        assert!((p - q).abs() <= FFT_REL_TOL * p.abs().max(1.0));
+    }
+}
+
+#[test]
+fn first_order_with_the_fft_operator_matches_the_sparse_one() {
+    use preston::solver::dwell::fft::FftOperator;
+    use preston::solver::dwell::first_order::minimise;
+    use preston::solver::dwell::operator::SparseOperator;
+    let (x, y, z, path, tif) = case(25, 15, 29);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let limits = FeedLimits {
+        v_max_mm_per_min: 3000.0,
+        v_min_mm_per_min: 300.0,
+    };
+    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let s = settings(SolverChoice::FirstOrder);
+    let sparse = SparseOperator::new(r.csc());
+    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
+    let a = minimise(&sparse, &z, &bounds, 0.0, 0.0, &s, None, &Silent).unwrap();
+    let b = minimise(&fft, &z, &bounds, 0.0, 0.0, &s, None, &Silent).unwrap();
+    let rel = (a.full_objective - b.full_objective).abs() / a.full_objective;
+    assert!(
+        rel < AGREE_REL_TOL,
+        "sparse {} vs fft {}",
+        a.full_objective,
+        b.full_objective
+    );
+}
