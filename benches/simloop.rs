@@ -30,7 +30,7 @@ fn main() {
         measurement_noise_nm: 0.5,
     };
     let tif = Tif::Gaussian(GaussianTif::new(2.0, 10.0, 6.0).expect("tif"));
-    for choice in [SolverChoice::Auto] {
+    for choice in [SolverChoice::FirstOrder, SolverChoice::Qp] {
         // Aperture 51 x 44 mm, path margin 6 mm, pitch 0.5 mm: 127 x 113 dwell points.
         let settings = LoopSettings {
             aperture: BoundingBox {
