@@ -7,7 +7,7 @@ use anyhow::{bail, Context};
 use preston_io::readers::read_map;
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
-use preston_solver::dwell::FeedLimits;
+use preston_solver::dwell::{FeedLimits, Settings, SolverChoice};
 use preston_solver::iterate::{
     plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
 };
@@ -15,6 +15,17 @@ use preston_solver::map::BoundingBox;
 use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
 use std::process::ExitCode;
+
+/// Dwell solver on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum SolverArg {
+    /// Interior-point QP (Clarabel).
+    Qp,
+    /// Accelerated projected gradient.
+    FirstOrder,
+    /// By problem size.
+    Auto,
+}
 
 /// Arguments of `preston iterate`.
 #[derive(Debug, clap::Args)]
@@ -59,6 +70,13 @@ pub struct Args {
     /// Weight of dwell-time differences along the path, nm^2/s^2.
     #[arg(long, default_value_t = 0.0)]
     pub lambda: f64,
+    /// Relative optimality tolerance of each run's dwell solve (the TIF rate error of a real
+    /// run, per cent, dwarfs it).
+    #[arg(long, default_value_t = 1e-6)]
+    pub tolerance: f64,
+    /// Dwell solver: qp, first-order or auto.
+    #[arg(long, value_enum, default_value = "qp")]
+    pub solver: SolverArg,
     /// Polishing runs at most.
     #[arg(long, default_value_t = 5)]
     pub iterations: usize,
@@ -150,6 +168,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             positioning_noise_mm: args.positioning_noise_mm,
         },
         seed: args.seed,
+        solver: Settings {
+            tolerance: args.tolerance,
+            solver: match args.solver {
+                SolverArg::Qp => SolverChoice::Qp,
+                SolverArg::FirstOrder => SolverChoice::FirstOrder,
+                SolverArg::Auto => SolverChoice::Auto,
+            },
+            ..Settings::default()
+        },
         ..LoopSettings::default()
     };
     settings.validate()?;
