@@ -3,6 +3,7 @@
 use crate::atomic::commit_all;
 use crate::error::{Error, Result};
 use crate::job::Job;
+use crate::machine::read_dwell_times;
 use crate::readers::{read_dwell, read_map, read_tif};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::surface::read_surface;
@@ -191,23 +192,17 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
 
 /// The `dwell_s` column of a previous dwell file, checked against the number of dwell points.
 fn read_warm_start(path: &Path, n: usize) -> Result<Vec<f64>> {
-    let file = read_dwell(path)?;
-    let dwell_s = file.dwell_s.ok_or_else(|| Error::MissingColumn {
-        file: path.to_path_buf(),
-        column: "dwell_s".into(),
-        found: "x_mm, y_mm".into(),
-        hint: " (a warm start needs the dwell_s column of a previous dwell.csv)".into(),
-    })?;
-    if dwell_s.len() != n {
+    let previous = read_dwell_times(path)?;
+    if previous.dwell_s.len() != n {
         return Err(Error::Empty {
             file: path.to_path_buf(),
             why: format!(
                 "warm start has {} dwell times but the job has {n} dwell points",
-                dwell_s.len()
+                previous.dwell_s.len()
             ),
         });
     }
-    Ok(dwell_s)
+    Ok(previous.dwell_s)
 }
 
 /// Runs the solver on prepared inputs and builds the report. With `[machine] a_max_mm_per_s2`

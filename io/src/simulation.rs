@@ -3,8 +3,9 @@
 
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
+use crate::machine::{read_dwell_times, DwellTimes};
 use crate::plots::{plot_convergence, plot_map, plot_path};
-use crate::readers::{read_dwell, read_map};
+use crate::readers::read_map;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
@@ -51,15 +52,7 @@ pub fn simulate(
 ) -> Result<Simulated> {
     let start = Instant::now();
     let map = read_map(map_file)?;
-    let dwell = read_dwell(dwell_file)?;
-    let dwell_s = dwell.dwell_s.ok_or_else(|| Error::MissingColumn {
-        file: dwell_file.to_path_buf(),
-        column: "dwell_s".into(),
-        found: "x_mm,y_mm".into(),
-        hint: "; simulation needs the dwell times of a program (the dwell.csv of preston solve)"
-            .into(),
-    })?;
-    let path = dwell.path;
+    let DwellTimes { path, dwell_s } = read_dwell_times(dwell_file)?;
     let ds_mm = path.ds_mm();
     let m = &map.map;
     let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;

@@ -4,30 +4,8 @@
 
 use preston::solver::surface::{monomials, Surface, XyPolynomial, XyTerm};
 
-/// Deterministic uniform and Gaussian numbers (splitmix64 + Box-Muller).
-pub struct Rng(u64);
-
-impl Rng {
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    /// Uniform in [0, 1).
-    pub fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Standard normal.
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(1e-300);
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-}
+/// Deterministic uniform and Gaussian numbers (the engine's splitmix64 + Box-Muller).
+pub use preston::solver::iterate::SplitMix64 as Rng;
 
 /// Aperture of the off-axis mirror: x in [-160, 160] mm, y in [280, 400] mm (320 x 120 mm).
 pub const X_RANGE_MM: (f64, f64) = (-160.0, 160.0);

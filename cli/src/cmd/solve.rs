@@ -1,5 +1,6 @@
 //! `preston solve`: dwell times and feeds for a map, a TIF and a dwell path.
 
+use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::Job;
@@ -7,7 +8,6 @@ use preston_io::pipeline;
 use preston_solver::dwell::SolverChoice;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
-use preston_solver::tif::GaussianTif;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -52,18 +52,9 @@ pub struct Args {
     /// Error map CSV `x_mm,y_mm,z_nm`.
     #[arg(long, value_name = "M.csv")]
     pub map: Option<PathBuf>,
-    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s`.
-    #[arg(long, value_name = "T.csv", conflicts_with = "gaussian_sigma_mm")]
-    pub tif: Option<PathBuf>,
-    /// Gaussian TIF instead of a file: sigma, mm.
-    #[arg(long, requires = "gaussian_peak_nm_per_s")]
-    pub gaussian_sigma_mm: Option<f64>,
-    /// Gaussian TIF peak removal rate, nm/s.
-    #[arg(long, requires = "gaussian_sigma_mm")]
-    pub gaussian_peak_nm_per_s: Option<f64>,
-    /// Gaussian TIF truncation radius, mm (default 3 sigma).
-    #[arg(long, requires = "gaussian_sigma_mm")]
-    pub gaussian_truncation_mm: Option<f64>,
+    /// The TIF (overrides the job's `[tif]`).
+    #[command(flatten)]
+    pub tif: TifArgs,
     /// Dwell points CSV `x_mm,y_mm` in path order.
     #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm")]
     pub dwell: Option<PathBuf>,
@@ -136,13 +127,12 @@ impl Args {
         if let Some(m) = self.map {
             job.map.file = Some(m);
         }
-        if let Some(t) = self.tif {
+        if let Some(t) = self.tif.tif.clone() {
             job.tif.file = Some(t);
             job.tif.gaussian = None;
         }
-        if let (Some(sigma), Some(peak)) = (self.gaussian_sigma_mm, self.gaussian_peak_nm_per_s) {
-            let trunc = self.gaussian_truncation_mm.unwrap_or(3.0 * sigma);
-            job.tif.gaussian = Some(GaussianTif::new(sigma, peak, trunc)?);
+        if let Some(g) = self.tif.gaussian()? {
+            job.tif.gaussian = Some(g);
             job.tif.file = None;
         }
         if let Some(d) = self.dwell {

@@ -23,21 +23,27 @@ pub struct TifArgs {
 }
 
 impl TifArgs {
-    /// The TIF the flags name.
-    pub fn load(&self) -> anyhow::Result<Tif> {
-        match (
-            &self.tif,
-            self.gaussian_sigma_mm,
-            self.gaussian_peak_nm_per_s,
-        ) {
-            (Some(f), _, _) => Ok(Tif::Grid(read_tif(f)?)),
-            (None, Some(sigma), Some(peak)) => {
+    /// The Gaussian model the flags give, if they give one (truncation default 3 sigma).
+    pub fn gaussian(&self) -> anyhow::Result<Option<GaussianTif>> {
+        match (self.gaussian_sigma_mm, self.gaussian_peak_nm_per_s) {
+            (Some(sigma), Some(peak)) => {
                 let trunc = self.gaussian_truncation_mm.unwrap_or(3.0 * sigma);
-                Ok(Tif::Gaussian(
+                Ok(Some(
                     GaussianTif::new(sigma, peak, trunc).context("Gaussian TIF")?,
                 ))
             }
-            _ => bail!(
+            _ => Ok(None),
+        }
+    }
+
+    /// The TIF the flags name.
+    pub fn load(&self) -> anyhow::Result<Tif> {
+        if let Some(f) = &self.tif {
+            return Ok(Tif::Grid(read_tif(f)?));
+        }
+        match self.gaussian()? {
+            Some(g) => Ok(Tif::Gaussian(g)),
+            None => bail!(
                 "no TIF: give --tif T.csv or --gaussian-sigma-mm and --gaussian-peak-nm-per-s"
             ),
         }
