@@ -10,6 +10,7 @@ use preston_io::surface::read_surface;
 use preston_solver::dwell::{FeedLimits, Settings, SolverChoice};
 use preston_solver::iterate::{
     plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
+    LOOP_SOLVE_TOLERANCE,
 };
 use preston_solver::map::BoundingBox;
 use preston_solver::surface::{Plane, Surface};
@@ -70,12 +71,12 @@ pub struct Args {
     /// Weight of dwell-time differences along the path, nm^2/s^2.
     #[arg(long, default_value_t = 0.0)]
     pub lambda: f64,
-    /// Relative optimality tolerance of each run's dwell solve (the TIF rate error of a real
-    /// run, per cent, dwarfs it).
-    #[arg(long, default_value_t = 1e-6)]
+    /// Relative optimality tolerance of each run's dwell solve, for either solver (the TIF rate
+    /// error of a real run, per cent, dwarfs it).
+    #[arg(long, default_value_t = LOOP_SOLVE_TOLERANCE)]
     pub tolerance: f64,
-    /// Dwell solver: qp, first-order or auto.
-    #[arg(long, value_enum, default_value = "qp")]
+    /// Dwell solver: qp, first-order or auto (by size: first-order from 5,000 dwell points).
+    #[arg(long, value_enum, default_value = "auto")]
     pub solver: SolverArg,
     /// Polishing runs at most.
     #[arg(long, default_value_t = 5)]
@@ -170,6 +171,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         seed: args.seed,
         solver: Settings {
             tolerance: args.tolerance,
+            first_order_tolerance: args.tolerance,
             solver: match args.solver {
                 SolverArg::Qp => SolverChoice::Qp,
                 SolverArg::FirstOrder => SolverChoice::FirstOrder,
