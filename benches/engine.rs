@@ -62,6 +62,25 @@ fn sample_job(c: &mut Criterion) {
     group.sample_size(10);
     let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/job.toml");
     let job = Job::load(&job_path).unwrap();
+    // Assembly alone, on the sample job's map, dwell raster and measured TIF.
+    let prepared = pipeline::prepare(&job, &job_path, &Silent).unwrap();
+    let (map, path) = (&prepared.map, &prepared.path);
+    group.throughput(Throughput::Elements(
+        prepared.problem.influence().nnz() as u64
+    ));
+    group.bench_function("assembly", |b| {
+        b.iter(|| {
+            InfluenceMatrix::assemble(
+                map.x_mm(),
+                map.y_mm(),
+                path.x_mm(),
+                path.y_mm(),
+                &prepared.tif,
+                &Silent,
+            )
+            .unwrap()
+        })
+    });
     group.bench_function("prepare (read + assemble)", |b| {
         b.iter(|| pipeline::prepare(&job, &job_path, &Silent).unwrap())
     });

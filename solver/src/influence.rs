@@ -110,6 +110,9 @@ impl InfluenceMatrix {
                     block
                 })
                 .collect();
+            let block_nnz: usize = tasks.iter().map(|t| t.rows.len()).sum();
+            row_indices.reserve(block_nnz);
+            values.reserve(block_nnz);
             for task in tasks {
                 let base = row_indices.len();
                 col_offsets.extend(task.col_ends.iter().map(|e| base + e));
@@ -232,34 +235,52 @@ fn assemble_columns<K>(
 where
     K: Fn(usize, usize, f64, f64) -> f64 + Sync,
 {
+    let n_columns = columns.len();
     let mut block = ColumnBlock {
-        col_ends: Vec::with_capacity(columns.len()),
+        col_ends: Vec::with_capacity(n_columns),
         rows: Vec::new(),
         values: Vec::new(),
     };
-    let mut scratch: Vec<(usize, f64)> = Vec::new();
+    let mut order: Vec<usize> = Vec::new();
+    let mut sorted_rows: Vec<usize> = Vec::new();
+    let mut sorted_values: Vec<f64> = Vec::new();
     let r2 = radius * radius;
-    for j in columns {
+    for (k, j) in columns.enumerate() {
         let (cx, cy) = match (dwell_x.get(j), dwell_y.get(j)) {
             (Some(&x), Some(&y)) => (x, y),
             _ => break,
         };
-        scratch.clear();
+        let start = block.rows.len();
         index.for_each_near(cx, cy, radius, |i, px, py| {
             let dx = px - cx;
             let dy = py - cy;
             if dx * dx + dy * dy <= r2 {
                 let v = kernel(j, i, dx, dy);
                 if v != 0.0 {
-                    scratch.push((i, v));
+                    block.rows.push(i);
+                    block.values.push(v);
                 }
             }
         });
-        if !scratch.windows(2).all(|w| w[0].0 < w[1].0) {
-            scratch.sort_unstable_by_key(|e| e.0);
+        if k == 0 {
+            // Neighbouring columns hold about as many entries: size the block once.
+            let per_column = block.rows.len() - start;
+            block.rows.reserve(per_column * n_columns);
+            block.values.reserve(per_column * n_columns);
         }
-        block.rows.extend(scratch.iter().map(|e| e.0));
-        block.values.extend(scratch.iter().map(|e| e.1));
+        // Rows come out ascending for a row-major map; sort the column otherwise.
+        if !block.rows[start..].windows(2).all(|w| w[0] < w[1]) {
+            let rows = &block.rows[start..];
+            order.clear();
+            order.extend(0..rows.len());
+            order.sort_unstable_by_key(|&e| rows[e]);
+            sorted_rows.clear();
+            sorted_values.clear();
+            sorted_rows.extend(order.iter().map(|&e| block.rows[start + e]));
+            sorted_values.extend(order.iter().map(|&e| block.values[start + e]));
+            block.rows[start..].copy_from_slice(&sorted_rows);
+            block.values[start..].copy_from_slice(&sorted_values);
+        }
         block.col_ends.push(block.rows.len());
     }
     block

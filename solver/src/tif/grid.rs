@@ -443,9 +443,10 @@ impl InfluenceFunction for GridTif {
         if !(fx >= 0.0 && fx <= max_x && fy >= 0.0 && fy <= max_y) {
             return 0.0;
         }
-        // Cell index, clamped so the far edge uses the last cell with weight 1 on its far nodes.
-        let ix = (fx.floor() as usize).min(self.nx - 2);
-        let iy = (fy.floor() as usize).min(self.ny - 2);
+        // Cell index, clamped so the far edge uses the last cell with weight 1 on its far nodes
+        // (truncation is the floor here: fx, fy >= 0).
+        let ix = (fx as usize).min(self.nx - 2);
+        let iy = (fy as usize).min(self.ny - 2);
         let ax = fx - ix as f64;
         let ay = fy - iy as f64;
         let base = iy * self.nx + ix;
