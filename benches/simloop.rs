@@ -5,7 +5,7 @@
 //! run takes seconds, and the figure wanted is the wall-clock time of the whole iteration).
 
 use preston::io::simulation::write_loop;
-use preston::solver::dwell::{Settings, SolverChoice};
+use preston::solver::dwell::{FirstOrderMethod, Settings, SolverChoice};
 use preston::solver::iterate::{
     run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart, LOOP_SOLVE_TOLERANCE,
 };
@@ -30,15 +30,18 @@ fn main() {
         measurement_noise_nm: 0.5,
     };
     let tif = Tif::Gaussian(GaussianTif::new(2.0, 10.0, 6.0).expect("tif"));
-    // The loop's default is `auto` (the first-order solver at this size) at tolerance
-    // LOOP_SOLVE_TOLERANCE; the other rows show what tighter solves and the QP cost. The
-    // first-order solver at 1e-6 took 35 s here (measured): 5.5 times more dwell points than
-    // measurement points leave a flat valley that its KKT residual crosses slowly.
-    for (choice, tolerance) in [
-        (SolverChoice::Auto, LOOP_SOLVE_TOLERANCE),
-        (SolverChoice::FirstOrder, 1e-5),
-        (SolverChoice::Qp, 1e-4),
-        (SolverChoice::FirstOrder, 1e-3),
+    // The loop's default is `auto` (the first-order solver, FISTA, at this size) at tolerance
+    // LOOP_SOLVE_TOLERANCE; the other rows show looser and tighter solves, Newton-CG and the QP.
+    for (choice, method, tolerance) in [
+        (
+            SolverChoice::Auto,
+            FirstOrderMethod::Fista,
+            LOOP_SOLVE_TOLERANCE,
+        ),
+        (SolverChoice::FirstOrder, FirstOrderMethod::Fista, 1e-3),
+        (SolverChoice::FirstOrder, FirstOrderMethod::Fista, 1e-5),
+        (SolverChoice::FirstOrder, FirstOrderMethod::NewtonCg, 1e-4),
+        (SolverChoice::Qp, FirstOrderMethod::Fista, 1e-4),
     ] {
         // Aperture 51 x 44 mm, path margin 6 mm, pitch 0.5 mm: 127 x 113 dwell points.
         let settings = LoopSettings {
@@ -59,6 +62,7 @@ fn main() {
                 solver: choice,
                 tolerance,
                 first_order_tolerance: tolerance,
+                first_order_method: method,
                 ..Settings::default()
             },
             ..LoopSettings::default()
@@ -75,7 +79,7 @@ fn main() {
         let objective = 0.5 * run.measured.len() as f64 * run.predicted_rms_nm().powi(2)
             + settings.rho * run.dwell_s.iter().sum::<f64>();
         println!(
-            "simloop/{choice:?}/tol {tolerance:e}: {} map points, {} dwell points; RMS {:.2} -> {:.2} nm (predicted {:.2} nm, dwell {:.0} s, objective {:.1} nm^2); loop {:.2} s + outputs and plots {:.2} s = {:.2} s",
+            "simloop/{choice:?}/{method:?}/tol {tolerance:e}: {} map points, {} dwell points; RMS {:.2} -> {:.2} nm (predicted {:.2} nm, dwell {:.0} s, objective {:.1} nm^2); loop {:.2} s + outputs and plots {:.2} s = {:.2} s",
             run.measured.len(),
             run.path.len(),
             outcome.records[0].rms_nm,

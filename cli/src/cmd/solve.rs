@@ -5,7 +5,7 @@ use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
-use preston_solver::dwell::SolverChoice;
+use preston_solver::dwell::{FirstOrderMethod, SolverChoice};
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
 use std::path::PathBuf;
@@ -32,12 +32,21 @@ pub enum Frame {
     MachineX,
 }
 
+/// First-order iteration on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum FirstOrderMethodArg {
+    /// Projected Newton-CG.
+    NewtonCg,
+    /// Accelerated projected gradient with adaptive restart.
+    Fista,
+}
+
 /// Solver choice on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum SolverArg {
     /// Sparse interior-point QP (Clarabel).
     Qp,
-    /// Accelerated projected gradient with a duality-gap certificate.
+    /// Matrix-free first-order solver (projected Newton-CG or FISTA) with a KKT/gap certificate.
     FirstOrder,
     /// First-order from 5,000 dwell points or 5e6 non-zeros on, QP below (and for --min-time).
     Auto,
@@ -90,9 +99,12 @@ pub struct Args {
     /// Relative objective tolerance of --min-time (default 0.001).
     #[arg(long)]
     pub min_time_tolerance: Option<f64>,
-    /// Relative optimality tolerance of the solver.
+    /// Relative optimality tolerance of the solver (the QP's and the first-order solver's).
     #[arg(long)]
     pub tolerance: Option<f64>,
+    /// Iteration of the first-order solver (default: the job's, else newton-cg).
+    #[arg(long, value_enum)]
+    pub first_order_method: Option<FirstOrderMethodArg>,
     /// Iteration limit of the solver.
     #[arg(long)]
     pub max_iterations: Option<usize>,
@@ -175,6 +187,13 @@ impl Args {
         }
         if let Some(t) = self.tolerance {
             job.solver.tolerance = t;
+            job.solver.first_order_tolerance = t;
+        }
+        if let Some(m) = self.first_order_method {
+            job.solver.first_order_method = match m {
+                FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
+                FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+            };
         }
         if let Some(k) = self.max_iterations {
             job.solver.max_iterations = k;
