@@ -138,11 +138,9 @@ fn first_order_agrees_with_qp_with_rho_and_lambda() {
     assert_agree(&problem(7, 0.0, 0.5, 2.0));
 }
 
-/// On a problem whose optimum is known exactly (`z = R t*` with `t*` strictly inside a bounded
-/// box, so `min f = 0`), the reported bound is at least the true gap `f(t_k) - 0` after any number
-/// of iterations, and it shrinks as the iteration converges.
-#[test]
-fn gap_bound_is_honest_on_a_known_optimum() {
+/// A problem whose optimum is known exactly: `z = R t*` with `t*` strictly inside a bounded box
+/// (`v_min` > 0), `rho = lambda = 0`, so `min f = 0`.
+fn exactly_removable() -> Problem {
     let base = problem(9, 300.0, 0.0, 0.0);
     let t_star: Vec<f64> = (0..base.n())
         .map(|j| {
@@ -151,7 +149,15 @@ fn gap_bound_is_honest_on_a_known_optimum() {
         })
         .collect();
     let z = base.influence().removal_nm(&t_star).unwrap();
-    let p = Problem::new(base.influence().clone(), z, base.bounds().clone(), 0.0, 0.0).unwrap();
+    Problem::new(base.influence().clone(), z, base.bounds().clone(), 0.0, 0.0).unwrap()
+}
+
+/// On a problem whose optimum is known exactly (`z = R t*` with `t*` strictly inside a bounded
+/// box, so `min f = 0`), the reported bound is at least the true gap `f(t_k) - 0` after any number
+/// of iterations, and it shrinks as the iteration converges.
+#[test]
+fn gap_bound_is_honest_on_a_known_optimum() {
+    let p = exactly_removable();
     for method in METHODS {
         gap_bound_is_honest_with(&p, method);
     }
@@ -186,15 +192,7 @@ fn gap_bound_is_honest_with(p: &Problem, method: FirstOrderMethod) {
 /// removal reproduces the map to far below a nanometre, as the engine asks of the QP.
 #[test]
 fn newton_cg_recovers_an_exactly_removable_map() {
-    let base = problem(9, 300.0, 0.0, 0.0);
-    let t_star: Vec<f64> = (0..base.n())
-        .map(|j| {
-            let (l, u) = (base.bounds().lower_s()[j], base.bounds().upper(j));
-            l + (u - l) * (0.3 + 0.4 * ((j as f64) * 0.37).sin().abs())
-        })
-        .collect();
-    let z = base.influence().removal_nm(&t_star).unwrap();
-    let p = Problem::new(base.influence().clone(), z, base.bounds().clone(), 0.0, 0.0).unwrap();
+    let p = exactly_removable();
     let s = Settings {
         first_order_tolerance: 1e-13,
         ..first_order(FirstOrderMethod::NewtonCg)
