@@ -1,5 +1,6 @@
 //! `preston bench`: generated problems and the sample job, solved and timed (issue 2).
 
+use super::solve::FirstOrderMethodArg;
 use preston_io::bench::{self, BenchRow};
 use preston_solver::dwell::{Settings, SolverChoice};
 use std::path::PathBuf;
@@ -36,6 +37,9 @@ pub struct Args {
     /// Relative tolerance of the first-order solver (KKT residual or gap bound).
     #[arg(long)]
     pub first_order_tolerance: Option<f64>,
+    /// Iteration of the first-order solver on the generated problems (default fista).
+    #[arg(long, value_enum)]
+    pub first_order_method: Option<FirstOrderMethodArg>,
     /// Sample job to include (default data/job.toml when it exists; "none" to skip).
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
@@ -53,6 +57,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut settings = Settings::default();
     if let Some(t) = args.first_order_tolerance {
         settings.first_order_tolerance = t;
+    }
+    if let Some(m) = args.first_order_method {
+        settings.first_order_method = m.into();
     }
     settings.validate()?;
     let solvers: Vec<SolverChoice> = match args.solvers {

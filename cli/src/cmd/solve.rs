@@ -41,6 +41,15 @@ pub enum FirstOrderMethodArg {
     Fista,
 }
 
+impl From<FirstOrderMethodArg> for FirstOrderMethod {
+    fn from(m: FirstOrderMethodArg) -> Self {
+        match m {
+            FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
+            FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+        }
+    }
+}
+
 /// Solver choice on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum SolverArg {
@@ -102,7 +111,7 @@ pub struct Args {
     /// Relative optimality tolerance of the solver (the QP's and the first-order solver's).
     #[arg(long)]
     pub tolerance: Option<f64>,
-    /// Iteration of the first-order solver (default: the job's, else newton-cg).
+    /// Iteration of the first-order solver (default: the job's, else fista).
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
     /// Iteration limit of the solver.
@@ -190,10 +199,7 @@ impl Args {
             job.solver.first_order_tolerance = t;
         }
         if let Some(m) = self.first_order_method {
-            job.solver.first_order_method = match m {
-                FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
-                FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
-            };
+            job.solver.first_order_method = m.into();
         }
         if let Some(k) = self.max_iterations {
             job.solver.max_iterations = k;
