@@ -55,7 +55,8 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
 pub enum SolverArg {
     /// Sparse interior-point QP (Clarabel).
     Qp,
-    /// Matrix-free first-order solver (projected Newton-CG or FISTA) with a KKT/gap certificate.
+    /// First-order solver (FISTA or projected Newton-CG; products with R only) with a KKT/gap
+    /// certificate.
     FirstOrder,
     /// First-order from 5,000 dwell points or 5e6 non-zeros on, QP below (and for --min-time).
     Auto,
