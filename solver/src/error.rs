@@ -65,4 +65,13 @@ impl Error {
             why: why.into(),
         }
     }
+
+    /// Checks that every named value is finite and positive; the first that is not gives
+    /// `InvalidInput` naming it ("must be positive, got v").
+    pub fn require_positive(values: &[(&str, f64)]) -> Result<()> {
+        match values.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
+            Some((name, v)) => Err(Error::invalid(*name, format!("must be positive, got {v}"))),
+            None => Ok(()),
+        }
+    }
 }

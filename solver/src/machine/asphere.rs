@@ -35,16 +35,12 @@ pub struct SpeedLaw {
 impl SpeedLaw {
     /// Checks `phi, n_min, dx > 0` and `n_min <= n_max`, all finite.
     pub fn validate(&self) -> Result<()> {
-        for (name, v) in [
+        Error::require_positive(&[
             ("aperture_mm", self.aperture_mm),
             ("n_max_rpm", self.n_max_rpm),
             ("n_min_rpm", self.n_min_rpm),
             ("dx_mm", self.dx_mm),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::invalid(name, format!("must be positive, got {v}")));
-            }
-        }
+        ])?;
         if self.n_min_rpm > self.n_max_rpm {
             return Err(Error::invalid(
                 "n_min_rpm",

@@ -50,17 +50,13 @@ impl Default for ChordHeightSettings {
 impl ChordHeightSettings {
     /// Checks: all lengths positive, `eps_min < eps_max`, at least one trial.
     pub fn validate(&self) -> Result<()> {
-        for (name, v) in [
+        Error::require_positive(&[
             ("chord-height tool_radius_mm", self.tool_radius_mm),
             ("chord-height eps_min_mm", self.eps_min_mm),
             ("chord-height eps_max_mm", self.eps_max_mm),
             ("chord-height grow_mm", self.grow_mm),
             ("chord-height shrink_mm", self.shrink_mm),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::invalid(name, format!("must be positive, got {v}")));
-            }
-        }
+        ])?;
         if self.eps_min_mm >= self.eps_max_mm {
             return Err(Error::invalid(
                 "chord-height eps",

@@ -91,18 +91,14 @@ impl EdgeOffsetSettings {
     /// Checks ranges: positive lengths, `spot_min <= spot_max < R`, residual below `spot_min`,
     /// ratio in (0, 1) or a positive decrement, overhang in `[0, spot_min)`.
     pub fn validate(&self) -> Result<()> {
-        for (name, v) in [
+        Error::require_positive(&[
             ("edge-offset bonnet_radius_mm", self.bonnet_radius_mm),
             ("edge-offset spot_max_mm", self.spot_max_mm),
             ("edge-offset spot_min_mm", self.spot_min_mm),
             ("edge-offset residual_height_mm", self.residual_height_mm),
             ("edge-offset bezier_tolerance_mm", self.bezier_tolerance_mm),
             ("edge-offset step_mm", self.step_mm),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::invalid(name, format!("must be positive, got {v}")));
-            }
-        }
+        ])?;
         if !(self.spot_min_mm <= self.spot_max_mm && self.spot_max_mm < self.bonnet_radius_mm) {
             return Err(Error::invalid(
                 "edge-offset spot radii",

@@ -18,15 +18,11 @@ pub fn archimedes(
     pitch_mm: f64,
     step_mm: f64,
 ) -> Result<DwellPath> {
-    for (name, v) in [
+    Error::require_positive(&[
         ("spiral radius_mm", radius_mm),
         ("spiral pitch_mm", pitch_mm),
         ("spiral step_mm", step_mm),
-    ] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(Error::invalid(name, format!("must be positive, got {v}")));
-        }
-    }
+    ])?;
     if !(centre_mm[0].is_finite() && centre_mm[1].is_finite()) {
         return Err(Error::invalid("spiral centre", "not finite"));
     }

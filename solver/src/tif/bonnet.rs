@@ -68,16 +68,12 @@ impl BonnetParams {
     /// Checks ranges: radius, force, K positive; `0 < depth < radius`; precession in [0, 90];
     /// at least one azimuth (at most 360); spindle speed non-negative.
     pub fn validate(&self) -> Result<()> {
-        for (name, v) in [
+        Error::require_positive(&[
             ("bonnet bonnet_radius_mm", self.bonnet_radius_mm),
             ("bonnet depth_mm", self.depth_mm),
             ("bonnet force_n", self.force_n),
             ("bonnet preston_k_mm2_per_n", self.preston_k_mm2_per_n),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::invalid(name, format!("must be positive, got {v}")));
-            }
-        }
+        ])?;
         if self.depth_mm >= self.bonnet_radius_mm {
             return Err(Error::invalid(
                 "bonnet depth_mm",

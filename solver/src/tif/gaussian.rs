@@ -30,15 +30,11 @@ impl GaussianTif {
 
     /// Checks the parameters (all positive and finite).
     pub fn validate(&self) -> Result<()> {
-        for (name, v) in [
+        Error::require_positive(&[
             ("gaussian sigma_mm", self.sigma_mm),
             ("gaussian peak_rate_nm_per_s", self.peak_rate_nm_per_s),
             ("gaussian truncation_radius_mm", self.truncation_radius_mm),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::invalid(name, format!("must be positive, got {v}")));
-            }
-        }
+        ])?;
         Ok(())
     }
 

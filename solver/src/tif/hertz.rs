@@ -93,17 +93,13 @@ impl HertzParams {
     /// Checks ranges: force, radius, moduli and K positive; Poisson ratios in [0, 0.5];
     /// tilt in [0, 90] degrees; spindle speed finite and non-negative.
     pub fn validate(&self) -> Result<()> {
-        for (name, v) in [
+        Error::require_positive(&[
             ("hertz force_n", self.force_n),
             ("hertz tool_radius_mm", self.tool_radius_mm),
             ("hertz tool_e_gpa", self.tool_e_gpa),
             ("hertz part_e_gpa", self.part_e_gpa),
             ("hertz preston_k_mm2_per_n", self.preston_k_mm2_per_n),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(Error::invalid(name, format!("must be positive, got {v}")));
-            }
-        }
+        ])?;
         for (name, v) in [
             ("hertz tool_nu", self.tool_nu),
             ("hertz part_nu", self.part_nu),
