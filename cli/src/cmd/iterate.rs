@@ -1,13 +1,14 @@
 //! `preston iterate`: the measure-register-solve-polish loop on a virtual part, or one planned
 //! run on a real part's measured map (`--map`).
 
+use super::solve::SolverArg;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::{bail, Context};
 use preston_io::readers::read_map;
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
-use preston_solver::dwell::{FeedLimits, Settings, SolverChoice};
+use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::iterate::{
     plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
     LOOP_SOLVE_TOLERANCE,
@@ -16,17 +17,6 @@ use preston_solver::map::BoundingBox;
 use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
 use std::process::ExitCode;
-
-/// Dwell solver on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum SolverArg {
-    /// Interior-point QP (Clarabel).
-    Qp,
-    /// Accelerated projected gradient.
-    FirstOrder,
-    /// By problem size.
-    Auto,
-}
 
 /// Arguments of `preston iterate`.
 #[derive(Debug, clap::Args)]
@@ -172,11 +162,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         solver: Settings {
             tolerance: args.tolerance,
             first_order_tolerance: args.tolerance,
-            solver: match args.solver {
-                SolverArg::Qp => SolverChoice::Qp,
-                SolverArg::FirstOrder => SolverChoice::FirstOrder,
-                SolverArg::Auto => SolverChoice::Auto,
-            },
+            solver: args.solver.into(),
             ..Settings::default()
         },
         ..LoopSettings::default()

@@ -62,6 +62,16 @@ pub enum SolverArg {
     Auto,
 }
 
+impl From<SolverArg> for SolverChoice {
+    fn from(s: SolverArg) -> Self {
+        match s {
+            SolverArg::Qp => SolverChoice::Qp,
+            SolverArg::FirstOrder => SolverChoice::FirstOrder,
+            SolverArg::Auto => SolverChoice::Auto,
+        }
+    }
+}
+
 /// Arguments of `preston solve`. Flags override the job file.
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -207,11 +217,7 @@ impl Args {
             job.solver.first_order_max_iterations = k;
         }
         if let Some(k) = self.solver {
-            job.solver.solver = match k {
-                SolverArg::Qp => SolverChoice::Qp,
-                SolverArg::FirstOrder => SolverChoice::FirstOrder,
-                SolverArg::Auto => SolverChoice::Auto,
-            };
+            job.solver.solver = k.into();
         }
         if let Some(w) = self.warm_start {
             job.dwell.warm_start = Some(w);
