@@ -2,8 +2,9 @@
 //! while the tool dwells at point `j`, so the removal is `h = R t` for dwell times `t` (s).
 //!
 //! Assembly visits, for every dwell point, only the measurement points inside the TIF's support
-//! radius, found with a strip index over the map; columns are built in parallel (rayon) and
-//! concatenated in column order, so the matrix is identical for any thread count.
+//! radius, found with a strip index over the map. Two parallel passes (rayon): the first counts
+//! the points inside each dwell point's disc, which sizes the arrays once; the second fills every
+//! column in place. The matrix is identical for any thread count.
 
 use crate::error::{Error, Result};
 use crate::observer::{Observer, Stage};
@@ -13,8 +14,6 @@ use rayon::prelude::*;
 
 /// Dwell columns handled by one rayon task.
 const COLUMNS_PER_TASK: usize = 64;
-/// Dwell columns assembled before their entries are appended to the matrix (bounds peak memory).
-const COLUMNS_PER_BLOCK: usize = 16_384;
 
 /// The sparse influence matrix, stored by columns (one column per dwell point).
 #[derive(Debug, Clone, PartialEq)]
@@ -84,45 +83,85 @@ impl InfluenceMatrix {
         }
         let index = StripIndex::new(map_x_mm, map_y_mm, search_radius_mm);
         observer.start(Stage::Assembly, n as u64);
+        let r2 = search_radius_mm * search_radius_mm;
 
+        // Pass 1: count the map points inside each dwell point's disc (an upper bound on the
+        // column's non-zeros), so the matrix is allocated once and filled in place.
+        let candidates: Vec<usize> = (0..n)
+            .into_par_iter()
+            .with_min_len(COLUMNS_PER_TASK)
+            .map(|j| {
+                let (cx, cy) = (dwell_x_mm[j], dwell_y_mm[j]);
+                let mut count = 0usize;
+                index.for_each_near(cx, cy, search_radius_mm, |_, px, py| {
+                    let (dx, dy) = (px - cx, py - cy);
+                    count += usize::from(dx * dx + dy * dy <= r2);
+                });
+                count
+            })
+            .collect();
+        let mut bound_offsets = Vec::with_capacity(n + 1);
+        bound_offsets.push(0usize);
+        for &c in &candidates {
+            bound_offsets.push(bound_offsets[bound_offsets.len() - 1] + c);
+        }
+        let capacity = bound_offsets[n];
+
+        // Pass 2: every task fills its own slice of the arrays (zeroed pages are touched first by
+        // the thread that writes them); entries equal to zero are dropped, so a column may end
+        // before its bound.
+        let mut row_indices = vec![0usize; capacity];
+        let mut values = vec![0.0f64; capacity];
+        let mut tasks = Vec::with_capacity(n.div_ceil(COLUMNS_PER_TASK));
+        {
+            let (mut rows_rest, mut values_rest) = (&mut row_indices[..], &mut values[..]);
+            let mut first = 0;
+            while first < n {
+                let last = (first + COLUMNS_PER_TASK).min(n);
+                let len = bound_offsets[last] - bound_offsets[first];
+                let (rows_here, rows_next) = std::mem::take(&mut rows_rest).split_at_mut(len);
+                let (values_here, values_next) = std::mem::take(&mut values_rest).split_at_mut(len);
+                tasks.push((first..last, rows_here, values_here));
+                rows_rest = rows_next;
+                values_rest = values_next;
+                first = last;
+            }
+        }
+        let column_lengths: Vec<Vec<usize>> = tasks
+            .into_par_iter()
+            .map(|(columns, rows, vals)| {
+                let count = columns.len();
+                let lengths = fill_columns(
+                    &index,
+                    dwell_x_mm,
+                    dwell_y_mm,
+                    columns,
+                    &bound_offsets,
+                    search_radius_mm,
+                    &kernel,
+                    rows,
+                    vals,
+                );
+                observer.advance(Stage::Assembly, count as u64);
+                lengths
+            })
+            .collect();
+
+        // Close the gaps left by dropped zeros (none for a Gaussian inside its truncation radius).
         let mut col_offsets = Vec::with_capacity(n + 1);
         col_offsets.push(0usize);
-        let mut row_indices: Vec<usize> = Vec::new();
-        let mut values: Vec<f64> = Vec::new();
-
-        let mut block_start = 0;
-        while block_start < n {
-            let block_end = (block_start + COLUMNS_PER_BLOCK).min(n);
-            let tasks: Vec<ColumnBlock> = (block_start..block_end)
-                .into_par_iter()
-                .step_by(COLUMNS_PER_TASK)
-                .map(|first| {
-                    let last = (first + COLUMNS_PER_TASK).min(block_end);
-                    let block = assemble_columns(
-                        &index,
-                        dwell_x_mm,
-                        dwell_y_mm,
-                        first..last,
-                        search_radius_mm,
-                        &kernel,
-                    );
-                    observer.advance(Stage::Assembly, (last - first) as u64);
-                    block
-                })
-                .collect();
-            let block_nnz: usize = tasks.iter().map(|t| t.rows.len()).sum();
-            row_indices.reserve(block_nnz);
-            values.reserve(block_nnz);
-            for task in tasks {
-                let base = row_indices.len();
-                col_offsets.extend(task.col_ends.iter().map(|e| base + e));
-                row_indices.extend_from_slice(&task.rows);
-                values.extend_from_slice(&task.values);
+        let mut end = 0usize;
+        for (j, len) in column_lengths.into_iter().flatten().enumerate() {
+            let from = bound_offsets[j];
+            if from != end {
+                row_indices.copy_within(from..from + len, end);
+                values.copy_within(from..from + len, end);
             }
-            block_start = block_end;
+            end += len;
+            col_offsets.push(end);
         }
-        row_indices.shrink_to_fit();
-        values.shrink_to_fit();
+        row_indices.truncate(end);
+        values.truncate(end);
         observer.finish(Stage::Assembly);
         let csc =
             CscMatrix::try_from_csc_data(m, n, col_offsets, row_indices, values).map_err(|e| {
@@ -217,73 +256,67 @@ impl InfluenceMatrix {
     }
 }
 
-/// Entries of a run of consecutive columns; `col_ends[k]` is the end of column k within `rows`.
-struct ColumnBlock {
-    col_ends: Vec<usize>,
-    rows: Vec<usize>,
-    values: Vec<f64>,
-}
-
-fn assemble_columns<K>(
+/// Fills the columns `columns` into `rows` / `vals`, the slices of the matrix arrays that start
+/// at `bound_offsets[columns.start]`; column `j` starts at `bound_offsets[j]` and may hold up to
+/// `bound_offsets[j + 1] - bound_offsets[j]` entries. Returns each column's number of non-zeros.
+#[allow(clippy::too_many_arguments)]
+fn fill_columns<K>(
     index: &StripIndex,
     dwell_x: &[f64],
     dwell_y: &[f64],
     columns: std::ops::Range<usize>,
+    bound_offsets: &[usize],
     radius: f64,
     kernel: &K,
-) -> ColumnBlock
+    rows: &mut [usize],
+    vals: &mut [f64],
+) -> Vec<usize>
 where
     K: Fn(usize, usize, f64, f64) -> f64 + Sync,
 {
-    let n_columns = columns.len();
-    let mut block = ColumnBlock {
-        col_ends: Vec::with_capacity(n_columns),
-        rows: Vec::new(),
-        values: Vec::new(),
-    };
+    let base = bound_offsets[columns.start];
+    let mut lengths = Vec::with_capacity(columns.len());
     let mut order: Vec<usize> = Vec::new();
     let mut sorted_rows: Vec<usize> = Vec::new();
     let mut sorted_values: Vec<f64> = Vec::new();
     let r2 = radius * radius;
-    for (k, j) in columns.enumerate() {
-        let (cx, cy) = match (dwell_x.get(j), dwell_y.get(j)) {
-            (Some(&x), Some(&y)) => (x, y),
-            _ => break,
-        };
-        let start = block.rows.len();
+    for j in columns {
+        let (cx, cy) = (dwell_x[j], dwell_y[j]);
+        let (start, stop) = (bound_offsets[j] - base, bound_offsets[j + 1] - base);
+        let column_rows = &mut rows[start..stop];
+        let column_vals = &mut vals[start..stop];
+        let mut len = 0usize;
         index.for_each_near(cx, cy, radius, |i, px, py| {
             let dx = px - cx;
             let dy = py - cy;
             if dx * dx + dy * dy <= r2 {
                 let v = kernel(j, i, dx, dy);
                 if v != 0.0 {
-                    block.rows.push(i);
-                    block.values.push(v);
+                    if let (Some(r), Some(x)) = (column_rows.get_mut(len), column_vals.get_mut(len))
+                    {
+                        *r = i;
+                        *x = v;
+                        len += 1;
+                    }
                 }
             }
         });
-        if k == 0 {
-            // Neighbouring columns hold about as many entries: size the block once.
-            let per_column = block.rows.len() - start;
-            block.rows.reserve(per_column * n_columns);
-            block.values.reserve(per_column * n_columns);
-        }
         // Rows come out ascending for a row-major map; sort the column otherwise.
-        if !block.rows[start..].windows(2).all(|w| w[0] < w[1]) {
-            let rows = &block.rows[start..];
+        let (column_rows, column_vals) = (&mut column_rows[..len], &mut column_vals[..len]);
+        if !column_rows.windows(2).all(|w| w[0] < w[1]) {
             order.clear();
-            order.extend(0..rows.len());
-            order.sort_unstable_by_key(|&e| rows[e]);
+            order.extend(0..len);
+            order.sort_unstable_by_key(|&e| column_rows[e]);
             sorted_rows.clear();
             sorted_values.clear();
-            sorted_rows.extend(order.iter().map(|&e| block.rows[start + e]));
-            sorted_values.extend(order.iter().map(|&e| block.values[start + e]));
-            block.rows[start..].copy_from_slice(&sorted_rows);
-            block.values[start..].copy_from_slice(&sorted_values);
+            sorted_rows.extend(order.iter().map(|&e| column_rows[e]));
+            sorted_values.extend(order.iter().map(|&e| column_vals[e]));
+            column_rows.copy_from_slice(&sorted_rows);
+            column_vals.copy_from_slice(&sorted_values);
         }
-        block.col_ends.push(block.rows.len());
+        lengths.push(len);
     }
-    block
+    lengths
 }
 
 /// Map points bucketed into horizontal strips; within a strip sorted by x (then by index), so a
