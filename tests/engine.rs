@@ -239,7 +239,7 @@ fn qp_matches_dense_nnls_reference() {
         // Reference: t = lb + s, s >= 0; the free piston is removed by centring (projection
         // P = I - 11^T/m), which is exact for a free constant column.
         let lb = p.bounds().lower_s().to_vec();
-        let r_lb = p.influence().removal_nm(&lb).unwrap();
+        let r_lb = p.removal_nm(&lb).unwrap();
         let centre = |v: &mut Vec<f64>| {
             let mean = v.iter().sum::<f64>() / v.len() as f64;
             v.iter_mut().for_each(|e| *e -= mean);
@@ -248,7 +248,7 @@ fn qp_matches_dense_nnls_reference() {
         for j in 0..n {
             let mut e = vec![0.0; n];
             e[j] = 1.0;
-            let mut c = p.influence().removal_nm(&e).unwrap();
+            let mut c = p.removal_nm(&e).unwrap();
             centre(&mut c);
             cols.push(c);
         }

@@ -148,8 +148,15 @@ fn exactly_removable() -> Problem {
             l + (u - l) * (0.3 + 0.4 * ((j as f64) * 0.37).sin().abs())
         })
         .collect();
-    let z = base.influence().removal_nm(&t_star).unwrap();
-    Problem::new(base.influence().clone(), z, base.bounds().clone(), 0.0, 0.0).unwrap()
+    let z = base.removal_nm(&t_star).unwrap();
+    Problem::new(
+        base.influence().unwrap().clone(),
+        z,
+        base.bounds().clone(),
+        0.0,
+        0.0,
+    )
+    .unwrap()
 }
 
 /// On a problem whose optimum is known exactly (`z = R t*` with `t*` strictly inside a bounded
@@ -391,4 +398,66 @@ fn first_order_with_the_fft_operator_matches_the_sparse_one() {
             b.full_objective
         );
     }
+}
+
+#[test]
+fn matrix_free_problem_solves_like_the_assembled_one() {
+    use preston::solver::dwell::fft::FftOperator;
+    let (x, y, z, _, tif) = case(31, 21, 41);
+    // A raster reaching the TIF radius past the map: its corner points touch no map point.
+    let bbox = preston::solver::map::BoundingBox::of_points(&x, &y)
+        .unwrap()
+        .expanded(4.5);
+    let path = serpentine(&bbox, 1.0, RasterAxis::X).unwrap();
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let limits = FeedLimits {
+        v_max_mm_per_min: 3000.0,
+        v_min_mm_per_min: 300.0,
+    };
+    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let assembled = Problem::new(r, z.clone(), bounds.clone(), 0.0, 0.0).unwrap();
+    let pitch = FftOperator::lattice_pitch_mm(&x, &y).unwrap();
+    assert!((pitch - 0.5).abs() < 1e-12, "detected pitch {pitch}");
+    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), pitch, &tif).unwrap();
+    let free = Problem::matrix_free(fft, z, bounds, 0.0, 0.0).unwrap();
+    assert!(free.influence().is_none() && free.fft_operator().is_some());
+    // The implicit R has exactly the assembled one's non-zeros and empty columns.
+    assert_eq!(free.nnz(), assembled.nnz());
+    assert_eq!(free.empty_columns(), assembled.empty_columns());
+    assert!(!assembled.empty_columns().is_empty());
+    // Same removal for the same dwell times.
+    let t: Vec<f64> = (0..free.n()).map(|j| 0.1 + (j % 5) as f64 * 0.2).collect();
+    let (ha, hf) = (
+        assembled.removal_nm(&t).unwrap(),
+        free.removal_nm(&t).unwrap(),
+    );
+    let scale = ha.iter().fold(0.0_f64, |s, v| s.max(v.abs()));
+    for (a, f) in ha.iter().zip(&hf) {
+        assert!((a - f).abs() <= FFT_REL_TOL * scale);
+    }
+    // `auto` runs the first-order solver on a matrix-free problem; the objectives agree, and the
+    // unreachable dwell points sit on their lower bound in both.
+    for method in METHODS {
+        let s = Settings {
+            first_order_method: method,
+            ..settings(SolverChoice::Auto)
+        };
+        let a = dwell::solve(&assembled, &first_order(method), &Silent).unwrap();
+        let f = dwell::solve(&free, &s, &Silent).unwrap();
+        assert_eq!(f.solver, dwell::SolverKind::FirstOrder);
+        let rel = (a.objective - f.objective).abs() / a.objective;
+        assert!(
+            rel < AGREE_REL_TOL,
+            "{method:?}: {} vs {}",
+            a.objective,
+            f.objective
+        );
+        for &j in &assembled.empty_columns() {
+            assert_eq!(f.dwell_s[j], free.bounds().lower_s()[j]);
+            assert_eq!(a.dwell_s[j], assembled.bounds().lower_s()[j]);
+        }
+    }
+    // The QP needs the assembled matrix: a clear error, not a panic.
+    let err = dwell::solve(&free, &settings(SolverChoice::Qp), &Silent).unwrap_err();
+    assert!(err.to_string().contains("matrix-free"), "{err}");
 }

@@ -88,3 +88,116 @@ fn warm_start_without_dwell_times_is_an_input_error() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("dwell_s"));
     assert!(!out.join("report.json").exists());
 }
+
+/// The first-order solve on the FFT operator and on the assembled matrix give objectives within
+/// this fraction of each other (same iteration; products equal to ~1e-12 relative).
+const FFT_VS_SPARSE_REL_TOL: f64 = 1e-9;
+
+/// A 30 x 20 mm map on a 0.5 mm grid (smooth error), written as CSV into `dir`.
+fn grid_map(dir: &Path) -> PathBuf {
+    let mut text = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..41 {
+        for ix in 0..61 {
+            let (x, y) = (ix as f64 * 0.5, iy as f64 * 0.5);
+            let z = 30.0 * (0.3 * x + 0.1 * y).cos() + 20.0 * (0.2 * y).sin();
+            text.push_str(&format!("{x},{y},{z}\n"));
+        }
+    }
+    let path = dir.join("grid_map.csv");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// A serpentine 1 mm raster over the map extended by 2 mm (every point reaches the map).
+fn grid_dwell(dir: &Path) -> PathBuf {
+    let mut text = String::from("x_mm,y_mm\n");
+    for (row, y) in (-2..=22).enumerate() {
+        let xs: Vec<i32> = if row % 2 == 0 {
+            (-2..=32).collect()
+        } else {
+            (-2..=32).rev().collect()
+        };
+        for x in xs {
+            text.push_str(&format!("{x},{y}\n"));
+        }
+    }
+    let path = dir.join("grid_dwell.csv");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn solve_grid(map: &Path, dwell: &Path, operator: &str, out: &Path) -> std::process::Output {
+    preston()
+        .args(["solve", "--map"])
+        .arg(map)
+        .arg("--dwell")
+        .arg(dwell)
+        .args([
+            "--gaussian-sigma-mm",
+            "2",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--v-max",
+            "2000",
+            "--v-min",
+            "100",
+            "--solver",
+            "first-order",
+            "--operator",
+            operator,
+            "--out",
+        ])
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn operator_fft_matches_the_assembled_matrix_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let (map, dwell) = (grid_map(dir.path()), grid_dwell(dir.path()));
+    let (sparse_out, fft_out) = (dir.path().join("sparse"), dir.path().join("fft"));
+    let o = solve_grid(&map, &dwell, "sparse", &sparse_out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = solve_grid(&map, &dwell, "fft", &fft_out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("matrix-free FFT operator"));
+    let (s, f) = (report(&sparse_out), report(&fft_out));
+    assert_eq!(s["operator"], "sparse");
+    assert_eq!(f["operator"], "fft");
+    assert_eq!(s["nnz"], f["nnz"]);
+    assert_eq!(s["unreachable_dwell_points"], f["unreachable_dwell_points"]);
+    // The same iteration on either operator: products agree to rounding, so do the results.
+    let (os, of) = (
+        s["objective"].as_f64().unwrap(),
+        f["objective"].as_f64().unwrap(),
+    );
+    assert!(
+        (of - os).abs() <= FFT_VS_SPARSE_REL_TOL * os,
+        "sparse {os} vs fft {of}: {}",
+        (of - os) / os
+    );
+    assert!(f["max_bound_violation_s"].as_f64().unwrap() <= 1e-12);
+    assert!(fft_out.join("dwell.csv").exists() && fft_out.join("residual.csv").exists());
+}
+
+#[test]
+fn operator_fft_refuses_what_it_cannot_serve() {
+    let dir = tempfile::tempdir().unwrap();
+    // The sample job's 1 mm raster is not on its map's 0.32 mm lattice.
+    let out = dir.path().join("off_lattice");
+    let o = solve(&["--solver", "first-order", "--operator", "fft"], &out);
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("dwell point") && err.contains("lattice"),
+        "{err}"
+    );
+    assert!(!out.join("report.json").exists());
+    // The QP needs R.
+    let out = dir.path().join("qp");
+    let o = solve(&["--solver", "qp", "--operator", "fft"], &out);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("solver = \"qp\""));
+    assert!(!out.join("report.json").exists());
+}

@@ -10,7 +10,10 @@
 use crate::error::Result;
 use crate::job::Job;
 use crate::pipeline;
-use preston_solver::dwell::{self, DwellBounds, FeedLimits, Problem, Settings, SolverChoice};
+use preston_solver::dwell::fft::FftOperator;
+use preston_solver::dwell::{
+    self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
+};
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::map::{BoundingBox, HeightStats};
 use preston_solver::observer::Silent;
@@ -90,7 +93,27 @@ pub struct GeneratedInputs {
 
 /// A generated problem with about `n_target` dwell points (see the module documentation).
 pub fn generated_problem(n_target: usize, seed: u64) -> Result<Problem> {
+    generated_problem_with(n_target, seed, OperatorChoice::Sparse)
+}
+
+/// As [`generated_problem`], matrix-free for `OperatorChoice::Fft` (assembled otherwise).
+pub fn generated_problem_with(
+    n_target: usize,
+    seed: u64,
+    operator: OperatorChoice,
+) -> Result<Problem> {
     let g = generated_inputs(n_target, seed)?;
+    if operator == OperatorChoice::Fft {
+        let op = FftOperator::new(
+            &g.x_mm,
+            &g.y_mm,
+            g.path.x_mm(),
+            g.path.y_mm(),
+            MAP_PITCH_MM,
+            &g.tif,
+        )?;
+        return Ok(Problem::matrix_free(op, g.z_nm, g.bounds, 0.0, 0.0)?);
+    }
     let r = InfluenceMatrix::assemble(
         &g.x_mm,
         &g.y_mm,
@@ -167,56 +190,25 @@ pub fn generated_inputs(n_target: usize, seed: u64) -> Result<GeneratedInputs> {
 }
 
 /// Builds the generated problem with the matrix-free FFT operator (no `R` is formed) and solves
-/// it with the first-order solver.
+/// it with the first-order solver (the solver column reads `first-order-fft`; nnz is the count
+/// of `R`'s implicit non-zeros).
 pub fn run_generated_fft(n_target: usize, settings: &Settings) -> Result<BenchRow> {
-    use preston_solver::dwell::fft::FftOperator;
-    use preston_solver::dwell::first_order::minimise;
-    use preston_solver::dwell::operator::LinearOperator;
-    let start = Instant::now();
-    let g = generated_inputs(n_target, 1)?;
-    let op = FftOperator::new(
-        &g.x_mm,
-        &g.y_mm,
-        g.path.x_mm(),
-        g.path.y_mm(),
-        MAP_PITCH_MM,
-        &g.tif,
-    )?;
-    let build_seconds = start.elapsed().as_secs_f64();
-    let solve_start = Instant::now();
-    let res = minimise(&op, &g.z_nm, &g.bounds, 0.0, 0.0, settings, None, &Silent)?;
-    let solve_seconds = solve_start.elapsed().as_secs_f64();
-    let mut removal = vec![0.0; op.nrows()];
-    op.apply(&res.dwell_s, &mut removal);
-    let residual: Vec<f64> = removal.iter().zip(&g.z_nm).map(|(h, z)| z - h).collect();
-    let after = HeightStats::of(&residual);
-    let m = op.nrows() as f64;
-    Ok(BenchRow {
-        problem: format!("random-{}", size_label(n_target)),
-        solver: "first-order-fft".into(),
-        m: op.nrows(),
-        n: op.ncols(),
-        nnz: 0,
-        rms_before_nm: HeightStats::of(&g.z_nm).rms_nm,
-        rms_after_nm: after.rms_nm,
-        objective: 0.5 * after.rms_nm * after.rms_nm * m,
-        total_dwell_s: res.dwell_s.iter().sum(),
-        build_seconds,
-        solve_seconds,
-        iterations: res.iterations,
-        status: crate::report::status_name(res.status),
-        peak_memory_mib: peak_memory_mib(),
-    })
+    let s = Settings {
+        operator: OperatorChoice::Fft,
+        ..settings.clone()
+    };
+    run_generated(n_target, SolverChoice::FirstOrder, &s)
 }
 
-/// Builds the generated problem with about `n_target` dwell points and solves it with `solver`.
+/// Builds the generated problem with about `n_target` dwell points (matrix-free when
+/// `settings.operator` is `fft`, assembled otherwise) and solves it with `solver`.
 pub fn run_generated(
     n_target: usize,
     solver: SolverChoice,
     settings: &Settings,
 ) -> Result<BenchRow> {
     let start = Instant::now();
-    let problem = generated_problem(n_target, 1)?;
+    let problem = generated_problem_with(n_target, 1, settings.operator)?;
     let build_seconds = start.elapsed().as_secs_f64();
     let s = Settings {
         solver,
@@ -230,12 +222,16 @@ pub fn run_generated(
         .zip(problem.z_nm())
         .map(|(h, z)| z - h)
         .collect();
+    let mut solver_name = crate::report::solver_name(sol.solver);
+    if problem.fft_operator().is_some() {
+        solver_name.push_str("-fft");
+    }
     Ok(BenchRow {
         problem: format!("random-{}", size_label(n_target)),
-        solver: crate::report::solver_name(sol.solver),
+        solver: solver_name,
         m: problem.m(),
         n: problem.n(),
-        nnz: problem.influence().nnz(),
+        nnz: problem.nnz(),
         rms_before_nm: problem.stats_before().rms_nm,
         rms_after_nm: HeightStats::of(&residual).rms_nm,
         objective: sol.objective,

@@ -8,7 +8,10 @@ use crate::readers::{read_dwell, read_map, read_tif};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::dwell::{self, DwellBounds, Problem, Solution};
+use preston_solver::dwell::fft::FftOperator;
+use preston_solver::dwell::{
+    self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice, AUTO_FFT_MIN_NNZ,
+};
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::map::HeightMap;
@@ -128,6 +131,44 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let bounds =
         DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
     let map = map_file.map;
+    if let Some(pitch) = fft_pitch(job, job_path, &map, &path, &tif, &mut warnings)? {
+        match FftOperator::new(
+            map.x_mm(),
+            map.y_mm(),
+            path.x_mm(),
+            path.y_mm(),
+            pitch,
+            &tif,
+        ) {
+            Ok(op) => {
+                let problem = Problem::matrix_free(
+                    op,
+                    map.z_nm().to_vec(),
+                    bounds,
+                    job.objective.rho,
+                    job.objective.lambda,
+                )
+                .map_err(|e| Error::engine(job_path, e))?;
+                return Ok(Prepared {
+                    map,
+                    skipped_rows: map_file.skipped_rows,
+                    tif,
+                    path,
+                    ds_mm,
+                    previous_dwell_s,
+                    problem,
+                    build_seconds: start.elapsed().as_secs_f64(),
+                    warnings,
+                });
+            }
+            Err(e) if job.solver.operator == OperatorChoice::Fft => {
+                return Err(Error::engine(map_path, e));
+            }
+            Err(e) => warnings.push(format!(
+                "operator auto: the FFT operator does not apply ({e}); assembling R"
+            )),
+        }
+    }
     let influence = match &job.surface.file {
         None => InfluenceMatrix::assemble(
             map.x_mm(),
@@ -171,6 +212,66 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         build_seconds: start.elapsed().as_secs_f64(),
         warnings,
     })
+}
+
+/// The lattice pitch (mm) for the matrix-free FFT operator when the job's `operator` asks for it
+/// (`fft`) or `auto` finds it worthwhile, `None` for the assembled matrix. `fft` with inputs it
+/// cannot serve is an error naming why; `auto` then quietly assembles `R`.
+fn fft_pitch(
+    job: &Job,
+    job_path: &Path,
+    map: &HeightMap,
+    path: &DwellPath,
+    tif: &Tif,
+    warnings: &mut Vec<String>,
+) -> Result<Option<f64>> {
+    let choice = job.solver.operator;
+    if choice == OperatorChoice::Sparse {
+        return Ok(None);
+    }
+    let blocker = if job.surface.file.is_some() {
+        Some("a [surface] file (the TIF acts in each point's tangent frame)")
+    } else if job
+        .accel_limits()
+        .map_err(|e| Error::engine(job_path, e))?
+        .is_some()
+    {
+        Some("an acceleration limit (its sequential QP needs R)")
+    } else if job.solver.min_time {
+        Some("the minimum-time mode (it runs the QP)")
+    } else if job.solver.solver == SolverChoice::Qp {
+        Some("solver = \"qp\" (the QP needs R)")
+    } else {
+        None
+    };
+    let pitch = FftOperator::lattice_pitch_mm(map.x_mm(), map.y_mm());
+    match (choice, blocker, pitch) {
+        (OperatorChoice::Fft, Some(why), _) => Err(Error::Job {
+            file: job_path.to_path_buf(),
+            why: format!("operator = \"fft\" cannot be used with {why}"),
+        }),
+        (OperatorChoice::Fft, None, None) => Err(Error::Job {
+            file: job_path.to_path_buf(),
+            why: "operator = \"fft\" needs map points on a regular lattice".into(),
+        }),
+        (OperatorChoice::Fft, None, Some(p)) => Ok(Some(p)),
+        (_, Some(_), _) | (_, None, None) => Ok(None),
+        (_, None, Some(p)) => {
+            // Map points inside one TIF disc, at most all of them, per dwell point.
+            let r = tif.support_radius_mm();
+            let per_column = (std::f64::consts::PI * r * r / (p * p)).min(map.len() as f64);
+            let estimate = per_column * path.len() as f64;
+            if estimate >= AUTO_FFT_MIN_NNZ as f64 {
+                warnings.push(format!(
+                    "operator auto: about {estimate:.2e} non-zeros in R, so products use the \
+                     matrix-free FFT operator (operator = \"sparse\" assembles R)"
+                ));
+                Ok(Some(p))
+            } else {
+                Ok(None)
+            }
+        }
+    }
 }
 
 /// A warning when the TIF's footprint (twice its support radius) is wider than the map in both
@@ -225,7 +326,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
             None,
         ),
     };
-    let removal_nm = prepared.problem.influence().removal_nm(&solution.dwell_s)?;
+    let removal_nm = prepared.problem.removal_nm(&solution.dwell_s)?;
     let mut report = Report::new(
         &prepared.problem,
         &solution,

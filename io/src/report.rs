@@ -14,8 +14,11 @@ pub struct Report {
     pub m: usize,
     /// Number of dwell points.
     pub n: usize,
-    /// Non-zeros of the influence matrix.
+    /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
     pub nnz: usize,
+    /// How `R` was applied: `sparse` (assembled) or `fft` (matrix-free convolution).
+    #[serde(default)]
+    pub operator: String,
     /// Map rows skipped for an empty or NaN height.
     pub skipped_rows: usize,
     /// RMS of the error map about its mean, nm.
@@ -149,10 +152,16 @@ impl Report {
         let after = HeightStats::of(&centred_residual_nm(problem.z_nm(), removal_nm));
         let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
+        let empty = problem.empty_columns();
         Self {
             m: problem.m(),
             n: problem.n(),
-            nnz: problem.influence().nnz(),
+            nnz: problem.nnz(),
+            operator: if problem.fft_operator().is_some() {
+                "fft".into()
+            } else {
+                "sparse".into()
+            },
             skipped_rows,
             rms_before_nm: before.rms_nm,
             pv_before_nm: before.pv_nm,
@@ -176,8 +185,8 @@ impl Report {
             kkt_residual: solution.kkt_residual,
             objective_gap_bound: solution.objective_gap_bound,
             min_time: solution.min_time,
-            unreachable_dwell_points: problem.influence().empty_columns().len(),
-            unreachable_dwell_indices: problem.influence().empty_columns(),
+            unreachable_dwell_points: empty.len(),
+            unreachable_dwell_indices: empty,
             warnings: Vec::new(),
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,

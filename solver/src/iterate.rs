@@ -400,7 +400,7 @@ pub fn plan_run(
         settings.lambda,
     )?;
     let sol = dwell::solve(&problem, &settings.solver, observer)?;
-    let predicted = problem.influence().removal_nm(&sol.dwell_s)?;
+    let predicted = problem.removal_nm(&sol.dwell_s)?;
     Ok(RunArtifacts {
         measured: measured.clone(),
         path,

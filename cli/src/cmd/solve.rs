@@ -5,7 +5,7 @@ use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
-use preston_solver::dwell::{FirstOrderMethod, SolverChoice};
+use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
 use std::path::PathBuf;
@@ -46,6 +46,28 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
         match m {
             FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
             FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+        }
+    }
+}
+
+/// How R is held, on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum OperatorArg {
+    /// The FFT operator when R would hold at least 5e7 non-zeros and the inputs allow it.
+    Auto,
+    /// Assemble the sparse influence matrix R.
+    Sparse,
+    /// Never form R: products by FFT convolution (map and dwell points on one lattice,
+    /// first-order solver).
+    Fft,
+}
+
+impl From<OperatorArg> for OperatorChoice {
+    fn from(o: OperatorArg) -> Self {
+        match o {
+            OperatorArg::Auto => OperatorChoice::Auto,
+            OperatorArg::Sparse => OperatorChoice::Sparse,
+            OperatorArg::Fft => OperatorChoice::Fft,
         }
     }
 }
@@ -131,6 +153,9 @@ pub struct Args {
     /// Which solver to run (default: the job's, else auto).
     #[arg(long, value_enum)]
     pub solver: Option<SolverArg>,
+    /// How R is held: assembled, or matrix-free by FFT (default: the job's, else auto).
+    #[arg(long, value_enum)]
+    pub operator: Option<OperatorArg>,
     /// Start the first-order solver from the `dwell_s` column of a previous dwell.csv (same dwell
     /// points, in the same order).
     #[arg(long, value_name = "dwell.csv")]
@@ -219,6 +244,9 @@ impl Args {
         if let Some(k) = self.solver {
             job.solver.solver = k.into();
         }
+        if let Some(o) = self.operator {
+            job.solver.operator = o.into();
+        }
         if let Some(w) = self.warm_start {
             job.dwell.warm_start = Some(w);
         }
@@ -245,10 +273,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     let r = &solved.report;
     eprintln!(
-        "preston solve: {} map points, {} dwell points, {} non-zeros{}",
+        "preston solve: {} map points, {} dwell points, {} non-zeros ({}){}",
         r.m,
         r.n,
         r.nnz,
+        if r.operator == "fft" {
+            "matrix-free FFT operator"
+        } else {
+            "assembled"
+        },
         if r.skipped_rows > 0 {
             format!(", {} map rows skipped (empty or NaN z_nm)", r.skipped_rows)
         } else {

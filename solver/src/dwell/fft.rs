@@ -20,6 +20,8 @@ use std::sync::{Arc, Mutex};
 
 /// Relative tolerance for a coordinate to count as on the lattice.
 const ON_LATTICE_TOL: f64 = 1e-6;
+/// Largest lattice (cells) the operator accepts: 4e8 cells of 16 bytes in three buffers is ~19 GB.
+const MAX_LATTICE_CELLS: usize = 400_000_000;
 
 /// The FFT convolution operator (see the module documentation).
 pub struct FftOperator {
@@ -30,6 +32,8 @@ pub struct FftOperator {
     dwell_cells: Vec<usize>,
     /// `(k, k^2)` sums of each column over the map points, for the Jacobi scaling.
     col_sums: Vec<(f64, f64)>,
+    /// Non-zero entries of each column of the implicit `R`.
+    col_nnz: Vec<usize>,
     fft_x: Arc<dyn Fft<f64>>,
     ifft_x: Arc<dyn Fft<f64>>,
     fft_y: Arc<dyn Fft<f64>>,
@@ -51,16 +55,11 @@ impl std::fmt::Debug for FftOperator {
     }
 }
 
-fn lattice_index(v: f64, origin: f64, pitch: f64, what: &'static str) -> Result<usize> {
+/// Signed lattice index of `v` on the lattice of pitch `pitch` through `origin`.
+fn lattice_index(v: f64, origin: f64, pitch: f64) -> Option<i64> {
     let u = (v - origin) / pitch;
     let k = u.round();
-    if (u - k).abs() > ON_LATTICE_TOL || k < 0.0 {
-        return Err(Error::invalid(
-            what,
-            format!("coordinate {v} mm is not on the {pitch} mm lattice from {origin} mm"),
-        ));
-    }
-    Ok(k as usize)
+    ((u - k).abs() <= ON_LATTICE_TOL && k.abs() < 1e15).then_some(k as i64)
 }
 
 impl FftOperator {
@@ -80,26 +79,42 @@ impl FftOperator {
         if map_x_mm.is_empty() || dwell_x_mm.is_empty() {
             return Err(Error::invalid("FFT operator", "needs map and dwell points"));
         }
-        let all_x = map_x_mm.iter().chain(dwell_x_mm);
-        let x0 = all_x.clone().copied().fold(f64::INFINITY, f64::min);
-        let y0 = map_y_mm
-            .iter()
-            .chain(dwell_y_mm)
-            .copied()
-            .fold(f64::INFINITY, f64::min);
-        let idx = |xs: &[f64], ys: &[f64], what| -> Result<Vec<(usize, usize)>> {
+        // The lattice runs through the map's lowest x and y; dwell points must lie on it too.
+        let x0 = map_x_mm.iter().copied().fold(f64::INFINITY, f64::min);
+        let y0 = map_y_mm.iter().copied().fold(f64::INFINITY, f64::min);
+        let idx = |xs: &[f64], ys: &[f64], what| -> Result<Vec<(i64, i64)>> {
             xs.iter()
                 .zip(ys)
-                .map(|(&x, &y)| {
-                    Ok((
-                        lattice_index(x, x0, pitch_mm, what)?,
-                        lattice_index(y, y0, pitch_mm, what)?,
-                    ))
+                .enumerate()
+                .map(|(k, (&x, &y))| {
+                    match (
+                        lattice_index(x, x0, pitch_mm),
+                        lattice_index(y, y0, pitch_mm),
+                    ) {
+                        (Some(i), Some(j)) => Ok((i, j)),
+                        _ => Err(Error::invalid(
+                            what,
+                            format!(
+                                "{k} at ({x}, {y}) mm is not on the map's {pitch_mm} mm lattice \
+                                 through ({x0}, {y0}) mm"
+                            ),
+                        )),
+                    }
                 })
                 .collect()
         };
-        let map_ij = idx(map_x_mm, map_y_mm, "map point")?;
-        let dwell_ij = idx(dwell_x_mm, dwell_y_mm, "dwell point")?;
+        let map_signed = idx(map_x_mm, map_y_mm, "map point")?;
+        let dwell_signed = idx(dwell_x_mm, dwell_y_mm, "dwell point")?;
+        let (i0, j0) = map_signed
+            .iter()
+            .chain(&dwell_signed)
+            .fold((i64::MAX, i64::MAX), |(a, b), p| (a.min(p.0), b.min(p.1)));
+        let shift = |v: &[(i64, i64)]| -> Vec<(usize, usize)> {
+            v.iter()
+                .map(|&(i, j)| ((i - i0) as usize, (j - j0) as usize))
+                .collect()
+        };
+        let (map_ij, dwell_ij) = (shift(&map_signed), shift(&dwell_signed));
         let nx = map_ij
             .iter()
             .chain(&dwell_ij)
@@ -114,6 +129,15 @@ impl FftOperator {
             .max()
             .unwrap_or(0)
             + 1;
+        // A lattice too large to hold (points spread over a huge area) is an input error.
+        if nx.saturating_mul(ny) > MAX_LATTICE_CELLS {
+            return Err(Error::invalid(
+                "FFT operator",
+                format!(
+                    "the points span {nx} x {ny} cells of {pitch_mm} mm, more than {MAX_LATTICE_CELLS}"
+                ),
+            ));
+        }
         let kr = (tif.support_radius_mm() / pitch_mm).ceil() as usize;
         let (fx, fy) = (nx + kr + 1, ny + kr + 1);
         let cell = |(i, j): (usize, usize)| j * fx + i;
@@ -155,10 +179,10 @@ impl FftOperator {
         for &c in &map_cells {
             map_of[c] = true;
         }
-        let col_sums = dwell_ij
+        let (col_sums, col_nnz): (Vec<(f64, f64)>, Vec<usize>) = dwell_ij
             .iter()
             .map(|&(i, j)| {
-                let (mut s, mut s2) = (0.0, 0.0);
+                let (mut s, mut s2, mut count) = (0.0, 0.0, 0usize);
                 for &(dx, dy, v) in &taps {
                     let (a, b) = (i as isize + dx, j as isize + dy);
                     if a >= 0
@@ -169,11 +193,12 @@ impl FftOperator {
                     {
                         s += v;
                         s2 += v * v;
+                        count += 1;
                     }
                 }
-                (s, s2)
+                ((s, s2), count)
             })
-            .collect();
+            .unzip();
         Ok(Self {
             fx,
             fy,
@@ -181,12 +206,46 @@ impl FftOperator {
             map_cells,
             dwell_cells,
             col_sums,
+            col_nnz,
             fft_x,
             ifft_x,
             fft_y,
             ifft_y,
             buffer: Mutex::new((scratch, vec![Complex::new(0.0, 0.0); fx * fy])),
         })
+    }
+
+    /// Non-zero entries of the implicit matrix `R` (the number the sparse operator would store).
+    pub fn nnz(&self) -> usize {
+        self.col_nnz.iter().sum()
+    }
+
+    /// Dwell points whose column is empty: no map point lies in the tool's reach.
+    pub fn empty_columns(&self) -> Vec<usize> {
+        self.col_nnz
+            .iter()
+            .enumerate()
+            .filter(|(_, &c)| c == 0)
+            .map(|(j, _)| j)
+            .collect()
+    }
+
+    /// The pitch, mm, of the lattice the map points lie on: the smallest step between distinct
+    /// sorted x or y coordinates (steps below 1e-9 mm count as equal coordinates). `None` for
+    /// fewer than two distinct coordinates on both axes. Whether every point (and every dwell
+    /// point) is on that lattice is checked by [`FftOperator::new`].
+    pub fn lattice_pitch_mm(map_x_mm: &[f64], map_y_mm: &[f64]) -> Option<f64> {
+        let smallest_step = |v: &[f64]| -> f64 {
+            let mut sorted: Vec<f64> = v.iter().copied().filter(|a| a.is_finite()).collect();
+            sorted.sort_by(f64::total_cmp);
+            sorted
+                .windows(2)
+                .map(|w| w[1] - w[0])
+                .filter(|d| *d > 1e-9)
+                .fold(f64::INFINITY, f64::min)
+        };
+        let pitch = smallest_step(map_x_mm).min(smallest_step(map_y_mm));
+        pitch.is_finite().then_some(pitch)
     }
 
     /// Scatter `input` at `from`, multiply the transform by `K^` (or its conjugate), gather at `to`.

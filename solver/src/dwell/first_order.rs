@@ -81,7 +81,8 @@ pub struct FirstOrderResult {
     pub objective_gap_bound: f64,
 }
 
-/// Solves the contract on `problem` with the sparse operator, starting from `start` (projected
+/// Solves the contract on `problem` with its operator (the assembled `R` or the FFT operator),
+/// starting from `start` (projected
 /// onto the bounds; default: the lower bounds).
 pub fn solve(
     problem: &Problem,
@@ -96,9 +97,19 @@ pub fn solve(
         ));
     }
     let t0 = Instant::now();
-    let op = SparseOperator::new(problem.influence().csc());
+    let sparse;
+    let op: &dyn LinearOperator = match (problem.influence(), problem.fft_operator()) {
+        (Some(r), _) => {
+            sparse = SparseOperator::new(r.csc());
+            &sparse
+        }
+        (None, Some(fft)) => fft,
+        (None, None) => {
+            return Err(Error::invalid("problem", "has no influence operator"));
+        }
+    };
     let res = minimise(
-        &op,
+        op,
         problem.z_nm(),
         problem.bounds(),
         problem.rho(),

@@ -17,23 +17,98 @@ use crate::error::{Error, Result};
 use crate::influence::InfluenceMatrix;
 use crate::map::HeightStats;
 use crate::observer::Observer;
+use fft::FftOperator;
+use operator::LinearOperator;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
-/// A validated dwell problem: the influence matrix, the error map, bounds and weights.
+/// A validated dwell problem: the influence operator, the error map, bounds and weights.
 #[derive(Debug, Clone)]
 pub struct Problem {
-    influence: InfluenceMatrix,
+    influence: Influence,
     z_nm: Vec<f64>,
     bounds: DwellBounds,
     rho: f64,
     lambda: f64,
 }
 
+/// How a problem holds `R`: assembled, or as a matrix-free FFT operator (regular grids).
+#[derive(Debug, Clone)]
+enum Influence {
+    Matrix(InfluenceMatrix),
+    MatrixFree(Arc<FftOperator>),
+}
+
+impl Influence {
+    fn nrows(&self) -> usize {
+        match self {
+            Influence::Matrix(r) => r.nrows(),
+            Influence::MatrixFree(op) => op.nrows(),
+        }
+    }
+
+    fn ncols(&self) -> usize {
+        match self {
+            Influence::Matrix(r) => r.ncols(),
+            Influence::MatrixFree(op) => op.ncols(),
+        }
+    }
+}
+
+/// How `R` is held and applied: `auto` uses the FFT operator where the sparse matrix would be
+/// large and the inputs allow it (see the pipeline in the `preston-io` crate).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum OperatorChoice {
+    /// The FFT operator when map and dwell points lie on one lattice, the TIF is applied in the
+    /// plane, the first-order solver runs and the assembled `R` would hold at least
+    /// [`AUTO_FFT_MIN_NNZ`] non-zeros; the assembled matrix otherwise.
+    #[default]
+    Auto,
+    /// Assemble the sparse influence matrix `R`.
+    Sparse,
+    /// Never form `R`: products by FFT convolution ([`fft::FftOperator`]). Needs map and dwell
+    /// points on one regular lattice and the first-order solver.
+    Fft,
+}
+
+/// `operator = "auto"` uses the FFT operator from this many (estimated) non-zeros of `R` on:
+/// about 1.6 GB for the matrix and the row-major copy the first-order solver keeps.
+pub const AUTO_FFT_MIN_NNZ: usize = 50_000_000;
+
 impl Problem {
     /// Builds the problem; `z_nm` has one entry per row of `R`, the bounds one per column,
     /// `rho >= 0` (nm^2 per s of dwell) and `lambda >= 0` (nm^2/s^2) finite.
     pub fn new(
         influence: InfluenceMatrix,
+        z_nm: Vec<f64>,
+        bounds: DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> Result<Self> {
+        Self::build(Influence::Matrix(influence), z_nm, bounds, rho, lambda)
+    }
+
+    /// As [`Problem::new`] with the matrix-free FFT operator in place of the assembled `R`: only
+    /// the first-order solver can solve it.
+    pub fn matrix_free(
+        operator: FftOperator,
+        z_nm: Vec<f64>,
+        bounds: DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> Result<Self> {
+        Self::build(
+            Influence::MatrixFree(Arc::new(operator)),
+            z_nm,
+            bounds,
+            rho,
+            lambda,
+        )
+    }
+
+    fn build(
+        influence: Influence,
         z_nm: Vec<f64>,
         bounds: DwellBounds,
         rho: f64,
@@ -77,9 +152,66 @@ impl Problem {
         })
     }
 
-    /// The influence matrix `R` (m x n).
-    pub fn influence(&self) -> &InfluenceMatrix {
-        &self.influence
+    /// The assembled influence matrix `R` (m x n); `None` for a matrix-free problem.
+    pub fn influence(&self) -> Option<&InfluenceMatrix> {
+        match &self.influence {
+            Influence::Matrix(r) => Some(r),
+            Influence::MatrixFree(_) => None,
+        }
+    }
+
+    /// The assembled `R`, or an error naming `who` for a matrix-free problem (the QP needs `R`).
+    pub fn require_matrix(&self, who: &'static str) -> Result<&InfluenceMatrix> {
+        self.influence().ok_or_else(|| {
+            Error::invalid(
+                who,
+                "needs the assembled influence matrix, but this problem uses the matrix-free FFT \
+                 operator: use the first-order solver or operator = \"sparse\"",
+            )
+        })
+    }
+
+    /// The matrix-free FFT operator, if the problem uses one.
+    pub fn fft_operator(&self) -> Option<&FftOperator> {
+        match &self.influence {
+            Influence::Matrix(_) => None,
+            Influence::MatrixFree(op) => Some(op),
+        }
+    }
+
+    /// Non-zero entries of `R` (stored, or implicit in the FFT operator).
+    pub fn nnz(&self) -> usize {
+        match &self.influence {
+            Influence::Matrix(r) => r.nnz(),
+            Influence::MatrixFree(op) => op.nnz(),
+        }
+    }
+
+    /// Dwell points whose column of `R` is empty (no measurement point in the tool's reach).
+    pub fn empty_columns(&self) -> Vec<usize> {
+        match &self.influence {
+            Influence::Matrix(r) => r.empty_columns(),
+            Influence::MatrixFree(op) => op.empty_columns(),
+        }
+    }
+
+    /// Removal `h = R t`, nm, at the measurement points for dwell times `t` (s).
+    pub fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
+        match &self.influence {
+            Influence::Matrix(r) => r.removal_nm(dwell_s),
+            Influence::MatrixFree(op) => {
+                if dwell_s.len() != op.ncols() {
+                    return Err(Error::LengthMismatch {
+                        what: "dwell_s",
+                        got: dwell_s.len(),
+                        expected: op.ncols(),
+                    });
+                }
+                let mut h = vec![0.0; op.nrows()];
+                op.apply(dwell_s, &mut h);
+                Ok(h)
+            }
+        }
     }
 
     /// The height error to remove, nm.
@@ -114,7 +246,7 @@ impl Problem {
 
     /// The same problem with other weights (used by the minimum-time mode).
     pub fn with_weights(&self, rho: f64, lambda: f64) -> Result<Self> {
-        Self::new(
+        Self::build(
             self.influence.clone(),
             self.z_nm.clone(),
             self.bounds.clone(),
@@ -126,8 +258,9 @@ impl Problem {
     /// The problem without the listed columns (sorted, unique), and the kept column indices.
     /// The removed dwell points' lower-bound removal is not included (callers put them at the
     /// lower bound only when their columns are empty).
+    /// Needs the assembled matrix.
     pub fn without_columns(&self, removed: &[usize]) -> Result<(Self, Vec<usize>)> {
-        let csc = self.influence.csc();
+        let csc = self.require_matrix("column selection")?.csc();
         let n = csc.ncols();
         let mut keep = vec![true; n];
         for &j in removed {
@@ -175,7 +308,7 @@ impl Problem {
 
     /// Evaluates a dwell vector: removal, optimal piston and the contract's objective terms.
     pub fn evaluate(&self, dwell_s: &[f64]) -> Result<Evaluation> {
-        let removal_nm = self.influence.removal_nm(dwell_s)?;
+        let removal_nm = self.removal_nm(dwell_s)?;
         let m = removal_nm.len() as f64;
         // Optimal piston: c = mean(R t - z).
         let piston_nm = removal_nm
@@ -255,7 +388,8 @@ impl SolverChoice {
             SolverChoice::Auto => {
                 if !min_time
                     && (problem.n() >= AUTO_FIRST_ORDER_MIN_DWELL
-                        || problem.influence().nnz() >= AUTO_FIRST_ORDER_MIN_NNZ)
+                        || problem.nnz() >= AUTO_FIRST_ORDER_MIN_NNZ
+                        || problem.fft_operator().is_some())
                 {
                     SolverKind::FirstOrder
                 } else {
@@ -327,6 +461,9 @@ pub struct Settings {
     pub first_order_max_iterations: usize,
     /// First-order solver: the iteration ([`FirstOrderMethod`]).
     pub first_order_method: FirstOrderMethod,
+    /// How `R` is held: assembled, or the matrix-free FFT operator ([`OperatorChoice`]). Read
+    /// where the problem is built; the solvers follow the problem they are given.
+    pub operator: OperatorChoice,
 }
 
 /// The iteration of the first-order solver ([`first_order`]). Both use only products with `R`
@@ -359,6 +496,7 @@ impl Default for Settings {
             first_order_tolerance: 1e-6,
             first_order_max_iterations: 20_000,
             first_order_method: FirstOrderMethod::default(),
+            operator: OperatorChoice::default(),
         }
     }
 }
@@ -469,9 +607,21 @@ pub fn solve_from(
             });
         }
     }
-    let empty = problem.influence().empty_columns();
+    let empty = problem.empty_columns();
     if problem.lambda() > 0.0 || empty.is_empty() {
         return dispatch(problem, settings, observer, warm_start_s);
+    }
+    if problem.fft_operator().is_some() {
+        // Empty columns have zero gradient, so the first-order iteration leaves them where it
+        // started; put them on their lower bound as the assembled route does.
+        let mut sol = dispatch(problem, settings, observer, warm_start_s)?;
+        for &j in &empty {
+            if let (Some(t), Some(&l)) = (sol.dwell_s.get_mut(j), problem.bounds().lower_s().get(j))
+            {
+                *t = l;
+            }
+        }
+        return Ok(sol);
     }
     let (reduced, kept) = problem.without_columns(&empty)?;
     let reduced_start: Option<Vec<f64>> =

@@ -236,7 +236,7 @@ fn build(
     // Extra rows sit in the non-negative cone right after the bound rows.
     let ne = extra.map_or(0, |e| e.rhs.len());
     let extra_start = m + n + nu;
-    let csc = problem.influence().csc();
+    let csc = problem.require_matrix("the QP solver")?.csc();
     let (r_off, r_rows, r_vals) = csc.csc_data();
 
     // ---- P and q
