@@ -194,6 +194,39 @@ fn operator_fft_refuses_what_it_cannot_serve() {
         "{err}"
     );
     assert!(!out.join("report.json").exists());
+    // Scattered map points fill a tiny share of any lattice through them.
+    let scattered = dir.path().join("scattered.csv");
+    let mut text = String::from("x_mm,y_mm,z_nm\n");
+    for k in 0..200u32 {
+        let (x, y) = ((k * 37 % 101) as f64 * 0.173, (k * 53 % 89) as f64 * 0.291);
+        text.push_str(&format!("{x},{y},{}\n", (x * 0.3).sin() * 20.0));
+    }
+    std::fs::write(&scattered, text).unwrap();
+    let out = dir.path().join("scattered_out");
+    let o = preston()
+        .args(["solve", "--map"])
+        .arg(&scattered)
+        .args([
+            "--gaussian-sigma-mm",
+            "2",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--raster-pitch-mm",
+            "1",
+            "--v-max",
+            "2000",
+            "--solver",
+            "first-order",
+            "--operator",
+            "fft",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("regular lattice"));
+    assert!(!out.join("report.json").exists());
     // The QP needs R.
     let out = dir.path().join("qp");
     let o = solve(&["--solver", "qp", "--operator", "fft"], &out);

@@ -214,6 +214,10 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     })
 }
 
+/// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
+/// per map point (a round aperture fills 79% of its square, i.e. 1.27 cells per point).
+const MAX_LATTICE_CELLS_PER_MAP_POINT: f64 = 4.0;
+
 /// The lattice pitch (mm) for the matrix-free FFT operator when the job's `operator` asks for it
 /// (`fft`) or `auto` finds it worthwhile, `None` for the assembled matrix. `fft` with inputs it
 /// cannot serve is an error naming why; `auto` then quietly assembles `R`.
@@ -244,7 +248,15 @@ fn fft_pitch(
     } else {
         None
     };
-    let pitch = FftOperator::lattice_pitch_mm(map.x_mm(), map.y_mm());
+    // The map must fill a fair share of its lattice (a gridded map, perhaps with a round
+    // aperture), or the FFT buffers would dwarf the map.
+    let pitch = FftOperator::lattice_pitch_mm(map.x_mm(), map.y_mm()).filter(|&p| {
+        map.bounding_box_mm().is_some_and(|b| {
+            let cells =
+                ((b.x_max_mm - b.x_min_mm) / p + 1.0) * ((b.y_max_mm - b.y_min_mm) / p + 1.0);
+            cells <= MAX_LATTICE_CELLS_PER_MAP_POINT * map.len() as f64
+        })
+    });
     match (choice, blocker, pitch) {
         (OperatorChoice::Fft, Some(why), _) => Err(Error::Job {
             file: job_path.to_path_buf(),
@@ -252,7 +264,10 @@ fn fft_pitch(
         }),
         (OperatorChoice::Fft, None, None) => Err(Error::Job {
             file: job_path.to_path_buf(),
-            why: "operator = \"fft\" needs map points on a regular lattice".into(),
+            why:
+                "operator = \"fft\" needs map points on a regular lattice that they fill at least \
+                  a quarter of"
+                    .into(),
         }),
         (OperatorChoice::Fft, None, Some(p)) => Ok(Some(p)),
         (_, Some(_), _) | (_, None, None) => Ok(None),
