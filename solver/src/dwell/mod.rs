@@ -584,7 +584,9 @@ pub struct Solution {
 ///
 /// Dwell points that no measurement point can feel (empty columns of `R`) do not change the
 /// residual; without the smoothness term (`lambda = 0`) they are taken out of the solve and put on
-/// their lower bound, which keeps them from making the problem degenerate.
+/// their lower bound, which keeps them from making the problem degenerate. A matrix-free problem
+/// keeps them in the (first-order) iteration, where their zero gradient leaves them unchanged, and
+/// puts them on their lower bound afterwards.
 pub fn solve(problem: &Problem, settings: &Settings, observer: &dyn Observer) -> Result<Solution> {
     solve_from(problem, settings, observer, None)
 }
