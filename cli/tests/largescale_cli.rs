@@ -234,3 +234,51 @@ fn operator_fft_refuses_what_it_cannot_serve() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("solver = \"qp\""));
     assert!(!out.join("report.json").exists());
 }
+
+#[test]
+fn operator_auto_picks_fft_when_r_would_be_large() {
+    // A 20 x 20 mm map at 0.1 mm (40,401 points) and a 0.4 mm raster (6,561 dwell points) with a
+    // 6 mm Gaussian: auto estimates 7.4e7 non-zeros (a full disc per dwell point; the border ones
+    // see less), above the 5e7 at which it turns to FFT.
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..201 {
+        for ix in 0..201 {
+            let (x, y) = (ix as f64 * 0.1, iy as f64 * 0.1);
+            text.push_str(&format!(
+                "{x:.1},{y:.1},{}\n",
+                25.0 * (0.4 * x).cos() * (0.3 * y).sin()
+            ));
+        }
+    }
+    let map = dir.path().join("fine_map.csv");
+    std::fs::write(&map, text).unwrap();
+    let out = dir.path().join("out");
+    let o = preston()
+        .args(["solve", "--map"])
+        .arg(&map)
+        .args([
+            "--gaussian-sigma-mm",
+            "2",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--raster-pitch-mm",
+            "0.4",
+            "--v-max",
+            "2000",
+            "--tolerance",
+            "1e-4",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("operator auto"));
+    let r = report(&out);
+    assert_eq!(r["operator"], "fft");
+    assert_eq!(r["solver"], "first-order");
+    let nnz = r["nnz"].as_u64().unwrap();
+    assert!(nnz > 20_000_000, "nnz {nnz}");
+    assert!(r["rms_after_nm"].as_f64().unwrap() < 0.2 * r["rms_before_nm"].as_f64().unwrap());
+}
