@@ -26,7 +26,8 @@ use std::sync::{Arc, Mutex};
 
 /// Relative tolerance for a coordinate to count as on the lattice.
 const ON_LATTICE_TOL: f64 = 1e-6;
-/// Largest lattice (cells) the operator accepts: 4e8 cells of 16 bytes in three buffers is ~19 GB.
+/// Largest lattice (cells) the operator accepts: at about 32 bytes per cell (a real buffer and three
+/// half-spectrum complex ones) 4e8 cells take ~13 GB.
 const MAX_LATTICE_CELLS: usize = 400_000_000;
 
 /// The FFT convolution operator (see the module documentation).
