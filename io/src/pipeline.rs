@@ -131,8 +131,9 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let bounds =
         DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
     let map = map_file.map;
-    if let Some(pitch) = fft_pitch(job, job_path, &map, &path, &tif, &mut warnings)? {
-        match FftOperator::new(
+    let fft = match fft_pitch(job, job_path, &map, &path, &tif, &mut warnings)? {
+        None => None,
+        Some(pitch) => match FftOperator::new(
             map.x_mm(),
             map.y_mm(),
             path.x_mm(),
@@ -140,66 +141,29 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
             pitch,
             &tif,
         ) {
-            Ok(op) => {
-                let problem = Problem::matrix_free(
-                    op,
-                    map.z_nm().to_vec(),
-                    bounds,
-                    job.objective.rho,
-                    job.objective.lambda,
-                )
-                .map_err(|e| Error::engine(job_path, e))?;
-                return Ok(Prepared {
-                    map,
-                    skipped_rows: map_file.skipped_rows,
-                    tif,
-                    path,
-                    ds_mm,
-                    previous_dwell_s,
-                    problem,
-                    build_seconds: start.elapsed().as_secs_f64(),
-                    warnings,
-                });
-            }
+            Ok(op) => Some(op),
             Err(e) if job.solver.operator == OperatorChoice::Fft => {
                 return Err(Error::engine(map_path, e));
             }
-            Err(e) => warnings.push(format!(
-                "operator auto: the FFT operator does not apply ({e}); assembling R"
-            )),
-        }
-    }
-    let influence = match &job.surface.file {
-        None => InfluenceMatrix::assemble(
-            map.x_mm(),
-            map.y_mm(),
-            path.x_mm(),
-            path.y_mm(),
-            &tif,
-            observer,
-        )?,
-        Some(f) => {
-            let surface = read_surface(f)?;
-            assemble_on_surface(
-                &surface,
-                map.x_mm(),
-                map.y_mm(),
-                path.x_mm(),
-                path.y_mm(),
-                &tif,
-                job.surface.tif_frame,
-                observer,
-            )
-            .map_err(|e| Error::engine(f, e))?
-        }
+            Err(e) => {
+                warnings.push(format!(
+                    "operator auto: the FFT operator does not apply ({e}); assembling R"
+                ));
+                None
+            }
+        },
     };
-    let problem = Problem::new(
-        influence,
-        map.z_nm().to_vec(),
-        bounds,
-        job.objective.rho,
-        job.objective.lambda,
-    )
+    let (z_nm, rho, lambda) = (map.z_nm().to_vec(), job.objective.rho, job.objective.lambda);
+    let problem = match fft {
+        Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
+        None => Problem::new(
+            assemble(job, &map, &path, &tif, observer)?,
+            z_nm,
+            bounds,
+            rho,
+            lambda,
+        ),
+    }
     .map_err(|e| Error::engine(job_path, e))?;
     Ok(Prepared {
         map,
@@ -212,6 +176,41 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         build_seconds: start.elapsed().as_secs_f64(),
         warnings,
     })
+}
+
+/// Assembles `R` for the job: in the plane, or in each dwell point's tangent frame on the job's
+/// design surface.
+fn assemble(
+    job: &Job,
+    map: &HeightMap,
+    path: &DwellPath,
+    tif: &Tif,
+    observer: &dyn Observer,
+) -> Result<InfluenceMatrix> {
+    match &job.surface.file {
+        None => Ok(InfluenceMatrix::assemble(
+            map.x_mm(),
+            map.y_mm(),
+            path.x_mm(),
+            path.y_mm(),
+            tif,
+            observer,
+        )?),
+        Some(f) => {
+            let surface = read_surface(f)?;
+            assemble_on_surface(
+                &surface,
+                map.x_mm(),
+                map.y_mm(),
+                path.x_mm(),
+                path.y_mm(),
+                tif,
+                job.surface.tif_frame,
+                observer,
+            )
+            .map_err(|e| Error::engine(f, e))
+        }
+    }
 }
 
 /// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
