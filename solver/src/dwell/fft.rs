@@ -370,11 +370,7 @@ impl Transforms {
                 },
             );
         transpose(rows, columns, fy, hx);
-        let fft_y = &self.fft_y;
-        columns.par_chunks_mut(fy).for_each_init(
-            || vec![Complex::new(0.0, 0.0); fft_y.get_inplace_scratch_len()],
-            |scratch, column| fft_y.process_with_scratch(column, scratch),
-        );
+        transform_rows(columns, fy, &self.fft_y);
     }
 
     /// `buffers.columns` -> `buffers.real` (unnormalised inverse transform), only for the rows
@@ -386,11 +382,7 @@ impl Transforms {
             rows,
             columns,
         } = buffers;
-        let ifft_y = &self.ifft_y;
-        columns.par_chunks_mut(fy).for_each_init(
-            || vec![Complex::new(0.0, 0.0); ifft_y.get_inplace_scratch_len()],
-            |scratch, column| ifft_y.process_with_scratch(column, scratch),
-        );
+        transform_rows(columns, fy, &self.ifft_y);
         transpose(columns, rows, hx, fy);
         let c2r = &self.c2r_x;
         let even = fx % 2 == 0;
@@ -412,6 +404,14 @@ impl Transforms {
                 },
             );
     }
+}
+
+/// Transforms every `len`-long row of `buffer` in place with `fft` (one scratch buffer per task).
+fn transform_rows(buffer: &mut [Complex<f64>], len: usize, fft: &Arc<dyn Fft<f64>>) {
+    buffer.par_chunks_mut(len).for_each_init(
+        || vec![Complex::new(0.0, 0.0); fft.get_inplace_scratch_len()],
+        |scratch, row| fft.process_with_scratch(row, scratch),
+    );
 }
 
 /// `to = from^T` for a row-major `rows x cols` matrix `from` (so `to` is `cols x rows`).
