@@ -126,12 +126,11 @@ fn grid_dwell(dir: &Path) -> PathBuf {
     path
 }
 
-fn solve_grid(map: &Path, dwell: &Path, operator: &str, out: &Path) -> std::process::Output {
+/// `preston solve` of `map` with a Gaussian TIF (sigma 2 mm, 10 nm/s), `v_max` 2000 mm/min and `args`.
+fn solve_gaussian(map: &Path, args: &[&str], out: &Path) -> std::process::Output {
     preston()
         .args(["solve", "--map"])
         .arg(map)
-        .arg("--dwell")
-        .arg(dwell)
         .args([
             "--gaussian-sigma-mm",
             "2",
@@ -139,17 +138,27 @@ fn solve_grid(map: &Path, dwell: &Path, operator: &str, out: &Path) -> std::proc
             "10",
             "--v-max",
             "2000",
-            "--v-min",
-            "100",
-            "--solver",
-            "first-order",
-            "--operator",
-            operator,
-            "--out",
         ])
+        .args(args)
+        .arg("--out")
         .arg(out)
         .output()
         .unwrap()
+}
+
+fn solve_grid(map: &Path, dwell: &Path, operator: &str, out: &Path) -> std::process::Output {
+    let dwell = dwell.to_str().unwrap();
+    let args = [
+        "--dwell",
+        dwell,
+        "--v-min",
+        "100",
+        "--solver",
+        "first-order",
+        "--operator",
+        operator,
+    ];
+    solve_gaussian(map, &args, out)
 }
 
 #[test]
@@ -203,27 +212,15 @@ fn operator_fft_refuses_what_it_cannot_serve() {
     }
     std::fs::write(&scattered, text).unwrap();
     let out = dir.path().join("scattered_out");
-    let o = preston()
-        .args(["solve", "--map"])
-        .arg(&scattered)
-        .args([
-            "--gaussian-sigma-mm",
-            "2",
-            "--gaussian-peak-nm-per-s",
-            "10",
-            "--raster-pitch-mm",
-            "1",
-            "--v-max",
-            "2000",
-            "--solver",
-            "first-order",
-            "--operator",
-            "fft",
-            "--out",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
+    let args = [
+        "--raster-pitch-mm",
+        "1",
+        "--solver",
+        "first-order",
+        "--operator",
+        "fft",
+    ];
+    let o = solve_gaussian(&scattered, &args, &out);
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("regular lattice"));
     assert!(!out.join("report.json").exists());
@@ -254,25 +251,8 @@ fn operator_auto_picks_fft_when_r_would_be_large() {
     let map = dir.path().join("fine_map.csv");
     std::fs::write(&map, text).unwrap();
     let out = dir.path().join("out");
-    let o = preston()
-        .args(["solve", "--map"])
-        .arg(&map)
-        .args([
-            "--gaussian-sigma-mm",
-            "2",
-            "--gaussian-peak-nm-per-s",
-            "10",
-            "--raster-pitch-mm",
-            "0.4",
-            "--v-max",
-            "2000",
-            "--tolerance",
-            "1e-4",
-            "--out",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
+    let args = ["--raster-pitch-mm", "0.4", "--tolerance", "1e-4"];
+    let o = solve_gaussian(&map, &args, &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(String::from_utf8_lossy(&o.stderr).contains("operator auto"));
     let r = report(&out);
