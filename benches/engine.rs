@@ -1,7 +1,8 @@
 //! Engine benchmarks: influence-matrix assembly throughput and the sample job end to end.
 //!
 //! `cargo bench --bench engine` (criterion). Assembly throughput is reported in non-zeros per
-//! second ("elements").
+//! second ("elements"); `fft_products` times one first-order iteration's products (`R t` and
+//! `R^T y`) with the matrix-free FFT operator on the generated `preston bench` problems.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use preston::io::job::Job;
@@ -91,5 +92,31 @@ fn sample_job(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, assembly, sample_job);
+fn fft_products(c: &mut Criterion) {
+    use preston::solver::dwell::fft::FftOperator;
+    use preston::solver::dwell::operator::LinearOperator;
+    let mut group = c.benchmark_group("fft_products");
+    group.sample_size(10);
+    for n_target in [20_000, 200_000, 1_000_000] {
+        let g = preston::io::bench::generated_inputs(n_target, 1).unwrap();
+        let op =
+            FftOperator::new(&g.x_mm, &g.y_mm, g.path.x_mm(), g.path.y_mm(), 0.5, &g.tif).unwrap();
+        let (m, n) = (op.nrows(), op.ncols());
+        let t: Vec<f64> = (0..n).map(|j| 1.0 + (j % 7) as f64 * 0.1).collect();
+        let (mut rt, mut rtr) = (vec![0.0; m], vec![0.0; n]);
+        group.bench_with_input(
+            BenchmarkId::new("rt_and_rtr", format!("{m}map_{n}dwell")),
+            &(),
+            |b, _| {
+                b.iter(|| {
+                    op.apply(&t, &mut rt);
+                    op.apply_transpose(&rt, &mut rtr);
+                })
+            },
+        );
+    }
+    group.finish();
+}
+
+criterion_group!(benches, assembly, sample_job, fft_products);
 criterion_main!(benches);

@@ -12,8 +12,15 @@
 //!
 //! The transform is real-to-complex along x (realfft: `fx / 2 + 1` frequencies, half the work of
 //! a complex transform) and complex along y (rustfft). Rows holding no input point are not
-//! transformed forward, rows holding no output point not transformed back (with a 1 mm dwell
-//! raster on a 0.5 mm map, half the rows of `R t`'s input and of `R^T y`'s output).
+//! transformed forward, rows holding no output point not transformed back.
+//!
+//! When the dwell points lie on a coarser sub-lattice (steps `dx`, `dy`: a 1 mm raster on a
+//! 0.5 mm map has `dx = dy = 2`), their side of each product runs on that sub-lattice: the
+//! spectrum of `R t`'s input is the sub-lattice spectrum repeated (tiled), and `R^T y`, read only
+//! on the sub-lattice, is transformed back there after its `dx dy` spectral aliases are summed
+//! (folded) - the polyphase form of the convolution (e.g. Oppenheim & Schafer, "Discrete-Time
+//! Signal Processing", sec. 4.7). The padded sizes are then multiples of the steps. With
+//! `dx = dy = 2` this takes a quarter-size transform in place of a full one on each product.
 
 use super::operator::LinearOperator;
 use crate::error::{Error, Result};
@@ -46,7 +53,26 @@ pub struct FftOperator {
     map_rows: Vec<bool>,
     dwell_rows: Vec<bool>,
     transforms: Transforms,
-    buffers: Mutex<Buffers>,
+    /// The dwell points' sub-lattice, when they lie on one coarser than the lattice.
+    sub: Option<SubLattice>,
+    buffers: Mutex<(Buffers, Option<Buffers>)>,
+}
+
+/// Dwell points on the sub-lattice `o + (dx a, dy b)` of the lattice (a 1 mm raster on a 0.5 mm
+/// map: `dx = dy = 2`). Their input to `R t` then has a spectrum that repeats `dx` times along x
+/// and `dy` times along y, so it is computed on the `sx x sy` sub-lattice (`sx = fx / dx`) and
+/// tiled; `R^T y` is read only on the sub-lattice, so its spectrum is folded (the `dx dy` aliases
+/// summed) and transformed back on the sub-lattice. To keep the sub-lattice at the origin the map
+/// side is shifted by `-o` (a circular shift, exact for the circular convolution).
+struct SubLattice {
+    dx: usize,
+    dy: usize,
+    sx: usize,
+    sy: usize,
+    transforms: Transforms,
+    /// Dwell cells on the sub-lattice (`b * sx + a`) and the sub-lattice rows holding one.
+    dwell_cells: Vec<usize>,
+    dwell_rows: Vec<bool>,
 }
 
 /// The 2-D real transform: real-to-complex along x (`fx / 2 + 1` frequencies), complex along y.
@@ -177,10 +203,19 @@ impl FftOperator {
             ));
         }
         let kr = (tif.support_radius_mm() / pitch_mm).ceil() as usize;
-        // Padded by the kernel radius (no wrap-around), then up to a size with only the small
-        // prime factors 2, 3, 5 and 7, whose transforms are fastest (a prime factor such as
-        // 227 in 908 sends the transform to Rader's or Bluestein's algorithm).
-        let (fx, fy) = (smooth_size(nx + kr + 1), smooth_size(ny + kr + 1));
+        // The dwell points' sub-lattice: steps dx, dy (gcd of their index differences), offset.
+        let (dx, dy) = (
+            sub_lattice_step(dwell_ij.iter().map(|p| p.0)),
+            sub_lattice_step(dwell_ij.iter().map(|p| p.1)),
+        );
+        let (ox, oy) = (dwell_ij[0].0 % dx, dwell_ij[0].1 % dy);
+        // Padded by the kernel radius (no wrap-around), then up to a multiple of the step whose
+        // prime factors are 2, 3, 5 and 7 only, whose transforms are fastest (a prime factor such
+        // as 227 in 908 sends the transform to Rader's or Bluestein's algorithm).
+        let (fx, fy) = (
+            dx * smooth_size((nx + kr + 1).div_ceil(dx)),
+            dy * smooth_size((ny + kr + 1).div_ceil(dy)),
+        );
         let cell = |(i, j): (usize, usize)| j * fx + i;
         let map_cells: Vec<usize> = map_ij.iter().map(|&p| cell(p)).collect();
         let dwell_cells: Vec<usize> = dwell_ij.iter().map(|&p| cell(p)).collect();
@@ -195,20 +230,8 @@ impl FftOperator {
         }
         let mut planner = FftPlanner::<f64>::new();
         let mut real_planner = RealFftPlanner::<f64>::new();
-        let transforms = Transforms {
-            fx,
-            fy,
-            r2c_x: real_planner.plan_fft_forward(fx),
-            c2r_x: real_planner.plan_fft_inverse(fx),
-            fft_y: planner.plan_fft_forward(fy),
-            ifft_y: planner.plan_fft_inverse(fy),
-        };
-        let hx = fx / 2 + 1;
-        let mut buffers = Buffers {
-            real: vec![0.0; fx * fy],
-            rows: vec![Complex::new(0.0, 0.0); hx * fy],
-            columns: vec![Complex::new(0.0, 0.0); hx * fy],
-        };
+        let transforms = Transforms::new(fx, fy, &mut planner, &mut real_planner);
+        let mut buffers = Buffers::new(fx, fy);
         // Kernel K[d] = TIF(d h), wrapped, and its transform (in the transposed layout).
         let k = kr as isize;
         let mut taps: Vec<(isize, isize, f64)> = Vec::new();
@@ -226,6 +249,40 @@ impl FftOperator {
         let every_row = vec![true; fy];
         transforms.forward(&mut buffers, &every_row);
         let kernel_hat = buffers.columns.clone();
+        // Column sums over the map points for the Jacobi scaling.
+        let mut map_of = vec![false; fx * fy];
+        for &c in &map_cells {
+            map_of[c] = true;
+        }
+        let sub = (dx * dy > 1).then(|| {
+            let (sx, sy) = (fx / dx, fy / dy);
+            let dwell_cells: Vec<usize> = dwell_ij
+                .iter()
+                .map(|&(i, j)| (j / dy) * sx + i / dx)
+                .collect();
+            let mut dwell_rows = vec![false; sy];
+            for &c in &dwell_cells {
+                dwell_rows[c / sx] = true;
+            }
+            SubLattice {
+                dx,
+                dy,
+                sx,
+                sy,
+                transforms: Transforms::new(sx, sy, &mut planner, &mut real_planner),
+                dwell_cells,
+                dwell_rows,
+            }
+        });
+        // With a sub-lattice the map side is shifted by -(ox, oy) (see `SubLattice`).
+        let map_cells: Vec<usize> = if sub.is_some() {
+            map_ij
+                .iter()
+                .map(|&(i, j)| cell(((i + fx - ox) % fx, (j + fy - oy) % fy)))
+                .collect()
+        } else {
+            map_cells
+        };
         let mut map_rows = vec![false; fy];
         for &c in &map_cells {
             map_rows[c / fx] = true;
@@ -234,11 +291,7 @@ impl FftOperator {
         for &c in &dwell_cells {
             dwell_rows[c / fx] = true;
         }
-        // Column sums over the map points for the Jacobi scaling.
-        let mut map_of = vec![false; fx * fy];
-        for &c in &map_cells {
-            map_of[c] = true;
-        }
+        let sub_buffers = sub.as_ref().map(|s| Buffers::new(s.sx, s.sy));
         let (col_sums, col_nnz): (Vec<(f64, f64)>, Vec<usize>) = dwell_ij
             .iter()
             .map(|&(i, j)| {
@@ -270,7 +323,8 @@ impl FftOperator {
             map_rows,
             dwell_rows,
             transforms,
-            buffers: Mutex::new(buffers),
+            sub,
+            buffers: Mutex::new((buffers, sub_buffers)),
         })
     }
 
@@ -307,43 +361,175 @@ impl FftOperator {
         pitch.is_finite().then_some(pitch)
     }
 
-    /// Scatter `input` at `from` (cells in rows `from_rows`), multiply the transform by `K^` (or
-    /// its conjugate), gather at `to` (cells in rows `to_rows`).
-    #[allow(clippy::too_many_arguments)]
-    fn convolve(
-        &self,
-        input: &[f64],
-        from: &[usize],
-        from_rows: &[bool],
-        to: &[usize],
-        to_rows: &[bool],
-        conj: bool,
-        out: &mut [f64],
-    ) {
+    /// `R t` (`conj = false`, from the dwell to the map cells) or `R^T y` (`conj = true`, from the
+    /// map to the dwell cells): scatter, transform, multiply by `K^` (or its conjugate),
+    /// transform back, gather; on the dwell sub-lattice where there is one (see [`SubLattice`]).
+    fn convolve(&self, input: &[f64], conj: bool, out: &mut [f64]) {
         let mut guard = match self.buffers.lock() {
             Ok(g) => g,
             Err(p) => p.into_inner(),
         };
-        let buffers = &mut *guard;
-        buffers.real.par_iter_mut().for_each(|v| *v = 0.0);
-        for (&c, &v) in from.iter().zip(input) {
-            buffers.real[c] = v;
-        }
-        self.transforms.forward(buffers, from_rows);
-        buffers
-            .columns
-            .par_iter_mut()
-            .zip(self.kernel_hat.par_iter())
-            .for_each(|(b, k)| *b *= if conj { k.conj() } else { *k });
-        self.transforms.inverse(buffers, to_rows);
+        let (full, small) = &mut *guard;
         let scale = 1.0 / (self.fx * self.fy) as f64;
-        for (o, &c) in out.iter_mut().zip(to) {
-            *o = buffers.real[c] * scale;
+        match (&self.sub, small) {
+            (Some(sub), Some(small)) if !conj => {
+                scatter(&mut small.real, &sub.dwell_cells, input);
+                sub.transforms.forward(small, &sub.dwell_rows);
+                self.tile(sub, &small.columns, &mut full.columns);
+                self.transforms.inverse(full, &self.map_rows);
+                gather(&full.real, &self.map_cells, scale, out);
+            }
+            (Some(sub), Some(small)) => {
+                scatter(&mut full.real, &self.map_cells, input);
+                self.transforms.forward(full, &self.map_rows);
+                self.fold(sub, &full.columns, &mut small.columns);
+                sub.transforms.inverse(small, &sub.dwell_rows);
+                gather(&small.real, &sub.dwell_cells, scale, out);
+            }
+            _ => {
+                let (from, from_rows, to, to_rows) = if conj {
+                    (
+                        &self.map_cells,
+                        &self.map_rows,
+                        &self.dwell_cells,
+                        &self.dwell_rows,
+                    )
+                } else {
+                    (
+                        &self.dwell_cells,
+                        &self.dwell_rows,
+                        &self.map_cells,
+                        &self.map_rows,
+                    )
+                };
+                scatter(&mut full.real, from, input);
+                self.transforms.forward(full, from_rows);
+                full.columns
+                    .par_iter_mut()
+                    .zip(self.kernel_hat.par_iter())
+                    .for_each(|(b, k)| *b *= if conj { k.conj() } else { *k });
+                self.transforms.inverse(full, to_rows);
+                gather(&full.real, to, scale, out);
+            }
+        }
+    }
+
+    /// `columns = K^ x` (tiled `small`): the lattice spectrum of a signal on the sub-lattice
+    /// through the origin is its sub-lattice spectrum repeated, `U[kx, ky] = S[kx mod sx, ky mod
+    /// sy]`; `S` is stored for `kx <= sx / 2` only, the rest from `S[k] = conj(S[-k])`.
+    fn tile(&self, sub: &SubLattice, small: &[Complex<f64>], columns: &mut [Complex<f64>]) {
+        let (fy, sx, sy) = (self.fy, sub.sx, sub.sy);
+        let shx = sx / 2 + 1;
+        columns
+            .par_chunks_mut(fy)
+            .zip(self.kernel_hat.par_chunks(fy))
+            .enumerate()
+            .for_each(|(kx, (column, kernel))| {
+                let kx = kx % sx;
+                if kx < shx {
+                    let from = &small[kx * sy..(kx + 1) * sy];
+                    for (ky, (c, k)) in column.iter_mut().zip(kernel).enumerate() {
+                        *c = from[ky % sy] * k;
+                    }
+                } else {
+                    let from = &small[(sx - kx) * sy..(sx - kx + 1) * sy];
+                    for (ky, (c, k)) in column.iter_mut().zip(kernel).enumerate() {
+                        *c = from[(sy - ky % sy) % sy].conj() * k;
+                    }
+                }
+            });
+    }
+
+    /// `small = ` the sub-lattice spectrum of `K^* y` read on the sub-lattice: the lattice
+    /// spectrum `V = conj(K^) Y` with its `dx dy` aliases summed,
+    /// `W[k] = sum_{p < dx, q < dy} V[kx + p sx, ky + q sy]` (`V[k] = conj(V[-k])` beyond the
+    /// stored half), in a fixed order.
+    fn fold(&self, sub: &SubLattice, columns: &[Complex<f64>], small: &mut [Complex<f64>]) {
+        let (fx, fy, sx, sy) = (self.fx, self.fy, sub.sx, sub.sy);
+        let hx = fx / 2 + 1;
+        let kernel = &self.kernel_hat;
+        let v = |kx: usize, ky: usize| -> Complex<f64> {
+            if kx < hx {
+                let i = kx * fy + ky;
+                columns[i] * kernel[i].conj()
+            } else {
+                let i = (fx - kx) * fy + (fy - ky) % fy;
+                columns[i].conj() * kernel[i]
+            }
+        };
+        small
+            .par_chunks_mut(sy)
+            .enumerate()
+            .for_each(|(kx, column)| {
+                for (ky, w) in column.iter_mut().enumerate() {
+                    let mut sum = Complex::new(0.0, 0.0);
+                    for p in 0..sub.dx {
+                        for q in 0..sub.dy {
+                            sum += v(kx + p * sx, ky + q * sy);
+                        }
+                    }
+                    *w = sum;
+                }
+            });
+    }
+}
+
+/// Zeroes `real` and writes `values` at `cells`.
+fn scatter(real: &mut [f64], cells: &[usize], values: &[f64]) {
+    real.par_iter_mut().for_each(|v| *v = 0.0);
+    for (&c, &v) in cells.iter().zip(values) {
+        real[c] = v;
+    }
+}
+
+/// `out[k] = scale real[cells[k]]`.
+fn gather(real: &[f64], cells: &[usize], scale: f64, out: &mut [f64]) {
+    for (o, &c) in out.iter_mut().zip(cells) {
+        *o = real[c] * scale;
+    }
+}
+
+/// Step of the sub-lattice holding the indices `v` along one axis: the gcd of their differences
+/// from the first (1 when all are equal).
+fn sub_lattice_step(mut v: impl Iterator<Item = usize>) -> usize {
+    let Some(first) = v.next() else { return 1 };
+    let gcd = |mut a: usize, mut b: usize| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    v.fold(0, |g, i| gcd(g, i.abs_diff(first))).max(1)
+}
+
+impl Buffers {
+    fn new(fx: usize, fy: usize) -> Self {
+        let hx = fx / 2 + 1;
+        Self {
+            real: vec![0.0; fx * fy],
+            rows: vec![Complex::new(0.0, 0.0); hx * fy],
+            columns: vec![Complex::new(0.0, 0.0); hx * fy],
         }
     }
 }
 
 impl Transforms {
+    fn new(
+        fx: usize,
+        fy: usize,
+        planner: &mut FftPlanner<f64>,
+        real_planner: &mut RealFftPlanner<f64>,
+    ) -> Self {
+        Self {
+            fx,
+            fy,
+            r2c_x: real_planner.plan_fft_forward(fx),
+            c2r_x: real_planner.plan_fft_inverse(fx),
+            fft_y: planner.plan_fft_forward(fy),
+            ifft_y: planner.plan_fft_inverse(fy),
+        }
+    }
+
     /// `buffers.real` -> `buffers.columns` (unnormalised forward transform). Rows not marked in
     /// `rows_used` must be zero in `real`; their spectra are set to zero without a transform.
     /// `real` is left as scratch.
@@ -433,27 +619,11 @@ impl LinearOperator for FftOperator {
     }
 
     fn apply(&self, t: &[f64], out: &mut [f64]) {
-        self.convolve(
-            t,
-            &self.dwell_cells,
-            &self.dwell_rows,
-            &self.map_cells,
-            &self.map_rows,
-            false,
-            out,
-        );
+        self.convolve(t, false, out);
     }
 
     fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
-        self.convolve(
-            y,
-            &self.map_cells,
-            &self.map_rows,
-            &self.dwell_cells,
-            &self.dwell_rows,
-            true,
-            out,
-        );
+        self.convolve(y, true, out);
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
@@ -468,6 +638,94 @@ impl LinearOperator for FftOperator {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Products equal the brute-force sums within this relative tolerance.
+    const BRUTE_REL_TOL: f64 = 1e-11;
+
+    /// A deliberately asymmetric TIF (off-centre, tilted Gaussian), so that a mirrored or
+    /// conjugated kernel cannot pass.
+    struct Lopsided;
+
+    impl InfluenceFunction for Lopsided {
+        fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+            let (u, v) = (dx_mm - 0.3, dy_mm + 0.2);
+            if dx_mm * dx_mm + dy_mm * dy_mm > 2.6 * 2.6 {
+                return 0.0;
+            }
+            (1.0 + 0.2 * dx_mm - 0.1 * dy_mm) * (-(u * u + 2.0 * v * v) / 1.5).exp()
+        }
+
+        fn support_radius_mm(&self) -> f64 {
+            2.6
+        }
+    }
+
+    /// `R t` and `R^T y` against `R[i, j] = TIF(p_i - q_j)` summed directly, for dwell points on
+    /// the whole lattice and on sub-lattices with several steps and offsets.
+    #[test]
+    fn products_equal_the_direct_sums_on_every_sub_lattice() {
+        let h = 0.5;
+        let (mx, my) = (17, 13);
+        let map: Vec<(f64, f64)> = (0..my)
+            .flat_map(|j| (0..mx).map(move |i| (i as f64 * h, j as f64 * h)))
+            .collect();
+        for (dx, dy, ox, oy) in [
+            (1, 1, 0, 0),
+            (2, 2, 0, 0),
+            (2, 2, 1, 1),
+            (3, 2, 2, 1),
+            (1, 3, 0, 2),
+        ] {
+            // Dwell points from 6 cells before the map to 6 after, on the sub-lattice.
+            let dwell: Vec<(f64, f64)> = (0..(my + 12) / dy)
+                .flat_map(|b| {
+                    (0..(mx + 12) / dx).map(move |a| {
+                        (
+                            ((a * dx + ox) as f64 - 6.0) * h,
+                            ((b * dy + oy) as f64 - 6.0) * h,
+                        )
+                    })
+                })
+                .collect();
+            let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
+            let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
+            let op = FftOperator::new(&x, &y, &qx, &qy, h, &Lopsided).unwrap();
+            assert_eq!(op.sub.is_some(), dx * dy > 1);
+            let (m, n) = (map.len(), dwell.len());
+            let t: Vec<f64> = (0..n).map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3).collect();
+            let w: Vec<f64> = (0..m).map(|i| ((i * 13) % 7) as f64 - 3.0).collect();
+            let r = |i: usize, j: usize| Lopsided.rate_nm_per_s(x[i] - qx[j], y[i] - qy[j]);
+            let (mut rt, mut rtw) = (vec![0.0; m], vec![0.0; n]);
+            op.apply(&t, &mut rt);
+            op.apply_transpose(&w, &mut rtw);
+            let scale = (0..m).map(|i| (0..n).map(|j| (r(i, j) * t[j]).abs()).sum::<f64>());
+            for (i, s) in scale.enumerate() {
+                let direct: f64 = (0..n).map(|j| r(i, j) * t[j]).sum();
+                assert!(
+                    (rt[i] - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
+                    "steps ({dx}, {dy}) offset ({ox}, {oy}): (R t)[{i}] {} vs {direct}",
+                    rt[i]
+                );
+            }
+            for (j, got) in rtw.iter().enumerate() {
+                let direct: f64 = (0..m).map(|i| r(i, j) * w[i]).sum();
+                let s: f64 = (0..m).map(|i| (r(i, j) * w[i]).abs()).sum();
+                assert!(
+                    (got - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
+                    "steps ({dx}, {dy}) offset ({ox}, {oy}): (R^T y)[{j}] {got} vs {direct}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn sub_lattice_steps_are_the_gcd_of_the_index_differences() {
+        assert_eq!(sub_lattice_step([4usize, 6, 10].into_iter()), 2);
+        assert_eq!(sub_lattice_step([3usize, 9, 21, 6].into_iter()), 3);
+        assert_eq!(sub_lattice_step([5usize, 5].into_iter()), 1);
+        assert_eq!(sub_lattice_step([2usize, 7].into_iter()), 5);
+        assert_eq!(sub_lattice_step(std::iter::empty()), 1);
+    }
 
     #[test]
     fn smooth_sizes_have_only_small_prime_factors() {
