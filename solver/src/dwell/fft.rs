@@ -7,8 +7,10 @@
 //! `R[i, j] = K[p_i - q_j]`, `K[d] = TIF(d h)` for `|d| <= ceil(radius / h)`. `R t` scatters `t` onto
 //! the lattice, convolves with `K` and gathers at the map points; `R^T y` scatters `y`, correlates
 //! with `K` (multiplies by the conjugate transform) and gathers at the dwell points. The lattice
-//! is padded to at least `N + kr + 1` per axis so the circular convolution equals the linear one on
-//! the points read (no wrap-around), and further to a size whose prime factors are 2, 3, 5 and 7.
+//! is padded so that the circular convolution equals the linear one on the points read (no
+//! wrap-around: `f > max(c - q) + kr` and `f > max(q - c) + kr` over map cells `c` and dwell cells
+//! `q`, so a map inset by the kernel radius in its dwell raster needs no padding), and further to
+//! a size whose prime factors are 2, 3, 5 and 7.
 //!
 //! The transform is real-to-complex along x (realfft: `fx / 2 + 1` frequencies, half the work of
 //! a complex transform) and complex along y (rustfft). Rows holding no input point are not
@@ -209,12 +211,17 @@ impl FftOperator {
             sub_lattice_step(dwell_ij.iter().map(|p| p.1)),
         );
         let (ox, oy) = (dwell_ij[0].0 % dx, dwell_ij[0].1 % dy);
-        // Padded by the kernel radius (no wrap-around), then up to a multiple of the step whose
-        // prime factors are 2, 3, 5 and 7 only, whose transforms are fastest (a prime factor such
-        // as 227 in 908 sends the transform to Rader's or Bluestein's algorithm).
+        // Padded so that no wrap-around reaches an output (`wrap_free_size`), then up to a
+        // multiple of the step whose prime factors are 2, 3, 5 and 7 only, whose transforms are
+        // fastest (a prime factor such as 227 in 908 sends the transform to Rader's or
+        // Bluestein's algorithm).
+        let (need_x, need_y) = (
+            wrap_free_size(map_ij.iter().map(|p| p.0), dwell_ij.iter().map(|p| p.0), kr),
+            wrap_free_size(map_ij.iter().map(|p| p.1), dwell_ij.iter().map(|p| p.1), kr),
+        );
         let (fx, fy) = (
-            dx * smooth_size((nx + kr + 1).div_ceil(dx)),
-            dy * smooth_size((ny + kr + 1).div_ceil(dy)),
+            dx * smooth_size(need_x.max(nx).div_ceil(dx)),
+            dy * smooth_size(need_y.max(ny).div_ceil(dy)),
         );
         let cell = |(i, j): (usize, usize)| j * fx + i;
         let map_cells: Vec<usize> = map_ij.iter().map(|&p| cell(p)).collect();
@@ -489,6 +496,28 @@ fn gather(real: &[f64], cells: &[usize], scale: f64, out: &mut [f64]) {
     }
 }
 
+/// Smallest transform length along one axis for which the circular convolution with a kernel of
+/// radius `kr` equals the linear one at every output: an input `q` reaches an output `c` only
+/// through `c - q` itself, never through `c - q -+ f`, when `f > max(c - q) + kr` and
+/// `f > max(q - c) + kr` over map cells `c` and dwell cells `q` (both directions of the product).
+/// A map inset by the kernel radius inside the dwell points needs no padding beyond the points.
+fn wrap_free_size(
+    map: impl Iterator<Item = usize> + Clone,
+    dwell: impl Iterator<Item = usize> + Clone,
+    kr: usize,
+) -> usize {
+    let range = |v: &mut dyn Iterator<Item = usize>| {
+        v.fold((usize::MAX, 0), |(lo, hi), i| (lo.min(i), hi.max(i)))
+    };
+    let ((map_lo, map_hi), (dwell_lo, dwell_hi)) =
+        (range(&mut map.clone()), range(&mut dwell.clone()));
+    map_hi
+        .saturating_sub(dwell_lo)
+        .max(dwell_hi.saturating_sub(map_lo))
+        + kr
+        + 1
+}
+
 /// Step of the sub-lattice holding the indices `v` along one axis: the gcd of their differences
 /// from the first (1 when all are equal).
 fn sub_lattice_step(mut v: impl Iterator<Item = usize>) -> usize {
@@ -669,20 +698,28 @@ mod tests {
         let map: Vec<(f64, f64)> = (0..my)
             .flat_map(|j| (0..mx).map(move |i| (i as f64 * h, j as f64 * h)))
             .collect();
-        for (dx, dy, ox, oy) in [
-            (1, 1, 0, 0),
-            (2, 2, 0, 0),
-            (2, 2, 1, 1),
-            (3, 2, 2, 1),
-            (1, 3, 0, 2),
+        // (steps, offsets, margin): dwell points from `margin` cells before the map to `margin`
+        // after it (the kernel radius is 6 cells), or inside it for a negative margin.
+        for (dx, dy, ox, oy, margin) in [
+            (1, 1, 0, 0, 6),
+            (2, 2, 0, 0, 6),
+            (2, 2, 1, 1, 6),
+            (3, 2, 2, 1, 6),
+            (1, 3, 0, 2, 6),
+            (2, 2, 1, 0, 9),
+            (1, 1, 0, 0, -4),
+            (2, 2, 0, 1, -3),
         ] {
-            // Dwell points from 6 cells before the map to 6 after, on the sub-lattice.
-            let dwell: Vec<(f64, f64)> = (0..(my + 12) / dy)
+            let (ax, ay) = (
+                (mx as i64 + 2 * margin) as usize,
+                (my as i64 + 2 * margin) as usize,
+            );
+            let dwell: Vec<(f64, f64)> = (0..ay / dy)
                 .flat_map(|b| {
-                    (0..(mx + 12) / dx).map(move |a| {
+                    (0..ax / dx).map(move |a| {
                         (
-                            ((a * dx + ox) as f64 - 6.0) * h,
-                            ((b * dy + oy) as f64 - 6.0) * h,
+                            ((a * dx + ox) as f64 - margin as f64) * h,
+                            ((b * dy + oy) as f64 - margin as f64) * h,
                         )
                     })
                 })
@@ -703,7 +740,7 @@ mod tests {
                 let direct: f64 = (0..n).map(|j| r(i, j) * t[j]).sum();
                 assert!(
                     (rt[i] - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
-                    "steps ({dx}, {dy}) offset ({ox}, {oy}): (R t)[{i}] {} vs {direct}",
+                    "steps ({dx}, {dy}) offset ({ox}, {oy}) margin {margin}: (R t)[{i}] {} vs {direct}",
                     rt[i]
                 );
             }
@@ -712,10 +749,19 @@ mod tests {
                 let s: f64 = (0..m).map(|i| (r(i, j) * w[i]).abs()).sum();
                 assert!(
                     (got - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
-                    "steps ({dx}, {dy}) offset ({ox}, {oy}): (R^T y)[{j}] {got} vs {direct}"
+                    "steps ({dx}, {dy}) offset ({ox}, {oy}) margin {margin}: (R^T y)[{j}] {got} vs {direct}"
                 );
             }
         }
+    }
+
+    #[test]
+    fn wrap_free_size_covers_both_directions() {
+        // Map cells 12..=271 inset by the radius 12 in dwell cells 0..=283: 284 = 271 - 0 + 13.
+        assert_eq!(wrap_free_size(12..=271, (0..=283).step_by(2), 12), 284);
+        // Dwell points inside the map: offsets -60..=59 (the lattice must still hold all 100).
+        assert_eq!(wrap_free_size(0..=99, 40..=60, 5), 66);
+        assert_eq!(wrap_free_size(0..=9, 0..=9, 0), 10);
     }
 
     #[test]
