@@ -44,16 +44,13 @@ pub struct FftOperator {
     fx: usize,
     fy: usize,
     kernel_hat: Vec<Complex<f64>>,
-    map_cells: Vec<usize>,
-    dwell_cells: Vec<usize>,
+    /// Map and dwell cells on the lattice (the map's shifted where there is a sub-lattice).
+    map: Cells,
+    dwell: Cells,
     /// `(k, k^2)` sums of each column over the map points, for the Jacobi scaling.
     col_sums: Vec<(f64, f64)>,
     /// Non-zero entries of each column of the implicit `R`.
     col_nnz: Vec<usize>,
-    /// Rows (`y` index) holding a map point / a dwell point: only those rows are transformed
-    /// forward when scattered from, and back when gathered into.
-    map_rows: Vec<bool>,
-    dwell_rows: Vec<bool>,
     transforms: Transforms,
     /// The dwell points' sub-lattice, when they lie on one coarser than the lattice.
     sub: Option<SubLattice>,
@@ -72,9 +69,70 @@ struct SubLattice {
     sx: usize,
     sy: usize,
     transforms: Transforms,
-    /// Dwell cells on the sub-lattice (`b * sx + a`) and the sub-lattice rows holding one.
-    dwell_cells: Vec<usize>,
-    dwell_rows: Vec<bool>,
+    /// Dwell cells on the sub-lattice (`b * sx + a`).
+    dwell: Cells,
+}
+
+/// Points on a lattice `width` cells wide: their cells, the points ordered by cell with each
+/// lattice row's range, and the rows holding a point (only those rows are transformed forward
+/// when scattered from, and back when gathered into).
+struct Cells {
+    width: usize,
+    cells: Vec<usize>,
+    by_cell: Vec<usize>,
+    row_start: Vec<usize>,
+    rows: Vec<bool>,
+}
+
+/// Lattice rows per scatter task at least (a row is a few hundred cells at 2e4 dwell points).
+const SCATTER_MIN_ROWS: usize = 32;
+
+impl Cells {
+    fn new(cells: Vec<usize>, width: usize, height: usize) -> Self {
+        let mut by_cell: Vec<usize> = (0..cells.len()).collect();
+        by_cell.sort_by_key(|&k| cells[k]);
+        let mut row_start = vec![0; height + 1];
+        for &c in &cells {
+            row_start[c / width + 1] += 1;
+        }
+        for r in 0..height {
+            row_start[r + 1] += row_start[r];
+        }
+        let rows = row_start.windows(2).map(|w| w[1] > w[0]).collect();
+        Self {
+            width,
+            cells,
+            by_cell,
+            row_start,
+            rows,
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.cells.len()
+    }
+
+    /// `real` = the lattice holding `values` at the cells (summed where points share a cell),
+    /// zero elsewhere; row by row in parallel, each row in a fixed order.
+    fn scatter(&self, values: &[f64], real: &mut [f64]) {
+        real.par_chunks_mut(self.width)
+            .enumerate()
+            .with_min_len(SCATTER_MIN_ROWS)
+            .for_each(|(r, row)| {
+                row.iter_mut().for_each(|v| *v = 0.0);
+                for &k in &self.by_cell[self.row_start[r]..self.row_start[r + 1]] {
+                    row[self.cells[k] - r * self.width] += values[k];
+                }
+            });
+    }
+
+    /// `out[k] = scale real[cells[k]]`.
+    fn gather(&self, real: &[f64], scale: f64, out: &mut [f64]) {
+        out.par_iter_mut()
+            .zip(self.cells.par_iter())
+            .with_min_len(4096)
+            .for_each(|(o, &c)| *o = real[c] * scale);
+    }
 }
 
 /// The 2-D real transform: real-to-complex along x (`fx / 2 + 1` frequencies), complex along y.
@@ -100,8 +158,8 @@ impl std::fmt::Debug for FftOperator {
         f.debug_struct("FftOperator")
             .field("fx", &self.fx)
             .field("fy", &self.fy)
-            .field("m", &self.map_cells.len())
-            .field("n", &self.dwell_cells.len())
+            .field("m", &self.map.len())
+            .field("n", &self.dwell.len())
             .finish()
     }
 }
@@ -256,10 +314,11 @@ impl FftOperator {
         let every_row = vec![true; fy];
         transforms.forward(&mut buffers, &every_row);
         let kernel_hat = buffers.columns.clone();
-        // Column sums over the map points for the Jacobi scaling.
-        let mut map_of = vec![false; fx * fy];
+        // Column sums over the map points for the Jacobi scaling (a cell holding several map
+        // points is several rows of R).
+        let mut map_count = vec![0u32; fx * fy];
         for &c in &map_cells {
-            map_of[c] = true;
+            map_count[c] += 1;
         }
         let sub = (dx * dy > 1).then(|| {
             let (sx, sy) = (fx / dx, fy / dy);
@@ -267,18 +326,13 @@ impl FftOperator {
                 .iter()
                 .map(|&(i, j)| (j / dy) * sx + i / dx)
                 .collect();
-            let mut dwell_rows = vec![false; sy];
-            for &c in &dwell_cells {
-                dwell_rows[c / sx] = true;
-            }
             SubLattice {
                 dx,
                 dy,
                 sx,
                 sy,
                 transforms: Transforms::new(sx, sy, &mut planner, &mut real_planner),
-                dwell_cells,
-                dwell_rows,
+                dwell: Cells::new(dwell_cells, sx, sy),
             }
         });
         // With a sub-lattice the map side is shifted by -(ox, oy) (see `SubLattice`).
@@ -290,14 +344,6 @@ impl FftOperator {
         } else {
             map_cells
         };
-        let mut map_rows = vec![false; fy];
-        for &c in &map_cells {
-            map_rows[c / fx] = true;
-        }
-        let mut dwell_rows = vec![false; fy];
-        for &c in &dwell_cells {
-            dwell_rows[c / fx] = true;
-        }
         let sub_buffers = sub.as_ref().map(|s| Buffers::new(s.sx, s.sy));
         let (col_sums, col_nnz): (Vec<(f64, f64)>, Vec<usize>) = dwell_ij
             .iter()
@@ -305,15 +351,11 @@ impl FftOperator {
                 let (mut s, mut s2, mut count) = (0.0, 0.0, 0usize);
                 for &(dx, dy, v) in &taps {
                     let (a, b) = (i as isize + dx, j as isize + dy);
-                    if a >= 0
-                        && b >= 0
-                        && (a as usize) < nx
-                        && (b as usize) < ny
-                        && map_of[b as usize * fx + a as usize]
-                    {
-                        s += v;
-                        s2 += v * v;
-                        count += 1;
+                    if a >= 0 && b >= 0 && (a as usize) < nx && (b as usize) < ny {
+                        let k = map_count[b as usize * fx + a as usize];
+                        s += f64::from(k) * v;
+                        s2 += f64::from(k) * v * v;
+                        count += k as usize;
                     }
                 }
                 ((s, s2), count)
@@ -323,12 +365,10 @@ impl FftOperator {
             fx,
             fy,
             kernel_hat,
-            map_cells,
-            dwell_cells,
+            map: Cells::new(map_cells, fx, fy),
+            dwell: Cells::new(dwell_cells, fx, fy),
             col_sums,
             col_nnz,
-            map_rows,
-            dwell_rows,
             transforms,
             sub,
             buffers: Mutex::new((buffers, sub_buffers)),
@@ -380,43 +420,33 @@ impl FftOperator {
         let scale = 1.0 / (self.fx * self.fy) as f64;
         match (&self.sub, small) {
             (Some(sub), Some(small)) if !conj => {
-                scatter(&mut small.real, &sub.dwell_cells, input);
-                sub.transforms.forward(small, &sub.dwell_rows);
+                sub.dwell.scatter(input, &mut small.real);
+                sub.transforms.forward(small, &sub.dwell.rows);
                 self.tile(sub, &small.columns, &mut full.columns);
-                self.transforms.inverse(full, &self.map_rows);
-                gather(&full.real, &self.map_cells, scale, out);
+                self.transforms.inverse(full, &self.map.rows);
+                self.map.gather(&full.real, scale, out);
             }
             (Some(sub), Some(small)) => {
-                scatter(&mut full.real, &self.map_cells, input);
-                self.transforms.forward(full, &self.map_rows);
+                self.map.scatter(input, &mut full.real);
+                self.transforms.forward(full, &self.map.rows);
                 self.fold(sub, &full.columns, &mut small.columns);
-                sub.transforms.inverse(small, &sub.dwell_rows);
-                gather(&small.real, &sub.dwell_cells, scale, out);
+                sub.transforms.inverse(small, &sub.dwell.rows);
+                sub.dwell.gather(&small.real, scale, out);
             }
             _ => {
-                let (from, from_rows, to, to_rows) = if conj {
-                    (
-                        &self.map_cells,
-                        &self.map_rows,
-                        &self.dwell_cells,
-                        &self.dwell_rows,
-                    )
+                let (from, to) = if conj {
+                    (&self.map, &self.dwell)
                 } else {
-                    (
-                        &self.dwell_cells,
-                        &self.dwell_rows,
-                        &self.map_cells,
-                        &self.map_rows,
-                    )
+                    (&self.dwell, &self.map)
                 };
-                scatter(&mut full.real, from, input);
-                self.transforms.forward(full, from_rows);
+                from.scatter(input, &mut full.real);
+                self.transforms.forward(full, &from.rows);
                 full.columns
                     .par_iter_mut()
                     .zip(self.kernel_hat.par_iter())
                     .for_each(|(b, k)| *b *= if conj { k.conj() } else { *k });
-                self.transforms.inverse(full, to_rows);
-                gather(&full.real, to, scale, out);
+                self.transforms.inverse(full, &to.rows);
+                to.gather(&full.real, scale, out);
             }
         }
     }
@@ -478,21 +508,6 @@ impl FftOperator {
                     *w = sum;
                 }
             });
-    }
-}
-
-/// Zeroes `real` and writes `values` at `cells`.
-fn scatter(real: &mut [f64], cells: &[usize], values: &[f64]) {
-    real.par_iter_mut().for_each(|v| *v = 0.0);
-    for (&c, &v) in cells.iter().zip(values) {
-        real[c] = v;
-    }
-}
-
-/// `out[k] = scale real[cells[k]]`.
-fn gather(real: &[f64], cells: &[usize], scale: f64, out: &mut [f64]) {
-    for (o, &c) in out.iter_mut().zip(cells) {
-        *o = real[c] * scale;
     }
 }
 
@@ -640,11 +655,11 @@ fn transpose(from: &[Complex<f64>], to: &mut [Complex<f64>], rows: usize, cols: 
 
 impl LinearOperator for FftOperator {
     fn nrows(&self) -> usize {
-        self.map_cells.len()
+        self.map.len()
     }
 
     fn ncols(&self) -> usize {
-        self.dwell_cells.len()
+        self.dwell.len()
     }
 
     fn apply(&self, t: &[f64], out: &mut [f64]) {
@@ -656,7 +671,7 @@ impl LinearOperator for FftOperator {
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
-        let m = self.map_cells.len().max(1) as f64;
+        let m = self.map.len().max(1) as f64;
         self.col_sums
             .iter()
             .map(|&(s, s2)| (s2 - s * s / m).max(0.0))
@@ -695,9 +710,11 @@ mod tests {
     fn products_equal_the_direct_sums_on_every_sub_lattice() {
         let h = 0.5;
         let (mx, my) = (17, 13);
-        let map: Vec<(f64, f64)> = (0..my)
+        let mut map: Vec<(f64, f64)> = (0..my)
             .flat_map(|j| (0..mx).map(move |i| (i as f64 * h, j as f64 * h)))
             .collect();
+        // A point measured twice: two rows of R, summed in R^T y.
+        map.push(map[40]);
         // (steps, offsets, margin): dwell points from `margin` cells before the map to `margin`
         // after it (the kernel radius is 6 cells), or inside it for a negative margin.
         for (dx, dy, ox, oy, margin) in [
@@ -742,6 +759,16 @@ mod tests {
                     (rt[i] - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
                     "steps ({dx}, {dy}) offset ({ox}, {oy}) margin {margin}: (R t)[{i}] {} vs {direct}",
                     rt[i]
+                );
+            }
+            let norms = op.centred_column_norms_sq();
+            for (j, got) in norms.iter().enumerate() {
+                let (s1, s2) =
+                    (0..m).fold((0.0, 0.0), |(a, b), i| (a + r(i, j), b + r(i, j).powi(2)));
+                let direct = s2 - s1 * s1 / m as f64;
+                assert!(
+                    (got - direct).abs() <= BRUTE_REL_TOL * s2.max(1.0),
+                    "margin {margin}: centred column norm {j} {got} vs {direct}"
                 );
             }
             for (j, got) in rtw.iter().enumerate() {
