@@ -50,7 +50,7 @@
 //! reduction uses fixed chunks: the result is bit-identical for any thread count. No allocation
 //! happens inside the iteration loop.
 
-use super::operator::{fixed_sum, LinearOperator, SparseOperator};
+use super::operator::{fixed_sum, LinearOperator, SparseOperator, CHUNK};
 use super::{DwellBounds, FirstOrderMethod, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
 use crate::observer::{IterationInfo, Observer, Stage};
@@ -170,8 +170,21 @@ impl Data<'_> {
         (half_r2, half_d2)
     }
 
+    /// As [`Data::gradient`] without the objective terms (one pass over the residual fewer).
+    fn gradient_only(&self, w: &[f64], work: &mut Work) {
+        self.centred_residual(w, Some(self.z), work);
+        self.backward(work);
+    }
+
     /// `work.t = S w`, `work.rt = P(R t - z)` (`z` omitted: `P R t`); returns `0.5 ||rt||^2`.
     fn residual(&self, w: &[f64], z: Option<&[f64]>, work: &mut Work) -> f64 {
+        self.centred_residual(w, z, work);
+        let rt = &work.rt;
+        0.5 * fixed_sum(rt.len(), &mut work.partials, |i| rt[i] * rt[i])
+    }
+
+    /// `work.t = S w`, `work.rt = P(R t - z)` (`z` omitted: `P R t`).
+    fn centred_residual(&self, w: &[f64], z: Option<&[f64]>, work: &mut Work) {
         let m = self.z.len();
         work.t
             .par_iter_mut()
@@ -191,8 +204,6 @@ impl Data<'_> {
                 .for_each(|(r, z)| *r = *r - z - mean),
             None => work.rt.par_iter_mut().for_each(|r| *r -= mean),
         }
-        let rt = &work.rt;
-        0.5 * fixed_sum(m, &mut work.partials, |i| rt[i] * rt[i])
     }
 
     /// `0.5 lambda ||D t||^2` at `work.t`.
@@ -473,22 +484,29 @@ fn fista(
     let (mut last_check, mut next_check) = (0, CHECK_EVERY);
     while it < max_it {
         it += 1;
-        // Gradient step from the extrapolated point y.
-        data.gradient(&y, work);
+        // Projected gradient step from the extrapolated point y and, in the same pass, the
+        // gradient-based restart test (y - x_new)'(x_new - x) > 0 (summed in fixed chunks).
+        data.gradient_only(&y, work);
         let step = 1.0 / lip;
-        {
-            let g = &work.g;
-            let sc = &data.s;
+        let restart_test = {
+            let (g, sc, lo, hi) = (&work.g, &data.s, &data.lo_w, &data.hi_w);
+            let (y, x) = (&y, &x);
             x_new
-                .par_iter_mut()
+                .par_chunks_mut(CHUNK)
                 .enumerate()
-                .for_each(|(j, xn)| *xn = y[j] - step * sc[j] * (g[j] + rho));
-        }
-        data.project(&mut x_new);
-        // Gradient-based restart: (y - x_new)'(x_new - x) > 0.
-        let restart_test = fixed_sum(n, &mut work.partials, |j| {
-            (y[j] - x_new[j]) * (x_new[j] - x[j])
-        });
+                .map(|(c, chunk)| {
+                    let mut acc = 0.0;
+                    for (k, xn) in chunk.iter_mut().enumerate() {
+                        let j = c * CHUNK + k;
+                        let v = (y[j] - step * sc[j] * (g[j] + rho)).max(lo[j]).min(hi[j]);
+                        *xn = v;
+                        acc += (y[j] - v) * (v - x[j]);
+                    }
+                    acc
+                })
+                .collect_into_vec(&mut work.partials);
+            work.partials.iter().sum::<f64>()
+        };
         if restart_test > 0.0 {
             theta = 1.0;
             y.copy_from_slice(&x_new);

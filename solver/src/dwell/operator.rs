@@ -102,7 +102,7 @@ impl LinearOperator for SparseOperator<'_> {
 }
 
 /// Length of the fixed chunks of [`fixed_sum`]: the chunking does not depend on the thread count.
-const CHUNK: usize = 4096;
+pub(crate) const CHUNK: usize = 4096;
 
 /// Sum of `f(k)` for `k` in `0..len`, in fixed chunks summed in parallel and then in order:
 /// bit-identical for any thread count. `partials` is reused scratch space.
