@@ -31,8 +31,8 @@
 //! gradient step of length `1 / L`, which always decreases an `L`-smooth `f`). Iterations count
 //! products with the Hessian or gradient (two operator products each) and objective evaluations.
 //!
-//! **Certificate.** Every 10 FISTA iterations (every `it / 50` past 500) or every Newton step, at the current
-//! feasible point `t`:
+//! **Certificate.** Every 10 FISTA iterations (every `it / 50` past 500; the time limit is checked
+//! there too) or every Newton step, at the current feasible point `t`:
 //! * KKT residual: `||w - Proj(w - grad_w f)||_2 / ||S (R^T P z)||_2 + rho ||S 1||_2`, relative,
 //!   in the scaled variables (zero exactly at the optimum);
 //! * gap bound, from Lagrangian duality: `0.5 ||a||^2 >= a'y - 0.5 ||y||^2` for every `y`, so with
