@@ -44,17 +44,24 @@ pub struct FftOperator {
     fx: usize,
     fy: usize,
     kernel_hat: Vec<Complex<f64>>,
-    /// Map and dwell cells on the lattice (the map's shifted where there is a sub-lattice).
+    /// Map cells on the lattice (shifted where the dwell points are on a sub-lattice).
     map: Cells,
-    dwell: Cells,
+    /// The dwell points: on the lattice, or on a sub-lattice coarser than it.
+    dwell: DwellCells,
     /// `(k, k^2)` sums of each column over the map points, for the Jacobi scaling.
     col_sums: Vec<(f64, f64)>,
     /// Non-zero entries of each column of the implicit `R`.
     col_nnz: Vec<usize>,
     transforms: Transforms,
-    /// The dwell points' sub-lattice, when they lie on one coarser than the lattice.
-    sub: Option<SubLattice>,
-    buffers: Mutex<(Buffers, Option<Buffers>)>,
+    buffers: Mutex<Buffers>,
+}
+
+/// Where the dwell side of each product runs.
+enum DwellCells {
+    /// Dwell cells on the lattice itself.
+    Lattice(Cells),
+    /// Dwell points on a coarser sub-lattice, with its own transforms and buffers.
+    Sub(SubLattice),
 }
 
 /// Dwell points on the sub-lattice `o + (dx a, dy b)` of the lattice (a 1 mm raster on a 0.5 mm
@@ -71,6 +78,8 @@ struct SubLattice {
     transforms: Transforms,
     /// Dwell cells on the sub-lattice (`b * sx + a`).
     dwell: Cells,
+    /// Locked after the lattice's buffers, never alone.
+    buffers: Mutex<Buffers>,
 }
 
 /// Points on a lattice `width` cells wide: their cells, the points ordered by cell with each
@@ -159,7 +168,7 @@ impl std::fmt::Debug for FftOperator {
             .field("fx", &self.fx)
             .field("fy", &self.fy)
             .field("m", &self.map.len())
-            .field("n", &self.dwell.len())
+            .field("n", &self.ncols())
             .finish()
     }
 }
@@ -333,6 +342,7 @@ impl FftOperator {
                 sy,
                 transforms: Transforms::new(sx, sy, &mut planner, &mut real_planner),
                 dwell: Cells::new(dwell_cells, sx, sy),
+                buffers: Mutex::new(Buffers::new(sx, sy)),
             }
         });
         // With a sub-lattice the map side is shifted by -(ox, oy) (see `SubLattice`).
@@ -344,7 +354,6 @@ impl FftOperator {
         } else {
             map_cells
         };
-        let sub_buffers = sub.as_ref().map(|s| Buffers::new(s.sx, s.sy));
         let (col_sums, col_nnz): (Vec<(f64, f64)>, Vec<usize>) = dwell_ij
             .iter()
             .map(|&(i, j)| {
@@ -366,12 +375,14 @@ impl FftOperator {
             fy,
             kernel_hat,
             map: Cells::new(map_cells, fx, fy),
-            dwell: Cells::new(dwell_cells, fx, fy),
+            dwell: match sub {
+                Some(sub) => DwellCells::Sub(sub),
+                None => DwellCells::Lattice(Cells::new(dwell_cells, fx, fy)),
+            },
             col_sums,
             col_nnz,
             transforms,
-            sub,
-            buffers: Mutex::new((buffers, sub_buffers)),
+            buffers: Mutex::new(buffers),
         })
     }
 
@@ -412,32 +423,33 @@ impl FftOperator {
     /// map to the dwell cells): scatter, transform, multiply by `K^` (or its conjugate),
     /// transform back, gather; on the dwell sub-lattice where there is one (see [`SubLattice`]).
     fn convolve(&self, input: &[f64], conj: bool, out: &mut [f64]) {
-        let mut guard = match self.buffers.lock() {
-            Ok(g) => g,
-            Err(p) => p.into_inner(),
-        };
-        let (full, small) = &mut *guard;
+        let mut full_guard = lock(&self.buffers);
+        let full = &mut *full_guard;
         let scale = 1.0 / (self.fx * self.fy) as f64;
-        match (&self.sub, small) {
-            (Some(sub), Some(small)) if !conj => {
+        match &self.dwell {
+            DwellCells::Sub(sub) if !conj => {
+                let mut small = lock(&sub.buffers);
+                let small = &mut *small;
                 sub.dwell.scatter(input, &mut small.real);
                 sub.transforms.forward(small, &sub.dwell.rows);
                 self.tile(sub, &small.columns, &mut full.columns);
                 self.transforms.inverse(full, &self.map.rows);
                 self.map.gather(&full.real, scale, out);
             }
-            (Some(sub), Some(small)) => {
+            DwellCells::Sub(sub) => {
+                let mut small = lock(&sub.buffers);
+                let small = &mut *small;
                 self.map.scatter(input, &mut full.real);
                 self.transforms.forward(full, &self.map.rows);
                 self.fold(sub, &full.columns, &mut small.columns);
                 sub.transforms.inverse(small, &sub.dwell.rows);
                 sub.dwell.gather(&small.real, scale, out);
             }
-            _ => {
+            DwellCells::Lattice(dwell) => {
                 let (from, to) = if conj {
-                    (&self.map, &self.dwell)
+                    (&self.map, dwell)
                 } else {
-                    (&self.dwell, &self.map)
+                    (dwell, &self.map)
                 };
                 from.scatter(input, &mut full.real);
                 self.transforms.forward(full, &from.rows);
@@ -508,6 +520,14 @@ impl FftOperator {
                     *w = sum;
                 }
             });
+    }
+}
+
+/// The buffers behind `m` (a panic elsewhere leaves them as scratch, still usable).
+fn lock(m: &Mutex<Buffers>) -> std::sync::MutexGuard<'_, Buffers> {
+    match m.lock() {
+        Ok(g) => g,
+        Err(p) => p.into_inner(),
     }
 }
 
@@ -659,7 +679,10 @@ impl LinearOperator for FftOperator {
     }
 
     fn ncols(&self) -> usize {
-        self.dwell.len()
+        match &self.dwell {
+            DwellCells::Lattice(cells) => cells.len(),
+            DwellCells::Sub(sub) => sub.dwell.len(),
+        }
     }
 
     fn apply(&self, t: &[f64], out: &mut [f64]) {
@@ -744,7 +767,7 @@ mod tests {
             let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
             let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
             let op = FftOperator::new(&x, &y, &qx, &qy, h, &Lopsided).unwrap();
-            assert_eq!(op.sub.is_some(), dx * dy > 1);
+            assert_eq!(matches!(op.dwell, DwellCells::Sub(_)), dx * dy > 1);
             let (m, n) = (map.len(), dwell.len());
             let t: Vec<f64> = (0..n).map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3).collect();
             let w: Vec<f64> = (0..m).map(|i| ((i * 13) % 7) as f64 - 3.0).collect();
