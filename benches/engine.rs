@@ -2,7 +2,7 @@
 //!
 //! `cargo bench --bench engine` (criterion). Assembly throughput is reported in non-zeros per
 //! second ("elements"); `fft_products` times one first-order iteration's products (`R t` and
-//! `R^T y`) with the matrix-free FFT operator on the generated `preston bench` problems.
+//! `R^T y`, and `R^T R t` in one pass) with the matrix-free FFT operator on the generated `preston bench` problems.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use preston::io::job::Job;
@@ -113,6 +113,11 @@ fn fft_products(c: &mut Criterion) {
                     op.apply_transpose(&rt, &mut rtr);
                 })
             },
+        );
+        group.bench_with_input(
+            BenchmarkId::new("normal", format!("{m}map_{n}dwell")),
+            &(),
+            |b, _| b.iter(|| op.apply_normal(&t, &mut rt, &mut rtr)),
         );
     }
     group.finish();

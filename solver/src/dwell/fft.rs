@@ -23,6 +23,13 @@
 //! (folded) - the polyphase form of the convolution (e.g. Oppenheim & Schafer, "Discrete-Time
 //! Signal Processing", sec. 4.7). The padded sizes are then multiples of the steps. With
 //! `dx = dy = 2` this takes a quarter-size transform in place of a full one on each product.
+//!
+//! `R^T R t` (what a gradient step needs) does not return to the points between the products:
+//! `R t` is transformed back along x one lattice row at a time, kept at the map cells (times
+//! the number of map points in each: gathering and scattering in one) and transformed forward
+//! again in the same pass. Every product runs as row passes (scatter or read a row, x transform)
+//! and column passes (read a column of the row spectra, y transform, multiply, inverse), about
+//! eight parallel loops for `R^T R t` against eighteen for `R t` and `R^T y` done one by one.
 
 use super::operator::LinearOperator;
 use crate::error::{Error, Result};
@@ -93,9 +100,6 @@ struct Cells {
     rows: Vec<bool>,
 }
 
-/// Lattice rows per scatter task at least (a row is a few hundred cells at 2e4 dwell points).
-const SCATTER_MIN_ROWS: usize = 32;
-
 impl Cells {
     fn new(cells: Vec<usize>, width: usize, height: usize) -> Self {
         let mut by_cell: Vec<usize> = (0..cells.len()).collect();
@@ -121,18 +125,29 @@ impl Cells {
         self.cells.len()
     }
 
-    /// `real` = the lattice holding `values` at the cells (summed where points share a cell),
-    /// zero elsewhere; row by row in parallel, each row in a fixed order.
-    fn scatter(&self, values: &[f64], real: &mut [f64]) {
-        real.par_chunks_mut(self.width)
-            .enumerate()
-            .with_min_len(SCATTER_MIN_ROWS)
-            .for_each(|(r, row)| {
-                row.iter_mut().for_each(|v| *v = 0.0);
-                for &k in &self.by_cell[self.row_start[r]..self.row_start[r + 1]] {
-                    row[self.cells[k] - r * self.width] += values[k];
-                }
-            });
+    /// `row` = lattice row `r` holding `values` at the cells in it (summed where points share
+    /// a cell, in a fixed order), zero elsewhere.
+    fn scatter_row(&self, r: usize, values: &[f64], row: &mut [f64]) {
+        row.iter_mut().for_each(|v| *v = 0.0);
+        let base = r * self.width;
+        for &k in &self.by_cell[self.row_start[r]..self.row_start[r + 1]] {
+            row[self.cells[k] - base] += values[k];
+        }
+    }
+
+    /// Lattice row `r`: each cell holding points times `scale` and their number, the others zero
+    /// (gathering the row at the points and scattering it back).
+    fn mask_row(&self, r: usize, scale: f64, row: &mut [f64]) {
+        let base = r * self.width;
+        let points = &self.by_cell[self.row_start[r]..self.row_start[r + 1]];
+        let mut next = 0;
+        for same in points.chunk_by(|&a, &b| self.cells[a] == self.cells[b]) {
+            let c = self.cells[same[0]] - base;
+            row[next..c].iter_mut().for_each(|v| *v = 0.0);
+            row[c] *= same.len() as f64 * scale;
+            next = c + 1;
+        }
+        row[next..].iter_mut().for_each(|v| *v = 0.0);
     }
 
     /// `out[k] = scale real[cells[k]]`.
@@ -152,6 +167,8 @@ struct Transforms {
     c2r_x: Arc<dyn ComplexToReal<f64>>,
     fft_y: Arc<dyn Fft<f64>>,
     ifft_y: Arc<dyn Fft<f64>>,
+    /// Scratch length enough for every one of the four transforms.
+    scratch_len: usize,
 }
 
 /// Reused by every product: the real lattice (`fy` rows of `fx`), its row spectra (`fy` rows of
@@ -320,8 +337,7 @@ impl FftOperator {
                 }
             }
         }
-        let every_row = vec![true; fy];
-        transforms.forward(&mut buffers, &every_row);
+        transforms.spectrum(&mut buffers, Fill::Ready, Spectrum::Keep);
         let kernel_hat = buffers.columns.clone();
         // Column sums over the map points for the Jacobi scaling (a cell holding several map
         // points is several rows of R).
@@ -422,58 +438,97 @@ impl FftOperator {
     /// `R t` (`conj = false`, from the dwell to the map cells) or `R^T y` (`conj = true`, from the
     /// map to the dwell cells): scatter, transform, multiply by `K^` (or its conjugate),
     /// transform back, gather; on the dwell sub-lattice where there is one (see [`SubLattice`]).
+    /// Each step runs as few parallel passes as possible (a row pass scatters and transforms
+    /// along x, a column pass reads its column of the row spectra and transforms along y).
     fn convolve(&self, input: &[f64], conj: bool, out: &mut [f64]) {
         let mut full_guard = lock(&self.buffers);
         let full = &mut *full_guard;
-        let scale = 1.0 / (self.fx * self.fy) as f64;
+        let scale = self.scale();
         match &self.dwell {
             DwellCells::Sub(sub) if !conj => {
                 let mut small = lock(&sub.buffers);
-                let small = &mut *small;
-                sub.dwell.scatter(input, &mut small.real);
-                sub.transforms.forward(small, &sub.dwell.rows);
-                self.tile(sub, &small.columns, &mut full.columns);
-                self.transforms.inverse(full, &self.map.rows);
+                self.tiled_spectrum(sub, input, &mut small, full);
+                self.transforms.to_real(full, &self.map.rows);
                 self.map.gather(&full.real, scale, out);
             }
             DwellCells::Sub(sub) => {
                 let mut small = lock(&sub.buffers);
                 let small = &mut *small;
-                self.map.scatter(input, &mut full.real);
-                self.transforms.forward(full, &self.map.rows);
-                self.fold(sub, &full.columns, &mut small.columns);
-                sub.transforms.inverse(small, &sub.dwell.rows);
+                self.transforms
+                    .spectrum(full, Fill::Scatter(&self.map, input), Spectrum::Keep);
+                self.folded(sub, full, small);
+                sub.transforms.to_real(small, &sub.dwell.rows);
                 sub.dwell.gather(&small.real, scale, out);
             }
             DwellCells::Lattice(dwell) => {
-                let (from, to) = if conj {
-                    (&self.map, dwell)
+                let k = &self.kernel_hat;
+                let (from, to, after) = if conj {
+                    (&self.map, dwell, Spectrum::Correlate(k))
                 } else {
-                    (dwell, &self.map)
+                    (dwell, &self.map, Spectrum::Convolve(k))
                 };
-                from.scatter(input, &mut full.real);
-                self.transforms.forward(full, &from.rows);
-                full.columns
-                    .par_iter_mut()
-                    .zip(self.kernel_hat.par_iter())
-                    .for_each(|(b, k)| *b *= if conj { k.conj() } else { *k });
-                self.transforms.inverse(full, &to.rows);
+                self.transforms
+                    .spectrum(full, Fill::Scatter(from, input), after);
+                self.transforms.to_real(full, &to.rows);
                 to.gather(&full.real, scale, out);
             }
         }
     }
 
-    /// `columns = K^ x` (tiled `small`): the lattice spectrum of a signal on the sub-lattice
-    /// through the origin is its sub-lattice spectrum repeated, `U[kx, ky] = S[kx mod sx, ky mod
-    /// sy]`; `S` is stored for `kx <= sx / 2` only, the rest from `S[k] = conj(S[-k])`.
-    fn tile(&self, sub: &SubLattice, small: &[Complex<f64>], columns: &mut [Complex<f64>]) {
+    /// `out = R^T R t` without leaving the lattice between the two products: `R t` transformed
+    /// back along x row by row, kept at the map cells only (each times its number of map
+    /// points, which is what gathering and scattering again would do) and transformed forward
+    /// again in the same row pass.
+    fn normal(&self, t: &[f64], out: &mut [f64]) {
+        let mut full_guard = lock(&self.buffers);
+        let full = &mut *full_guard;
+        let scale = self.scale();
+        let k = &self.kernel_hat;
+        match &self.dwell {
+            DwellCells::Sub(sub) => {
+                let mut small = lock(&sub.buffers);
+                let small = &mut *small;
+                self.tiled_spectrum(sub, t, small, full);
+                self.transforms
+                    .spectrum(full, Fill::Masked(&self.map, scale), Spectrum::Keep);
+                self.folded(sub, full, small);
+                sub.transforms.to_real(small, &sub.dwell.rows);
+                sub.dwell.gather(&small.real, scale, out);
+            }
+            DwellCells::Lattice(dwell) => {
+                self.transforms
+                    .spectrum(full, Fill::Scatter(dwell, t), Spectrum::Convolve(k));
+                self.transforms.spectrum(
+                    full,
+                    Fill::Masked(&self.map, scale),
+                    Spectrum::Correlate(k),
+                );
+                self.transforms.to_real(full, &dwell.rows);
+                dwell.gather(&full.real, scale, out);
+            }
+        }
+    }
+
+    /// Normalisation of one forward and inverse transform pair on the lattice (the sub-lattice
+    /// transforms are covered by it too: tiling and folding carry the rest).
+    fn scale(&self) -> f64 {
+        1.0 / (self.fx * self.fy) as f64
+    }
+
+    /// `full.columns` = the lattice transform of `K * t` for `t` on the sub-lattice, transformed
+    /// back along y: `t`'s sub-lattice spectrum (in `small.columns`) tiled, times `K^`. The
+    /// lattice spectrum of a signal on the sub-lattice through the origin is its sub-lattice
+    /// spectrum repeated, `U[kx, ky] = S[kx mod sx, ky mod sy]`; `S` is stored for
+    /// `kx <= sx / 2` only, the rest from `S[k] = conj(S[-k])`.
+    fn tiled_spectrum(&self, sub: &SubLattice, t: &[f64], small: &mut Buffers, full: &mut Buffers) {
+        sub.transforms
+            .spectrum(small, Fill::Scatter(&sub.dwell, t), Spectrum::Keep);
         let (fy, sx, sy) = (self.fy, sub.sx, sub.sy);
         let shx = sx / 2 + 1;
-        columns
-            .par_chunks_mut(fy)
-            .zip(self.kernel_hat.par_chunks(fy))
-            .enumerate()
-            .for_each(|(kx, (column, kernel))| {
+        let small = &small.columns;
+        self.transforms
+            .column_pass(&mut full.columns, None, |kx, column, scratch| {
+                let kernel = &self.kernel_hat[kx * fy..(kx + 1) * fy];
                 let kx = kx % sx;
                 if kx < shx {
                     let from = &small[kx * sy..(kx + 1) * sy];
@@ -486,17 +541,18 @@ impl FftOperator {
                         *c = from[(sy - ky % sy) % sy].conj() * k;
                     }
                 }
+                self.transforms.ifft_y.process_with_scratch(column, scratch);
             });
     }
 
-    /// `small = ` the sub-lattice spectrum of `K^* y` read on the sub-lattice: the lattice
-    /// spectrum `V = conj(K^) Y` with its `dx dy` aliases summed,
-    /// `W[k] = sum_{p < dx, q < dy} V[kx + p sx, ky + q sy]` (`V[k] = conj(V[-k])` beyond the
-    /// stored half), in a fixed order.
-    fn fold(&self, sub: &SubLattice, columns: &[Complex<f64>], small: &mut [Complex<f64>]) {
+    /// `small.columns` = the sub-lattice spectrum of `K^* y` (from `y`'s lattice spectrum in
+    /// `full.columns`), transformed back along y: the lattice spectrum `V = conj(K^) Y` with its
+    /// `dx dy` aliases summed, `W[k] = sum_{p < dx, q < dy} V[kx + p sx, ky + q sy]`
+    /// (`V[k] = conj(V[-k])` beyond the stored half), in a fixed order.
+    fn folded(&self, sub: &SubLattice, full: &Buffers, small: &mut Buffers) {
         let (fx, fy, sx, sy) = (self.fx, self.fy, sub.sx, sub.sy);
         let hx = fx / 2 + 1;
-        let kernel = &self.kernel_hat;
+        let (columns, kernel) = (&full.columns, &self.kernel_hat);
         let v = |kx: usize, ky: usize| -> Complex<f64> {
             if kx < hx {
                 let i = kx * fy + ky;
@@ -506,10 +562,8 @@ impl FftOperator {
                 columns[i].conj() * kernel[i]
             }
         };
-        small
-            .par_chunks_mut(sy)
-            .enumerate()
-            .for_each(|(kx, column)| {
+        sub.transforms
+            .column_pass(&mut small.columns, None, |kx, column, scratch| {
                 for (ky, w) in column.iter_mut().enumerate() {
                     let mut sum = Complex::new(0.0, 0.0);
                     for p in 0..sub.dx {
@@ -519,6 +573,7 @@ impl FftOperator {
                     }
                     *w = sum;
                 }
+                sub.transforms.ifft_y.process_with_scratch(column, scratch);
             });
     }
 }
@@ -577,6 +632,31 @@ impl Buffers {
     }
 }
 
+/// How a row pass fills a row of the real lattice before its forward transform along x.
+#[derive(Clone, Copy)]
+enum Fill<'a> {
+    /// The row is already in `real` (every row is transformed).
+    Ready,
+    /// The points' values scattered onto the row (summed where points share a cell); rows
+    /// holding no point are zero and not transformed.
+    Scatter(&'a Cells, &'a [f64]),
+    /// The row of the signal whose spectrum (transformed back along y) is in `columns`,
+    /// transformed back along x and kept at the points' cells only, times the number of points
+    /// in the cell and `scale`: gathering at the points and scattering back, in one pass.
+    Masked(&'a Cells, f64),
+}
+
+/// What a column pass does after the forward transform along y.
+#[derive(Clone, Copy)]
+enum Spectrum<'a> {
+    /// Keeps the spectrum.
+    Keep,
+    /// Multiplies by the kernel's spectrum (column-major) and transforms back along y.
+    Convolve(&'a [Complex<f64>]),
+    /// Multiplies by the conjugate of the kernel's spectrum and transforms back along y.
+    Correlate(&'a [Complex<f64>]),
+}
+
 impl Transforms {
     fn new(
         fx: usize,
@@ -584,93 +664,191 @@ impl Transforms {
         planner: &mut FftPlanner<f64>,
         real_planner: &mut RealFftPlanner<f64>,
     ) -> Self {
+        let (r2c_x, c2r_x) = (
+            real_planner.plan_fft_forward(fx),
+            real_planner.plan_fft_inverse(fx),
+        );
+        let (fft_y, ifft_y) = (planner.plan_fft_forward(fy), planner.plan_fft_inverse(fy));
+        let scratch_len = r2c_x
+            .get_scratch_len()
+            .max(c2r_x.get_scratch_len())
+            .max(fft_y.get_inplace_scratch_len())
+            .max(ifft_y.get_inplace_scratch_len());
         Self {
             fx,
             fy,
-            r2c_x: real_planner.plan_fft_forward(fx),
-            c2r_x: real_planner.plan_fft_inverse(fx),
-            fft_y: planner.plan_fft_forward(fy),
-            ifft_y: planner.plan_fft_inverse(fy),
+            r2c_x,
+            c2r_x,
+            fft_y,
+            ifft_y,
+            scratch_len,
         }
     }
 
-    /// `buffers.real` -> `buffers.columns` (unnormalised forward transform). Rows not marked in
-    /// `rows_used` must be zero in `real`; their spectra are set to zero without a transform.
-    /// `real` is left as scratch.
-    fn forward(&self, buffers: &mut Buffers, rows_used: &[bool]) {
+    /// Every row `r` of `real` (`fx` long) and of the row spectra `rows` (`fx / 2 + 1` long) to
+    /// `body(r, real_row, spectrum_row, scratch)`, in parallel. With `from_columns`, each
+    /// spectrum row is first read from that column-major spectrum (a transpose; consecutive rows
+    /// go to the same task, so each cache line read serves several rows).
+    fn row_pass<F>(
+        &self,
+        real: &mut [f64],
+        rows: &mut [Complex<f64>],
+        from_columns: Option<&[Complex<f64>]>,
+        body: F,
+    ) where
+        F: Fn(usize, &mut [f64], &mut [Complex<f64>], &mut [Complex<f64>]) + Sync,
+    {
         let (fx, fy, hx) = (self.fx, self.fy, self.fx / 2 + 1);
-        let Buffers {
-            real,
-            rows,
-            columns,
-        } = buffers;
-        let r2c = &self.r2c_x;
         real.par_chunks_mut(fx)
             .zip(rows.par_chunks_mut(hx))
-            .zip(rows_used.par_iter())
+            .enumerate()
             .for_each_init(
-                || r2c.make_scratch_vec(),
-                |scratch, ((input, output), &used)| {
-                    if used {
-                        // Lengths match the plan by construction; the only error is a length one.
-                        let _ = r2c.process_with_scratch(input, output, scratch);
-                    } else {
-                        output.iter_mut().for_each(|c| *c = Complex::new(0.0, 0.0));
+                || vec![Complex::new(0.0, 0.0); self.scratch_len],
+                |scratch, (r, (real_row, spectrum_row))| {
+                    if let Some(columns) = from_columns {
+                        for (kx, s) in spectrum_row.iter_mut().enumerate() {
+                            *s = columns[kx * fy + r];
+                        }
                     }
+                    body(r, real_row, spectrum_row, scratch);
                 },
             );
-        transpose(rows, columns, fy, hx);
-        transform_rows(columns, fy, &self.fft_y);
     }
 
-    /// `buffers.columns` -> `buffers.real` (unnormalised inverse transform), only for the rows
-    /// marked in `rows_wanted` (the others are left as they were). `columns` is left as scratch.
-    fn inverse(&self, buffers: &mut Buffers, rows_wanted: &[bool]) {
-        let (fx, fy, hx) = (self.fx, self.fy, self.fx / 2 + 1);
+    /// Every column `kx` (`fy` long) of `columns` to `body(kx, column, scratch)`, in parallel.
+    /// With `from_rows`, each column is first read from that row-major spectrum (a transpose, as
+    /// in [`Transforms::row_pass`]).
+    fn column_pass<F>(
+        &self,
+        columns: &mut [Complex<f64>],
+        from_rows: Option<&[Complex<f64>]>,
+        body: F,
+    ) where
+        F: Fn(usize, &mut [Complex<f64>], &mut [Complex<f64>]) + Sync,
+    {
+        let hx = self.fx / 2 + 1;
+        columns.par_chunks_mut(self.fy).enumerate().for_each_init(
+            || vec![Complex::new(0.0, 0.0); self.scratch_len],
+            |scratch, (kx, column)| {
+                if let Some(rows) = from_rows {
+                    for (ky, c) in column.iter_mut().enumerate() {
+                        *c = rows[ky * hx + kx];
+                    }
+                }
+                body(kx, column, scratch);
+            },
+        );
+    }
+
+    /// `spectrum_row` = the x transform of `real_row` (used as scratch).
+    fn r2c(
+        &self,
+        real_row: &mut [f64],
+        spectrum_row: &mut [Complex<f64>],
+        scratch: &mut [Complex<f64>],
+    ) {
+        // Lengths match the plan by construction; the only error is a length one.
+        let _ = self
+            .r2c_x
+            .process_with_scratch(real_row, spectrum_row, scratch);
+    }
+
+    /// `real_row` = the inverse x transform of `spectrum_row` (used as scratch).
+    fn c2r(
+        &self,
+        spectrum_row: &mut [Complex<f64>],
+        real_row: &mut [f64],
+        scratch: &mut [Complex<f64>],
+    ) {
+        // The spectrum of a real signal has real DC (and Nyquist) terms; clear the rounding left
+        // in their imaginary parts, which the transform ignores.
+        let hx = spectrum_row.len();
+        spectrum_row[0].im = 0.0;
+        if 2 * (hx - 1) == self.fx {
+            spectrum_row[hx - 1].im = 0.0;
+        }
+        let _ = self
+            .c2r_x
+            .process_with_scratch(spectrum_row, real_row, scratch);
+    }
+
+    /// Forward transform (unnormalised) of the lattice filled by `fill` into `b.columns`, then
+    /// `after`: one row pass (fill, x transform) and one column pass (read the column, y
+    /// transform, and for a convolution the multiplication and the inverse y transform).
+    /// `b.real` and `b.rows` are left as scratch.
+    fn spectrum(&self, b: &mut Buffers, fill: Fill<'_>, after: Spectrum<'_>) {
+        let fy = self.fy;
         let Buffers {
             real,
             rows,
             columns,
-        } = buffers;
-        transform_rows(columns, fy, &self.ifft_y);
-        transpose(columns, rows, hx, fy);
-        let c2r = &self.c2r_x;
-        let even = fx % 2 == 0;
-        rows.par_chunks_mut(hx)
-            .zip(real.par_chunks_mut(fx))
-            .zip(rows_wanted.par_iter())
-            .for_each_init(
-                || c2r.make_scratch_vec(),
-                |scratch, ((input, output), &wanted)| {
-                    if wanted {
-                        // The spectrum of a real signal has real DC (and Nyquist) terms; clear the
-                        // rounding left in their imaginary parts, which the transform ignores.
-                        input[0].im = 0.0;
-                        if even {
-                            input[hx - 1].im = 0.0;
+        } = b;
+        {
+            let from_columns = matches!(fill, Fill::Masked(..)).then_some(columns.as_slice());
+            self.row_pass(
+                real,
+                rows,
+                from_columns,
+                |r, real_row, spectrum_row, scratch| {
+                    let zero = |s: &mut [Complex<f64>]| {
+                        s.iter_mut().for_each(|c| *c = Complex::new(0.0, 0.0))
+                    };
+                    match fill {
+                        Fill::Ready => self.r2c(real_row, spectrum_row, scratch),
+                        Fill::Scatter(cells, _) | Fill::Masked(cells, _) if !cells.rows[r] => {
+                            zero(spectrum_row)
                         }
-                        let _ = c2r.process_with_scratch(input, output, scratch);
+                        Fill::Scatter(cells, values) => {
+                            cells.scatter_row(r, values, real_row);
+                            self.r2c(real_row, spectrum_row, scratch);
+                        }
+                        Fill::Masked(cells, scale) => {
+                            self.c2r(spectrum_row, real_row, scratch);
+                            cells.mask_row(r, scale, real_row);
+                            self.r2c(real_row, spectrum_row, scratch);
+                        }
                     }
                 },
             );
-    }
-}
-
-/// Transforms every `len`-long row of `buffer` in place with `fft` (one scratch buffer per task).
-fn transform_rows(buffer: &mut [Complex<f64>], len: usize, fft: &Arc<dyn Fft<f64>>) {
-    buffer.par_chunks_mut(len).for_each_init(
-        || vec![Complex::new(0.0, 0.0); fft.get_inplace_scratch_len()],
-        |scratch, row| fft.process_with_scratch(row, scratch),
-    );
-}
-
-/// `to = from^T` for a row-major `rows x cols` matrix `from` (so `to` is `cols x rows`).
-fn transpose(from: &[Complex<f64>], to: &mut [Complex<f64>], rows: usize, cols: usize) {
-    to.par_chunks_mut(rows).enumerate().for_each(|(c, out)| {
-        for (r, o) in out.iter_mut().enumerate() {
-            *o = from[r * cols + c];
         }
-    });
+        let rows = &*rows;
+        self.column_pass(columns, Some(rows), |kx, column, scratch| {
+            self.fft_y.process_with_scratch(column, scratch);
+            match after {
+                Spectrum::Keep => return,
+                Spectrum::Convolve(k) => {
+                    let k = &k[kx * fy..(kx + 1) * fy];
+                    column.iter_mut().zip(k).for_each(|(c, k)| *c *= k);
+                }
+                Spectrum::Correlate(k) => {
+                    let k = &k[kx * fy..(kx + 1) * fy];
+                    column.iter_mut().zip(k).for_each(|(c, k)| *c *= k.conj());
+                }
+            }
+            self.ifft_y.process_with_scratch(column, scratch);
+        });
+    }
+
+    /// `b.real` = the inverse x transform, for the rows marked in `rows_wanted` (others left as
+    /// they were), of the signal whose spectrum transformed back along y is in `b.columns`
+    /// (unnormalised; one row pass). `b.rows` is left as scratch.
+    fn to_real(&self, b: &mut Buffers, rows_wanted: &[bool]) {
+        let Buffers {
+            real,
+            rows,
+            columns,
+        } = b;
+        self.row_pass(
+            real,
+            rows,
+            Some(columns),
+            |r, real_row, spectrum_row, scratch| {
+                if rows_wanted[r] {
+                    self.c2r(spectrum_row, real_row, scratch);
+                }
+            },
+        );
+    }
 }
 
 impl LinearOperator for FftOperator {
@@ -691,6 +869,10 @@ impl LinearOperator for FftOperator {
 
     fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
         self.convolve(y, true, out);
+    }
+
+    fn apply_normal(&self, t: &[f64], _scratch: &mut [f64], out: &mut [f64]) {
+        self.normal(t, out);
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
@@ -800,6 +982,23 @@ mod tests {
                 assert!(
                     (got - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
                     "steps ({dx}, {dy}) offset ({ox}, {oy}) margin {margin}: (R^T y)[{j}] {got} vs {direct}"
+                );
+            }
+            // R^T R t in one pass over the lattice (the repeated map point counts twice).
+            let mut rtrt = vec![0.0; n];
+            op.apply_normal(&t, &mut rt, &mut rtrt);
+            let direct_rt: Vec<f64> = (0..m)
+                .map(|i| (0..n).map(|j| r(i, j) * t[j]).sum())
+                .collect();
+            let abs_rt: Vec<f64> = (0..m)
+                .map(|i| (0..n).map(|j| (r(i, j) * t[j]).abs()).sum())
+                .collect();
+            for (j, got) in rtrt.iter().enumerate() {
+                let direct: f64 = (0..m).map(|i| r(i, j) * direct_rt[i]).sum();
+                let s: f64 = (0..m).map(|i| r(i, j).abs() * abs_rt[i]).sum();
+                assert!(
+                    (got - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
+                    "steps ({dx}, {dy}) offset ({ox}, {oy}) margin {margin}: (R^T R t)[{j}] {got} vs {direct}"
                 );
             }
         }

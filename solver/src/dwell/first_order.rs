@@ -16,7 +16,10 @@
 //! **Objective.** The free piston is eliminated analytically: for fixed `t` the best `c` is
 //! `mean(R t - z)`, so with `P = I - 11'/m` the contract is
 //! `f(t) = 0.5 ||P (R t - z)||^2 + rho 1't + 0.5 lambda ||D t||^2` over the box `l <= t <= u`, with
-//! gradient `g = R^T P (R t - z) + rho 1 + lambda D^T D t`.
+//! gradient `g = R^T P (R t - z) + rho 1 + lambda D^T D t`. The iterations evaluate it from the
+//! normal equations, `R^T P (R t - z) = R^T R t - R^T z - ((c't - 1'z) / m) c` with `c = R^T 1`
+//! and `R^T z` computed once, so that an operator can form `R^T R t` in one pass (the FFT
+//! operator does, see [`super::fft`]); the certificate forms the residual itself.
 //!
 //! **Scaling.** `t = S w` with `S = diag(1 / sqrt(d_j))`, `d_j` the diagonal of the Hessian
 //! `R^T P R + lambda D^T D` (Jacobi preconditioning); the box stays a box. The step is `1 / L`,
@@ -154,6 +157,12 @@ struct Data<'a> {
     z: &'a [f64],
     rho: f64,
     lambda: f64,
+    /// `1'z`.
+    sum_z: f64,
+    /// `R^T z`.
+    rtz: Vec<f64>,
+    /// `c = R^T 1` (column sums).
+    column_sums: Vec<f64>,
     /// Jacobi scale `S`.
     s: Vec<f64>,
     lo_w: Vec<f64>,
@@ -165,45 +174,75 @@ impl Data<'_> {
     /// `work.g = grad_t f - rho` (i.e. `R^T r + lambda D^T D t`) and returns `(0.5||r||^2,
     /// 0.5 lambda ||D t||^2)`. The scaled gradient is `S (g + rho)`.
     fn gradient(&self, w: &[f64], work: &mut Work) -> (f64, f64) {
-        let half_r2 = self.residual(w, Some(self.z), work);
+        let half_r2 = self.residual(w, work);
         let half_d2 = self.backward(work);
         (half_r2, half_d2)
     }
 
-    /// As [`Data::gradient`] without the objective terms (one pass over the residual fewer).
+    /// `work.g` as [`Data::gradient`] leaves it, from the normal equations and one pass over
+    /// the lattice where the operator has one (`work.rt` is scratch):
+    /// `R^T P (R t - z) = R^T R t - R^T z - mean c`, `c = R^T 1`, `mean = (c't - 1'z) / m`.
     fn gradient_only(&self, w: &[f64], work: &mut Work) {
-        self.centred_residual(w, Some(self.z), work);
-        self.backward(work);
+        self.normal_gradient(w, true, work);
     }
 
-    /// `work.t = S w`, `work.rt = P(R t - z)` (`z` omitted: `P R t`); returns `0.5 ||rt||^2`.
-    fn residual(&self, w: &[f64], z: Option<&[f64]>, work: &mut Work) -> f64 {
-        self.centred_residual(w, z, work);
-        let rt = &work.rt;
-        0.5 * fixed_sum(rt.len(), &mut work.partials, |i| rt[i] * rt[i])
+    /// `work.t = S w` and `work.g = R^T P (R t - z) + lambda D^T D t` by the normal equations
+    /// (see [`Data::gradient_only`]; `with_z = false` drops `z`).
+    fn normal_gradient(&self, w: &[f64], with_z: bool, work: &mut Work) {
+        let c = &self.column_sums;
+        let ct = {
+            let s = &self.s;
+            work.t
+                .par_chunks_mut(CHUNK)
+                .enumerate()
+                .map(|(k, chunk)| {
+                    let mut acc = 0.0;
+                    for (i, t) in chunk.iter_mut().enumerate() {
+                        let j = k * CHUNK + i;
+                        *t = w[j] * s[j];
+                        acc += c[j] * *t;
+                    }
+                    acc
+                })
+                .collect_into_vec(&mut work.partials);
+            work.partials.iter().sum::<f64>()
+        };
+        self.op.apply_normal(&work.t, &mut work.rt, &mut work.g);
+        let (sum_z, rtz) = if with_z {
+            (self.sum_z, self.rtz.as_slice())
+        } else {
+            (0.0, &[][..])
+        };
+        let mean = (ct - sum_z) / self.z.len() as f64;
+        let (t, lam) = (&work.t, self.lambda);
+        work.g.par_iter_mut().enumerate().for_each(|(j, g)| {
+            let mut v = *g - mean * c[j];
+            if with_z {
+                v -= rtz[j];
+            }
+            if lam > 0.0 {
+                v += lam * dtd(t, j);
+            }
+            *g = v;
+        });
     }
 
-    /// `work.t = S w`, `work.rt = P(R t - z)` (`z` omitted: `P R t`).
-    fn centred_residual(&self, w: &[f64], z: Option<&[f64]>, work: &mut Work) {
-        let m = self.z.len();
+    /// `work.t = S w`, `work.rt = P(R t - z)`; returns `0.5 ||rt||^2`.
+    fn residual(&self, w: &[f64], work: &mut Work) -> f64 {
+        let (m, z) = (self.z.len(), self.z);
         work.t
             .par_iter_mut()
             .zip(w.par_iter().zip(&self.s))
             .for_each(|(t, (w, s))| *t = w * s);
         self.op.apply(&work.t, &mut work.rt);
         let rt = &work.rt;
-        let mean = match z {
-            Some(z) => fixed_sum(m, &mut work.partials, |i| rt[i] - z[i]),
-            None => fixed_sum(m, &mut work.partials, |i| rt[i]),
-        } / m as f64;
-        match z {
-            Some(z) => work
-                .rt
-                .par_iter_mut()
-                .zip(z.par_iter())
-                .for_each(|(r, z)| *r = *r - z - mean),
-            None => work.rt.par_iter_mut().for_each(|r| *r -= mean),
-        }
+        let mean = fixed_sum(m, &mut work.partials, |i| rt[i] - z[i]) / m as f64;
+        work.rt
+            .par_iter_mut()
+            .zip(z.par_iter())
+            .for_each(|(r, z)| *r = *r - z - mean);
+        let rt = &work.rt;
+        0.5 * fixed_sum(rt.len(), &mut work.partials, |i| rt[i] * rt[i])
     }
 
     /// `0.5 lambda ||D t||^2` at `work.t`.
@@ -223,26 +262,18 @@ impl Data<'_> {
     fn backward(&self, work: &mut Work) -> f64 {
         self.op.apply_transpose(&work.rt, &mut work.g);
         if self.lambda > 0.0 {
-            let t = &work.t;
-            let n = t.len();
-            let lam = self.lambda;
-            work.g.par_iter_mut().enumerate().for_each(|(j, g)| {
-                let mut dd = 0.0;
-                if j > 0 {
-                    dd += t[j] - t[j - 1];
-                }
-                if j + 1 < n {
-                    dd -= t[j + 1] - t[j];
-                }
-                *g += lam * dd;
-            });
+            let (t, lam) = (&work.t, self.lambda);
+            work.g
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(j, g)| *g += lam * dtd(t, j));
         }
         self.half_smoothing(work)
     }
 
     /// The full objective `f` at `w` (one product with `R`).
     fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
-        let half_r2 = self.residual(w, Some(self.z), work);
+        let half_r2 = self.residual(w, work);
         let half_d2 = self.half_smoothing(work);
         let t = &work.t;
         let sum_t = fixed_sum(t.len(), &mut work.partials, |j| t[j]);
@@ -251,8 +282,7 @@ impl Data<'_> {
 
     /// Scaled Hessian product `out = S (R^T P R + lambda D^T D) S v`.
     fn hessian_product(&self, v: &[f64], work: &mut Work, out: &mut [f64]) {
-        self.residual(v, None, work);
-        self.backward(work);
+        self.normal_gradient(v, false, work);
         out.par_iter_mut()
             .zip(work.g.par_iter().zip(&self.s))
             .for_each(|(o, (g, s))| *o = s * g);
@@ -263,6 +293,18 @@ impl Data<'_> {
             .zip(self.lo_w.par_iter().zip(self.hi_w.par_iter()))
             .for_each(|(w, (lo, hi))| *w = w.max(*lo).min(*hi));
     }
+}
+
+/// `(D^T D t)_j` for the first-difference matrix `D` along the path.
+fn dtd(t: &[f64], j: usize) -> f64 {
+    let mut dd = 0.0;
+    if j > 0 {
+        dd += t[j] - t[j - 1];
+    }
+    if j + 1 < t.len() {
+        dd -= t[j + 1] - t[j];
+    }
+    dd
 }
 
 /// Below this many rows plus columns the iteration runs on one thread: rayon's per-call cost
@@ -292,7 +334,10 @@ pub fn minimise(
         return pool
             .install(|| minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer));
     }
-    minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer)
+    // Run on a worker of the pool: called from outside it, every parallel loop of the iteration
+    // would be injected into the pool and waited for on a futex (a few microseconds each, and
+    // one thread more than there are workers competing for the cores).
+    rayon::scope(|_| minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -363,9 +408,16 @@ fn minimise_here(
         .map(|(l, s)| l / s)
         .collect();
     let hi_w: Vec<f64> = (0..n).map(|j| bounds.upper(j) / s[j]).collect();
+    // R^T z and R^T 1 for the gradient from the normal equations.
+    let (mut rtz, mut column_sums) = (vec![0.0; n], vec![0.0; n]);
+    op.apply_transpose(z_nm, &mut rtz);
+    op.apply_transpose(&vec![1.0; m], &mut column_sums);
     let data = Data {
         op,
         z: z_nm,
+        sum_z: z_nm.iter().sum(),
+        rtz,
+        column_sums,
         rho,
         lambda,
         s,

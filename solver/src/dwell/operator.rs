@@ -17,6 +17,11 @@ pub trait LinearOperator: Sync {
     fn apply(&self, t: &[f64], out: &mut [f64]);
     /// `out = R^T y`; `y.len() == m`, `out.len() == n`.
     fn apply_transpose(&self, y: &[f64], out: &mut [f64]);
+    /// `out = R^T R t`; `scratch.len() == m` (space for `R t`, which an operator may bypass).
+    fn apply_normal(&self, t: &[f64], scratch: &mut [f64], out: &mut [f64]) {
+        self.apply(t, scratch);
+        self.apply_transpose(scratch, out);
+    }
     /// Squared norms of the centred columns, `||R_j||^2 - (1' R_j)^2 / m` (the diagonal of
     /// `R^T P R` with `P = I - 11'/m`), used for the Jacobi scaling.
     fn centred_column_norms_sq(&self) -> Vec<f64>;
