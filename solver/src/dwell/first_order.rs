@@ -408,10 +408,17 @@ fn minimise_here(
         .map(|(l, s)| l / s)
         .collect();
     let hi_w: Vec<f64> = (0..n).map(|j| bounds.upper(j) / s[j]).collect();
-    // R^T z and R^T 1 for the gradient from the normal equations.
+    let mut work = Work {
+        t: vec![0.0; n],
+        rt: vec![0.0; m],
+        g: vec![0.0; n],
+        partials: Vec::with_capacity(m.max(n).div_ceil(4096) + 1),
+    };
+    // R^T z and R^T 1 for the gradient from the normal equations (`work.rt` holds the ones).
     let (mut rtz, mut column_sums) = (vec![0.0; n], vec![0.0; n]);
     op.apply_transpose(z_nm, &mut rtz);
-    op.apply_transpose(&vec![1.0; m], &mut column_sums);
+    work.rt.iter_mut().for_each(|r| *r = 1.0);
+    op.apply_transpose(&work.rt, &mut column_sums);
     let data = Data {
         op,
         z: z_nm,
@@ -423,12 +430,6 @@ fn minimise_here(
         s,
         lo_w,
         hi_w,
-    };
-    let mut work = Work {
-        t: vec![0.0; n],
-        rt: vec![0.0; m],
-        g: vec![0.0; n],
-        partials: Vec::with_capacity(m.max(n).div_ceil(4096) + 1),
     };
 
     // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1||.
