@@ -527,7 +527,7 @@ impl FftOperator {
         let shx = sx / 2 + 1;
         let small = &small.columns;
         self.transforms
-            .column_pass(&mut full.columns, None, |kx, column, scratch| {
+            .column_pass(&mut full.columns, |kx, column, scratch| {
                 let kernel = &self.kernel_hat[kx * fy..(kx + 1) * fy];
                 let kx = kx % sx;
                 if kx < shx {
@@ -563,7 +563,7 @@ impl FftOperator {
             }
         };
         sub.transforms
-            .column_pass(&mut small.columns, None, |kx, column, scratch| {
+            .column_pass(&mut small.columns, |kx, column, scratch| {
                 for (ky, w) in column.iter_mut().enumerate() {
                     let mut sum = Complex::new(0.0, 0.0);
                     for p in 0..sub.dx {
@@ -686,58 +686,48 @@ impl Transforms {
     }
 
     /// Every row `r` of `real` (`fx` long) and of the row spectra `rows` (`fx / 2 + 1` long) to
-    /// `body(r, real_row, spectrum_row, scratch)`, in parallel. With `from_columns`, each
-    /// spectrum row is first read from that column-major spectrum (a transpose; consecutive rows
-    /// go to the same task, so each cache line read serves several rows).
-    fn row_pass<F>(
-        &self,
-        real: &mut [f64],
-        rows: &mut [Complex<f64>],
-        from_columns: Option<&[Complex<f64>]>,
-        body: F,
-    ) where
+    /// `body(r, real_row, spectrum_row, scratch)`, in parallel.
+    fn row_pass<F>(&self, real: &mut [f64], rows: &mut [Complex<f64>], body: F)
+    where
         F: Fn(usize, &mut [f64], &mut [Complex<f64>], &mut [Complex<f64>]) + Sync,
     {
-        let (fx, fy, hx) = (self.fx, self.fy, self.fx / 2 + 1);
+        let (fx, hx) = (self.fx, self.fx / 2 + 1);
         real.par_chunks_mut(fx)
             .zip(rows.par_chunks_mut(hx))
             .enumerate()
             .for_each_init(
                 || vec![Complex::new(0.0, 0.0); self.scratch_len],
-                |scratch, (r, (real_row, spectrum_row))| {
-                    if let Some(columns) = from_columns {
-                        for (kx, s) in spectrum_row.iter_mut().enumerate() {
-                            *s = columns[kx * fy + r];
-                        }
-                    }
-                    body(r, real_row, spectrum_row, scratch);
-                },
+                |scratch, (r, (real_row, spectrum_row))| body(r, real_row, spectrum_row, scratch),
             );
     }
 
     /// Every column `kx` (`fy` long) of `columns` to `body(kx, column, scratch)`, in parallel.
-    /// With `from_rows`, each column is first read from that row-major spectrum (a transpose, as
-    /// in [`Transforms::row_pass`]).
-    fn column_pass<F>(
-        &self,
-        columns: &mut [Complex<f64>],
-        from_rows: Option<&[Complex<f64>]>,
-        body: F,
-    ) where
+    fn column_pass<F>(&self, columns: &mut [Complex<f64>], body: F)
+    where
         F: Fn(usize, &mut [Complex<f64>], &mut [Complex<f64>]) + Sync,
     {
-        let hx = self.fx / 2 + 1;
         columns.par_chunks_mut(self.fy).enumerate().for_each_init(
             || vec![Complex::new(0.0, 0.0); self.scratch_len],
-            |scratch, (kx, column)| {
-                if let Some(rows) = from_rows {
-                    for (ky, c) in column.iter_mut().enumerate() {
-                        *c = rows[ky * hx + kx];
-                    }
-                }
-                body(kx, column, scratch);
-            },
+            |scratch, (kx, column)| body(kx, column, scratch),
         );
+    }
+
+    /// `spectrum_row` = row `r` of the column-major spectrum `columns` (a strided read: rayon
+    /// hands each thread a contiguous range of rows, so the cache lines read for one row mostly
+    /// serve the next ones too).
+    fn read_row(&self, columns: &[Complex<f64>], r: usize, spectrum_row: &mut [Complex<f64>]) {
+        for (kx, s) in spectrum_row.iter_mut().enumerate() {
+            *s = columns[kx * self.fy + r];
+        }
+    }
+
+    /// `column` = column `kx` of the row-major spectrum `rows` (a strided read, as in
+    /// [`Transforms::read_row`]).
+    fn read_column(&self, rows: &[Complex<f64>], kx: usize, column: &mut [Complex<f64>]) {
+        let hx = self.fx / 2 + 1;
+        for (ky, c) in column.iter_mut().enumerate() {
+            *c = rows[ky * hx + kx];
+        }
     }
 
     /// `spectrum_row` = the x transform of `real_row` (used as scratch).
@@ -783,47 +773,41 @@ impl Transforms {
             rows,
             columns,
         } = b;
-        {
-            let from_columns = matches!(fill, Fill::Masked(..)).then_some(columns.as_slice());
-            self.row_pass(
-                real,
-                rows,
-                from_columns,
-                |r, real_row, spectrum_row, scratch| {
-                    let zero = |s: &mut [Complex<f64>]| {
-                        s.iter_mut().for_each(|c| *c = Complex::new(0.0, 0.0))
-                    };
-                    match fill {
-                        Fill::Ready => self.r2c(real_row, spectrum_row, scratch),
-                        Fill::Scatter(cells, _) | Fill::Masked(cells, _) if !cells.rows[r] => {
-                            zero(spectrum_row)
-                        }
-                        Fill::Scatter(cells, values) => {
-                            cells.scatter_row(r, values, real_row);
-                            self.r2c(real_row, spectrum_row, scratch);
-                        }
-                        Fill::Masked(cells, scale) => {
-                            self.c2r(spectrum_row, real_row, scratch);
-                            cells.mask_row(r, scale, real_row);
-                            self.r2c(real_row, spectrum_row, scratch);
-                        }
-                    }
-                },
-            );
-        }
+        let zero = |s: &mut [Complex<f64>]| s.iter_mut().for_each(|c| *c = Complex::new(0.0, 0.0));
+        let read_from = &*columns;
+        self.row_pass(
+            real,
+            rows,
+            |r, real_row, spectrum_row, scratch| match fill {
+                Fill::Ready => self.r2c(real_row, spectrum_row, scratch),
+                Fill::Scatter(cells, _) | Fill::Masked(cells, _) if !cells.rows[r] => {
+                    zero(spectrum_row)
+                }
+                Fill::Scatter(cells, values) => {
+                    cells.scatter_row(r, values, real_row);
+                    self.r2c(real_row, spectrum_row, scratch);
+                }
+                Fill::Masked(cells, scale) => {
+                    self.read_row(read_from, r, spectrum_row);
+                    self.c2r(spectrum_row, real_row, scratch);
+                    cells.mask_row(r, scale, real_row);
+                    self.r2c(real_row, spectrum_row, scratch);
+                }
+            },
+        );
         let rows = &*rows;
-        self.column_pass(columns, Some(rows), |kx, column, scratch| {
+        self.column_pass(columns, |kx, column, scratch| {
+            self.read_column(rows, kx, column);
             self.fft_y.process_with_scratch(column, scratch);
-            match after {
+            let (k, conj) = match after {
                 Spectrum::Keep => return,
-                Spectrum::Convolve(k) => {
-                    let k = &k[kx * fy..(kx + 1) * fy];
-                    column.iter_mut().zip(k).for_each(|(c, k)| *c *= k);
-                }
-                Spectrum::Correlate(k) => {
-                    let k = &k[kx * fy..(kx + 1) * fy];
-                    column.iter_mut().zip(k).for_each(|(c, k)| *c *= k.conj());
-                }
+                Spectrum::Convolve(k) => (&k[kx * fy..(kx + 1) * fy], false),
+                Spectrum::Correlate(k) => (&k[kx * fy..(kx + 1) * fy], true),
+            };
+            if conj {
+                column.iter_mut().zip(k).for_each(|(c, k)| *c *= k.conj());
+            } else {
+                column.iter_mut().zip(k).for_each(|(c, k)| *c *= k);
             }
             self.ifft_y.process_with_scratch(column, scratch);
         });
@@ -838,16 +822,13 @@ impl Transforms {
             rows,
             columns,
         } = b;
-        self.row_pass(
-            real,
-            rows,
-            Some(columns),
-            |r, real_row, spectrum_row, scratch| {
-                if rows_wanted[r] {
-                    self.c2r(spectrum_row, real_row, scratch);
-                }
-            },
-        );
+        let read_from = &*columns;
+        self.row_pass(real, rows, |r, real_row, spectrum_row, scratch| {
+            if rows_wanted[r] {
+                self.read_row(read_from, r, spectrum_row);
+                self.c2r(spectrum_row, real_row, scratch);
+            }
+        });
     }
 }
 
