@@ -22,9 +22,14 @@
 //! operator does, see [`super::fft`]); the certificate forms the residual itself.
 //!
 //! **Scaling.** `t = S w` with `S = diag(1 / sqrt(d_j))`, `d_j` the diagonal of the Hessian
-//! `R^T P R + lambda D^T D` (Jacobi preconditioning); the box stays a box. The step is `1 / L`,
-//! `L` = 1.1 x a 60-step power-iteration estimate of the largest eigenvalue of the scaled Hessian;
-//! in FISTA, should the objective ever rise between checks, `L` doubles and the momentum restarts.
+//! `R^T P R + lambda D^T D` (Jacobi preconditioning); the box stays a box. `lambda_hat` is a
+//! 60-step power-iteration estimate of the largest eigenvalue of the scaled Hessian (from below).
+//! FISTA steps `1 / L` with `L = lambda_hat`, Beck & Teboulle's constant-step rule with the
+//! estimate in place of the exact value; should the objective ever rise between checks, `L`
+//! doubles and the momentum restarts. Newton-CG takes `L = 1.1 lambda_hat`, an upper bound with
+//! margin, because its fallback step must decrease `f`. (FISTA with the 1.1 margin took 7,796
+//! iterations on the generated 2e4 problem at tolerance 8e-8, without it 6,032 to the same
+//! objective; 2,303 -> 2,258 at 2e3, 1,163 -> 1,119 at 2e5, 360 -> 340 at 1e6.)
 //!
 //! **Newton-CG steps.** At `w` with scaled gradient `q`: the binding set (variables that a
 //! projected gradient step of length `1 / L` puts on a bound) takes that step; CG on the others
@@ -69,8 +74,9 @@ const CHECK_EVERY: usize = 10;
 const CHECK_SPACING: usize = 50;
 /// Power-iteration steps for the Lipschitz constant.
 const POWER_STEPS: usize = 60;
-/// Safety factor on the power-iteration estimate (it approaches the largest eigenvalue from below).
-const L_SAFETY: f64 = 1.1;
+/// Newton-CG's safety factor on the power-iteration estimate (it approaches the largest
+/// eigenvalue from below); FISTA uses the estimate itself (see the module documentation).
+const NEWTON_L_SAFETY: f64 = 1.1;
 
 /// What the first-order iteration returns.
 #[derive(Debug, Clone, PartialEq)]
@@ -451,9 +457,9 @@ fn minimise_here(
         (a + rho * b).max(f64::MIN_POSITIVE)
     };
 
-    let mut lip = power_iteration(&data, &mut work) * L_SAFETY;
-    if !(lip.is_finite() && lip > 0.0) {
-        lip = 1.0;
+    let mut lambda_hat = power_iteration(&data, &mut work);
+    if !(lambda_hat.is_finite() && lambda_hat > 0.0) {
+        lambda_hat = 1.0;
     }
 
     let mut x: Vec<f64> = match start {
@@ -471,8 +477,11 @@ fn minimise_here(
         kkt_scale,
     };
     let (status, x, it, cert) = match settings.first_order_method {
-        FirstOrderMethod::Fista => fista(&data, x, &mut work, bounds, lip, &limits, observer),
+        FirstOrderMethod::Fista => {
+            fista(&data, x, &mut work, bounds, lambda_hat, &limits, observer)
+        }
         FirstOrderMethod::NewtonCg => {
+            let lip = lambda_hat * NEWTON_L_SAFETY;
             newton_cg(&data, x, &mut work, bounds, lip, &limits, observer)
         }
     };
