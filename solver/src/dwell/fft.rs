@@ -456,9 +456,7 @@ impl FftOperator {
                 let small = &mut *small;
                 self.transforms
                     .spectrum(full, Fill::Scatter(&self.map, input), Spectrum::Keep);
-                self.folded(sub, full, small);
-                sub.transforms.to_real(small, &sub.dwell.rows);
-                sub.dwell.gather(&small.real, scale, out);
+                self.fold_to_dwell(sub, full, small, out);
             }
             DwellCells::Lattice(dwell) => {
                 let k = &self.kernel_hat;
@@ -491,9 +489,7 @@ impl FftOperator {
                 self.tiled_spectrum(sub, t, small, full);
                 self.transforms
                     .spectrum(full, Fill::Masked(&self.map, scale), Spectrum::Keep);
-                self.folded(sub, full, small);
-                sub.transforms.to_real(small, &sub.dwell.rows);
-                sub.dwell.gather(&small.real, scale, out);
+                self.fold_to_dwell(sub, full, small, out);
             }
             DwellCells::Lattice(dwell) => {
                 self.transforms
@@ -545,11 +541,17 @@ impl FftOperator {
             });
     }
 
-    /// `small.columns` = the sub-lattice spectrum of `K^* y` (from `y`'s lattice spectrum in
-    /// `full.columns`), transformed back along y: the lattice spectrum `V = conj(K^) Y` with its
-    /// `dx dy` aliases summed, `W[k] = sum_{p < dx, q < dy} V[kx + p sx, ky + q sy]`
-    /// (`V[k] = conj(V[-k])` beyond the stored half), in a fixed order.
-    fn folded(&self, sub: &SubLattice, full: &Buffers, small: &mut Buffers) {
+    /// `out` = `K^* y` read at the dwell points, from `y`'s lattice spectrum in `full.columns`:
+    /// the lattice spectrum `V = conj(K^) Y` with its `dx dy` aliases summed (folded),
+    /// `W[k] = sum_{p < dx, q < dy} V[kx + p sx, ky + q sy]` (`V[k] = conj(V[-k])` beyond the
+    /// stored half, in a fixed order), transformed back on the sub-lattice and gathered.
+    fn fold_to_dwell(
+        &self,
+        sub: &SubLattice,
+        full: &Buffers,
+        small: &mut Buffers,
+        out: &mut [f64],
+    ) {
         let (fx, fy, sx, sy) = (self.fx, self.fy, sub.sx, sub.sy);
         let hx = fx / 2 + 1;
         let (columns, kernel) = (&full.columns, &self.kernel_hat);
@@ -575,6 +577,8 @@ impl FftOperator {
                 }
                 sub.transforms.ifft_y.process_with_scratch(column, scratch);
             });
+        sub.transforms.to_real(small, &sub.dwell.rows);
+        sub.dwell.gather(&small.real, self.scale(), out);
     }
 }
 

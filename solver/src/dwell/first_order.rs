@@ -58,7 +58,7 @@
 //! reduction uses fixed chunks: the result is bit-identical for any thread count. No allocation
 //! happens inside the iteration loop.
 
-use super::operator::{fixed_sum, LinearOperator, SparseOperator, CHUNK};
+use super::operator::{fill_and_sum, fixed_sum, LinearOperator, SparseOperator};
 use super::{DwellBounds, FirstOrderMethod, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
 use crate::observer::{IterationInfo, Observer, Stage};
@@ -185,34 +185,16 @@ impl Data<'_> {
         (half_r2, half_d2)
     }
 
-    /// `work.g` as [`Data::gradient`] leaves it, from the normal equations and one pass over
-    /// the lattice where the operator has one (`work.rt` is scratch):
-    /// `R^T P (R t - z) = R^T R t - R^T z - mean c`, `c = R^T 1`, `mean = (c't - 1'z) / m`.
-    fn gradient_only(&self, w: &[f64], work: &mut Work) {
-        self.normal_gradient(w, true, work);
-    }
-
-    /// `work.t = S w` and `work.g = R^T P (R t - z) + lambda D^T D t` by the normal equations
-    /// (see [`Data::gradient_only`]; `with_z = false` drops `z`).
+    /// `work.t = S w` and `work.g = R^T P (R t - z) + lambda D^T D t` (as [`Data::gradient`]
+    /// leaves it) from the normal equations, with one pass over the lattice where the operator
+    /// has one (`work.rt` is scratch): `R^T P (R t - z) = R^T R t - R^T z - mean c`,
+    /// `c = R^T 1`, `mean = (c't - 1'z) / m`. `with_z = false` drops `z` (Hessian products).
     fn normal_gradient(&self, w: &[f64], with_z: bool, work: &mut Work) {
-        let c = &self.column_sums;
-        let ct = {
-            let s = &self.s;
-            work.t
-                .par_chunks_mut(CHUNK)
-                .enumerate()
-                .map(|(k, chunk)| {
-                    let mut acc = 0.0;
-                    for (i, t) in chunk.iter_mut().enumerate() {
-                        let j = k * CHUNK + i;
-                        *t = w[j] * s[j];
-                        acc += c[j] * *t;
-                    }
-                    acc
-                })
-                .collect_into_vec(&mut work.partials);
-            work.partials.iter().sum::<f64>()
-        };
+        let (c, s) = (&self.column_sums, &self.s);
+        let ct = fill_and_sum(&mut work.t, &mut work.partials, |j| {
+            let t = w[j] * s[j];
+            (t, c[j] * t)
+        });
         self.op.apply_normal(&work.t, &mut work.rt, &mut work.g);
         let (sum_z, rtz) = if with_z {
             (self.sum_z, self.rtz.as_slice())
@@ -438,19 +420,12 @@ fn minimise_here(
         hi_w,
     };
 
-    // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1||.
+    // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1||, with
+    // R^T P z = R^T z - (1'z / m) R^T 1.
     let kkt_scale = {
-        let mean = z_nm.iter().sum::<f64>() / m as f64;
-        work.rt
-            .iter_mut()
-            .zip(z_nm)
-            .for_each(|(r, z)| *r = z - mean);
-        op.apply_transpose(&work.rt, &mut work.g);
-        let a: f64 = work
-            .g
-            .iter()
-            .zip(&data.s)
-            .map(|(g, s)| (g * s).powi(2))
+        let mean = data.sum_z / m as f64;
+        let a: f64 = (0..n)
+            .map(|j| ((data.rtz[j] - mean * data.column_sums[j]) * data.s[j]).powi(2))
             .sum::<f64>()
             .sqrt();
         let b: f64 = data.s.iter().map(|s| s * s).sum::<f64>().sqrt();
@@ -548,26 +523,15 @@ fn fista(
         it += 1;
         // Projected gradient step from the extrapolated point y and, in the same pass, the
         // gradient-based restart test (y - x_new)'(x_new - x) > 0 (summed in fixed chunks).
-        data.gradient_only(&y, work);
+        data.normal_gradient(&y, true, work);
         let step = 1.0 / lip;
         let restart_test = {
             let (g, sc, lo, hi) = (&work.g, &data.s, &data.lo_w, &data.hi_w);
             let (y, x) = (&y, &x);
-            x_new
-                .par_chunks_mut(CHUNK)
-                .enumerate()
-                .map(|(c, chunk)| {
-                    let mut acc = 0.0;
-                    for (k, xn) in chunk.iter_mut().enumerate() {
-                        let j = c * CHUNK + k;
-                        let v = (y[j] - step * sc[j] * (g[j] + rho)).max(lo[j]).min(hi[j]);
-                        *xn = v;
-                        acc += (y[j] - v) * (v - x[j]);
-                    }
-                    acc
-                })
-                .collect_into_vec(&mut work.partials);
-            work.partials.iter().sum::<f64>()
+            fill_and_sum(&mut x_new, &mut work.partials, |j| {
+                let v = (y[j] - step * sc[j] * (g[j] + rho)).max(lo[j]).min(hi[j]);
+                (v, (y[j] - v) * (v - x[j]))
+            })
         };
         if restart_test > 0.0 {
             theta = 1.0;

@@ -125,3 +125,24 @@ where
         .collect_into_vec(partials);
     partials.iter().sum()
 }
+
+/// Sets `out[j]` and sums `term` over `j`, from `(out[j], term) = f(j)`, in the fixed chunks of
+/// [`fixed_sum`] (one pass; bit-identical for any thread count). `partials` is reused scratch.
+pub(crate) fn fill_and_sum<F>(out: &mut [f64], partials: &mut Vec<f64>, f: F) -> f64
+where
+    F: Fn(usize) -> (f64, f64) + Sync,
+{
+    out.par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let mut acc = 0.0;
+            for (k, o) in chunk.iter_mut().enumerate() {
+                let (value, term) = f(c * CHUNK + k);
+                *o = value;
+                acc += term;
+            }
+            acc
+        })
+        .collect_into_vec(partials);
+    partials.iter().sum()
+}
