@@ -170,17 +170,12 @@ fn acceleration_limit_binds_and_holds() {
         "objective {obj_lim} - {obj_free} != gap {gap}"
     );
 
-    // Machining time: moves 2 s / (v0 + v1), run-in and run-out t/2, ramps from and to rest
-    // v / (2 a) (a straight line has no corners).
+    // Machining time: every stretch crossed at its own feed (sum of the dwell), plus ramps from
+    // and to rest v / (2 a) (a straight line has no corners).
     let v = |r: &[f64; 4]| r[2] / r[3];
     let n = rows.len();
-    let moves: f64 = rows
-        .windows(2)
-        .map(|w| 2.0 * (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]) / (v(&w[0]) + v(&w[1])))
-        .sum();
-    let want = moves
-        + 0.5 * (rows[0][3] + rows[n - 1][3])
-        + (v(&rows[0]) + v(&rows[n - 1])) / (2.0 * a_max);
+    let dwell: f64 = rows.iter().map(|r| r[3]).sum();
+    let want = dwell + (v(&rows[0]) + v(&rows[n - 1])) / (2.0 * a_max);
     let got = lim["machining_time_s"].as_f64().unwrap();
     assert!((got - want).abs() <= 1e-9 * want, "{got} vs {want}");
 }
@@ -273,10 +268,22 @@ fn small_dwell(dir: &Path) -> PathBuf {
     write(dir, "dwell.csv", &text)
 }
 
-/// The `G01` lines: `(X, Y, Z, B, F)`.
+/// The moves that end at the dwell points (the first `G01` after each `DWELL` marker):
+/// `(X, Y, Z, B, F)`.
 fn gcode_moves(text: &str) -> Vec<[Option<f64>; 5]> {
+    let mut after_marker = false;
     text.lines()
-        .filter(|l| l.contains(" G01 "))
+        .filter(|l| {
+            if l.starts_with("(DWELL ") {
+                after_marker = true;
+                return false;
+            }
+            let take = after_marker && l.contains(" G01 ");
+            if take {
+                after_marker = false;
+            }
+            take
+        })
         .map(|l| {
             let mut out = [None; 5];
             for word in l.split_whitespace() {
@@ -346,8 +353,8 @@ fn nc_tool_centre_on_sphere_matches_hand_normals() {
     for (p, ds) in pts.iter().zip(ds) {
         assert!((p[7] - ds / p[6] * 60.0).abs() < 1e-9 * p[7]);
     }
-    assert!(text.starts_with("%\n(PRESTON DWELL PROGRAM)\n(UNITS MM"));
-    assert!(text.contains("N1 G21 G90 G94"));
+    assert!(text.starts_with("%\n(PRESTON DWELL PROGRAM)\n(DIALECT ISO"));
+    assert!(text.contains("N1 G17 G21 G90 G94"));
     assert!(text.trim_end().ends_with("M30\n%") || text.ends_with("M30\n%\n"));
 }
 

@@ -1,5 +1,6 @@
 //! Atomic output: write to a temporary file in the destination's directory, then rename it into
-//! place, so a reader (or a crash) sees either the old file or the whole new one.
+//! place, so a reader (or a crash) sees either the old file or the whole new one. Files are
+//! created with the process umask, as `File::create` would (0644 under umask 022).
 
 use crate::error::{Error, Result};
 use std::io::{BufWriter, Write};
@@ -47,11 +48,16 @@ where
         .file_name()
         .map(|n| n.to_string_lossy().to_string())
         .unwrap_or_else(|| "output".into());
-    let temp = tempfile::Builder::new()
-        .prefix(&format!(".{name}."))
-        .suffix(".tmp")
-        .tempfile_in(&dir)
-        .map_err(|e| Error::io(path, e))?;
+    let prefix = format!(".{name}.");
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix).suffix(".tmp");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        // Requested as 0666; the kernel applies the umask on creation.
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let temp = builder.tempfile_in(&dir).map_err(|e| Error::io(path, e))?;
     {
         let mut w = BufWriter::with_capacity(1 << 20, temp.as_file());
         fill(&mut w).map_err(|e| Error::io(path, e))?;
@@ -89,5 +95,18 @@ mod tests {
         assert_eq!(std::fs::read_to_string(&p).unwrap(), "old\n");
         let entries: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(entries.len(), 1, "temporary file left behind");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn outputs_get_the_umask_mode_of_a_plain_create() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let plain = dir.path().join("plain.txt");
+        std::fs::File::create(&plain).unwrap();
+        let p = dir.path().join("a.csv");
+        write_atomic(&p, |w| w.write_all(b"x\n")).unwrap();
+        let mode = |q: &Path| std::fs::metadata(q).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&p), mode(&plain));
     }
 }

@@ -6,6 +6,7 @@ use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use preston_solver::machine::asphere::{write_nc, AsphereJob, AsphereLine, ProfileError};
+use preston_solver::machine::gcode::write::program_text;
 use preston_solver::machine::nc::{NcProgram, ToolAxis};
 use preston_solver::path::DwellPath;
 use serde::{Deserialize, Serialize};
@@ -83,7 +84,8 @@ pub struct NcSection {
 
 /// Stages the G-code of a planned program, with `notes` as extra header comments.
 pub fn stage_gcode(path: &Path, program: &NcProgram, notes: &[String]) -> Result<Staged> {
-    stage(path, |w| program.write_gcode_with_notes(notes, w))
+    let text = program_text(program, notes).map_err(|e| Error::engine(path, e))?;
+    stage(path, |w| w.write_all(text.as_bytes()))
 }
 
 /// Stages the point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` of a program.

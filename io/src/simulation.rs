@@ -13,10 +13,17 @@ use preston_solver::dwell::{DwellBounds, FeedLimits, Problem, Solution, SolverKi
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
+use preston_solver::machine::gcode::dialect::Dialect;
+use preston_solver::machine::gcode::motion::{
+    check_stretches, contact_xy, execute, sample_contact, Kinematics, StretchCheck,
+};
+use preston_solver::machine::gcode::program::{Program, MAX_PROGRAM_BYTES};
+use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
-use preston_solver::simulate::{removal_nm, Motion};
+use preston_solver::simulate::{removal_nm, removal_of_samples, Motion, SampledProgram};
+use preston_solver::tif::InfluenceFunction;
 use preston_solver::tif::Tif;
 use std::io::Write;
 use std::path::Path;
@@ -53,7 +60,6 @@ pub fn simulate(
     let start = Instant::now();
     let map = read_map(map_file)?;
     let DwellTimes { path, dwell_s } = read_dwell_times(dwell_file)?;
-    let ds_mm = path.ds_mm();
     let m = &map.map;
     let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
     let build_seconds = start.elapsed().as_secs_f64();
@@ -65,6 +71,58 @@ pub fn simulate(
                 .map_err(|e| Error::engine(dwell_file, e))?
         }
     };
+    let label = match motion {
+        Motion::Discrete => "simulate".to_string(),
+        Motion::Continuous { samples_per_point } => {
+            format!("simulate-continuous-{samples_per_point}")
+        }
+    };
+    assemble(
+        map,
+        map_file,
+        dwell_file,
+        Sweep {
+            path,
+            dwell_s,
+            removal_nm: removal,
+            r,
+            label,
+        },
+        limits,
+        build_seconds,
+        sim_start,
+    )
+}
+
+/// A simulated sweep on the map: the dwell points it is reported on, their (executed) dwell, the
+/// removal and the influence matrix of the points.
+struct Sweep {
+    path: DwellPath,
+    dwell_s: Vec<f64>,
+    removal_nm: Vec<f64>,
+    r: InfluenceMatrix,
+    label: String,
+}
+
+/// The report of a simulated sweep (same keys as `preston solve`).
+fn assemble(
+    map: crate::readers::MapFile,
+    map_file: &Path,
+    dwell_file: &Path,
+    sweep: Sweep,
+    limits: Option<&FeedLimits>,
+    build_seconds: f64,
+    sim_start: Instant,
+) -> Result<Simulated> {
+    let Sweep {
+        path,
+        dwell_s,
+        removal_nm: removal,
+        r,
+        label,
+    } = sweep;
+    let ds_mm = path.ds_mm();
+    let m = &map.map;
     let bounds = match limits {
         Some(l) => DwellBounds::from_feeds(&ds_mm, l),
         None => DwellBounds::new(vec![0.0; path.len()], None),
@@ -104,12 +162,7 @@ pub fn simulate(
         map.skipped_rows,
         build_seconds,
     );
-    report.solver = match motion {
-        Motion::Discrete => "simulate".into(),
-        Motion::Continuous { samples_per_point } => {
-            format!("simulate-continuous-{samples_per_point}")
-        }
-    };
+    report.solver = label;
     if dwell_s
         .iter()
         .zip(&ds_mm)
@@ -134,12 +187,210 @@ pub fn simulate(
     })
 }
 
+/// Options of [`simulate_program`].
+#[derive(Clone, Copy)]
+pub struct ProgramOptions<'a> {
+    /// Dialect to read the program in (default: the one its header names, else ISO).
+    pub dialect: Option<Dialect>,
+    /// How the controller moves.
+    pub kinematics: Kinematics,
+    /// Largest arc length of a removal sample, mm (default: [`default_sample_step_mm`]).
+    pub sample_step_mm: Option<f64>,
+    /// The part and the tool-centre offset along its normal (tool radius), mm, to map tool
+    /// centres back to contact points; none: the program's X, Y are the contact points.
+    pub part: Option<(&'a dyn PartGeometry, f64)>,
+}
+
+/// Default removal sample step: 1/64 of the TIF's support radius (0.11 mm for the sample job's
+/// fluid-jet TIF); halving it moves the sample job's residual RMS by less than 0.05%.
+pub fn default_sample_step_mm(tif: &Tif) -> f64 {
+    tif.support_radius_mm() / 64.0
+}
+
+/// A simulated program: the simulation on the map plus the executed dwell per stretch.
+#[derive(Debug, Clone)]
+pub struct ProgramSimulated {
+    /// Removal, residual and report (the dwell points are the program's marked points, their
+    /// dwell the executed stretch times).
+    pub sim: Simulated,
+    /// Planned dwell per marked stretch, s.
+    pub planned_dwell_s: Vec<f64>,
+    /// Executed against planned.
+    pub check: StretchCheck,
+    /// Executed time of the feed blocks and pauses, s.
+    pub executed_time_s: f64,
+    /// Removal samples used.
+    pub samples: usize,
+}
+
+/// Simulates the G-code program in `program_file` as the machine runs it ([`preston_solver::machine::gcode`]):
+/// reads it back, executes its motion, integrates the TIF along the contact motion and reports on
+/// the map in `map_file`.
+pub fn simulate_program(
+    map_file: &Path,
+    tif: &Tif,
+    program_file: &Path,
+    options: ProgramOptions,
+    observer: &dyn Observer,
+) -> Result<ProgramSimulated> {
+    let start = Instant::now();
+    let map = read_map(map_file)?;
+    let meta = std::fs::metadata(program_file).map_err(|e| Error::io(program_file, e))?;
+    if !meta.is_file() {
+        return Err(Error::engine(
+            program_file,
+            preston_solver::Error::invalid("program", "not a regular file"),
+        ));
+    }
+    if meta.len() > MAX_PROGRAM_BYTES as u64 {
+        return Err(Error::engine(
+            program_file,
+            preston_solver::Error::invalid(
+                "program",
+                format!(
+                    "{} bytes is more than the {MAX_PROGRAM_BYTES}-byte limit",
+                    meta.len()
+                ),
+            ),
+        ));
+    }
+    let bytes = std::fs::read(program_file).map_err(|e| Error::io(program_file, e))?;
+    let text = String::from_utf8(bytes).map_err(|e| {
+        Error::engine(
+            program_file,
+            preston_solver::Error::invalid(
+                "program",
+                format!(
+                    "not text (invalid UTF-8 at byte {})",
+                    e.utf8_error().valid_up_to()
+                ),
+            ),
+        )
+    })?;
+    let dialect = options
+        .dialect
+        .or_else(|| Program::detect_dialect(&text))
+        .unwrap_or_default();
+    let program = Program::parse(&text, dialect).map_err(|e| Error::engine(program_file, e))?;
+    if program.stretches.is_empty() {
+        return Err(Error::engine(
+            program_file,
+            preston_solver::Error::invalid(
+                "program",
+                "no DWELL markers: the executed dwell needs the stretches `preston nc` marks",
+            ),
+        ));
+    }
+    let executed =
+        execute(&program, options.kinematics).map_err(|e| Error::engine(program_file, e))?;
+    let check = check_stretches(&program, &executed);
+    let step = options
+        .sample_step_mm
+        .unwrap_or_else(|| default_sample_step_mm(tif));
+    let mut samples =
+        sample_contact(&program, &executed, step).map_err(|e| Error::engine(program_file, e))?;
+    if let Some((geometry, offset_mm)) = options.part {
+        for k in 0..samples.time_s.len() {
+            let (x, y) = contact_xy(
+                geometry,
+                offset_mm,
+                [samples.x_mm[k], samples.y_mm[k], samples.z_mm[k]],
+            )
+            .map_err(|e| Error::engine(program_file, e))?;
+            samples.x_mm[k] = x;
+            samples.y_mm[k] = y;
+        }
+    }
+    let m = &map.map;
+    let sampled = SampledProgram {
+        x_mm: samples.x_mm,
+        y_mm: samples.y_mm,
+        dwell_s: samples.time_s,
+    };
+    let n_samples = sampled.dwell_s.len();
+    let removal = removal_of_samples(m.x_mm(), m.y_mm(), &sampled, tif, observer)
+        .map_err(|e| Error::engine(program_file, e))?;
+    let px: Vec<f64> = program.stretches.iter().map(|s| s.x_mm).collect();
+    let py: Vec<f64> = program.stretches.iter().map(|s| s.y_mm).collect();
+    let path = DwellPath::new(px, py).map_err(|e| Error::engine(program_file, e))?;
+    let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
+    let build_seconds = start.elapsed().as_secs_f64();
+    let label = match options.kinematics {
+        Kinematics::ProgrammedFeed => "simulate-program".to_string(),
+        Kinematics::Trapezoidal {
+            a_max_mm_per_s2, ..
+        } => format!("simulate-program-a{a_max_mm_per_s2}"),
+    };
+    let sim = assemble(
+        map,
+        map_file,
+        program_file,
+        Sweep {
+            path,
+            dwell_s: executed.stretch_time_s.clone(),
+            removal_nm: removal,
+            r,
+            label,
+        },
+        None,
+        build_seconds,
+        Instant::now(),
+    )?;
+    Ok(ProgramSimulated {
+        sim,
+        planned_dwell_s: program
+            .stretches
+            .iter()
+            .map(|s| s.planned_dwell_s)
+            .collect(),
+        check,
+        executed_time_s: executed.total_time_s,
+        samples: n_samples,
+    })
+}
+
+/// Header of `executed_dwell.csv` (a contract).
+pub const EXECUTED_DWELL_HEADER: &str = "x_mm,y_mm,planned_dwell_s,executed_dwell_s";
+
+/// Writes the outputs of [`simulate_program`]: those of [`write_simulation`] plus
+/// `executed_dwell.csv`, all committed together.
+pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: bool) -> Result<()> {
+    std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
+    let s = &sim.sim;
+    let executed = stage(&out_dir.join("executed_dwell.csv"), |w: &mut dyn Write| {
+        writeln!(w, "{EXECUTED_DWELL_HEADER}")?;
+        for k in 0..s.dwell_s.len() {
+            writeln!(
+                w,
+                "{},{},{},{}",
+                s.path.x_mm()[k],
+                s.path.y_mm()[k],
+                sim.planned_dwell_s[k],
+                s.dwell_s[k]
+            )?;
+        }
+        Ok(())
+    })?;
+    write_simulation_with(s, out_dir, plots, vec![executed])
+}
+
 /// Writes `residual.csv` and `report.json` of a simulation into `out_dir`; with `plots`, also
 /// `error_before.png`, `removal.png` and `residual.png`.
 pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<()> {
+    write_simulation_with(sim, out_dir, plots, Vec::new())
+}
+
+/// [`write_simulation`] with `extra` staged files committed together with the CSVs.
+fn write_simulation_with(
+    sim: &Simulated,
+    out_dir: &Path,
+    plots: bool,
+    extra: Vec<Staged>,
+) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let residual = centred_residual_nm(sim.map.z_nm(), &sim.removal_nm);
-    commit_all(vec![
+    let mut staged = extra;
+    staged.extend([
         stage_residual_csv(
             &out_dir.join("residual.csv"),
             sim.map.x_mm(),
@@ -149,7 +400,8 @@ pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<
             &residual,
         )?,
         stage_report(&out_dir.join("report.json"), &sim.report)?,
-    ])?;
+    ]);
+    commit_all(staged)?;
     if plots {
         let (x, y) = (sim.map.x_mm(), sim.map.y_mm());
         plot_map(

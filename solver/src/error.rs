@@ -44,6 +44,15 @@ pub enum Error {
     /// A geometric computation has no valid answer (outside the surface's domain, degenerate points).
     #[error("geometry: {0}")]
     Geometry(String),
+    /// A G-code program cannot be read or written as asked; `line` is 1-based (0: the whole
+    /// program).
+    #[error("program line {line}: {why}")]
+    Program {
+        /// Line of the program text at fault (0 when no line applies).
+        line: usize,
+        /// What is wrong with it.
+        why: String,
+    },
     /// The numerical back end failed outright (not the same as not converging, which is a status).
     #[error("numerical failure in {stage}: {why}")]
     Numerical {

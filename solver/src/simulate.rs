@@ -4,13 +4,14 @@
 //! - [`Motion::Discrete`]: the tool stands still at each dwell point `j` for `t_j` (the solver's
 //!   model): `h = R t`.
 //! - [`Motion::Continuous`]: the tool sweeps along the path at constant speed within the stretch of
-//!   path each dwell point stands for. Dwell point `j` owns the arc of length `ds_j` centred on it
-//!   (from the midpoint of the segment before to the midpoint of the segment after; the first and
-//!   last points own a stretch extended straight beyond the path end, the tool's run-in and
-//!   run-out), and the tool crosses it at speed `ds_j / t_j`. The removal
-//!   `h(x) = sum_j (t_j / ds_j) * integral over the arc of TIF(x - p(s)) ds` is integrated by the
-//!   midpoint rule with `k` samples per arc, each carrying `t_j / k` of dwell at arc offset
-//!   `s = -ds_j/2 + (i + 1/2) ds_j / k`. The midpoint rule converges as `O(1/k^2)` for a smooth
+//!   path each dwell point stands for. Dwell point `j` owns the arc of length `ds_j` from the
+//!   midpoint of the segment before it to the midpoint of the segment after it, `s_{j-1} / 2`
+//!   behind and `s_j / 2` ahead (the first and last points own a stretch extended straight beyond
+//!   the path end, the tool's run-in and run-out); the stretches tile the path, and the tool
+//!   crosses each at speed `ds_j / t_j`, as the G-code of [`crate::machine::gcode::write`] does. The
+//!   removal `h(x) = sum_j (t_j / ds_j) * integral over the arc of TIF(x - p(s)) ds` is integrated
+//!   by the midpoint rule with `k` samples per arc, each carrying `t_j / k` of dwell at arc offset
+//!   `s = -s_{j-1}/2 + (i + 1/2) ds_j / k`. The midpoint rule converges as `O(1/k^2)` for a smooth
 //!   TIF; on a raster whose pitch is well below the TIF width, `k = 8` is within a fraction of a
 //!   per cent of the converged removal (tested, and reported by `preston simulate`).
 
@@ -148,16 +149,28 @@ pub fn sample_program(path: &DwellPath, dwell_s: &[f64], motion: Motion) -> Resu
                 ));
             }
             let k = samples_per_point;
-            let ds = path.ds_mm();
-            let total = path.len().saturating_mul(k);
+            let n = path.len();
+            let seg: Vec<f64> = (1..n)
+                .map(|j| (x[j] - x[j - 1]).hypot(y[j] - y[j - 1]))
+                .collect();
+            let total = n.saturating_mul(k);
             let mut out = SampledProgram {
                 x_mm: Vec::with_capacity(total),
                 y_mm: Vec::with_capacity(total),
                 dwell_s: Vec::with_capacity(total),
             };
-            for (j, (&t, &d)) in dwell_s.iter().zip(&ds).enumerate() {
+            for (j, &t) in dwell_s.iter().enumerate() {
+                // The stretch runs from the midpoint of the segment before to the midpoint of
+                // the segment after (the end points: half their one segment on either side).
+                let (back, ahead) = match (j.checked_sub(1).map(|i| seg[i]), seg.get(j)) {
+                    (Some(b), Some(&a)) => (0.5 * b, 0.5 * a),
+                    (Some(b), None) => (0.5 * b, 0.5 * b),
+                    (None, Some(&a)) => (0.5 * a, 0.5 * a),
+                    (None, None) => (0.0, 0.0),
+                };
+                let d = back + ahead;
                 for i in 0..k {
-                    let s = -0.5 * d + (i as f64 + 0.5) * d / k as f64;
+                    let s = -back + (i as f64 + 0.5) * d / k as f64;
                     let (px, py) = point_at(x, y, j, s);
                     out.x_mm.push(px);
                     out.y_mm.push(py);
@@ -193,6 +206,19 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
         )?;
         return r.removal_nm(&program.dwell_s);
     }
+    removal_of_samples(map_x_mm, map_y_mm, &program, tif, observer)
+}
+
+/// Removal (nm) at the map points of dwell samples (positions and the time the tool spends at
+/// each), `h(x) = sum_k TIF(x - s_k) tau_k`: assembled in chunks of samples and summed in sample
+/// order, so the result does not depend on the thread count.
+pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    program: &SampledProgram,
+    tif: &T,
+    observer: &dyn Observer,
+) -> Result<Vec<f64>> {
     let mut h = vec![0.0; map_x_mm.len()];
     let n = program.dwell_s.len();
     let mut start = 0;

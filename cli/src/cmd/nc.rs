@@ -1,14 +1,59 @@
 //! `preston nc`: G-code and a point list for CAM from a solved dwell file.
 
 use anyhow::{bail, Context};
-use preston_io::atomic::commit_all;
+use preston_io::atomic::{commit_all, stage};
 use preston_io::job::Job;
-use preston_io::machine::{read_dwell_times, stage_gcode, stage_points_csv};
+use preston_io::machine::{read_dwell_times, stage_points_csv};
 use preston_io::surface::read_surface;
+use preston_solver::machine::gcode::dialect::{Dialect, FeedMode};
+use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
 use preston_solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
 use preston_solver::machine::{Flat, PartGeometry};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+
+/// Controller dialect on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum DialectArg {
+    /// ISO 6983 / RS-274: `( )` comments, `%` wrapped, `M30`.
+    Iso,
+    /// LinuxCNC: `( )` comments, `%` wrapped, `M2`.
+    Linuxcnc,
+    /// Fanuc: `%` wrapped, `O1000`, `( )` comments.
+    Fanuc,
+    /// Siemens Sinumerik 840D: `;` comments, `G71`, `M30`.
+    Sinumerik,
+}
+
+impl From<DialectArg> for Dialect {
+    fn from(d: DialectArg) -> Self {
+        match d {
+            DialectArg::Iso => Dialect::Iso,
+            DialectArg::Linuxcnc => Dialect::Linuxcnc,
+            DialectArg::Fanuc => Dialect::Fanuc,
+            DialectArg::Sinumerik => Dialect::Sinumerik,
+        }
+    }
+}
+
+/// Feed mode on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum FeedModeArg {
+    /// `G94`: F in mm/min.
+    PerMinute,
+    /// `G93`: F = 1 / block time in minutes.
+    InverseTime,
+}
+
+impl From<FeedModeArg> for FeedMode {
+    fn from(f: FeedModeArg) -> Self {
+        match f {
+            FeedModeArg::PerMinute => FeedMode::PerMinute,
+            FeedModeArg::InverseTime => FeedMode::InverseTime,
+        }
+    }
+}
 
 /// Arguments of `preston nc`. Flags override the job file.
 #[derive(Debug, clap::Args)]
@@ -20,7 +65,7 @@ pub struct Args {
     #[arg(long, value_name = "S.json")]
     pub surface: Option<PathBuf>,
     /// Tool radius, mm: tool centre A = P + r n/|n| (default 0, or job [nc] tool_radius_mm).
-    #[arg(long, value_name = "MM")]
+    #[arg(long, value_name = "MM", allow_negative_numbers = true)]
     pub tool_radius_mm: Option<f64>,
     /// Write a fixed tool-axis angle B, degrees.
     #[arg(
@@ -33,20 +78,67 @@ pub struct Args {
     /// Write B following the surface normal, B = atan2(nx, nz) in degrees.
     #[arg(long)]
     pub tool_axis_normal: bool,
-    /// Job file (TOML): [machine] a_max_mm_per_s2 / corner_angle_deg, [nc], [compensation].
+    /// Job file (TOML): [machine] a_max_mm_per_s2 / corner_angle_deg / v_max_mm_per_min, [nc],
+    /// [compensation].
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
-    /// Machine acceleration, mm/s^2: adds the ramps to the machining time in the header.
-    #[arg(long, value_name = "MM_PER_S2")]
+    /// Machine acceleration, mm/s^2: the program is also executed with this limit and the
+    /// stretch times reported.
+    #[arg(long, value_name = "MM_PER_S2", allow_negative_numbers = true)]
     pub a_max_mm_per_s2: Option<f64>,
     /// Turn angle (degrees) above which the machine stops at a corner (default 60).
-    #[arg(long, value_name = "DEG")]
+    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
     pub corner_angle_deg: Option<f64>,
+    /// Controller dialect.
+    #[arg(long, value_enum, default_value = "iso")]
+    pub dialect: DialectArg,
+    /// `per-minute` (G94, F in mm/min) or `inverse-time` (G93, F = 1 / block minutes).
+    #[arg(long, value_enum, default_value = "per-minute")]
+    pub feed_mode: FeedModeArg,
+    /// Clearance above the highest tool-centre point, mm: rapid there, above the run-in start,
+    /// plunge, and retract at the end.
+    #[arg(
+        long,
+        value_name = "MM",
+        default_value_t = 5.0,
+        allow_negative_numbers = true
+    )]
+    pub clearance_mm: f64,
+    /// Feed of the plunge from the clearance plane, mm/min.
+    #[arg(
+        long,
+        value_name = "MM_PER_MIN",
+        default_value_t = 300.0,
+        allow_negative_numbers = true
+    )]
+    pub plunge_feed_mm_per_min: f64,
+    /// Shortest block the controller runs, ms (its block rate): a shorter block is an error.
+    #[arg(
+        long,
+        value_name = "MS",
+        default_value_t = 2.0,
+        allow_negative_numbers = true
+    )]
+    pub min_block_time_ms: f64,
+    /// Fastest feed, mm/min (default: job [machine] v_max_mm_per_min): a stretch whose
+    /// tool-centre move needs more is programmed at v_max and reported.
+    #[arg(
+        long = "v-max",
+        value_name = "MM_PER_MIN",
+        allow_negative_numbers = true
+    )]
+    pub v_max_mm_per_min: Option<f64>,
+    /// Spindle speed, rpm: `S.. M3` at the start, `M5` at the end.
+    #[arg(long, value_name = "RPM", allow_negative_numbers = true)]
+    pub spindle_rpm: Option<f64>,
+    /// Coolant or slurry on (`M8`) during the program, off (`M9`) at the end.
+    #[arg(long)]
+    pub coolant: bool,
     /// Point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (default: the G-code path
     /// with the extension `.csv`).
     #[arg(long, value_name = "P.csv")]
     pub points_out: Option<PathBuf>,
-    /// Output G-code program.
+    /// Output G-code program (its directory is created).
     #[arg(long, value_name = "program.nc")]
     pub out: PathBuf,
 }
@@ -82,6 +174,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .corner_angle_deg
             .unwrap_or_else(|| job.corner_angle_deg()),
         compensation: job.compensation.clone(),
+        dialect: args.dialect.into(),
+        feed_mode: args.feed_mode.into(),
+        clearance_mm: args.clearance_mm,
+        plunge_feed_mm_per_min: args.plunge_feed_mm_per_min,
+        min_block_time_ms: args.min_block_time_ms,
+        v_max_mm_per_min: args.v_max_mm_per_min.or(job.machine.v_max_mm_per_min),
+        spindle_rpm: args.spindle_rpm,
+        coolant: args.coolant,
     };
     settings.validate()?;
     let dwell = read_dwell_times(&args.dwell)?;
@@ -92,7 +192,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     let program = NcProgram::plan(&dwell.path, &dwell.dwell_s, geometry, &settings)
         .with_context(|| format!("planning the program for {}", args.dwell.display()))?;
-    let mut notes = vec![format!("DWELL FILE {}", file_name(&args.dwell))];
+    let mut notes = vec![format!("INPUT DWELL FILE {}", file_name(&args.dwell))];
     match &args.surface {
         Some(p) => notes.push(format!("SURFACE FILE {}", file_name(p))),
         None => notes.push("SURFACE FLAT Z = 0".into()),
@@ -100,33 +200,73 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(p) = &args.job {
         notes.push(format!("JOB FILE {}", file_name(p)));
     }
+    let check = write_and_check(&program, &notes)
+        .with_context(|| format!("writing the program for {}", args.dwell.display()))?;
+    for dir in [args.out.parent(), points_out.parent()]
+        .into_iter()
+        .flatten()
+    {
+        if !dir.as_os_str().is_empty() {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("creating the directory {}", dir.display()))?;
+        }
+    }
+    let text = check.written.text.as_bytes();
     commit_all(vec![
-        stage_gcode(&args.out, &program, &notes)?,
+        stage(&args.out, |w: &mut dyn Write| w.write_all(text))?,
         stage_points_csv(&points_out, &program)?,
     ])?;
     let s = &program.schedule;
-    let (f_lo, f_hi) = s.feed_range_mm_per_min();
     eprintln!(
-        "preston nc: {} points, total dwell {:.2} s, machining time {:.2} s, feed {:.1} .. {:.1} mm/min, max acceleration {:.3} mm/s^2",
+        "preston nc: {} points, {} feed blocks ({} dialect, {}), total dwell {:.2} s, max acceleration {:.3} mm/s^2 (solver model)",
         program.points.len(),
+        check.written.feed_blocks,
+        settings.dialect.name(),
+        settings.feed_mode.name(),
         s.total_dwell_s,
-        s.machining_time_s,
-        f_lo,
-        f_hi,
         s.max_accel_mm_per_s2
     );
-    if s.segments_over_limit > 0 {
-        eprintln!(
-            "  warning: {} moves exceed the acceleration limit by more than 1%",
-            s.segments_over_limit
-        );
-    }
+    print_program_check(&check);
     eprintln!(
         "  wrote {} and {}",
         args.out.display(),
         points_out.display()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Prints what the program as written does with the plan (`preston nc` and `preston solve`).
+pub fn print_program_check(check: &ProgramCheck) {
+    let w = &check.written;
+    let p = &check.programmed;
+    eprintln!(
+        "  program as written: machining time {:.2} s ({:.2} s in the dwell stretches for {:.2} s planned, plunge {:.2} s); worst stretch {:.3}% off (point {}), {} of {} more than 5% off",
+        w.stretch_time_s + w.plunge_time_s,
+        p.executed_total_s,
+        p.planned_total_s,
+        w.plunge_time_s,
+        100.0 * p.max_relative_error,
+        p.worst_point,
+        p.over_5_percent,
+        p.stretches
+    );
+    if w.slowed_stretches > 0 {
+        eprintln!(
+            "  warning: {} stretches need more than v_max on the tool-centre path and are programmed at v_max (up to {:.2}% longer than planned)",
+            w.slowed_stretches,
+            100.0 * (w.max_slowdown - 1.0)
+        );
+    }
+    if let Some(a) = &check.accelerated {
+        eprintln!(
+            "  executed with the acceleration limit: {:.2} s in the stretches; worst stretch {:.2}% off (point {}), {} of {} more than 5% off",
+            a.executed_total_s,
+            100.0 * a.max_relative_error,
+            a.worst_point,
+            a.over_5_percent,
+            a.stretches
+        );
+    }
 }
 
 /// The last component of a path (the header must not depend on where the files lie).

@@ -1,11 +1,19 @@
-//! `preston simulate`: the removal a dwell program produces, discrete or continuous motion.
+//! `preston simulate`: the removal a dwell plan produces (discrete or continuous motion), or the
+//! removal a G-code program produces as the machine runs it (`--program`).
 
+use super::nc::DialectArg;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::Context;
-use preston_io::simulation::{simulate, write_simulation};
+use preston_io::simulation::{
+    simulate, simulate_program, write_program_simulation, write_simulation, ProgramOptions,
+};
+use preston_io::surface::read_surface;
 use preston_solver::dwell::FeedLimits;
+use preston_solver::machine::gcode::motion::Kinematics;
 use preston_solver::simulate::Motion;
+use preston_solver::tif::Tif;
+use std::path::Path;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -26,9 +34,59 @@ pub struct Args {
     pub map: PathBuf,
     #[command(flatten)]
     pub tif: TifArgs,
-    /// Dwell program CSV `x_mm,y_mm,dwell_s` in path order (the dwell.csv of `preston solve`).
-    #[arg(long, value_name = "dwell.csv")]
-    pub dwell: PathBuf,
+    /// Dwell plan CSV `x_mm,y_mm,dwell_s` in path order (the dwell.csv of `preston solve`).
+    #[arg(
+        long,
+        value_name = "dwell.csv",
+        required_unless_present = "program",
+        conflicts_with = "program"
+    )]
+    pub dwell: Option<PathBuf>,
+    /// G-code program (as `preston nc` writes it, any dialect and feed mode): read back, run
+    /// block by block and the removal integrated along the motion; also writes
+    /// executed_dwell.csv.
+    #[arg(long, value_name = "program.nc")]
+    pub program: Option<PathBuf>,
+    /// With --program: the controller's path acceleration, mm/s^2 (trapezoidal look-ahead);
+    /// default: every block at its programmed feed.
+    #[arg(
+        long,
+        value_name = "MM_PER_S2",
+        requires = "program",
+        allow_negative_numbers = true
+    )]
+    pub a_max_mm_per_s2: Option<f64>,
+    /// With --program and --a-max-mm-per-s2: turn angle above which the tool stops, degrees.
+    #[arg(
+        long,
+        value_name = "DEG",
+        default_value_t = 60.0,
+        allow_negative_numbers = true
+    )]
+    pub corner_angle_deg: f64,
+    /// With --program: its dialect (default: the one its header names, else iso).
+    #[arg(long, value_enum, requires = "program")]
+    pub dialect: Option<DialectArg>,
+    /// With --program: largest arc length of a removal sample, mm (default: TIF support
+    /// radius / 64).
+    #[arg(
+        long,
+        value_name = "MM",
+        requires = "program",
+        allow_negative_numbers = true
+    )]
+    pub sample_step_mm: Option<f64>,
+    /// With --program: the part surface JSON, to map tool centres back to contact points.
+    #[arg(long, value_name = "S.json", requires = "program")]
+    pub surface: Option<PathBuf>,
+    /// With --program and --surface: the tool-centre offset along the normal (tool radius), mm.
+    #[arg(
+        long,
+        value_name = "MM",
+        requires = "surface",
+        allow_negative_numbers = true
+    )]
+    pub tool_radius_mm: Option<f64>,
     /// Motion model.
     #[arg(long, value_enum, default_value = "discrete")]
     pub motion: MotionArg,
@@ -49,6 +107,12 @@ pub struct Args {
 /// Runs `preston simulate`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let tif = args.tif.load()?;
+    if let Some(program) = &args.program {
+        return run_program(&args, &tif, program);
+    }
+    let Some(dwell) = &args.dwell else {
+        anyhow::bail!("give --dwell (a plan) or --program (a G-code program)");
+    };
     let motion = match args.motion {
         MotionArg::Discrete => Motion::Discrete,
         MotionArg::Continuous => Motion::Continuous {
@@ -60,7 +124,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         v_min_mm_per_min: 0.0,
     });
     let bars = Bars::new();
-    let sim = simulate(&args.map, &tif, &args.dwell, motion, limits.as_ref(), &bars)?;
+    let sim = simulate(&args.map, &tif, dwell, motion, limits.as_ref(), &bars)?;
     write_simulation(&sim, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.report;
@@ -74,6 +138,57 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.pv_before_nm,
         r.pv_after_nm,
         r.total_dwell_s,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `preston simulate --program`: the program as the machine runs it.
+fn run_program(args: &Args, tif: &Tif, program: &Path) -> anyhow::Result<ExitCode> {
+    let kinematics = match args.a_max_mm_per_s2 {
+        Some(a) => {
+            if !(a.is_finite() && a > 0.0) {
+                anyhow::bail!("--a-max-mm-per-s2 must be positive, got {a}");
+            }
+            Kinematics::Trapezoidal {
+                a_max_mm_per_s2: a,
+                corner_angle_deg: args.corner_angle_deg,
+            }
+        }
+        None => Kinematics::ProgrammedFeed,
+    };
+    let surface = args.surface.as_deref().map(read_surface).transpose()?;
+    let part = surface.as_ref().map(|s| {
+        (
+            s as &dyn preston_solver::machine::PartGeometry,
+            args.tool_radius_mm.unwrap_or(0.0),
+        )
+    });
+    let bars = Bars::new();
+    let options = ProgramOptions {
+        dialect: args.dialect.map(Into::into),
+        kinematics,
+        sample_step_mm: args.sample_step_mm,
+        part,
+    };
+    let sim = simulate_program(&args.map, tif, program, options, &bars)?;
+    write_program_simulation(&sim, &args.out, args.plots)
+        .with_context(|| format!("writing outputs to {}", args.out.display()))?;
+    let r = &sim.sim.report;
+    let c = &sim.check;
+    eprintln!(
+        "preston simulate ({}): {} map points, {} marked stretches, {} removal samples; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm",
+        r.solver, r.m, c.stretches, sim.samples, r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm
+    );
+    eprintln!(
+        "  executed {:.2} s in the stretches for {:.2} s planned ({:.2} s with the plunge and pauses); worst stretch {:.3}% off (point {}), {} of {} more than 5% off; wrote {}",
+        c.executed_total_s,
+        c.planned_total_s,
+        sim.executed_time_s,
+        100.0 * c.max_relative_error,
+        c.worst_point,
+        c.over_5_percent,
+        c.stretches,
         args.out.display()
     );
     Ok(ExitCode::SUCCESS)

@@ -1,17 +1,17 @@
 //! Feed schedule along a dwell path and the machining time, with acceleration and deceleration
 //! ramps.
 //!
-//! Model (constant acceleration between dwell points, as in [`crate::dwell::accel`]): the feed at
-//! dwell point `j` is `v_j = ds_j / t_j`; the move from `P_j` to `P_{j+1}` (length `s_j`) changes
-//! speed uniformly from `v_j` to `v_{j+1}`, so it takes `T_j = 2 s_j / (v_j + v_{j+1})` and its
-//! programmed (mean) feed is `(v_j + v_{j+1}) / 2`. The end points carry a whole segment in `ds`
-//! (the engine contract), half of it outside the path: run-in and run-out take `t_0 / 2` and
-//! `t_{n-1} / 2`. Nominal time `= sum T_j + (t_0 + t_{n-1}) / 2` (equal to `sum t_j` at constant
-//! feed). With an acceleration limit `a`, the ramps add: from rest to `v_0` and from `v_{n-1}` to
-//! rest, `v / (2 a)` each (a ramp over `v^2 / (2 a)` takes `v / a` instead of `v / (2 a)`), and a
-//! stop-and-go at every corner (turn > `corner_angle_deg`), `v_j / a`.
+//! Model: the feed at dwell point `j` is `v_j = ds_j / t_j`, held over the whole stretch the
+//! point owns (from the midpoint of the segment before to the midpoint of the segment after; the
+//! end points' stretches run half a segment beyond the path: run-in and run-out), which is how
+//! [`super::gcode::write`] programs it. The nominal time is then `sum t_j`. With an acceleration
+//! limit `a`, the ramps add: from rest to `v_0` and from `v_{n-1}` to rest, `v / (2 a)` each (a
+//! ramp over `v^2 / (2 a)` takes `v / a` instead of `v / (2 a)`), and a stop-and-go at every
+//! corner (turn > `corner_angle_deg`), `v_j / a`. This is an estimate for reports; the program
+//! as written is executed by [`super::gcode::motion`]. The accelerations reported are those of
+//! the solver's model ([`crate::dwell::accel`]: speed changing uniformly between points).
 
-use crate::dwell::accel::{segment_accelerations_mm_per_s2, segment_lengths_mm, turn_angles_deg};
+use crate::dwell::accel::{segment_accelerations_mm_per_s2, turn_angles_deg};
 use crate::error::{Error, Result};
 use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
@@ -21,13 +21,9 @@ use serde::{Deserialize, Serialize};
 pub struct FeedSchedule {
     /// Feed at each dwell point, `60 ds_j / t_j`, mm/min.
     pub point_feed_mm_per_min: Vec<f64>,
-    /// Programmed feed of each move `P_j -> P_{j+1}`, `60 (v_j + v_{j+1}) / 2`, mm/min (n - 1).
-    pub segment_feed_mm_per_min: Vec<f64>,
-    /// Duration of each move, `2 s_j / (v_j + v_{j+1})`, s (n - 1).
-    pub segment_time_s: Vec<f64>,
     /// Sum of the dwell times, s.
     pub total_dwell_s: f64,
-    /// Moves plus run-in and run-out, s.
+    /// Every stretch crossed at its point's feed, `sum t_j`, s.
     pub nominal_time_s: f64,
     /// Extra time of the acceleration and deceleration ramps, s (0 without a limit).
     pub ramp_time_s: f64,
@@ -83,21 +79,8 @@ impl FeedSchedule {
             }
             v.push(if d > 0.0 { d / t } else { 0.0 });
         }
-        let seg = segment_lengths_mm(path);
-        let mut segment_feed = Vec::with_capacity(seg.len());
-        let mut segment_time = Vec::with_capacity(seg.len());
-        for (j, &s) in seg.iter().enumerate() {
-            let mean = 0.5 * (v[j] + v[j + 1]);
-            segment_feed.push(60.0 * mean);
-            segment_time.push(if s > 0.0 { s / mean } else { 0.0 });
-        }
         let total_dwell_s: f64 = dwell_s.iter().sum();
-        let ends = if n >= 2 {
-            0.5 * (dwell_s[0] + dwell_s[n - 1])
-        } else {
-            total_dwell_s
-        };
-        let nominal = segment_time.iter().sum::<f64>() + ends;
+        let nominal = total_dwell_s;
         let turns = turn_angles_deg(path);
         let corners: Vec<usize> = (0..n).filter(|&j| turns[j] > corner_angle_deg).collect();
         let ramp = match a_max_mm_per_s2 {
@@ -114,8 +97,6 @@ impl FeedSchedule {
         });
         Ok(Self {
             point_feed_mm_per_min: v.iter().map(|x| 60.0 * x).collect(),
-            segment_feed_mm_per_min: segment_feed,
-            segment_time_s: segment_time,
             total_dwell_s,
             nominal_time_s: nominal,
             ramp_time_s: ramp,
@@ -150,7 +131,7 @@ mod tests {
         assert!((f.nominal_time_s - 1.1).abs() < TOL, "{}", f.nominal_time_s);
         assert!((f.nominal_time_s - f.total_dwell_s).abs() < TOL);
         assert!(f
-            .segment_feed_mm_per_min
+            .point_feed_mm_per_min
             .iter()
             .all(|&v| (v - 600.0).abs() < 1e-9));
         // a = 100 mm/s^2: start and stop ramps add 10 / 200 s each.
@@ -160,14 +141,16 @@ mod tests {
     }
 
     #[test]
-    fn uniform_acceleration_segment_time() {
-        // v from 10 to 30 mm/s over 1 mm: T = 2 s / (v0 + v1) = 0.05 s, a = (900 - 100) / 2.
+    fn nominal_time_is_the_dwell_and_accelerations_follow_the_model() {
+        // v from 10 to 30 mm/s over 1 mm: a = (900 - 100) / 2; each stretch at its own feed.
         let p = DwellPath::new(vec![0.0, 1.0], vec![0.0, 0.0]).unwrap();
-        let f = FeedSchedule::new(&p, &[0.1, 1.0 / 30.0], Some(100.0), 60.0).unwrap();
-        assert!((f.segment_time_s[0] - 0.05).abs() < TOL);
+        let t = [0.1, 1.0 / 30.0];
+        let f = FeedSchedule::new(&p, &t, Some(100.0), 60.0).unwrap();
+        assert!((f.nominal_time_s - (t[0] + t[1])).abs() < TOL);
+        assert!(f.machining_time_s >= f.total_dwell_s);
         assert!((f.max_accel_mm_per_s2 - 400.0).abs() < 1e-9);
         assert_eq!(f.segments_over_limit, 1);
-        assert!((f.segment_feed_mm_per_min[0] - 1200.0).abs() < 1e-9);
+        assert!((f.point_feed_mm_per_min[1] - 1800.0).abs() < 1e-9);
     }
 
     #[test]

@@ -8,6 +8,7 @@
 pub mod asphere;
 pub mod compensation;
 pub mod feeds;
+pub mod gcode;
 pub mod geometry;
 pub mod nc;
 

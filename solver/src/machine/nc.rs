@@ -1,5 +1,5 @@
 //! NC output for CAM: tool-centre positions along the surface normal, the per-point CSV and a
-//! numbered G-code program.
+//! G-code program that delivers every dwell.
 //!
 //! The tool centre of a spherical (or plane-faced, radius `r`) tool touching the part at `P` with
 //! unit normal `n` is `A = P + r n / |n|`; with normal-displacement compensation
@@ -7,24 +7,19 @@
 //! The optional tool-axis angle `B` is fixed or follows the normal, `B = atan2(nx, nz)` (degrees,
 //! rotation about y).
 //!
-//! G-code (ISO 6983 / RS-274 style):
-//!
-//! ```text
-//! %
-//! (PRESTON DWELL PROGRAM)
-//! (UNITS MM, FEED MM/MIN, TIME S)
-//! ( ... job summary ... )
-//! N1 G21 G90 G94
-//! N2 G01 X.. Y.. Z.. [B..] F..      first point at its own feed
-//! N3 G01 X.. Y.. Z.. [B..] F..      move to the next point at the mean of the two point feeds
-//! ...
-//! Nk M30
-//! %
-//! ```
+//! Dwell point `j` owns the stretch of path from the midpoint of the segment before it to the
+//! midpoint of the segment after it (the first and last points own a stretch extended straight
+//! beyond the path end by half a segment: run-in and run-out), as the engine assumes
+//! ([`crate::path::DwellPath::ds_mm`]). The program crosses each stretch in two blocks, boundary
+//! to point and point to boundary, at one feed: both blocks' programmed times add up to `t_j`
+//! whatever the neighbouring feeds, computed from the coordinates as written (4 decimals) and the
+//! programmed path length of the dialect ([`super::gcode::dialect`]), the 3-D tool-centre move on
+//! curved parts. The writer itself is [`super::gcode::write`].
 
 use super::compensation::NormalDisplacement;
 use super::feeds::FeedSchedule;
-use super::{fixed, PartGeometry};
+use super::gcode::dialect::{Dialect, FeedMode};
+use super::PartGeometry;
 use crate::error::{Error, Result};
 use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
@@ -32,8 +27,6 @@ use std::io::Write;
 
 /// Decimal places of X, Y, Z and B in the program (0.1 um, 0.0001 deg).
 pub const COORD_DECIMALS: usize = 4;
-/// Decimal places of F (mm/min).
-pub const FEED_DECIMALS: usize = 3;
 
 /// Orientation of the tool axis written as the `B` word.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
@@ -65,6 +58,24 @@ pub struct NcSettings {
     pub corner_angle_deg: f64,
     /// Normal-displacement compensation; none when absent.
     pub compensation: Option<NormalDisplacement>,
+    /// Controller dialect of the program.
+    pub dialect: Dialect,
+    /// `G94` feeds in mm/min or `G93` inverse time.
+    pub feed_mode: FeedMode,
+    /// Height of the clearance plane above the highest tool-centre position of the program, mm:
+    /// rapid there, above the first point, plunge at `plunge_feed_mm_per_min`, retract at the end.
+    pub clearance_mm: f64,
+    /// Feed of the plunge from the clearance plane to the run-in start, mm/min.
+    pub plunge_feed_mm_per_min: f64,
+    /// Shortest block the controller can run, ms: a shorter feed block is an error naming it.
+    pub min_block_time_ms: f64,
+    /// Fastest feed the machine allows, mm/min: a stretch whose tool-centre move would need more
+    /// is programmed at this feed (taking longer than planned, reported); none: no limit.
+    pub v_max_mm_per_min: Option<f64>,
+    /// Spindle (tool rotation) speed, rpm: `S.. M3` after the preamble, `M5` at the end.
+    pub spindle_rpm: Option<f64>,
+    /// Coolant or slurry on (`M8`) during the program, off (`M9`) at the end.
+    pub coolant: bool,
 }
 
 impl Default for NcSettings {
@@ -75,6 +86,14 @@ impl Default for NcSettings {
             a_max_mm_per_s2: None,
             corner_angle_deg: 60.0,
             compensation: None,
+            dialect: Dialect::Iso,
+            feed_mode: FeedMode::PerMinute,
+            clearance_mm: 5.0,
+            plunge_feed_mm_per_min: 300.0,
+            min_block_time_ms: 2.0,
+            v_max_mm_per_min: None,
+            spindle_rpm: None,
+            coolant: false,
         }
     }
 }
@@ -105,6 +124,22 @@ impl NcSettings {
         if let Some(c) = &self.compensation {
             c.validate()?;
         }
+        Error::require_positive(&[
+            ("clearance_mm", self.clearance_mm),
+            ("plunge_feed_mm_per_min", self.plunge_feed_mm_per_min),
+        ])?;
+        if !(self.min_block_time_ms.is_finite() && self.min_block_time_ms >= 0.0) {
+            return Err(Error::invalid(
+                "min_block_time_ms",
+                format!("must be >= 0, got {}", self.min_block_time_ms),
+            ));
+        }
+        if let Some(v) = self.v_max_mm_per_min {
+            Error::require_positive(&[("v_max_mm_per_min", v)])?;
+        }
+        if let Some(s) = self.spindle_rpm {
+            Error::require_positive(&[("spindle_rpm", s)])?;
+        }
         Ok(())
     }
 }
@@ -128,10 +163,21 @@ pub struct NcPoint {
     pub delta_mm: f64,
     /// Dwell time, s.
     pub dwell_s: f64,
-    /// Feed at the point, mm/min.
+    /// Feed at the point, `60 ds_j / t_j` on the planar path, mm/min.
     pub feed_mm_per_min: f64,
-    /// Programmed feed of the move that ends here (the point's own feed for the first), mm/min.
-    pub move_feed_mm_per_min: f64,
+}
+
+/// A tool pose at a stretch boundary.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BoundaryPose {
+    /// Contact point x, mm.
+    pub x_mm: f64,
+    /// Contact point y, mm.
+    pub y_mm: f64,
+    /// Tool centre, mm.
+    pub tool_mm: [f64; 3],
+    /// Tool-axis angle, degrees, when written.
+    pub b_deg: Option<f64>,
 }
 
 /// A planned NC program: points and feeds.
@@ -139,6 +185,9 @@ pub struct NcPoint {
 pub struct NcProgram {
     /// The points in path order.
     pub points: Vec<NcPoint>,
+    /// Stretch boundaries: `n + 1` poses, boundary `j` between stretches `j - 1` and `j` (the
+    /// run-in start first, the run-out end last).
+    pub boundaries: Vec<BoundaryPose>,
     /// Feeds and machining time.
     pub schedule: FeedSchedule,
     /// The settings it was planned with.
@@ -160,129 +209,42 @@ impl NcProgram {
             settings.a_max_mm_per_s2,
             settings.corner_angle_deg,
         )?;
+        let pose = Poser { geometry, settings };
         let mut points = Vec::with_capacity(path.len());
         for (j, (&x, &y)) in path.x_mm().iter().zip(path.y_mm()).enumerate() {
-            let z = geometry.sag_mm(x, y)?;
-            let n = unit(geometry.unit_normal(x, y)?, j)?;
-            let delta = match &settings.compensation {
-                Some(c) => c.at(geometry.curvature_radius_mm(x, y)?)?.delta_mm,
-                None => 0.0,
-            };
-            let off = settings.tool_radius_mm - delta;
-            let b_deg = match settings.tool_axis {
-                ToolAxis::Vertical => None,
-                ToolAxis::Fixed { b_deg } => Some(b_deg),
-                ToolAxis::Normal => Some(n[0].atan2(n[2]).to_degrees()),
-            };
-            let feed = schedule.point_feed_mm_per_min[j];
-            let move_feed = if j == 0 {
-                feed
-            } else {
-                schedule.segment_feed_mm_per_min[j - 1]
-            };
+            let (z, n, delta, tool, b_deg) = pose.at(x, y, j)?;
             points.push(NcPoint {
                 x_mm: x,
                 y_mm: y,
                 z_mm: z,
                 normal: n,
-                tool_mm: [x + off * n[0], y + off * n[1], z + off * n[2]],
+                tool_mm: tool,
                 b_deg,
                 delta_mm: delta,
                 dwell_s: dwell_s[j],
-                feed_mm_per_min: feed,
-                move_feed_mm_per_min: move_feed,
+                feed_mm_per_min: schedule.point_feed_mm_per_min[j],
             });
         }
+        let boundaries = stretch_boundaries(&pose, &points)?;
         Ok(Self {
             points,
+            boundaries,
             schedule,
             settings: settings.clone(),
         })
     }
 
-    /// Writes the G-code program (see the module documentation).
-    pub fn write_gcode(&self, w: &mut dyn Write) -> std::io::Result<()> {
+    /// Writes the G-code program ([`super::gcode::write`]).
+    pub fn write_gcode(&self, w: &mut dyn Write) -> Result<()> {
         self.write_gcode_with_notes(&[], w)
     }
 
     /// As [`NcProgram::write_gcode`], with extra comment lines (the job summary: input files,
-    /// surface) after the units line; parentheses in a note become brackets.
-    pub fn write_gcode_with_notes(
-        &self,
-        notes: &[String],
-        w: &mut dyn Write,
-    ) -> std::io::Result<()> {
-        let s = &self.schedule;
-        let (f_lo, f_hi) = s.feed_range_mm_per_min();
-        writeln!(w, "%")?;
-        writeln!(w, "(PRESTON DWELL PROGRAM)")?;
-        writeln!(w, "(UNITS MM, FEED MM/MIN, TIME S, ANGLE DEG)")?;
-        for note in notes {
-            let clean: String = note
-                .chars()
-                .map(|c| match c {
-                    '(' => '[',
-                    ')' => ']',
-                    '\n' | '\r' => ' ',
-                    c => c,
-                })
-                .collect();
-            writeln!(w, "({clean})")?;
-        }
-        writeln!(w, "(POINTS {})", self.points.len())?;
-        writeln!(
-            w,
-            "(TOOL RADIUS {} MM, TOOL CENTRE = CONTACT + R * NORMAL)",
-            fixed(self.settings.tool_radius_mm, COORD_DECIMALS)
-        )?;
-        if self.settings.compensation.is_some() {
-            let (lo, hi) = self
-                .points
-                .iter()
-                .fold((f64::INFINITY, 0.0f64), |(a, b), p| {
-                    (a.min(p.delta_mm), b.max(p.delta_mm))
-                });
-            writeln!(
-                w,
-                "(NORMAL DISPLACEMENT {} .. {} MM)",
-                fixed(lo, COORD_DECIMALS),
-                fixed(hi, COORD_DECIMALS)
-            )?;
-        }
-        writeln!(w, "(TOTAL DWELL {} S)", fixed(s.total_dwell_s, 3))?;
-        match self.settings.a_max_mm_per_s2 {
-            Some(a) => writeln!(
-                w,
-                "(MACHINING TIME {} S WITH RAMPS AT {} MM/S2)",
-                fixed(s.machining_time_s, 3),
-                fixed(a, 1)
-            )?,
-            None => writeln!(w, "(MACHINING TIME {} S)", fixed(s.machining_time_s, 3))?,
-        }
-        writeln!(
-            w,
-            "(FEED {} .. {} MM/MIN)",
-            fixed(f_lo, FEED_DECIMALS),
-            fixed(f_hi, FEED_DECIMALS)
-        )?;
-        writeln!(w, "N1 G21 G90 G94")?;
-        let mut k = 2usize;
-        for p in &self.points {
-            write!(
-                w,
-                "N{k} G01 X{} Y{} Z{}",
-                fixed(p.tool_mm[0], COORD_DECIMALS),
-                fixed(p.tool_mm[1], COORD_DECIMALS),
-                fixed(p.tool_mm[2], COORD_DECIMALS)
-            )?;
-            if let Some(b) = p.b_deg {
-                write!(w, " B{}", fixed(b, COORD_DECIMALS))?;
-            }
-            writeln!(w, " F{}", fixed(p.move_feed_mm_per_min, FEED_DECIMALS))?;
-            k += 1;
-        }
-        writeln!(w, "N{k} M30")?;
-        writeln!(w, "%")
+    /// surface) in the header.
+    pub fn write_gcode_with_notes(&self, notes: &[String], w: &mut dyn Write) -> Result<()> {
+        let text = super::gcode::write::program_text(self, notes)?;
+        w.write_all(text.as_bytes())
+            .map_err(|e| Error::invalid("program output", e.to_string()))
     }
 
     /// Writes the point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (contact points,
@@ -305,6 +267,92 @@ impl NcProgram {
         }
         Ok(())
     }
+}
+
+/// Tool poses on the part.
+struct Poser<'a> {
+    geometry: &'a dyn PartGeometry,
+    settings: &'a NcSettings,
+}
+
+impl Poser<'_> {
+    /// Sag, unit normal, normal displacement, tool centre and `B` at contact point `(x, y)`;
+    /// `j` names the dwell point in errors.
+    #[allow(clippy::type_complexity)]
+    fn at(&self, x: f64, y: f64, j: usize) -> Result<(f64, [f64; 3], f64, [f64; 3], Option<f64>)> {
+        let g = self.geometry;
+        let z = g.sag_mm(x, y)?;
+        let n = unit(g.unit_normal(x, y)?, j)?;
+        let delta = match &self.settings.compensation {
+            Some(c) => c.at(g.curvature_radius_mm(x, y)?)?.delta_mm,
+            None => 0.0,
+        };
+        let off = self.settings.tool_radius_mm - delta;
+        let b_deg = match self.settings.tool_axis {
+            ToolAxis::Vertical => None,
+            ToolAxis::Fixed { b_deg } => Some(b_deg),
+            ToolAxis::Normal => Some(n[0].atan2(n[2]).to_degrees()),
+        };
+        Ok((
+            z,
+            n,
+            delta,
+            [x + off * n[0], y + off * n[1], z + off * n[2]],
+            b_deg,
+        ))
+    }
+}
+
+/// The `n + 1` stretch boundaries of `points` (module documentation): segment midpoints inside,
+/// half a segment beyond each end. Each boundary is posed on the surface; a run-in or run-out
+/// point outside the surface's domain is extrapolated straight from the end point's pose.
+fn stretch_boundaries(pose: &Poser, points: &[NcPoint]) -> Result<Vec<BoundaryPose>> {
+    let n = points.len();
+    let at = |x: f64, y: f64, j: usize| -> Result<BoundaryPose> {
+        let (_, _, _, tool_mm, b_deg) = pose.at(x, y, j)?;
+        Ok(BoundaryPose {
+            x_mm: x,
+            y_mm: y,
+            tool_mm,
+            b_deg,
+        })
+    };
+    let own = |p: &NcPoint| BoundaryPose {
+        x_mm: p.x_mm,
+        y_mm: p.y_mm,
+        tool_mm: p.tool_mm,
+        b_deg: p.b_deg,
+    };
+    if n < 2 {
+        return Ok(points.iter().flat_map(|p| [own(p), own(p)]).collect());
+    }
+    let mut out = Vec::with_capacity(n + 1);
+    out.push(own(&points[0]));
+    for j in 1..n {
+        let (a, b) = (&points[j - 1], &points[j]);
+        out.push(at(0.5 * (a.x_mm + b.x_mm), 0.5 * (a.y_mm + b.y_mm), j)?);
+    }
+    out.push(own(&points[n - 1]));
+    // Run-in and run-out: half a segment beyond the end, on the surface where it is defined.
+    let beyond = |end: &NcPoint, inner: &BoundaryPose, j: usize| -> BoundaryPose {
+        let (x, y) = (2.0 * end.x_mm - inner.x_mm, 2.0 * end.y_mm - inner.y_mm);
+        at(x, y, j).unwrap_or(BoundaryPose {
+            x_mm: x,
+            y_mm: y,
+            tool_mm: [
+                2.0 * end.tool_mm[0] - inner.tool_mm[0],
+                2.0 * end.tool_mm[1] - inner.tool_mm[1],
+                2.0 * end.tool_mm[2] - inner.tool_mm[2],
+            ],
+            b_deg: match (end.b_deg, inner.b_deg) {
+                (Some(a), Some(b)) => Some(2.0 * a - b),
+                (a, _) => a,
+            },
+        })
+    };
+    out[0] = beyond(&points[0], &out[1], 0);
+    out[n] = beyond(&points[n - 1], &out[n - 1], n - 1);
+    Ok(out)
 }
 
 /// Normalises `n`; a zero or non-finite normal is an error naming the point.
@@ -332,13 +380,19 @@ mod tests {
         };
         let prog = NcProgram::plan(&p, &[0.1, 0.1], &Flat, &s).unwrap();
         assert_eq!(prog.points[1].tool_mm, [1.0, 2.0, 5.0]);
+        // Boundaries: run-in half a segment before, the midpoint, run-out half a segment after.
+        let bx: Vec<f64> = prog.boundaries.iter().map(|b| b.tool_mm[0]).collect();
+        assert_eq!(bx, vec![-0.5, 0.5, 1.5]);
         let mut out = Vec::new();
         prog.write_gcode(&mut out).unwrap();
         let text = String::from_utf8(out).unwrap();
+        // Each stretch is 1 mm long and takes 0.1 s: F = 600 mm/min on both of its blocks.
         assert!(
-            text.contains("N3 G01 X1.0000 Y2.0000 Z5.0000 F600.000"),
+            text.contains("G01 X0.0000 Y2.0000 Z5.0000 F600.000\n"),
             "{text}"
         );
-        assert!(text.contains("N4 M30"));
+        assert!(text.contains("G01 X1.5000 Y2.0000 Z5.0000 F600.000\n"));
+        assert!(text.contains("(DWELL 1 0.1 S AT 1 2)"));
+        assert!(text.trim_end().ends_with("M30\n%"));
     }
 }

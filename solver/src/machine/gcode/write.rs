@@ -1,0 +1,415 @@
+//! The G-code writer: a planned [`NcProgram`] as program text that delivers every dwell.
+//!
+//! Layout (shown for `iso`; [`super::dialect`] gives the other dialects' words):
+//!
+//! ```text
+//! %
+//! (PRESTON DWELL PROGRAM)  (DIALECT ISO FEED MODE PER-MINUTE)  ... header comments ...
+//! N1 G17 G21 G90 G94                    preamble [S.. M3] [M8]
+//! N2 G00 Z<clearance plane>             up first, wherever the tool is
+//! N3 G00 X<x0> Y<y0> [B<b0>]            above the run-in start
+//! N4 G01 Z<z0> F<plunge feed>           plunge to the run-in start
+//! (DWELL 0 <t_0> S AT <x> <y>)          stretch 0: two blocks at one feed
+//! N5 G01 X.. Y.. Z.. [B..] F<f_0>       run-in start -> point 0
+//! N6 G01 X.. Y.. Z.. [B..] F<f_0>       point 0 -> boundary 1
+//! (DWELL 1 <t_1> S AT <x> <y>)
+//! ...
+//! (END DWELL)
+//! Nk G00 Z<clearance plane>             retract
+//! Nk+1 [M9] [M5] M30
+//! %
+//! ```
+//!
+//! Stretch `j` (boundary `j` -> point `j` -> boundary `j + 1`, lengths `L1`, `L2` from the
+//! coordinates as written) gets `F = 60 (L1 + L2) / t_j` under `G94`, so that both blocks take
+//! `t_j` together, or `F = 60 / (t_j L_k / (L1 + L2))` per block under `G93`. `F` keeps at least
+//! 3 decimals and as many more as a relative rounding of at most `1e-4` needs (at most 9), so no
+//! block time moves by more than 0.01% through formatting; it is never `0` and never above
+//! `v_max_mm_per_min`. A stretch whose tool-centre move would need more than `v_max` is written at
+//! `v_max` (it then takes longer than planned; counted in [`Written::slowed_stretches`]).
+
+use super::dialect::{Dialect, FeedMode};
+use crate::error::{Error, Result};
+use crate::machine::fixed;
+use crate::machine::nc::{NcProgram, COORD_DECIMALS};
+
+/// Smallest number of decimals of `F`.
+pub const MIN_FEED_DECIMALS: usize = 3;
+/// Largest number of decimals of `F`.
+pub const MAX_FEED_DECIMALS: usize = 9;
+/// Largest relative change of a block time through the formatting of `F`.
+pub const FEED_ROUNDING: f64 = 1e-4;
+
+/// A written program and what the writer had to change.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Written {
+    /// The program text.
+    pub text: String,
+    /// Feed blocks (linear moves) in the program.
+    pub feed_blocks: usize,
+    /// Stretches programmed at `v_max` because their tool-centre move needed more.
+    pub slowed_stretches: usize,
+    /// Largest programmed / planned time of a slowed stretch (1 when none).
+    pub max_slowdown: f64,
+    /// Programmed time of the dwell stretches, s.
+    pub stretch_time_s: f64,
+    /// Programmed time of the plunge, s.
+    pub plunge_time_s: f64,
+}
+
+/// The text of `program` with `notes` as extra header comments (module documentation).
+pub fn program_text(program: &NcProgram, notes: &[String]) -> Result<String> {
+    write_program(program, notes).map(|w| w.text)
+}
+
+/// A pose as written: coordinates rounded to the program's decimals.
+#[derive(Debug, Clone, Copy)]
+struct Pose {
+    xyz: [f64; 3],
+    b: Option<f64>,
+}
+
+fn rounded(v: f64) -> f64 {
+    fixed(v, COORD_DECIMALS).parse().unwrap_or(v)
+}
+
+impl Pose {
+    fn new(tool_mm: [f64; 3], b_deg: Option<f64>) -> Self {
+        Self {
+            xyz: tool_mm.map(rounded),
+            b: b_deg.map(rounded),
+        }
+    }
+
+    fn words(&self) -> String {
+        let mut s = format!(
+            "X{} Y{} Z{}",
+            fixed(self.xyz[0], COORD_DECIMALS),
+            fixed(self.xyz[1], COORD_DECIMALS),
+            fixed(self.xyz[2], COORD_DECIMALS)
+        );
+        if let Some(b) = self.b {
+            s.push_str(&format!(" B{}", fixed(b, COORD_DECIMALS)));
+        }
+        s
+    }
+
+    /// Programmed path length of the move from `self` to `to` in `dialect`.
+    fn length_to(&self, to: &Pose, dialect: Dialect) -> f64 {
+        let d = [
+            to.xyz[0] - self.xyz[0],
+            to.xyz[1] - self.xyz[1],
+            to.xyz[2] - self.xyz[2],
+        ];
+        let db = match (self.b, to.b) {
+            (Some(a), Some(b)) => b - a,
+            _ => 0.0,
+        };
+        dialect.path_length_mm(d, db)
+    }
+}
+
+/// `F` as written and its value: at least [`MIN_FEED_DECIMALS`], enough for a relative rounding
+/// of [`FEED_ROUNDING`]; rounded down when `cap` would be exceeded.
+pub fn feed_word(f: f64, cap: Option<f64>) -> Result<(String, f64)> {
+    if !(f.is_finite() && f > 0.0) {
+        return Err(Error::invalid("feed", format!("{f} cannot be programmed")));
+    }
+    let need = (-(2.0 * FEED_ROUNDING * f).log10()).ceil();
+    let d = if need.is_finite() && need > MIN_FEED_DECIMALS as f64 {
+        (need as usize).min(MAX_FEED_DECIMALS)
+    } else {
+        MIN_FEED_DECIMALS
+    };
+    let mut text = fixed(f, d);
+    let mut value: f64 = text.parse().unwrap_or(f);
+    if let Some(c) = cap {
+        if value > c {
+            let scale = 10f64.powi(d as i32);
+            text = fixed((f.min(c) * scale).floor() / scale, d);
+            value = text.parse().unwrap_or(c);
+        }
+    }
+    if !(value > 0.0) || ((value - f) / f).abs() > 10.0 * FEED_ROUNDING {
+        return Err(Error::invalid(
+            "feed",
+            format!(
+                "{f} needs more than {MAX_FEED_DECIMALS} decimals of F; \
+                 use --feed-mode inverse-time or re-solve with a higher v_min"
+            ),
+        ));
+    }
+    Ok((text, value))
+}
+
+/// Writes the program (module documentation).
+pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
+    let s = &program.settings;
+    let (d, fm) = (s.dialect, s.feed_mode);
+    let pts = &program.points;
+    let n = pts.len();
+    if n == 0 || program.boundaries.len() != n + 1 {
+        return Err(Error::invalid("program", "no dwell points to write"));
+    }
+    let bnd: Vec<Pose> = program
+        .boundaries
+        .iter()
+        .map(|b| Pose::new(b.tool_mm, b.b_deg))
+        .collect();
+    let at: Vec<Pose> = pts.iter().map(|p| Pose::new(p.tool_mm, p.b_deg)).collect();
+    let lin = d.linear_word();
+    let min_block_s = 1e-3 * s.min_block_time_ms;
+    let mut body: Vec<String> = Vec::with_capacity(3 * n + 8);
+    let mut written = Written {
+        text: String::new(),
+        feed_blocks: 0,
+        slowed_stretches: 0,
+        max_slowdown: 1.0,
+        stretch_time_s: 0.0,
+        plunge_time_s: 0.0,
+    };
+    let (mut f_lo, mut f_hi) = (f64::INFINITY, 0.0f64);
+    for (j, p) in pts.iter().enumerate() {
+        let t = p.dwell_s;
+        body.push(d.comment(&format!("DWELL {j} {t} S AT {} {}", p.x_mm, p.y_mm)));
+        let halves = [(bnd[j], at[j]), (at[j], bnd[j + 1])];
+        let lens = halves.map(|(a, b)| a.length_to(&b, d));
+        let len = lens[0] + lens[1];
+        if len == 0.0 {
+            if t > 0.0 {
+                return Err(Error::invalid(
+                    "dwell_s",
+                    format!(
+                        "dwell point {j}: {t} s on a stretch of zero length (the path repeats \
+                         the point or has a single point); a feed move cannot deliver it"
+                    ),
+                ));
+            }
+            continue;
+        }
+        if !(t > 0.0 && t.is_finite()) {
+            return Err(Error::invalid(
+                "dwell_s",
+                format!("dwell point {j}: {t} s over {len} mm needs an infinite feed"),
+            ));
+        }
+        let mut t_run = t;
+        let need = 60.0 * len / t;
+        if let Some(v_max) = s.v_max_mm_per_min {
+            if need > v_max {
+                t_run = 60.0 * len / v_max;
+                written.slowed_stretches += 1;
+                written.max_slowdown = written.max_slowdown.max(t_run / t);
+            }
+        }
+        let mut times = [0.0; 2];
+        let mut words = [String::new(), String::new()];
+        match fm {
+            FeedMode::PerMinute => {
+                let (w, f) = feed_word(60.0 * len / t_run, s.v_max_mm_per_min)?;
+                for k in 0..2 {
+                    times[k] = 60.0 * lens[k] / f;
+                    words[k] = w.clone();
+                }
+            }
+            FeedMode::InverseTime => {
+                for k in 0..2 {
+                    if lens[k] > 0.0 {
+                        let (w, f) = feed_word(60.0 / (t_run * lens[k] / len), None)?;
+                        times[k] = 60.0 / f;
+                        words[k] = w;
+                    }
+                }
+            }
+        }
+        for k in 0..2 {
+            if lens[k] == 0.0 {
+                continue;
+            }
+            if times[k] < min_block_s {
+                return Err(Error::invalid(
+                    "min_block_time_ms",
+                    format!(
+                        "dwell point {j} (x {} y {} mm): a block of {:.3} ms is shorter than the \
+                         {} ms the controller needs; lower v_max, coarsen the path or set \
+                         --min-block-time-ms",
+                        p.x_mm,
+                        p.y_mm,
+                        1e3 * times[k],
+                        s.min_block_time_ms
+                    ),
+                ));
+            }
+            body.push(format!("{lin} {} F{}", halves[k].1.words(), words[k]));
+            written.feed_blocks += 1;
+            written.stretch_time_s += times[k];
+        }
+        let programmed = 60.0 * len / (times[0] + times[1]);
+        f_lo = f_lo.min(programmed);
+        f_hi = f_hi.max(programmed);
+    }
+    // Approach and retract.
+    let top = pts
+        .iter()
+        .map(|p| p.tool_mm[2])
+        .chain(program.boundaries.iter().map(|b| b.tool_mm[2]))
+        .fold(f64::NEG_INFINITY, f64::max);
+    let plane = rounded(top + s.clearance_mm);
+    let start = bnd[0];
+    let drop = plane - start.xyz[2];
+    let plunge_word = match fm {
+        FeedMode::PerMinute => {
+            let (w, f) = feed_word(s.plunge_feed_mm_per_min, None)?;
+            written.plunge_time_s = 60.0 * drop / f;
+            w
+        }
+        FeedMode::InverseTime => {
+            let (w, f) = feed_word(s.plunge_feed_mm_per_min / drop, None)?;
+            written.plunge_time_s = 60.0 / f;
+            w
+        }
+    };
+    let mut code: Vec<String> = Vec::with_capacity(body.len() + 12);
+    let mut pre = format!("G17 {} G90 {}", d.metric_word(), fm.word());
+    if let Some(rpm) = s.spindle_rpm {
+        pre.push_str(&format!(" S{} M3", fixed(rpm, 1)));
+    }
+    if s.coolant {
+        pre.push_str(" M8");
+    }
+    code.push(pre);
+    code.push(format!(
+        "{} Z{}",
+        d.rapid_word(),
+        fixed(plane, COORD_DECIMALS)
+    ));
+    let mut above = format!(
+        "{} X{} Y{}",
+        d.rapid_word(),
+        fixed(start.xyz[0], COORD_DECIMALS),
+        fixed(start.xyz[1], COORD_DECIMALS)
+    );
+    if let Some(b) = start.b {
+        above.push_str(&format!(" B{}", fixed(b, COORD_DECIMALS)));
+    }
+    code.push(above);
+    code.push(format!(
+        "{lin} Z{} F{plunge_word}",
+        fixed(start.xyz[2], COORD_DECIMALS)
+    ));
+    code.extend(body);
+    code.push(d.comment("END DWELL"));
+    code.push(format!(
+        "{} Z{}",
+        d.rapid_word(),
+        fixed(plane, COORD_DECIMALS)
+    ));
+    let mut end = String::new();
+    if s.coolant {
+        end.push_str("M9 ");
+    }
+    if s.spindle_rpm.is_some() {
+        end.push_str("M5 ");
+    }
+    end.push_str(d.program_end());
+    code.push(end);
+
+    // Header, then the numbered blocks.
+    let mut out = String::with_capacity(40 * code.len() + 1024);
+    let mut line = |text: &str| {
+        out.push_str(text);
+        out.push('\n');
+    };
+    if d.percent_wrapped() {
+        line("%");
+    }
+    if d == Dialect::Fanuc {
+        line("O1000");
+    }
+    let sched = &program.schedule;
+    let mut header = vec![
+        "PRESTON DWELL PROGRAM".to_string(),
+        format!(
+            "DIALECT {} FEED MODE {}",
+            d.name().to_uppercase(),
+            fm.name().to_uppercase()
+        ),
+        match fm {
+            FeedMode::PerMinute => "UNITS MM, F MM/MIN, TIME S, ANGLE DEG".into(),
+            FeedMode::InverseTime => {
+                "UNITS MM, F = 1 / BLOCK TIME IN MINUTES, TIME S, ANGLE DEG".into()
+            }
+        },
+    ];
+    header.extend(notes.iter().cloned());
+    header.push(format!("POINTS {n}"));
+    header.push(format!(
+        "TOOL RADIUS {} MM, TOOL CENTRE = CONTACT + R * NORMAL",
+        fixed(s.tool_radius_mm, COORD_DECIMALS)
+    ));
+    if s.compensation.is_some() {
+        let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+            (a.min(p.delta_mm), b.max(p.delta_mm))
+        });
+        header.push(format!(
+            "NORMAL DISPLACEMENT {} .. {} MM",
+            fixed(lo, COORD_DECIMALS),
+            fixed(hi, COORD_DECIMALS)
+        ));
+    }
+    header.push(format!("TOTAL DWELL {} S", fixed(sched.total_dwell_s, 3)));
+    header.push(format!(
+        "MACHINING TIME {} S: DWELL STRETCHES {} S, PLUNGE {} S, RAPIDS NOT INCLUDED",
+        fixed(written.stretch_time_s + written.plunge_time_s, 3),
+        fixed(written.stretch_time_s, 3),
+        fixed(written.plunge_time_s, 3)
+    ));
+    if f_hi > 0.0 {
+        header.push(format!(
+            "TOOL-CENTRE FEED {} .. {} MM/MIN",
+            fixed(f_lo, 3),
+            fixed(f_hi, 3)
+        ));
+    }
+    header.push(format!(
+        "CLEARANCE PLANE Z {} MM",
+        fixed(plane, COORD_DECIMALS)
+    ));
+    header.push("EACH DWELL COMMENT: POINT, PLANNED S, CONTACT X Y MM; ITS BLOCKS FOLLOW".into());
+    for h in &header {
+        line(&d.comment(h));
+    }
+    let numbered = code.len() as u64 <= d.max_block_number();
+    let mut k = 0u64;
+    for c in &code {
+        if c.starts_with('(') || c.starts_with(';') || !numbered {
+            line(c);
+        } else {
+            k += 1;
+            line(&format!("N{k} {c}"));
+        }
+    }
+    if d.percent_wrapped() {
+        line("%");
+    }
+    written.text = out;
+    Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn feed_words_keep_four_significant_figures() {
+        for f in [0.0173, 0.5, 3.17159, 17.0, 2999.99, 1e-4] {
+            let (w, v) = feed_word(f, None).unwrap();
+            assert!(((v - f) / f).abs() <= FEED_ROUNDING, "{f} -> {w}");
+            assert!(w.contains('.'));
+        }
+        let (w, v) = feed_word(3000.0004, Some(3000.0)).unwrap();
+        assert!(v <= 3000.0, "{w}");
+        assert!(feed_word(0.0, None).is_err());
+        assert!(feed_word(1e-12, None).is_err());
+    }
+}

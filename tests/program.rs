@@ -1,0 +1,340 @@
+//! G-code program fidelity: the program as written, read back and timed block by block,
+//! delivers every planned dwell, in every dialect and feed mode.
+
+use preston::solver::machine::gcode::dialect::{Dialect, FeedMode};
+use preston::solver::machine::gcode::motion::{check_stretches, contact_xy, execute, Kinematics};
+use preston::solver::machine::gcode::program::{BlockKind, Program};
+use preston::solver::machine::gcode::write::{write_program, FEED_ROUNDING};
+use preston::solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
+use preston::solver::machine::{Flat, PartGeometry};
+use preston::solver::path::DwellPath;
+use preston::solver::surface::{Conic, Surface};
+use proptest::prelude::*;
+
+/// A stretch time may move by the relative rounding of F only (coordinates are timed as written).
+const STRETCH_TOL: f64 = 1.5 * FEED_ROUNDING;
+
+const MODES: [FeedMode; 2] = [FeedMode::PerMinute, FeedMode::InverseTime];
+
+fn settings(dialect: Dialect, feed_mode: FeedMode) -> NcSettings {
+    NcSettings {
+        dialect,
+        feed_mode,
+        min_block_time_ms: 0.0,
+        ..NcSettings::default()
+    }
+}
+
+/// Writes, reads back and checks every stretch against the plan.
+fn assert_delivers(path: &DwellPath, dwell_s: &[f64], geometry: &dyn PartGeometry, s: &NcSettings) {
+    let nc = NcProgram::plan(path, dwell_s, geometry, s).unwrap();
+    let w = write_program(&nc, &[]).unwrap();
+    let p = Program::parse(&w.text, s.dialect).unwrap();
+    assert_eq!(p.stretches.len(), dwell_s.len());
+    let times = p.programmed_stretch_times_s();
+    for (k, (m, t)) in p.stretches.iter().zip(&times).enumerate() {
+        assert_eq!(m.point, k);
+        assert_eq!(m.planned_dwell_s, dwell_s[k]);
+        assert!(
+            (t - dwell_s[k]).abs() <= STRETCH_TOL * dwell_s[k],
+            "{:?} {:?}: stretch {k}: {t} s for {} s",
+            s.dialect,
+            s.feed_mode,
+            dwell_s[k]
+        );
+    }
+    let planned: f64 = dwell_s.iter().sum();
+    let programmed: f64 = times.iter().sum();
+    assert!((programmed - planned).abs() <= STRETCH_TOL * planned);
+    // Machining time (all feed blocks) is never below the dwell.
+    assert!(p.programmed_time_s() >= planned * (1.0 - STRETCH_TOL));
+    // The executed model at the programmed feeds agrees with the block sums.
+    let e = execute(&p, Kinematics::ProgrammedFeed).unwrap();
+    let c = check_stretches(&p, &e);
+    assert!(c.max_relative_error <= STRETCH_TOL, "{c:?}");
+}
+
+fn serpentine(cols: usize, rows: usize, pitch: f64) -> DwellPath {
+    let (mut x, mut y) = (Vec::new(), Vec::new());
+    for r in 0..rows {
+        for c in 0..cols {
+            let c = if r % 2 == 0 { c } else { cols - 1 - c };
+            x.push(c as f64 * pitch);
+            y.push(r as f64 * pitch);
+        }
+    }
+    DwellPath::new(x, y).unwrap()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    /// Random walks with random feeds over six decades (0.01 to 10^4 mm/min): every stretch of
+    /// the program takes its dwell, in every dialect and feed mode.
+    #[test]
+    fn every_stretch_takes_its_dwell(
+        steps in proptest::collection::vec((0.05f64..3.0, -3.2f64..3.2), 2..40),
+        log_feeds in proptest::collection::vec(-2.0f64..4.0, 41),
+    ) {
+        let (mut x, mut y) = (vec![0.0], vec![0.0]);
+        for (len, angle) in &steps {
+            let (px, py) = (x[x.len() - 1], y[y.len() - 1]);
+            x.push(px + len * angle.cos());
+            y.push(py + len * angle.sin());
+        }
+        let path = DwellPath::new(x, y).unwrap();
+        let ds = path.ds_mm();
+        let dwell: Vec<f64> = ds
+            .iter()
+            .zip(&log_feeds)
+            .map(|(d, lf)| 60.0 * d / 10f64.powf(*lf))
+            .collect();
+        for d in Dialect::ALL {
+            for m in MODES {
+                assert_delivers(&path, &dwell, &Flat, &settings(d, m));
+            }
+        }
+    }
+}
+
+#[test]
+fn round_trip_in_every_dialect_and_feed_mode() {
+    let path = serpentine(5, 3, 1.5);
+    let dwell: Vec<f64> = (0..15)
+        .map(|j| 0.05 + 0.37 * ((j * 7) % 11) as f64)
+        .collect();
+    let sphere = Surface::Conic(Conic {
+        curvature_per_mm: 1.0 / 80.0,
+        conic: 0.0,
+    });
+    for d in Dialect::ALL {
+        for m in MODES {
+            let s = NcSettings {
+                tool_radius_mm: 4.0,
+                tool_axis: ToolAxis::Normal,
+                spindle_rpm: Some(600.0),
+                coolant: true,
+                ..settings(d, m)
+            };
+            let nc = NcProgram::plan(&path, &dwell, &sphere, &s).unwrap();
+            let w = write_program(&nc, &["JOB (TEST)".into()]).unwrap();
+            assert_eq!(Program::detect_dialect(&w.text), Some(d));
+            let p = Program::parse(&w.text, d).unwrap();
+            // Every feed block of a stretch ends where the writer put it: at the point or the
+            // next boundary, to the 4 written decimals.
+            for (j, pt) in nc.points.iter().enumerate() {
+                let b = &p.blocks[p.stretch_blocks(j)];
+                assert_eq!(b.len(), 2, "{d:?} {m:?} stretch {j}");
+                for k in 0..3 {
+                    assert!((b[0].end_mm[k] - pt.tool_mm[k]).abs() <= 0.51e-4);
+                    assert!((b[1].end_mm[k] - nc.boundaries[j + 1].tool_mm[k]).abs() <= 0.51e-4);
+                }
+                assert!((b[0].rotary_deg[1] - pt.b_deg.unwrap()).abs() <= 0.51e-4);
+            }
+            // Approach: rapids, then a plunge at the plunge feed; retract after END DWELL.
+            assert_eq!(p.blocks[0].kind, BlockKind::Rapid);
+            assert_eq!(p.blocks[2].kind, BlockKind::Linear);
+            assert!(!p.blocks[2].contact && p.blocks[3].contact);
+            assert_eq!(p.blocks.last().unwrap().kind, BlockKind::Rapid);
+            let plunge = p.blocks[2].length_mm() / p.blocks[2].programmed_time_s * 60.0;
+            assert!((plunge - 300.0).abs() < 1e-3 * 300.0, "{plunge}");
+            // The header's machining time is the sum of the programmed block times.
+            let header = w
+                .text
+                .lines()
+                .find(|l| l.contains("MACHINING TIME"))
+                .unwrap();
+            let stated: f64 = header
+                .split_whitespace()
+                .nth(if d == Dialect::Sinumerik { 3 } else { 2 })
+                .unwrap()
+                .parse()
+                .unwrap();
+            assert!((stated - p.programmed_time_s()).abs() <= 1e-3 + 1e-4 * stated);
+            if d == Dialect::Sinumerik {
+                assert!(!w.text.contains('('), "parenthesis in a Sinumerik program");
+            }
+            assert_eq!(w.text.contains(" G93"), m == FeedMode::InverseTime);
+            assert!(w.text.contains(" M8") && w.text.contains("M5"));
+            assert_delivers(&path, &dwell, &sphere, &s);
+        }
+    }
+}
+
+#[test]
+fn hand_computed_three_point_program() {
+    // Points (0,0), (2,0), (2,1) with dwell 1, 0.5, 2 s on a flat part, no tool radius.
+    // Stretches: [-1,0]->(0,0)->(1,0): 2 mm in 1 s: F120; (1,0)->(2,0)->(2,0.5): 1.5 mm in 0.5 s:
+    // F180; (2,0.5)->(2,1)->(2,1.5): 1 mm in 2 s: F30.
+    let path = DwellPath::new(vec![0.0, 2.0, 2.0], vec![0.0, 0.0, 1.0]).unwrap();
+    let nc = NcProgram::plan(&path, &[1.0, 0.5, 2.0], &Flat, &NcSettings::default()).unwrap();
+    let text = write_program(&nc, &[]).unwrap().text;
+    let want = [
+        "N4 G01 Z0.0000 F300.000",
+        "(DWELL 0 1 S AT 0 0)",
+        "N5 G01 X0.0000 Y0.0000 Z0.0000 F120.000",
+        "N6 G01 X1.0000 Y0.0000 Z0.0000 F120.000",
+        "(DWELL 1 0.5 S AT 2 0)",
+        "N7 G01 X2.0000 Y0.0000 Z0.0000 F180.000",
+        "N8 G01 X2.0000 Y0.5000 Z0.0000 F180.000",
+        "(DWELL 2 2 S AT 2 1)",
+        "N9 G01 X2.0000 Y1.0000 Z0.0000 F30.000",
+        "N10 G01 X2.0000 Y1.5000 Z0.0000 F30.000",
+        "(END DWELL)",
+        "N11 G00 Z5.0000",
+        "N12 M30",
+    ];
+    let lines: Vec<&str> = text.lines().collect();
+    let at = lines.iter().position(|l| l.starts_with("N4 ")).unwrap();
+    assert_eq!(&lines[at..at + want.len()], &want[..], "{text}");
+    assert!(lines.contains(&"N2 G00 Z5.0000") && lines.contains(&"N3 G00 X-1.0000 Y0.0000"));
+    // Read back: 1 + 0.5 + 2 s in the stretches, the plunge 5 mm at 300 mm/min = 1 s.
+    let p = Program::parse(&text, Dialect::Iso).unwrap();
+    let t = p.programmed_stretch_times_s();
+    assert_eq!(t.len(), 3);
+    for (got, want) in t.iter().zip([1.0, 0.5, 2.0]) {
+        assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+    }
+    assert!((p.programmed_time_s() - 4.5).abs() < 1e-12);
+}
+
+#[test]
+fn reader_handles_dialect_words_and_refuses_what_it_cannot_time() {
+    // Sinumerik: `;` comments, G4 F seconds, G71; Fanuc: G04 X seconds; inch units.
+    let sin = "G17 G71 G90 G94\nG0 X0 Y0 Z1\nG1 Z0 F60 ; plunge 1 mm in 1 s\nG4 F2.5\nG1 X3 Y4 F300\nM30\n";
+    let p = Program::parse(sin, Dialect::Sinumerik).unwrap();
+    let t: Vec<f64> = p.blocks.iter().map(|b| b.programmed_time_s).collect();
+    assert_eq!(t, vec![0.0, 1.0, 2.5, 1.0]);
+    let fanuc =
+        "%\nO1000\nG21 G90 G94\nG00 X0 Y0 Z0\nG04 X1.5\nG04 P250\nG20\nG01 X1. F10.\nM30\n%\n";
+    let p = Program::parse(fanuc, Dialect::Fanuc).unwrap();
+    let t: Vec<f64> = p.blocks.iter().map(|b| b.programmed_time_s).collect();
+    assert!((t[1] - 1.5).abs() < 1e-12 && (t[2] - 0.25).abs() < 1e-12);
+    // 1 inch at 10 inch/min: 6 s, and the end point in mm.
+    assert!((t[3] - 6.0).abs() < 1e-12 && (p.blocks[3].end_mm[0] - 25.4).abs() < 1e-12);
+    // Fanuc counts the rotary axis in the path length; ISO does not.
+    let rot = "G0 X0 Y0 Z0 B0\nG1 X3 Y4 B12 F60\n";
+    let iso = Program::parse(rot, Dialect::Iso).unwrap();
+    let fan = Program::parse(rot, Dialect::Fanuc).unwrap();
+    assert!((iso.blocks[1].programmed_time_s - 5.0).abs() < 1e-12);
+    assert!((fan.blocks[1].programmed_time_s - 13.0).abs() < 1e-12);
+    // Inverse time: 60 / F seconds, F required in every block.
+    let g93 = "G0 X0 Y0 Z0\nG93 G1 X1 F120\nG1 X2 F30\n";
+    let p = Program::parse(g93, Dialect::Linuxcnc).unwrap();
+    assert_eq!(p.blocks[1].programmed_time_s, 0.5);
+    assert_eq!(p.blocks[2].programmed_time_s, 2.0);
+    for (bad, needle) in [
+        ("G0 X0 Y0\nG93 G1 X1 F1\nG1 X2\n", "own F word"),
+        ("G0 X0 Y0\nG2 X1 Y1 I1 J0 F10\n", "circular"),
+        ("G0 X0\nG95 G1 X1 F0.1\n", "per revolution"),
+        ("G1 X1 F10\n", "unknown position"),
+        ("G0 X0\nG1 X1 F0\n", "not positive"),
+        ("G0 X0\n(DWELL 0 1 S AT 0 0)\nG1 X1 F10\n", "END DWELL"),
+        ("G0 X0\n(DWELL 0 one S AT 0 0)\n", "dwell marker"),
+        ("G0 X0 (open comment\n", "never closed"),
+        ("G0 X0\nG1 X1 Q5 F10\n", "word Q"),
+    ] {
+        let e = Program::parse(bad, Dialect::Iso).unwrap_err().to_string();
+        assert!(e.contains(needle), "{bad:?}: {e}");
+        assert!(e.starts_with("program line"), "{e}");
+    }
+}
+
+#[test]
+fn feeds_on_a_sphere_follow_the_tool_centre_path() {
+    // Sphere R 25 mm (centre (0, 0, 25)), tool radius 5 mm, tool axis along the normal.
+    // A tool centre is A = P + r n with n = (C - P) / R, i.e. A = C + (R - r)(P - C) / R.
+    let r_sphere = 25.0;
+    let r_tool = 5.0;
+    let sphere = Surface::Conic(Conic {
+        curvature_per_mm: 1.0 / r_sphere,
+        conic: 0.0,
+    });
+    let path = DwellPath::new(vec![0.0, 4.0, 8.0, 12.0], vec![0.0, 2.0, 2.0, 6.0]).unwrap();
+    let dwell = [0.8, 0.3, 1.1, 0.5];
+    let s = NcSettings {
+        tool_radius_mm: r_tool,
+        tool_axis: ToolAxis::Normal,
+        ..NcSettings::default()
+    };
+    let nc = NcProgram::plan(&path, &dwell, &sphere, &s).unwrap();
+    let w = write_program(&nc, &[]).unwrap();
+    let centre = |x: f64, y: f64| {
+        let z = r_sphere - (r_sphere * r_sphere - x * x - y * y).sqrt();
+        let k = (r_sphere - r_tool) / r_sphere;
+        [k * x, k * y, r_sphere + k * (z - r_sphere)]
+    };
+    let (px, py) = (path.x_mm(), path.y_mm());
+    let mid = |a: usize, b: usize| (0.5 * (px[a] + px[b]), 0.5 * (py[a] + py[b]));
+    let dist = |a: [f64; 3], b: [f64; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    };
+    let p = Program::parse(&w.text, Dialect::Iso).unwrap();
+    let mut planar_gap = 0.0f64;
+    for j in 0..4 {
+        let (bx0, by0) = if j == 0 {
+            (2.0 * px[0] - mid(0, 1).0, 2.0 * py[0] - mid(0, 1).1)
+        } else {
+            mid(j - 1, j)
+        };
+        let (bx1, by1) = if j == 3 {
+            (2.0 * px[3] - mid(2, 3).0, 2.0 * py[3] - mid(2, 3).1)
+        } else {
+            mid(j, j + 1)
+        };
+        let a = centre(px[j], py[j]);
+        let len = dist(centre(bx0, by0), a) + dist(a, centre(bx1, by1));
+        let feed_hand = 60.0 * len / dwell[j];
+        let b = &p.blocks[p.stretch_blocks(j)];
+        let feed_prog = 60.0 * b[0].length_mm() / b[0].programmed_time_s;
+        assert!(
+            (feed_prog - feed_hand).abs() <= 2e-4 * feed_hand + 1e-3,
+            "stretch {j}: {feed_prog} vs hand {feed_hand}"
+        );
+        planar_gap = planar_gap.max((feed_hand / nc.points[j].feed_mm_per_min - 1.0).abs());
+    }
+    // The 3-D tool-centre feed differs from the planar feed the engine plans with (the tool
+    // centre runs on a sphere of radius R - r, 20% smaller): programming the planar feed would
+    // get the dwell wrong by as much.
+    assert!(planar_gap > 0.05, "{planar_gap}");
+    // Contact points back from tool centres (the simulator's inversion).
+    let pt = &nc.points[2];
+    let (x, y) = contact_xy(&sphere, r_tool, pt.tool_mm).unwrap();
+    assert!((x - pt.x_mm).abs() < 1e-8 && (y - pt.y_mm).abs() < 1e-8);
+}
+
+#[test]
+fn programs_refuse_what_a_controller_cannot_run() {
+    let path = DwellPath::new(vec![0.0, 0.1, 0.2], vec![0.0; 3]).unwrap();
+    // 0.1 mm at 3000 mm/min: half-blocks of 1 ms, below the default 2 ms block time.
+    let fast = [0.002; 3];
+    let nc = NcProgram::plan(&path, &fast, &Flat, &NcSettings::default()).unwrap();
+    let e = write_program(&nc, &[]).unwrap_err().to_string();
+    assert!(e.contains("dwell point 0") && e.contains("2 ms"), "{e}");
+    // A single point, or a repeated one with dwell: no path to sweep.
+    let one = DwellPath::new(vec![1.0], vec![1.0]).unwrap();
+    let nc = NcProgram::plan(&one, &[2.0], &Flat, &NcSettings::default()).unwrap();
+    let e = write_program(&nc, &[]).unwrap_err().to_string();
+    assert!(
+        e.contains("dwell point 0") && e.contains("zero length"),
+        "{e}"
+    );
+    let rep = DwellPath::new(vec![0.0, 1.0, 1.0, 1.0], vec![0.0; 4]).unwrap();
+    let nc = NcProgram::plan(&rep, &[1.0, 1.0, 1.0, 1.0], &Flat, &NcSettings::default()).unwrap();
+    let e = write_program(&nc, &[]).unwrap_err().to_string();
+    assert!(
+        e.contains("dwell point 2") && e.contains("zero length"),
+        "{e}"
+    );
+    // v_max caps the programmed feed: the stretch is slowed, never over the limit.
+    let path = DwellPath::new(vec![0.0, 1.0, 2.0], vec![0.0; 3]).unwrap();
+    let s = NcSettings {
+        v_max_mm_per_min: Some(100.0),
+        ..NcSettings::default()
+    };
+    let nc = NcProgram::plan(&path, &[0.5, 0.5, 0.5], &Flat, &s).unwrap();
+    let w = write_program(&nc, &[]).unwrap();
+    assert_eq!(w.slowed_stretches, 3);
+    assert!((w.max_slowdown - 1.2).abs() < 1e-9, "{}", w.max_slowdown);
+    assert!(w.text.contains("F100.000") && !w.text.contains("F120"));
+}
