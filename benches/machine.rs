@@ -7,6 +7,9 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Through
 use preston::solver::dwell::accel::{self, max_acceleration_mm_per_s2, AccelLimits};
 use preston::solver::dwell::{self, DwellBounds, FeedLimits, Problem, Settings};
 use preston::solver::influence::InfluenceMatrix;
+use preston::solver::machine::gcode::dialect::Dialect;
+use preston::solver::machine::gcode::motion::{execute, Kinematics};
+use preston::solver::machine::gcode::program::Program;
 use preston::solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
 use preston::solver::map::BoundingBox;
 use preston::solver::observer::Silent;
@@ -108,6 +111,23 @@ fn nc_planning(c: &mut Criterion) {
             buf.clear();
             program.write_gcode(&mut buf).unwrap();
             buf.len()
+        })
+    });
+    // Read the program back and execute it with the acceleration limit (what `nc` and
+    // `simulate --program` do before integrating the removal).
+    let text = String::from_utf8(buf.clone()).unwrap();
+    group.bench_with_input(BenchmarkId::new("read_back_execute", n), &(), |b, _| {
+        b.iter(|| {
+            let p = Program::parse(&text, Dialect::Iso).unwrap();
+            let e = execute(
+                &p,
+                Kinematics::Trapezoidal {
+                    a_max_mm_per_s2: 500.0,
+                    corner_angle_deg: 60.0,
+                },
+            )
+            .unwrap();
+            e.total_time_s
         })
     });
     group.finish();

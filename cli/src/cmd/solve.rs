@@ -1,11 +1,16 @@
 //! `preston solve`: dwell times and feeds for a map, a TIF and a dwell path.
 
+use super::nc::print_program_check;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
+use preston_io::surface::read_surface;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
+use preston_solver::machine::gcode::write_and_check;
+use preston_solver::machine::nc::{NcProgram, NcSettings};
+use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
 use std::path::PathBuf;
@@ -346,6 +351,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.solve_seconds,
         out.display()
     );
+    program_check(&solved, &job);
     if !solved.solution.status.is_converged() {
         eprintln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
@@ -356,4 +362,40 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Plans the default program for the solution (ISO, feeds per minute, the job's surface, tool
+/// radius, feed and acceleration limits), reads it back and prints what the machine would do
+/// with it; a plan no program can deliver is a warning here (`preston nc` refuses it).
+fn program_check(solved: &pipeline::Solved, job: &Job) {
+    let settings = NcSettings {
+        tool_radius_mm: job.nc.tool_radius_mm.unwrap_or(0.0),
+        tool_axis: job.nc.tool_axis.unwrap_or_default(),
+        a_max_mm_per_s2: job.machine.a_max_mm_per_s2,
+        corner_angle_deg: job.corner_angle_deg(),
+        compensation: job.compensation.clone(),
+        v_max_mm_per_min: job.machine.v_max_mm_per_min,
+        ..NcSettings::default()
+    };
+    let surface = match &job.surface.file {
+        Some(f) => match read_surface(f) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                eprintln!("  warning: no program check: {e}");
+                return;
+            }
+        },
+        None => None,
+    };
+    let geometry: &dyn PartGeometry = match &surface {
+        Some(s) => s,
+        None => &Flat,
+    };
+    let p = &solved.prepared.path;
+    let checked = NcProgram::plan(p, &solved.solution.dwell_s, geometry, &settings)
+        .and_then(|nc| write_and_check(&nc, &[]));
+    match checked {
+        Ok(c) => print_program_check(&c),
+        Err(e) => eprintln!("  warning: no G-code program can deliver this plan as it is: {e}"),
+    }
 }

@@ -47,7 +47,8 @@ pub struct Written {
     pub text: String,
     /// Feed blocks (linear moves) in the program.
     pub feed_blocks: usize,
-    /// Stretches programmed at `v_max` because their tool-centre move needed more.
+    /// Stretches programmed at `v_max` because their tool-centre move needed more than
+    /// `v_max (1 + FEED_ROUNDING)`.
     pub slowed_stretches: usize,
     /// Largest programmed / planned time of a slowed stretch (1 when none).
     pub max_slowdown: f64,
@@ -62,36 +63,36 @@ pub fn program_text(program: &NcProgram, notes: &[String]) -> Result<String> {
     write_program(program, notes).map(|w| w.text)
 }
 
-/// A pose as written: coordinates rounded to the program's decimals.
-#[derive(Debug, Clone, Copy)]
+/// A pose as written: coordinates rounded to the program's decimals, and their words.
+#[derive(Debug, Clone)]
 struct Pose {
     xyz: [f64; 3],
     b: Option<f64>,
+    words: String,
 }
 
-fn rounded(v: f64) -> f64 {
-    fixed(v, COORD_DECIMALS).parse().unwrap_or(v)
+/// `v` as written with [`COORD_DECIMALS`] and the value it stands for.
+fn as_written(v: f64) -> (String, f64) {
+    let text = fixed(v, COORD_DECIMALS);
+    let value = text.parse().unwrap_or(v);
+    (text, value)
 }
 
 impl Pose {
     fn new(tool_mm: [f64; 3], b_deg: Option<f64>) -> Self {
+        let [(xs, x), (ys, y), (zs, z)] = tool_mm.map(as_written);
+        let mut words = format!("X{xs} Y{ys} Z{zs}");
+        let b = b_deg.map(|b| {
+            let (bs, bv) = as_written(b);
+            words.push_str(" B");
+            words.push_str(&bs);
+            bv
+        });
         Self {
-            xyz: tool_mm.map(rounded),
-            b: b_deg.map(rounded),
+            xyz: [x, y, z],
+            b,
+            words,
         }
-    }
-
-    fn words(&self) -> String {
-        let mut s = format!(
-            "X{} Y{} Z{}",
-            fixed(self.xyz[0], COORD_DECIMALS),
-            fixed(self.xyz[1], COORD_DECIMALS),
-            fixed(self.xyz[2], COORD_DECIMALS)
-        );
-        if let Some(b) = self.b {
-            s.push_str(&format!(" B{}", fixed(b, COORD_DECIMALS)));
-        }
-        s
     }
 
     /// Programmed path length of the move from `self` to `to` in `dialect`.
@@ -172,8 +173,8 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     for (j, p) in pts.iter().enumerate() {
         let t = p.dwell_s;
         body.push(d.comment(&format!("DWELL {j} {t} S AT {} {}", p.x_mm, p.y_mm)));
-        let halves = [(bnd[j], at[j]), (at[j], bnd[j + 1])];
-        let lens = halves.map(|(a, b)| a.length_to(&b, d));
+        let halves = [(&bnd[j], &at[j]), (&at[j], &bnd[j + 1])];
+        let lens = halves.map(|(a, b)| a.length_to(b, d));
         let len = lens[0] + lens[1];
         if len == 0.0 {
             if t > 0.0 {
@@ -198,8 +199,12 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         if let Some(v_max) = s.v_max_mm_per_min {
             if need > v_max {
                 t_run = 60.0 * len / v_max;
-                written.slowed_stretches += 1;
-                written.max_slowdown = written.max_slowdown.max(t_run / t);
+                // Within the rounding of F (a solver's bound met to its tolerance) this is the
+                // cap of the F word, not a slowed stretch.
+                if need > v_max * (1.0 + FEED_ROUNDING) {
+                    written.slowed_stretches += 1;
+                    written.max_slowdown = written.max_slowdown.max(t_run / t);
+                }
             }
         }
         let mut times = [0.0; 2];
@@ -240,7 +245,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                     ),
                 ));
             }
-            body.push(format!("{lin} {} F{}", halves[k].1.words(), words[k]));
+            body.push(format!("{lin} {} F{}", halves[k].1.words, words[k]));
             written.feed_blocks += 1;
             written.stretch_time_s += times[k];
         }
@@ -254,8 +259,8 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         .map(|p| p.tool_mm[2])
         .chain(program.boundaries.iter().map(|b| b.tool_mm[2]))
         .fold(f64::NEG_INFINITY, f64::max);
-    let plane = rounded(top + s.clearance_mm);
-    let start = bnd[0];
+    let plane = as_written(top + s.clearance_mm).1;
+    let start = &bnd[0];
     let drop = plane - start.xyz[2];
     let plunge_word = match fm {
         FeedMode::PerMinute => {
