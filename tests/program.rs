@@ -305,12 +305,26 @@ fn feeds_on_a_sphere_follow_the_tool_centre_path() {
 
 #[test]
 fn programs_refuse_what_a_controller_cannot_run() {
-    let path = DwellPath::new(vec![0.0, 0.1, 0.2], vec![0.0; 3]).unwrap();
-    // 0.1 mm at 3000 mm/min: half-blocks of 1 ms, below the default 2 ms block time.
-    let fast = [0.002; 3];
-    let nc = NcProgram::plan(&path, &fast, &Flat, &NcSettings::default()).unwrap();
+    // 0.1 mm steps at 3000 mm/min: half-blocks of 1 ms, below the default 2 ms block time. On a
+    // straight line each stretch becomes one 2 ms block through its point, still exact.
+    let line = DwellPath::new(vec![0.0, 0.1, 0.2, 0.3], vec![0.0; 4]).unwrap();
+    let fast = [0.002; 4];
+    let nc = NcProgram::plan(&line, &fast, &Flat, &NcSettings::default()).unwrap();
+    let w = write_program(&nc, &[]).unwrap();
+    assert_eq!(w.merged_stretches, 4);
+    let p = Program::parse(&w.text, Dialect::Iso).unwrap();
+    for (k, t) in p.programmed_stretch_times_s().iter().enumerate() {
+        assert_eq!(p.stretch_blocks(k).len(), 1);
+        assert!((t - 0.002).abs() <= STRETCH_TOL * 0.002, "{t}");
+    }
+    // A zigzag cannot merge through its corners (the run-in stretch of point 0 is straight): the
+    // first short block is named.
+    let zig = DwellPath::new(vec![0.0, 0.1, 0.2, 0.3], vec![0.0, 0.1, 0.0, 0.1]).unwrap();
+    let ds = zig.ds_mm();
+    let fast: Vec<f64> = ds.iter().map(|d| 60.0 * d / 3000.0).collect();
+    let nc = NcProgram::plan(&zig, &fast, &Flat, &NcSettings::default()).unwrap();
     let e = write_program(&nc, &[]).unwrap_err().to_string();
-    assert!(e.contains("dwell point 0") && e.contains("2 ms"), "{e}");
+    assert!(e.contains("dwell point 1") && e.contains("2 ms"), "{e}");
     // A single point, or a repeated one with dwell: no path to sweep.
     let one = DwellPath::new(vec![1.0], vec![1.0]).unwrap();
     let nc = NcProgram::plan(&one, &[2.0], &Flat, &NcSettings::default()).unwrap();

@@ -344,8 +344,9 @@ fn dialects_feed_modes_and_program_checks() {
         assert_eq!(mode(&sin), mode(&plain));
         assert_eq!(mode(&sin.with_extension("csv")), mode(&plain));
     }
-    // Blocks faster than the controller's block rate are refused, naming the point; nothing
-    // is written.
+    // Blocks faster than the controller's block rate are merged along the straight lines and
+    // refused at the first corner (point 20, the end of the first line), naming it; nothing is
+    // written.
     let bad = d.path().join("bad.nc");
     let o = preston(&[
         "nc",
@@ -358,7 +359,7 @@ fn dialects_feed_modes_and_program_checks() {
     ]);
     assert_eq!(o.status.code(), Some(2));
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("dwell point 0") && e.contains("500 ms"), "{e}");
+    assert!(e.contains("dwell point 20") && e.contains("500 ms"), "{e}");
     assert!(!bad.exists());
     // A program without dwell markers cannot give executed dwell.
     let plain_prog = d.path().join("plain.nc");

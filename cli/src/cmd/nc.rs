@@ -250,6 +250,12 @@ pub fn print_program_check(check: &ProgramCheck) {
         p.over_5_percent,
         p.stretches
     );
+    if w.merged_stretches > 0 {
+        eprintln!(
+            "  {} stretches written as one block through their point (a half would have been shorter than the block time)",
+            w.merged_stretches
+        );
+    }
     if w.slowed_stretches > 0 {
         eprintln!(
             "  warning: {} stretches need more than v_max on the tool-centre path and are programmed at v_max (up to {:.2}% longer than planned)",

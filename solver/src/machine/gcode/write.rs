@@ -50,6 +50,9 @@ pub struct Written {
     /// Stretches programmed at `v_max` because their tool-centre move needed more than
     /// `v_max (1 + FEED_ROUNDING)`.
     pub slowed_stretches: usize,
+    /// Stretches written as one block (boundary to boundary through their collinear point)
+    /// because a half would have been shorter than the block time.
+    pub merged_stretches: usize,
     /// Largest programmed / planned time of a slowed stretch (1 when none).
     pub max_slowdown: f64,
     /// Programmed time of the dwell stretches, s.
@@ -110,6 +113,39 @@ impl Pose {
     }
 }
 
+/// Whether `p` lies on the segment `a -> b` to the written resolution (half a unit of the
+/// last coordinate decimal, per axis) and the rotary axis moves uniformly.
+fn collinear(a: &Pose, p: &Pose, b: &Pose) -> bool {
+    let tol = 0.5 * 10f64.powi(-(COORD_DECIMALS as i32)) * 3f64.sqrt();
+    let ab = [
+        b.xyz[0] - a.xyz[0],
+        b.xyz[1] - a.xyz[1],
+        b.xyz[2] - a.xyz[2],
+    ];
+    let ap = [
+        p.xyz[0] - a.xyz[0],
+        p.xyz[1] - a.xyz[1],
+        p.xyz[2] - a.xyz[2],
+    ];
+    let l2 = ab[0] * ab[0] + ab[1] * ab[1] + ab[2] * ab[2];
+    if l2 == 0.0 {
+        return false;
+    }
+    let f = (ap[0] * ab[0] + ap[1] * ab[1] + ap[2] * ab[2]) / l2;
+    if !(0.0..=1.0).contains(&f) {
+        return false;
+    }
+    let off = (0..3)
+        .map(|k| (ap[k] - f * ab[k]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    let rotary = match (a.b, p.b, b.b) {
+        (Some(x), Some(y), Some(z)) => (y - (x + f * (z - x))).abs() <= 1e-3,
+        _ => true,
+    };
+    off <= tol && rotary
+}
+
 /// `F` as written and its value: at least [`MIN_FEED_DECIMALS`], enough for a relative rounding
 /// of [`FEED_ROUNDING`]; rounded down when `cap` would be exceeded.
 pub fn feed_word(f: f64, cap: Option<f64>) -> Result<(String, f64)> {
@@ -165,6 +201,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         text: String::new(),
         feed_blocks: 0,
         slowed_stretches: 0,
+        merged_stretches: 0,
         max_slowdown: 1.0,
         stretch_time_s: 0.0,
         plunge_time_s: 0.0,
@@ -207,31 +244,49 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                 }
             }
         }
+        // The blocks of the stretch: boundary -> point -> boundary, or one block boundary ->
+        // boundary when a half would be shorter than the controller's block time and the point
+        // lies on the straight line between the boundaries (within the written resolution).
+        let shortest_s = lens
+            .iter()
+            .filter(|&&l| l > 0.0)
+            .map(|l| t_run * l / len)
+            .fold(f64::INFINITY, f64::min);
+        let merged = shortest_s < min_block_s * (1.0 - FEED_ROUNDING)
+            && collinear(&bnd[j], &at[j], &bnd[j + 1]);
+        let (ends, blens, count) = if merged {
+            written.merged_stretches += 1;
+            let l = bnd[j].length_to(&bnd[j + 1], d);
+            ([&bnd[j + 1], &bnd[j + 1]], [l, 0.0], 1)
+        } else {
+            ([&at[j], &bnd[j + 1]], lens, 2)
+        };
+        let len_run: f64 = blens.iter().sum();
         let mut times = [0.0; 2];
         let mut words = [String::new(), String::new()];
         match fm {
             FeedMode::PerMinute => {
-                let (w, f) = feed_word(60.0 * len / t_run, s.v_max_mm_per_min)?;
-                for k in 0..2 {
-                    times[k] = 60.0 * lens[k] / f;
+                let (w, f) = feed_word(60.0 * len_run / t_run, s.v_max_mm_per_min)?;
+                for k in 0..count {
+                    times[k] = 60.0 * blens[k] / f;
                     words[k] = w.clone();
                 }
             }
             FeedMode::InverseTime => {
-                for k in 0..2 {
-                    if lens[k] > 0.0 {
-                        let (w, f) = feed_word(60.0 / (t_run * lens[k] / len), None)?;
+                for k in 0..count {
+                    if blens[k] > 0.0 {
+                        let (w, f) = feed_word(60.0 / (t_run * blens[k] / len_run), None)?;
                         times[k] = 60.0 / f;
                         words[k] = w;
                     }
                 }
             }
         }
-        for k in 0..2 {
-            if lens[k] == 0.0 {
+        for k in 0..count {
+            if blens[k] == 0.0 {
                 continue;
             }
-            if times[k] < min_block_s {
+            if times[k] < min_block_s * (1.0 - FEED_ROUNDING) {
                 return Err(Error::invalid(
                     "min_block_time_ms",
                     format!(
@@ -245,11 +300,11 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                     ),
                 ));
             }
-            body.push(format!("{lin} {} F{}", halves[k].1.words, words[k]));
+            body.push(format!("{lin} {} F{}", ends[k].words, words[k]));
             written.feed_blocks += 1;
             written.stretch_time_s += times[k];
         }
-        let programmed = 60.0 * len / (times[0] + times[1]);
+        let programmed = 60.0 * len_run / (times[0] + times[1]);
         f_lo = f_lo.min(programmed);
         f_hi = f_hi.max(programmed);
     }
