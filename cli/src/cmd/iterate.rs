@@ -177,7 +177,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             solver: args.solver.into(),
             ..Settings::default()
         },
-        ..LoopSettings::default()
     };
     settings.validate()?;
     let bars = Bars::new();
