@@ -460,3 +460,37 @@ fn random_path_is_unicursal_and_reproducible() {
     assert!(String::from_utf8_lossy(&r.stderr).contains("max_run"));
     assert!(!bad.exists());
 }
+
+/// `path raster --arc-radius-mm`: arc turns are sampled to `--arc-tolerance-um` whatever the
+/// step: every chord's sagitta `r (1 - cos(phi / 2))` (phi its turn) within the tolerance.
+#[test]
+fn arc_turns_meet_the_chord_tolerance_with_a_long_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("arcs.csv");
+    ok(&preston(&[
+        "path",
+        "raster",
+        "--x-mm=0,20",
+        "--y-mm=0,6",
+        "--pitch-mm",
+        "2",
+        "--step-mm",
+        "5",
+        "--arc-radius-mm",
+        "1",
+        "--arc-tolerance-um",
+        "0.5",
+        "--out",
+        s(&out),
+    ]));
+    let (_, rows) = read_csv(&out);
+    let mut worst: f64 = 0.0;
+    for w in rows.windows(3) {
+        let a = (w[1][0] - w[0][0], w[1][1] - w[0][1]);
+        let b = (w[2][0] - w[1][0], w[2][1] - w[1][1]);
+        worst = worst.max((a.0 * b.1 - a.1 * b.0).atan2(a.0 * b.0 + a.1 * b.1).abs());
+    }
+    let sagitta_um = 1.0 * (1.0 - (0.5 * worst).cos()) * 1e3;
+    assert!(sagitta_um <= 0.5 + 1e-9, "{sagitta_um} um");
+    assert!(worst > 0.0);
+}

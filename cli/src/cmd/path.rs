@@ -98,6 +98,9 @@ struct Region {
     /// Join lines by tangent-continuous circular arcs of this radius (at most P/2), mm.
     #[arg(long)]
     arc_radius_mm: Option<f64>,
+    /// Largest distance of an arc's chords from the arc (sagitta), um, whatever the step.
+    #[arg(long, default_value_t = 1.0)]
+    arc_tolerance_um: f64,
     /// Clear-aperture polygon CSV `x_mm,y_mm`: keep only points inside it or within the margin.
     #[arg(long, value_name = "APERTURE.csv")]
     aperture: Option<PathBuf>,
@@ -289,7 +292,7 @@ fn raster_path(
 ) -> anyhow::Result<DwellPath> {
     let step = region.step_mm.unwrap_or(region.pitch_mm);
     let path = match region.arc_radius_mm {
-        Some(r) => lines_with_arcs(lines, step, r)?,
+        Some(r) => lines_with_arcs(lines, step, r, region.arc_tolerance_um * 1e-3)?,
         None => lines_to_path(lines, step)?,
     };
     Ok(match &region.aperture {
