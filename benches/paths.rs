@@ -39,7 +39,7 @@ fn paths(c: &mut Criterion) {
     group.bench_function("raster_arcs", |b| {
         b.iter(|| {
             let lines = raster_lines(&region, 1.0, RasterAxis::X, 0.0).unwrap();
-            lines_with_arcs(&lines, 1.0, 0.5).unwrap()
+            lines_with_arcs(&lines, 1.0, 0.5, 1e-3).unwrap()
         })
     });
     // pi R^2 / (P step) = 1e6 at P = step = 1 mm: R = 564.19 mm.

@@ -216,6 +216,8 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
         s(&surface),
         "--points",
         s(&exact_pts),
+        "--weak-eigenvalue",
+        "0",
         "--out",
         s(&out_exact),
     ]));
@@ -247,6 +249,8 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
     assert!((mapped[2] - sag(mapped[0], mapped[1])).abs() < 1e-9);
 
     // With the form error: the map written is the form error, and `preston solve` reads it.
+    // (This surface's in-plane slide has a relative eigenvalue below the default lock threshold;
+    // the 80 nm error here is orthogonal enough to every motion to estimate all six.)
     let out = dir.path().join("reg");
     ok(&preston(&[
         "register",
@@ -254,6 +258,8 @@ fn register_extracts_a_known_transform_and_feeds_solve() {
         s(&surface),
         "--points",
         s(&pts),
+        "--weak-eigenvalue",
+        "0",
         "--out",
         s(&out),
     ]));
@@ -469,4 +475,146 @@ fn solve_on_a_surface_reduces_to_the_flat_solve_on_a_plane() {
         serde_json::from_str(&std::fs::read_to_string(on_sphere.join("report.json")).unwrap())
             .unwrap();
     assert_eq!(report["status"], "converged");
+}
+
+/// `preston register` on the shipped freeform: conditioning in `transform.json`, the weak
+/// motions locked with a warning, `--lock` by name, and point sets that cannot determine the
+/// motions refused with exit 2 naming them and writing nothing.
+#[test]
+fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    let design = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/design_freeform.json");
+    let grid = dir.path().join("grid.csv");
+    ok(&preston(&[
+        "surface",
+        "--surface",
+        s(&design),
+        "--x-min-mm",
+        "-25",
+        "--x-max-mm",
+        "25",
+        "--y-min-mm",
+        "-25",
+        "--y-max-mm",
+        "25",
+        "--step-mm",
+        "2.5",
+        "--out",
+        s(&grid),
+    ]));
+    // The design points raised by 2 um (a piston: tz = -2 um) and a smooth 40 nm error.
+    let text = std::fs::read_to_string(&grid).unwrap();
+    let mut pts = Vec::new();
+    for line in text.lines().skip(1) {
+        let v: Vec<f64> = line.split(',').map(|c| c.parse().unwrap()).collect();
+        let e_mm = 40e-6 * (0.1 * v[0]).sin() * (0.08 * v[1]).cos();
+        pts.push([v[0], v[1], v[2] + 2e-3 + e_mm]);
+    }
+    let pfile = dir.path().join("p.csv");
+    write_points(&pfile, &pts);
+    let out = dir.path().join("reg");
+    let r = preston(&[
+        "register",
+        "--surface",
+        s(&design),
+        "--points",
+        s(&pfile),
+        "--out",
+        s(&out),
+    ]);
+    ok(&r);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        err.contains("warning: the surface does not determine"),
+        "{err}"
+    );
+    let tf: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("transform.json")).unwrap())
+            .unwrap();
+    let ev: Vec<f64> = tf["information_eigenvalues"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(ev.len(), 6);
+    assert!(ev.windows(2).all(|w| w[0] >= w[1]), "{ev:?}");
+    // The largest is the piston: sum of n_z^2 ~ N points.
+    assert!(
+        (ev[0] - pts.len() as f64).abs() < 0.01 * pts.len() as f64,
+        "{ev:?}"
+    );
+    let cond = tf["condition_number"].as_f64().unwrap();
+    assert!((cond - ev[0] / ev[5]).abs() < 1e-6 * cond);
+    assert_eq!(tf["dof_sigma"].as_array().unwrap().len(), 6);
+    let locked = tf["locked"].as_array().unwrap();
+    assert_eq!(locked.len(), 3, "{locked:?}");
+    assert!(locked.iter().all(|l| l["source"] == "weak"));
+    let t = tf["translation_um"][2].as_f64().unwrap();
+    assert!((t + 2.0).abs() < 0.01, "tz {t} um");
+    for k in 0..3 {
+        let w = tf["rotation_arcsec"][k].as_f64().unwrap();
+        assert!(w.abs() < 5.0, "rotation {k}: {w} arcsec");
+    }
+
+    // --lock tz keeps the piston in the form error.
+    let out2 = dir.path().join("reg2");
+    ok(&preston(&[
+        "register",
+        "--surface",
+        s(&design),
+        "--points",
+        s(&pfile),
+        "--lock",
+        "tz,rz",
+        "--out",
+        s(&out2),
+    ]));
+    let tf: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out2.join("transform.json")).unwrap())
+            .unwrap();
+    assert!(tf["translation_um"][2].as_f64().unwrap().abs() < 1e-6);
+    assert_eq!(tf["dof_sigma"][5].as_f64().unwrap(), 0.0);
+    let users: Vec<&str> = tf["locked"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|l| l["source"] == "user")
+        .map(|l| l["label"].as_str().unwrap())
+        .collect();
+    assert_eq!(users, ["rz", "tz"]);
+    assert!((tf["rms_nm"].as_f64().unwrap() - 2000.0).abs() < 50.0);
+
+    // A single profile line: exit 2, the undetermined motions named, nothing written.
+    let line: Vec<[f64; 3]> = pts.iter().filter(|p| p[1] == 0.0).copied().collect();
+    assert!(line.len() > 10);
+    let lfile = dir.path().join("line.csv");
+    write_points(&lfile, &line);
+    let out3 = dir.path().join("reg3");
+    let r = preston(&[
+        "register",
+        "--surface",
+        s(&design),
+        "--points",
+        s(&lfile),
+        "--out",
+        s(&out3),
+    ]);
+    assert_eq!(r.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(err.contains("one line") && err.contains("rx, tx"), "{err}");
+    assert!(!out3.exists());
+    // Unknown DOF names are refused by the parser.
+    let r = preston(&[
+        "register",
+        "--surface",
+        s(&design),
+        "--points",
+        s(&pfile),
+        "--lock",
+        "rw",
+        "--out",
+        s(&out3),
+    ]);
+    assert_eq!(r.status.code(), Some(2));
 }

@@ -138,6 +138,10 @@ fn simulate_reproduces_the_solver_and_converges_in_continuous_mode() {
     assert!(steps[3] < 0.02 * rms[4] + 1e-9, "{rms:?}");
 }
 
+/// Measured RMS below which the loop with 0.3 nm of measurement noise, a 3 % TIF rate error and
+/// 20 um of positioning noise is at its floor and a run need not improve on the last, nm.
+const DISTURBANCE_FLOOR_NM: f64 = 1.0;
+
 #[test]
 fn virtual_loop_converges_and_writes_table_and_plots() {
     let d = tempfile::tempdir().unwrap();
@@ -184,9 +188,13 @@ fn virtual_loop_converges_and_writes_table_and_plots() {
     // tens of micrometres is taken out) and decreases run after run.
     assert!((rows[0][2] - 50.0).abs() < 25.0, "{rows:?}");
     for w in rows.windows(2) {
-        assert!(w[1][2] < w[0][2], "RMS does not decrease: {rows:?}");
+        assert!(
+            w[1][2] < w[0][2] || w[0][2] < DISTURBANCE_FLOOR_NM,
+            "RMS does not decrease: {rows:?}"
+        );
     }
     assert!(rows[1][2] < 0.2 * rows[0][2], "{rows:?}");
+    assert!(rows[3][2] < DISTURBANCE_FLOOR_NM, "{rows:?}");
     assert!(rows[0][5] > 0.0 && rows[3][5] == 0.0);
     for f in [
         "convergence.png",
@@ -237,4 +245,50 @@ fn a_measured_map_plans_one_run_and_bad_input_writes_nothing() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("no TIF"));
     assert!(!bad.exists());
+}
+
+/// The loop on the shipped freeform with no installation error and no disturbances: every
+/// measured RMS is at most twice the previous run's prediction plus 0.01 nm (registration does
+/// not slide, and the uniform layer left by the solve is not mistaken for a rigid piston).
+#[test]
+fn undisturbed_freeform_loop_meets_its_predictions() {
+    let d = tempfile::tempdir().unwrap();
+    let surface = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/design_freeform.json");
+    let out = d.path().join("loop");
+    let mut args = vec![
+        "iterate",
+        "--surface",
+        s(&surface),
+        "--aperture-x-mm=-25,25",
+        "--aperture-y-mm=-25,25",
+        "--grid",
+        "21,21",
+        "--pitch-mm",
+        "2",
+        "--iterations",
+        "2",
+    ];
+    args.extend(GAUSSIAN);
+    args.extend(["--out", s(&out)]);
+    ok(&preston(&args));
+    let table = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
+    let rows: Vec<Vec<f64>> = table
+        .lines()
+        .skip(1)
+        .map(|l| {
+            l.split(',')
+                .map(|c| c.parse().unwrap_or(f64::NAN))
+                .collect()
+        })
+        .collect();
+    assert_eq!(rows.len(), 3);
+    for w in rows.windows(2) {
+        let predicted = w[0][6];
+        assert!(
+            w[1][2] <= 2.0 * predicted + 0.01,
+            "measured {} after a predicted {predicted}: {rows:?}",
+            w[1][2]
+        );
+    }
+    assert!(rows[2][2] < 0.1, "{rows:?}");
 }

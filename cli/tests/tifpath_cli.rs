@@ -386,3 +386,111 @@ fn paths_intersection_spiral_chord_height_edge() {
     assert_eq!(o.status.code(), Some(2));
     assert!(!bad.exists());
 }
+
+/// `preston path random`: the CSV contract of the other paths, every node of the even grid once
+/// in unit steps, straight runs within `--max-run`, reproducible from the seed, and bad settings
+/// refused with exit 2 and no file.
+#[test]
+fn random_path_is_unicursal_and_reproducible() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |seed: &str, out: &Path| {
+        ok(&preston(&[
+            "path",
+            "random",
+            "--x-mm=-10,10",
+            "--y-mm=-8,8",
+            "--pitch-mm",
+            "1",
+            "--seed",
+            seed,
+            "--max-run",
+            "6",
+            "--out",
+            s(out),
+        ]))
+    };
+    let a = dir.path().join("a.csv");
+    let summary = run("4", &a);
+    // 21 x 17 region nodes: the last column and row (odd counts) are left out.
+    assert_eq!(summary["nodes"], serde_json::json!([20, 16]));
+    assert_eq!(summary["region_nodes"], serde_json::json!([21, 17]));
+    assert!(summary["longest_run"].as_u64().unwrap() <= 6);
+    let (header, rows) = read_csv(&a);
+    assert_eq!(header, ["x_mm", "y_mm", "z_mm", "tx", "ty", "tz", "ds_mm"]);
+    assert_eq!(rows.len(), 320);
+    let mut seen = std::collections::HashSet::new();
+    for r in &rows {
+        assert!(seen.insert(((r[0] + 10.0) as i64, (r[1] + 8.0) as i64)));
+        assert!((r[6] - 1.0).abs() < 1e-12, "ds {}", r[6]);
+    }
+    let mut run_len = 0;
+    for w in rows.windows(3) {
+        let d1 = (w[1][0] - w[0][0], w[1][1] - w[0][1]);
+        let d2 = (w[2][0] - w[1][0], w[2][1] - w[1][1]);
+        assert!((d1.0.abs() + d1.1.abs() - 1.0).abs() < 1e-12);
+        run_len = if d1 == d2 { run_len + 1 } else { 0 };
+        assert!(run_len < 6);
+    }
+    let b = dir.path().join("b.csv");
+    run("4", &b);
+    assert_eq!(
+        std::fs::read_to_string(&a).unwrap(),
+        std::fs::read_to_string(&b).unwrap()
+    );
+    let c = dir.path().join("c.csv");
+    run("5", &c);
+    assert_ne!(
+        std::fs::read_to_string(&a).unwrap(),
+        std::fs::read_to_string(&c).unwrap()
+    );
+    let bad = dir.path().join("bad.csv");
+    let r = preston(&[
+        "path",
+        "random",
+        "--x-mm=0,10",
+        "--y-mm=0,10",
+        "--pitch-mm",
+        "1",
+        "--max-run",
+        "2",
+        "--out",
+        s(&bad),
+    ]);
+    assert_eq!(r.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&r.stderr).contains("max_run"));
+    assert!(!bad.exists());
+}
+
+/// `path raster --arc-radius-mm`: arc turns are sampled to `--arc-tolerance-um` whatever the
+/// step: every chord's sagitta `r (1 - cos(phi / 2))` (phi its turn) within the tolerance.
+#[test]
+fn arc_turns_meet_the_chord_tolerance_with_a_long_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("arcs.csv");
+    ok(&preston(&[
+        "path",
+        "raster",
+        "--x-mm=0,20",
+        "--y-mm=0,6",
+        "--pitch-mm",
+        "2",
+        "--step-mm",
+        "5",
+        "--arc-radius-mm",
+        "1",
+        "--arc-tolerance-um",
+        "0.5",
+        "--out",
+        s(&out),
+    ]));
+    let (_, rows) = read_csv(&out);
+    let mut worst: f64 = 0.0;
+    for w in rows.windows(3) {
+        let a = (w[1][0] - w[0][0], w[1][1] - w[0][1]);
+        let b = (w[2][0] - w[1][0], w[2][1] - w[1][1]);
+        worst = worst.max((a.0 * b.1 - a.1 * b.0).atan2(a.0 * b.0 + a.1 * b.1).abs());
+    }
+    let sagitta_um = 1.0 * (1.0 - (0.5 * worst).cos()) * 1e3;
+    assert!(sagitta_um <= 0.5 + 1e-9, "{sagitta_um} um");
+    assert!(worst > 0.0);
+}

@@ -527,7 +527,7 @@ fn write_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<()> {
     )?;
     if let Some(run) = &outcome.last_run {
         let m = &run.measured;
-        let residual = centred_residual_nm(m.z_nm(), &run.predicted_removal_nm);
+        let residual = centred_residual_nm(&run.target_nm, &run.predicted_removal_nm);
         plot_map(
             &out_dir.join("error_before.png"),
             "Measured form error before the last run",

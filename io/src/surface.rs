@@ -6,7 +6,7 @@ use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use crate::writers::stage_json;
 use preston_solver::fit::FitResult;
-use preston_solver::registration::Registration;
+use preston_solver::registration::{LockedMotion, Registration};
 use preston_solver::surface::{Surface, XyTerm};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -132,6 +132,15 @@ pub struct TransformFile {
     pub points: usize,
     /// Probe radius compensated, mm.
     pub probe_radius_mm: f64,
+    /// Eigenvalues of the scaled information matrix at the solution, largest first
+    /// (dimensionless; see [`Registration::information_eigenvalues`]).
+    pub information_eigenvalues: [f64; 6],
+    /// `lambda_max / lambda_min` (`null` when the smallest eigenvalue is zero).
+    pub condition_number: Option<f64>,
+    /// Standard deviation of `[rx, ry, rz]` (arcsec) and `[tx, ty, tz]` (um); 0 for held motions.
+    pub dof_sigma: [f64; 6],
+    /// Motions held fixed: user locks, weak eigen-directions, DOFs at a prior bound.
+    pub locked: Vec<LockedMotion>,
 }
 
 impl TransformFile {
@@ -146,6 +155,10 @@ impl TransformFile {
             converged: reg.converged,
             points: reg.form_error_nm.len(),
             probe_radius_mm,
+            information_eigenvalues: reg.information_eigenvalues,
+            condition_number: reg.condition_number,
+            dof_sigma: reg.dof_sigma,
+            locked: reg.locked.clone(),
         }
     }
 }

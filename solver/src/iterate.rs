@@ -34,6 +34,8 @@ use serde::{Deserialize, Serialize};
 
 /// nm per mm.
 const NM_PER_MM: f64 = 1e6;
+/// `1 - n_z` above which a measured point counts as on a curved (or tilted) part.
+const CURVED_TOL: f64 = 1e-12;
 /// Radians per arcsecond.
 const RAD_PER_ARCSEC: f64 = std::f64::consts::PI / (180.0 * 3600.0);
 
@@ -349,6 +351,9 @@ pub struct RunArtifacts {
     pub dwell_s: Vec<f64>,
     /// Predicted removal at the measured points, nm.
     pub predicted_removal_nm: Vec<f64>,
+    /// The removal target the run was solved for, nm: the measured error less `c (1 - n_z)`
+    /// on a curved part (see [`plan_run`]); the measured error itself on a plane.
+    pub target_nm: Vec<f64>,
     /// Solver status.
     pub status: Status,
 }
@@ -357,8 +362,7 @@ impl RunArtifacts {
     /// RMS of the predicted residual (piston removed), nm.
     pub fn predicted_rms_nm(&self) -> f64 {
         let residual: Vec<f64> = self
-            .measured
-            .z_nm()
+            .target_nm
             .iter()
             .zip(&self.predicted_removal_nm)
             .map(|(z, h)| z - h)
@@ -370,6 +374,13 @@ impl RunArtifacts {
 /// Plans polishing run `k` on a measured map: the intersection path of iteration `k` over
 /// `region`, the influence matrix in the tangent planes of `surface`, and the dwell solve with
 /// the loop's feed limits and solver settings.
+///
+/// The solver leaves a uniform layer `c` (its free piston) on top of the measured error. Removed
+/// along the normal of a curved part, a uniform layer is not a rigid motion: the registration
+/// takes out the translation pattern `c n_z` and leaves `c (1 - n_z) ~ c k^2 r^2 / 2`, a power
+/// term (a sphere polished uniformly by `c` becomes a sphere of radius `R - c`). On a curved
+/// surface the run is therefore solved a second time for the target `z - c (1 - n_z)`, with `c`
+/// from the first solve, so that the removal is `z + c n_z` plus the residual.
 pub fn plan_run(
     surface: &Surface,
     measured: &HeightMap,
@@ -392,20 +403,39 @@ pub fn plan_run(
         TifFrame::PathTangent,
         observer,
     )?;
+    let nz: Vec<f64> = measured
+        .x_mm()
+        .iter()
+        .zip(measured.y_mm())
+        .map(|(&x, &y)| Ok(surface.derivs(x, y)?.normal()[2]))
+        .collect::<Result<_>>()?;
+    let curved = nz.iter().any(|&n| 1.0 - n > CURVED_TOL);
     let problem = Problem::new(
-        r,
+        r.clone(),
         measured.z_nm().to_vec(),
-        bounds,
+        bounds.clone(),
         settings.rho,
         settings.lambda,
     )?;
-    let sol = dwell::solve(&problem, &settings.solver, observer)?;
+    let mut sol = dwell::solve(&problem, &settings.solver, observer)?;
+    let mut target = measured.z_nm().to_vec();
+    let problem = if curved {
+        for (t, n) in target.iter_mut().zip(&nz) {
+            *t -= sol.piston_nm * (1.0 - n);
+        }
+        let p2 = Problem::new(r, target.clone(), bounds, settings.rho, settings.lambda)?;
+        sol = dwell::solve(&p2, &settings.solver, observer)?;
+        p2
+    } else {
+        problem
+    };
     let predicted = problem.removal_nm(&sol.dwell_s)?;
     Ok(RunArtifacts {
         measured: measured.clone(),
         path,
         dwell_s: sol.dwell_s,
         predicted_removal_nm: predicted,
+        target_nm: target,
         status: sol.status,
     })
 }
@@ -438,8 +468,8 @@ pub fn plan_measured(
     let mut first = record(k, measured);
     first.time_s = plan.dwell_s.iter().sum();
     first.predicted_rms_nm = Some(plan.predicted_rms_nm());
-    let residual: Vec<f64> = measured
-        .z_nm()
+    let residual: Vec<f64> = plan
+        .target_nm
         .iter()
         .zip(&plan.predicted_removal_nm)
         .map(|(z, h)| z - h)
@@ -447,7 +477,17 @@ pub fn plan_measured(
     let predicted_map = measured.with_heights(residual)?;
     let second = record(k + 1, &predicted_map);
     let met = meets(settings, &second);
+    let not_converged = if plan.status.is_converged() {
+        vec![]
+    } else {
+        vec![InnerFailure {
+            iteration: k,
+            step: InnerStep::DwellSolve,
+            detail: format!("{:?}", plan.status),
+        }]
+    };
     Ok(LoopOutcome {
+        not_converged,
         records: vec![first, second],
         met_spec: met,
         last_run: Some(plan),
@@ -455,9 +495,43 @@ pub fn plan_measured(
     })
 }
 
+/// An inner step of the loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InnerStep {
+    /// The registration of a measurement (ICP).
+    Registration,
+    /// A run's dwell solve.
+    DwellSolve,
+}
+
+impl InnerStep {
+    /// Readable name.
+    pub fn name(self) -> &'static str {
+        match self {
+            InnerStep::Registration => "registration",
+            InnerStep::DwellSolve => "dwell solve",
+        }
+    }
+}
+
+/// An inner step that stopped before converging.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InnerFailure {
+    /// Loop iteration (the measurement before run `iteration`, or that run's solve).
+    pub iteration: usize,
+    /// Which step.
+    pub step: InnerStep,
+    /// What it reported (the solver status, or the registration's iteration count).
+    pub detail: String,
+}
+
 /// The outcome of the loop.
 #[derive(Debug, Clone)]
 pub struct LoopOutcome {
+    /// Inner steps (registrations, dwell solves) that did not converge, in order; the loop's
+    /// figures are then not trustworthy.
+    pub not_converged: Vec<InnerFailure>,
     /// One row per measurement.
     pub records: Vec<IterationRecord>,
     /// Whether the spec was met.
@@ -487,7 +561,8 @@ fn grid_points(a: &BoundingBox, grid: [usize; 2]) -> (Vec<f64>, Vec<f64>) {
     (x, y)
 }
 
-/// Measures and registers: returns the measured form error at the feet of the points.
+/// Measures and registers: returns the measured form error at the feet of the points and the
+/// registration's iteration count when it stopped before converging.
 fn measure(
     part: &VirtualPart,
     installation_inv: &Isometry3<f64>,
@@ -496,7 +571,7 @@ fn measure(
     error_nm: &[f64],
     rng: &mut SplitMix64,
     settings: &RegisterSettings,
-) -> Result<HeightMap> {
+) -> Result<(HeightMap, Option<usize>)> {
     let points: Vec<[f64; 3]> = design
         .iter()
         .zip(normals)
@@ -511,7 +586,16 @@ fn measure(
         .collect();
     let reg = register(&part.surface, &points, settings)?;
     let (x, y): (Vec<f64>, Vec<f64>) = reg.design_xy_mm.iter().map(|p| (p[0], p[1])).unzip();
-    HeightMap::new(x, y, reg.form_error_nm)
+    let failed = (!reg.converged).then_some(reg.iterations);
+    Ok((HeightMap::new(x, y, reg.form_error_nm)?, failed))
+}
+
+fn registration_failure(iteration: usize, failed: Option<usize>) -> Option<InnerFailure> {
+    failed.map(|its| InnerFailure {
+        iteration,
+        step: InnerStep::Registration,
+        detail: format!("stopped at the iteration limit ({its}) before converging"),
+    })
 }
 
 fn record(iteration: usize, map: &HeightMap) -> IterationRecord {
@@ -571,7 +655,8 @@ pub fn run_virtual(
     let mut records = Vec::new();
     let mut last_run = None;
     observer.start(Stage::Loop, settings.max_iterations as u64);
-    let mut measured = measure(
+    let mut not_converged = Vec::new();
+    let (mut measured, failed) = measure(
         part,
         &installation_inv,
         &design,
@@ -580,6 +665,7 @@ pub fn run_virtual(
         &mut rng,
         &settings.register,
     )?;
+    not_converged.extend(registration_failure(0, failed));
     let mut met = false;
     for k in 0..settings.max_iterations {
         let mut row = record(k, &measured);
@@ -597,6 +683,13 @@ pub fn run_virtual(
             k,
             observer,
         )?;
+        if !plan.status.is_converged() {
+            not_converged.push(InnerFailure {
+                iteration: k,
+                step: InnerStep::DwellSolve,
+                detail: format!("{:?}", plan.status),
+            });
+        }
         // Polish with disturbances.
         let e = settings.disturbances.tif_rate_error * (2.0 * rng.uniform() - 1.0);
         let sigma = settings.disturbances.positioning_noise_mm;
@@ -628,7 +721,7 @@ pub fn run_virtual(
         records.push(row);
         last_run = Some(plan);
         observer.advance(Stage::Loop, 1);
-        measured = measure(
+        let (next, failed) = measure(
             part,
             &installation_inv,
             &design,
@@ -637,6 +730,8 @@ pub fn run_virtual(
             &mut rng,
             &settings.register,
         )?;
+        measured = next;
+        not_converged.extend(registration_failure(k + 1, failed));
         if k + 1 == settings.max_iterations {
             let last = record(k + 1, &measured);
             met = meets(settings, &last);
@@ -645,6 +740,7 @@ pub fn run_virtual(
     }
     observer.finish(Stage::Loop);
     Ok(LoopOutcome {
+        not_converged,
         records,
         met_spec: met,
         last_run,
@@ -750,6 +846,7 @@ mod tests {
         let mut s = settings(Disturbances::default());
         s.solver.solver = solver;
         let out = run_virtual(&part(0.0), &tif, &s, &Silent).unwrap();
+        assert!(out.not_converged.is_empty(), "{:?}", out.not_converged);
         assert!(out.records[0].predicted_rms_nm.is_some(), "{solver:?}");
         let rms: Vec<f64> = out.records.iter().map(|r| r.rms_nm).collect();
         assert_eq!(rms.len(), 4, "{:?}", out.records);
@@ -767,6 +864,33 @@ mod tests {
         // not the tens of micrometres of the mounting.
         assert!((rms[0] - 60.0).abs() < 20.0, "{rms:?}");
         assert!(out.records[0].time_s > 0.0);
+    }
+
+    #[test]
+    fn inner_steps_that_stop_early_are_reported() {
+        let tif = Tif::Gaussian(GaussianTif::new(2.5, 10.0, 7.5).unwrap());
+        let mut s = settings(Disturbances::default());
+        s.max_iterations = 1;
+        s.solver.solver = SolverChoice::FirstOrder;
+        s.solver.max_iterations = 1;
+        s.solver.first_order_max_iterations = 1;
+        s.register.max_iterations = 1;
+        let out = run_virtual(&part(0.0), &tif, &s, &Silent).unwrap();
+        let steps: Vec<(usize, InnerStep)> = out
+            .not_converged
+            .iter()
+            .map(|f| (f.iteration, f.step))
+            .collect();
+        // One Gauss-Newton step cannot meet the 1e-10 mm step test from 30 arcsec away, nor one
+        // solver iteration the 1e-4 optimality tolerance.
+        assert_eq!(
+            steps,
+            [
+                (0, InnerStep::Registration),
+                (0, InnerStep::DwellSolve),
+                (1, InnerStep::Registration)
+            ]
+        );
     }
 
     #[test]

@@ -14,9 +14,13 @@ use preston_solver::iterate::{
     LOOP_SOLVE_TOLERANCE,
 };
 use preston_solver::map::BoundingBox;
+use preston_solver::registration::{RegisterSettings, WEAK_EIGENVALUE_REL};
 use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
 use std::process::ExitCode;
+
+/// Exit code when an inner registration or dwell solve did not converge (outputs are written).
+pub const EXIT_NOT_CONVERGED: u8 = 3;
 
 /// Arguments of `preston iterate`.
 #[derive(Debug, clap::Args)]
@@ -104,6 +108,10 @@ pub struct Args {
     /// Seed of the noise generators.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
+    /// Registration: eigen-directions of the information matrix with relative eigenvalue below
+    /// this are locked (see `preston register`).
+    #[arg(long, default_value_t = WEAK_EIGENVALUE_REL)]
+    pub weak_eigenvalue: f64,
     /// Write PNG plots next to the CSVs.
     #[arg(long)]
     pub plots: bool,
@@ -159,13 +167,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             positioning_noise_mm: args.positioning_noise_mm,
         },
         seed: args.seed,
+        register: RegisterSettings {
+            weak_eigenvalue_rel: args.weak_eigenvalue,
+            ..RegisterSettings::default()
+        },
         solver: Settings {
             tolerance: args.tolerance,
             first_order_tolerance: args.tolerance,
             solver: args.solver.into(),
             ..Settings::default()
         },
-        ..LoopSettings::default()
     };
     settings.validate()?;
     let bars = Bars::new();
@@ -213,5 +224,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         if outcome.met_spec { "met" } else { "not met" },
         args.out.display()
     );
+    if !outcome.not_converged.is_empty() {
+        for f in &outcome.not_converged {
+            eprintln!(
+                "  warning: iteration {}: the {} did not converge ({})",
+                f.iteration,
+                f.step.name(),
+                f.detail
+            );
+        }
+        return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+    }
     Ok(ExitCode::SUCCESS)
 }

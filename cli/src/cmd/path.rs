@@ -1,6 +1,6 @@
-//! `preston path`: tool paths (raster, intersection, spiral, chord-height, edge-offset) written as
-//! `x_mm,y_mm,z_mm,tx,ty,tz,ds_mm`, optionally projected onto a design surface. The file is a
-//! valid `preston solve --dwell` input (the reader takes `x_mm,y_mm` and ignores the rest).
+//! `preston path`: tool paths (raster, intersection, spiral, chord-height, edge-offset, random)
+//! written as `x_mm,y_mm,z_mm,tx,ty,tz,ds_mm`, optionally projected onto a design surface. The
+//! file is a valid `preston solve --dwell` input (the reader takes `x_mm,y_mm` and ignores the rest).
 
 use crate::cmd::solve::Along;
 use anyhow::{bail, Context};
@@ -13,6 +13,7 @@ use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings, SpotPro
 use preston_solver::path::intersection::{
     clip_to_aperture, intersection_lines, iteration_pattern, lines_to_path, raster_lines,
 };
+use preston_solver::path::random::{random_unicursal, RandomPathSettings};
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::path::spiral::archimedes;
 use preston_solver::path::{project, DwellPath, ProjectedPath};
@@ -40,6 +41,8 @@ enum Kind {
     ChordHeight(ChordArgs),
     /// Lifting-bonnet edge-offset trajectory inside a closed edge.
     EdgeOffset(EdgeArgs),
+    /// Pseudo-random unicursal path: every grid node once, one stroke, short straight runs.
+    Random(RandomArgs),
 }
 
 /// Options every kind shares.
@@ -95,6 +98,9 @@ struct Region {
     /// Join lines by tangent-continuous circular arcs of this radius (at most P/2), mm.
     #[arg(long)]
     arc_radius_mm: Option<f64>,
+    /// Largest distance of an arc's chords from the arc (sagitta), um, whatever the step.
+    #[arg(long, default_value_t = 1.0)]
+    arc_tolerance_um: f64,
     /// Clear-aperture polygon CSV `x_mm,y_mm`: keep only points inside it or within the margin.
     #[arg(long, value_name = "APERTURE.csv")]
     aperture: Option<PathBuf>,
@@ -228,6 +234,27 @@ struct EdgeArgs {
     common: Common,
 }
 
+#[derive(Debug, clap::Args)]
+struct RandomArgs {
+    /// x range A,B, mm.
+    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true, value_name = "A,B")]
+    x_mm: (f64, f64),
+    /// y range C,D, mm.
+    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true, value_name = "C,D")]
+    y_mm: (f64, f64),
+    /// Grid pitch P (the step length), mm.
+    #[arg(long)]
+    pitch_mm: f64,
+    /// Seed of the random spanning tree.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Longest straight run, steps (at least 3).
+    #[arg(long, default_value_t = 20)]
+    max_run: usize,
+    #[command(flatten)]
+    common: Common,
+}
+
 fn axis(a: Along) -> RasterAxis {
     match a {
         Along::X => RasterAxis::X,
@@ -265,7 +292,7 @@ fn raster_path(
 ) -> anyhow::Result<DwellPath> {
     let step = region.step_mm.unwrap_or(region.pitch_mm);
     let path = match region.arc_radius_mm {
-        Some(r) => lines_with_arcs(lines, step, r)?,
+        Some(r) => lines_with_arcs(lines, step, r, region.arc_tolerance_um * 1e-3)?,
         None => lines_to_path(lines, step)?,
     };
     Ok(match &region.aperture {
@@ -382,6 +409,33 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 json!({"kind": "edge_offset", "points": p.len(),
                        "bezier_segments": t.edge.len(), "bezier_max_error_mm": t.fit_error_mm,
                        "lines": t.lines, "line_starts": t.line_starts}),
+                a.common.out,
+            )
+        }
+        Kind::Random(a) => {
+            let surface = load_surface(&a.common.surface)?;
+            let (x0, x1) = a.x_mm;
+            let (y0, y1) = a.y_mm;
+            let region = BoundingBox {
+                x_min_mm: x0.min(x1),
+                x_max_mm: x0.max(x1),
+                y_min_mm: y0.min(y1),
+                y_max_mm: y0.max(y1),
+            };
+            let r = random_unicursal(
+                &region,
+                &RandomPathSettings {
+                    pitch_mm: a.pitch_mm,
+                    seed: a.seed,
+                    max_run: a.max_run,
+                },
+            )?;
+            let p = write(&r.path, surface.as_ref(), &a.common.out)?;
+            (
+                json!({"kind": "random", "points": p.len(), "nodes": r.nodes,
+                       "region_nodes": r.region_nodes, "longest_run": r.longest_run,
+                       "tree_exchanges": r.swaps, "seed": a.seed,
+                       "length_mm": p.ds_mm.iter().sum::<f64>()}),
                 a.common.out,
             )
         }

@@ -4,7 +4,9 @@ use anyhow::Context;
 use preston_io::atomic::commit_all;
 use preston_io::surface::{read_points, read_surface, stage_columns_csv, TransformFile};
 use preston_io::writers::{stage_json, stage_map_csv};
-use preston_solver::registration::{register, RegisterSettings, Robust};
+use preston_solver::registration::{
+    register, Dof, LockSource, RegisterSettings, Robust, WEAK_EIGENVALUE_REL,
+};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -18,6 +20,36 @@ pub enum RobustArg {
     None,
     /// Huber weights against outliers.
     Huber,
+}
+
+/// A rigid-body DOF on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum DofArg {
+    /// Rotation about x.
+    Rx,
+    /// Rotation about y.
+    Ry,
+    /// Rotation about z.
+    Rz,
+    /// Translation along x.
+    Tx,
+    /// Translation along y.
+    Ty,
+    /// Translation along z.
+    Tz,
+}
+
+impl From<DofArg> for Dof {
+    fn from(d: DofArg) -> Self {
+        match d {
+            DofArg::Rx => Dof::Rx,
+            DofArg::Ry => Dof::Ry,
+            DofArg::Rz => Dof::Rz,
+            DofArg::Tx => Dof::Tx,
+            DofArg::Ty => Dof::Ty,
+            DofArg::Tz => Dof::Tz,
+        }
+    }
 }
 
 /// Arguments of `preston register`.
@@ -41,6 +73,19 @@ pub struct Args {
     /// Gauss-Newton iterations at most.
     #[arg(long, default_value_t = 50)]
     pub max_iterations: usize,
+    /// DOFs held at zero (design frame), e.g. `rz,tx,ty`.
+    #[arg(long, value_enum, value_delimiter = ',', value_name = "LIST")]
+    pub lock: Vec<DofArg>,
+    /// Prior bound on each rotation component, arcsec.
+    #[arg(long, value_name = "A")]
+    pub max_rotation_arcsec: Option<f64>,
+    /// Prior bound on each translation component, um.
+    #[arg(long, value_name = "T")]
+    pub max_translation_um: Option<f64>,
+    /// Eigen-directions of the information matrix with relative eigenvalue below this are
+    /// locked (0: only numerically zero ones).
+    #[arg(long, default_value_t = WEAK_EIGENVALUE_REL)]
+    pub weak_eigenvalue: f64,
     /// Output directory for transform.json, form_error.csv and registered_points.csv.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -50,6 +95,10 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let surface = read_surface(&args.surface)?;
     let pts = read_points(&args.points)?;
+    let mut lock = [false; 6];
+    for d in &args.lock {
+        lock[Dof::from(*d).index()] = true;
+    }
     let settings = RegisterSettings {
         max_iterations: args.max_iterations,
         robust: match args.robust {
@@ -57,6 +106,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             RobustArg::Huber => Robust::Huber { k: args.huber_k },
         },
         probe_radius_mm: args.probe_radius_mm,
+        lock,
+        weak_eigenvalue_rel: args.weak_eigenvalue,
+        max_rotation_arcsec: args.max_rotation_arcsec,
+        max_translation_um: args.max_translation_um,
         ..RegisterSettings::default()
     };
     let reg = register(&surface, &pts.points(), &settings)
@@ -99,6 +152,33 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         tf.rms_nm,
         args.out.display()
     );
+    let sg = tf.dof_sigma;
+    eprintln!(
+        "  sigma [{:.3}, {:.3}, {:.3}] arcsec, [{:.3}, {:.3}, {:.3}] um; information eigenvalues \
+         {:.3e} .. {:.3e}, condition number {}",
+        sg[0],
+        sg[1],
+        sg[2],
+        sg[3],
+        sg[4],
+        sg[5],
+        tf.information_eigenvalues[0],
+        tf.information_eigenvalues[5],
+        tf.condition_number
+            .map(|c| format!("{c:.3e}"))
+            .unwrap_or_else(|| "infinite".into())
+    );
+    for l in &tf.locked {
+        match l.source {
+            LockSource::Weak => eprintln!(
+                "  warning: the surface does not determine the motion {} (relative eigenvalue \
+                 {:.2e} < {:.0e}); locked at zero, its installation error is not recovered",
+                l.label, l.relative_eigenvalue, args.weak_eigenvalue
+            ),
+            LockSource::User => eprintln!("  locked {} at zero", l.label),
+            LockSource::Bound => eprintln!("  {} held at its prior bound", l.label),
+        }
+    }
     if !reg.converged {
         eprintln!(
             "  warning: stopped at the iteration limit ({}) before converging",

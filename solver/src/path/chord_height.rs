@@ -34,7 +34,7 @@ pub struct ChordHeightSettings {
 }
 
 impl Default for ChordHeightSettings {
-    /// The published ellipsoid case: eps in [3.0, 3.2] um, h_i = 0.10 mm, h_d = 0.02 mm.
+    /// The published window and increments: eps in [3.0, 3.2] um, h_i = 0.10 mm, h_d = 0.02 mm.
     fn default() -> Self {
         Self {
             tool_radius_mm: 10.0,

@@ -5,6 +5,7 @@ pub mod chord_height;
 pub mod edge_offset;
 pub mod intersection;
 pub mod project;
+pub mod random;
 pub mod raster;
 pub mod spiral;
 

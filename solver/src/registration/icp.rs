@@ -7,22 +7,35 @@
 //! its gradient with respect to `M q_i` is `n_i`. A step rotates by `omega` about the centroid `c`
 //! of the transformed points and translates by `tau`:
 //! `p -> c + tau + Exp(omega) (p - c)`, linearised `r_i + ((p_i - c) x n_i) . omega + n_i . tau`.
-//! The 6 x 6 normal equations (rotation columns scaled by the point cloud's RMS radius) are
-//! solved by a symmetric eigen-decomposition; directions the surface does not constrain (for
-//! example rotation about the axis of a conic) get no step. Optional Huber weights
+//! The 6 x 6 normal equations `A y = -b` (rotation columns scaled by the point cloud's RMS
+//! radius `L`, so `A` is dimensionless and its eigenvalues compare motions by the normal
+//! displacement they cause) are solved by a symmetric eigen-decomposition in the subspace left
+//! free by locked DOFs and active prior bounds; eigen-directions whose eigenvalue is below
+//! `weak_eigenvalue_rel * lambda_max` (for example rotation about the axis of a conic, or the
+//! slide of a weakly curved freeform along itself) get no step and are reported as locked.
+//! The covariance of the estimate is `s^2 A^+` restricted to the estimated directions
+//! (Gauss-Markov; `s^2` the weighted residual variance), mapped to the design-frame DOFs. Optional Huber weights
 //! (`w = min(1, delta / |r|)`, `delta = k * 1.4826 * median|r|`) make the steps iteratively
 //! reweighted least squares.
 
-use super::{RegisterSettings, Registration, Robust};
+use super::{
+    Dof, LockSource, LockedMotion, RegisterSettings, Registration, Robust, ARCSEC_PER_RAD,
+};
 use crate::error::{Error, Result};
 use crate::surface::Surface;
-use nalgebra::{Isometry3, Matrix6, Point3, SymmetricEigen, Vector3, Vector6};
+use nalgebra::{DMatrix, DVector, Isometry3, Matrix6, Point3, SymmetricEigen, Vector3, Vector6};
 use rayon::prelude::*;
 
 /// Points per task when summing the normal equations (fixed, so sums are reproducible).
 const CHUNK: usize = 2048;
-/// Eigenvalues of the scaled normal matrix below this fraction of the largest are unconstrained.
-const RANK_TOL: f64 = 1e-10;
+/// Eigenvalues of the scaled normal matrix at or below this fraction of the largest are numerically
+/// zero (no step whatever `weak_eigenvalue_rel` says).
+const RANK_FLOOR: f64 = 1e-12;
+/// Eigenvalues of the constraints' Gram matrix below this fraction of the largest span their
+/// null space.
+const NULL_TOL: f64 = 1e-10;
+/// A point set whose second principal variance is at or below this fraction of the first is a line.
+const COLLINEAR_REL: f64 = 1e-12;
 /// Lower bound of the Huber threshold, mm (keeps noise-free data from becoming an L1 problem).
 const HUBER_FLOOR_MM: f64 = 1e-7;
 /// mm to nm.
@@ -38,6 +51,10 @@ struct Corr {
 }
 
 /// Registers measured points (mm, probe tip centres when `probe_radius_mm > 0`) to `surface`.
+///
+/// Each Gauss-Newton step is solved in the subspace the locks leave free (user locks and active
+/// prior bounds as linear constraints on the design-frame DOFs), and within it eigen-directions
+/// of the reduced information matrix below `weak_eigenvalue_rel * lambda_max` get no step.
 pub fn register(
     surface: &Surface,
     measured_mm: &[[f64; 3]],
@@ -45,7 +62,7 @@ pub fn register(
 ) -> Result<Registration> {
     settings.validate()?;
     surface.validate()?;
-    check_points(measured_mm)?;
+    check_points(measured_mm, settings)?;
     let probe = settings.probe_radius_mm;
     let mut m = Isometry3::identity();
     let mut feet: Vec<[f64; 2]> = measured_mm.iter().map(|q| [q[0], q[1]]).collect();
@@ -55,7 +72,7 @@ pub fn register(
     let mut converged = false;
     while iterations < settings.max_iterations {
         let weights = weights(&corr, settings.robust);
-        let step = gauss_newton_step(&corr, &weights)?;
+        let step = gauss_newton_step(&corr, &weights, &m, settings)?;
         m = step.isometry * m;
         iterations += 1;
         corr = correspond(surface, measured_mm, &m, &mut feet, probe)?;
@@ -69,6 +86,8 @@ pub fn register(
             break;
         }
     }
+    let w = weights(&corr, settings.robust);
+    let analysis = analyse(&corr, &w, &m, settings)?;
     let form_error_nm: Vec<f64> = corr.iter().map(|c| c.r * NM_PER_MM).collect();
     let ss: f64 = form_error_nm.iter().map(|r| r * r).sum();
     Ok(Registration {
@@ -87,16 +106,25 @@ pub fn register(
                 ]
             })
             .collect(),
-        weights: weights(&corr, settings.robust),
+        weights: w,
         form_error_nm,
+        information_eigenvalues: analysis.eigenvalues,
+        condition_number: analysis.condition_number,
+        dof_sigma: analysis.dof_sigma,
+        locked: analysis.locked,
     })
 }
 
-/// At least 6 finite points, not all on one line.
-fn check_points(q: &[[f64; 3]]) -> Result<()> {
-    if q.len() < 6 {
+/// Refuses point sets that cannot determine the free DOFs: fewer points than free DOFs (at least
+/// 3), non-finite coordinates, and points on one line in space or in the x-y plane (rotation
+/// about that line and translation across it are then undetermined).
+fn check_points(q: &[[f64; 3]], settings: &RegisterSettings) -> Result<()> {
+    let free = settings.lock.iter().filter(|&&l| !l).count();
+    let need = free.max(3);
+    if q.len() < need {
         return Err(Error::Geometry(format!(
-            "registration needs at least 6 points to determine 6 degrees of freedom, got {}",
+            "registration needs at least {need} points to determine {free} free degrees of \
+             freedom, got {}",
             q.len()
         )));
     }
@@ -122,19 +150,48 @@ fn check_points(q: &[[f64; 3]]) -> Result<()> {
         let d = Vector3::from(*p) - c;
         cov += d * d.transpose();
     }
-    let mut ev: Vec<f64> = SymmetricEigen::new(cov)
-        .eigenvalues
-        .iter()
-        .copied()
-        .collect();
-    ev.sort_by(|a, b| b.total_cmp(a));
-    if !(ev[1] > 1e-20 * ev[0].max(f64::MIN_POSITIVE) && ev[0] > 0.0) {
-        return Err(Error::Geometry(
-            "the measured points are collinear (or coincide): rotation about their line is undetermined"
-                .into(),
-        ));
+    let eig = SymmetricEigen::new(cov);
+    let mut order: Vec<usize> = (0..3).collect();
+    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let (l0, l1) = (eig.eigenvalues[order[0]], eig.eigenvalues[order[1]]);
+    if !(l0 > 0.0) || l1 <= COLLINEAR_REL * l0 {
+        let d = eig.eigenvectors.column(order[0]);
+        return Err(Error::Geometry(format!(
+            "the measured points lie on one line (direction [{:.4}, {:.4}, {:.4}]): rotation \
+             about it and translation along it are undetermined (undetermined motions: {})",
+            d[0],
+            d[1],
+            d[2],
+            motion_label(&line_motions(&Vector3::new(d[0], d[1], d[2])))
+        )));
+    }
+    let cxy = nalgebra::Matrix2::new(cov[(0, 0)], cov[(0, 1)], cov[(1, 0)], cov[(1, 1)]);
+    let exy = SymmetricEigen::new(cxy);
+    let (a, b) = (exy.eigenvalues[0], exy.eigenvalues[1]);
+    let (big, small, k) = if a >= b { (a, b, 0) } else { (b, a, 1) };
+    if !(big > 0.0) || small <= COLLINEAR_REL * big {
+        let d = exy.eigenvectors.column(k);
+        return Err(Error::Geometry(format!(
+            "the measured points lie on one line in x-y (direction [{:.4}, {:.4}]): rotation \
+             about it and translation across it are undetermined by a single profile \
+             (undetermined motions: {}); measure an area",
+            d[0],
+            d[1],
+            motion_label(&line_motions(&Vector3::new(d[0], d[1], 0.0)))
+        )));
     }
     Ok(())
+}
+
+/// Names of the motions a line of direction `d` leaves free: rotation about it (its dominant
+/// axis) and translation along it.
+fn line_motions(d: &Vector3<f64>) -> Vec<Dof> {
+    let k = d.iamax();
+    vec![Dof::ALL[k], Dof::ALL[3 + k]]
+}
+
+fn motion_label(d: &[Dof]) -> String {
+    d.iter().map(|d| d.name()).collect::<Vec<_>>().join(", ")
 }
 
 /// Closest points of the transformed points, warm-started from the previous feet.
@@ -216,12 +273,13 @@ fn robust_cost(corr: &[Corr], robust: Robust) -> f64 {
     }
 }
 
-struct Step {
-    isometry: Isometry3<f64>,
-    size_mm: f64,
+/// The scaled parameter frame of a step: centroid `c` and RMS radius `len` of the points.
+struct Frame {
+    c: Vector3<f64>,
+    len: f64,
 }
 
-fn gauss_newton_step(corr: &[Corr], w: &[f64]) -> Result<Step> {
+fn frame(corr: &[Corr]) -> Frame {
     let n = corr.len() as f64;
     let mut c = Vector3::zeros();
     for k in corr {
@@ -232,7 +290,30 @@ fn gauss_newton_step(corr: &[Corr], w: &[f64]) -> Result<Step> {
     for k in corr {
         l2 += (Vector3::from(k.p) - c).norm_squared();
     }
-    let len = (l2 / n).sqrt().max(f64::MIN_POSITIVE);
+    Frame {
+        c,
+        len: (l2 / n).sqrt().max(f64::MIN_POSITIVE),
+    }
+}
+
+/// `theta = T y`: the design-frame DOFs (rotation about the origin, rad; translation, mm) of a
+/// scaled step `y = [L omega, tau]` about the centroid, since
+/// `c + tau + Exp(omega)(p - c) ~ p + (tau + c x omega) + omega x p`.
+fn to_dofs(f: &Frame) -> Matrix6<f64> {
+    let mut t = Matrix6::zeros();
+    let cx = f.c.cross_matrix();
+    for i in 0..3 {
+        t[(i, i)] = 1.0 / f.len;
+        t[(3 + i, 3 + i)] = 1.0;
+        for j in 0..3 {
+            t[(3 + i, j)] = cx[(i, j)] / f.len;
+        }
+    }
+    t
+}
+
+/// `A = sum w g g^T`, `b = sum w r g` with `g = [((p - c) x n) / L, n]`, summed in fixed chunks.
+fn normal_equations(corr: &[Corr], w: &[f64], f: &Frame) -> (Matrix6<f64>, Vector6<f64>) {
     let partial: Vec<(Matrix6<f64>, Vector6<f64>)> = corr
         .par_chunks(CHUNK)
         .zip(w.par_chunks(CHUNK))
@@ -241,7 +322,7 @@ fn gauss_newton_step(corr: &[Corr], w: &[f64]) -> Result<Step> {
             let mut b = Vector6::zeros();
             for (k, &wk) in cs.iter().zip(ws) {
                 let nv = Vector3::from(k.n);
-                let rot = (Vector3::from(k.p) - c).cross(&nv) / len;
+                let rot = (Vector3::from(k.p) - f.c).cross(&nv) / f.len;
                 let row = Vector6::new(rot.x, rot.y, rot.z, nv.x, nv.y, nv.z);
                 a += wk * row * row.transpose();
                 b += (wk * k.r) * row;
@@ -255,29 +336,296 @@ fn gauss_newton_step(corr: &[Corr], w: &[f64]) -> Result<Step> {
         a += pa;
         b += pb;
     }
-    let eig = SymmetricEigen::new(a);
-    let max = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
-    if !(max > 0.0) || !max.is_finite() {
+    (a, b)
+}
+
+/// A linear constraint `row . y = rhs` on the scaled step.
+struct Constraint {
+    row: Vector6<f64>,
+    rhs: f64,
+    dof: Dof,
+    source: LockSource,
+}
+
+/// A constrained step: `y`, the estimated eigen-directions and the weak ones `(v, mu)`.
+struct Solved {
+    delta: Vector6<f64>,
+    kept: Vec<(Vector6<f64>, f64)>,
+    weak: Vec<(Vector6<f64>, f64)>,
+}
+
+/// Minimises `|J y + r|^2` subject to `C y = d`: `y = y_p + Z u` with `y_p` the minimum-norm
+/// solution of the constraints and `Z` an orthonormal basis of their null space; then
+/// `Z^T A Z u = -Z^T (b + A y_p)` by eigen-decomposition, where eigenvalues at or below
+/// `weak_rel * lambda_max` get no step.
+fn solve_constrained(
+    a: &Matrix6<f64>,
+    b: &Vector6<f64>,
+    cons: &[Constraint],
+    weak_rel: f64,
+    lam_max: f64,
+) -> Solved {
+    let mut ctc = Matrix6::zeros();
+    let mut ctd = Vector6::zeros();
+    for c in cons {
+        let norm = c.row.norm();
+        if norm > 0.0 {
+            let r = c.row / norm;
+            ctc += r * r.transpose();
+            ctd += r * (c.rhs / norm);
+        }
+    }
+    let e = SymmetricEigen::new(ctc);
+    let emax = e.eigenvalues.iter().copied().fold(0.0, f64::max);
+    let mut null: Vec<Vector6<f64>> = Vec::with_capacity(6);
+    let mut delta = Vector6::zeros();
+    for k in 0..6 {
+        let v: Vector6<f64> = e.eigenvectors.column(k).into_owned();
+        let l = e.eigenvalues[k];
+        if emax <= 0.0 || l <= NULL_TOL * emax {
+            null.push(v);
+        } else {
+            delta += v * (v.dot(&ctd) / l);
+        }
+    }
+    let mut out = Solved {
+        delta,
+        kept: Vec::new(),
+        weak: Vec::new(),
+    };
+    if null.is_empty() {
+        return out;
+    }
+    let z = DMatrix::from_fn(6, null.len(), |i, j| null[j][i]);
+    let a_d = DMatrix::from_fn(6, 6, |i, j| a[(i, j)]);
+    let ar = z.transpose() * &a_d * &z;
+    let rhs = b + a * delta;
+    let g = z.transpose() * DVector::from_column_slice(rhs.as_slice());
+    let er = SymmetricEigen::new(ar);
+    let floor = weak_rel.max(RANK_FLOOR) * lam_max;
+    for j in 0..null.len() {
+        let mu = er.eigenvalues[j];
+        let u = er.eigenvectors.column(j);
+        let vz = &z * u;
+        let v = Vector6::from_column_slice(vz.as_slice());
+        if mu > floor {
+            out.delta += v * (-u.dot(&g) / mu);
+            out.kept.push((v, mu));
+        } else {
+            out.weak.push((v, mu));
+        }
+    }
+    out
+}
+
+/// Current DOFs of `m`: rotation vector (rad) and translation (mm).
+fn dofs_of(m: &Isometry3<f64>) -> Vector6<f64> {
+    let w = m.rotation.scaled_axis();
+    let t = m.translation.vector;
+    Vector6::new(w.x, w.y, w.z, t.x, t.y, t.z)
+}
+
+/// Bounds of the DOFs in rad and mm.
+fn bounds(settings: &RegisterSettings) -> [Option<f64>; 6] {
+    let r = settings.max_rotation_arcsec.map(|a| a / ARCSEC_PER_RAD);
+    let t = settings.max_translation_um.map(|u| u * 1e-3);
+    [r, r, r, t, t, t]
+}
+
+/// The state of a step: frame, information matrix, its largest eigenvalue, the DOF map, the
+/// constraints in force and the constrained solution.
+struct StepState {
+    f: Frame,
+    a: Matrix6<f64>,
+    lam_max: f64,
+    t: Matrix6<f64>,
+    cons: Vec<Constraint>,
+    solved: Solved,
+}
+
+/// One constrained Gauss-Newton step: user locks hold their DOF at zero; a bound the step would
+/// cross is made an equality at the bound and the step solved again (an active set that only
+/// grows within a step; the next step starts afresh, so a bound is released when the data pull
+/// the DOF back inside).
+fn constrained_step(
+    corr: &[Corr],
+    w: &[f64],
+    m: &Isometry3<f64>,
+    settings: &RegisterSettings,
+) -> Result<StepState> {
+    let f = frame(corr);
+    let (a, b) = normal_equations(corr, w, &f);
+    let lam_max = SymmetricEigen::new(a)
+        .eigenvalues
+        .iter()
+        .copied()
+        .fold(0.0, f64::max);
+    if !(lam_max > 0.0) || !lam_max.is_finite() {
         return Err(Error::Numerical {
             stage: "registration",
             why: "the normal equations are zero or not finite".into(),
         });
     }
-    let qtb = eig.eigenvectors.transpose() * b;
-    let mut y = Vector6::zeros();
-    for k in 0..6 {
-        let lam = eig.eigenvalues[k];
-        if lam > RANK_TOL * max {
-            y[k] = -qtb[k] / lam;
+    let t = to_dofs(&f);
+    let theta = dofs_of(m);
+    let bound = bounds(settings);
+    let mut held = settings.lock;
+    let mut cons: Vec<Constraint> = Dof::ALL
+        .iter()
+        .filter(|d| settings.lock[d.index()])
+        .map(|&d| Constraint {
+            row: t.row(d.index()).transpose(),
+            rhs: -theta[d.index()],
+            dof: d,
+            source: LockSource::User,
+        })
+        .collect();
+    loop {
+        let solved = solve_constrained(&a, &b, &cons, settings.weak_eigenvalue_rel, lam_max);
+        let new = theta + t * solved.delta;
+        let mut added = false;
+        for d in Dof::ALL {
+            let k = d.index();
+            if held[k] {
+                continue;
+            }
+            if let Some(bk) = bound[k] {
+                if new[k].abs() > bk {
+                    cons.push(Constraint {
+                        row: t.row(k).transpose(),
+                        rhs: bk.copysign(new[k]) - theta[k],
+                        dof: d,
+                        source: LockSource::Bound,
+                    });
+                    held[k] = true;
+                    added = true;
+                }
+            }
+        }
+        if !added {
+            return Ok(StepState {
+                f,
+                a,
+                lam_max,
+                t,
+                cons,
+                solved,
+            });
         }
     }
-    let delta = eig.eigenvectors * y;
-    let omega = Vector3::new(delta[0], delta[1], delta[2]) / len;
+}
+
+struct Step {
+    isometry: Isometry3<f64>,
+    size_mm: f64,
+}
+
+fn gauss_newton_step(
+    corr: &[Corr],
+    w: &[f64],
+    m: &Isometry3<f64>,
+    settings: &RegisterSettings,
+) -> Result<Step> {
+    let st = constrained_step(corr, w, m, settings)?;
+    let delta = st.solved.delta;
+    let omega = Vector3::new(delta[0], delta[1], delta[2]) / st.f.len;
     let tau = Vector3::new(delta[3], delta[4], delta[5]);
     let rot = nalgebra::Rotation3::new(omega);
-    let t = c + tau - rot * c;
+    let t = st.f.c + tau - rot * st.f.c;
     Ok(Step {
         isometry: Isometry3::new(t, omega),
         size_mm: delta.norm(),
+    })
+}
+
+/// Conditioning and uncertainty at the solution.
+struct Analysis {
+    eigenvalues: [f64; 6],
+    condition_number: Option<f64>,
+    dof_sigma: [f64; 6],
+    locked: Vec<LockedMotion>,
+}
+
+/// `0.998 tx + 0.062 ry`: the components of a unit direction above 1 %, largest first, signed so
+/// that the largest is positive.
+fn direction_label(v: &Vector6<f64>) -> String {
+    let k = v.iamax();
+    let s = if v[k] < 0.0 { -1.0 } else { 1.0 };
+    let mut order: Vec<usize> = (0..6).collect();
+    order.sort_by(|&a, &b| v[b].abs().total_cmp(&v[a].abs()));
+    let mut out = String::new();
+    for (i, &j) in order.iter().enumerate() {
+        let c = s * v[j];
+        if i > 0 && c.abs() < 0.01 {
+            break;
+        }
+        if i == 0 {
+            out.push_str(&format!("{c:.3} {}", Dof::ALL[j].name()));
+        } else {
+            let sign = if c < 0.0 { '-' } else { '+' };
+            out.push_str(&format!(" {sign} {:.3} {}", c.abs(), Dof::ALL[j].name()));
+        }
+    }
+    out
+}
+
+fn analyse(
+    corr: &[Corr],
+    w: &[f64],
+    m: &Isometry3<f64>,
+    settings: &RegisterSettings,
+) -> Result<Analysis> {
+    let st = constrained_step(corr, w, m, settings)?;
+    let mut ev: Vec<f64> = SymmetricEigen::new(st.a)
+        .eigenvalues
+        .iter()
+        .copied()
+        .collect();
+    ev.sort_by(|a, b| b.total_cmp(a));
+    let eigenvalues: [f64; 6] = std::array::from_fn(|k| ev[k].max(0.0));
+    let condition_number = (eigenvalues[5] > 0.0).then(|| eigenvalues[0] / eigenvalues[5]);
+    let ss: f64 = corr.iter().zip(w).map(|(c, wk)| wk * c.r * c.r).sum();
+    let dof = corr.len().saturating_sub(st.solved.kept.len()).max(1);
+    let s2 = ss / dof as f64;
+    let mut cov = Matrix6::zeros();
+    for (v, mu) in &st.solved.kept {
+        cov += v * v.transpose() / *mu;
+    }
+    let cov = st.t * cov * st.t.transpose() * s2;
+    let held: Vec<usize> = st.cons.iter().map(|c| c.dof.index()).collect();
+    let dof_sigma: [f64; 6] = std::array::from_fn(|k| {
+        let unit = if k < 3 { ARCSEC_PER_RAD } else { 1e3 };
+        if held.contains(&k) {
+            0.0
+        } else {
+            cov[(k, k)].max(0.0).sqrt() * unit
+        }
+    });
+    let rel = |v: &Vector6<f64>| (v.transpose() * st.a * v)[(0, 0)] / st.lam_max;
+    let mut locked = Vec::new();
+    for c in &st.cons {
+        let v = c.row.normalize();
+        locked.push(LockedMotion {
+            source: c.source,
+            label: c.dof.name().to_string(),
+            direction: std::array::from_fn(|k| v[k]),
+            relative_eigenvalue: rel(&v),
+        });
+    }
+    for (v, _) in &st.solved.weak {
+        let s = if v[v.iamax()] < 0.0 { -1.0 } else { 1.0 };
+        let v = v * s;
+        locked.push(LockedMotion {
+            source: LockSource::Weak,
+            label: direction_label(&v),
+            direction: std::array::from_fn(|k| v[k]),
+            relative_eigenvalue: rel(&v).max(0.0),
+        });
+    }
+    Ok(Analysis {
+        eigenvalues,
+        condition_number,
+        dof_sigma,
+        locked,
     })
 }
