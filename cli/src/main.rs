@@ -39,6 +39,8 @@ enum Command {
     Path(cmd::path::Args),
     /// Simulate the removal of a dwell program (discrete dwell or continuous motion).
     Simulate(cmd::simulate::Args),
+    /// Measured maps: convert any format to CSV, remove form terms, fit Zernike/Legendre.
+    Map(cmd::map::Args),
     /// The measure-register-solve-polish loop on a virtual part, or one run on a measured map.
     Iterate(cmd::iterate::Args),
 }
@@ -56,6 +58,7 @@ fn main() -> ExitCode {
         Command::Path(args) => cmd::path::run(args),
         Command::Simulate(args) => cmd::simulate::run(args),
         Command::Iterate(args) => cmd::iterate::run(args),
+        Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
     };
     match result {

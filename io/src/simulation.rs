@@ -4,8 +4,8 @@
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
 use crate::machine::{read_dwell_times, DwellTimes};
+use crate::metrology::MapSource;
 use crate::plots::{plot_convergence, plot_map, plot_path};
-use crate::readers::read_map;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
@@ -43,7 +43,7 @@ pub struct Simulated {
 /// on the map with `tif` under `motion`. With `limits`, `max_bound_violation_s` reports how far
 /// the program is outside the feed limits.
 pub fn simulate(
-    map_file: &Path,
+    map_source: &MapSource,
     tif: &Tif,
     dwell_file: &Path,
     motion: Motion,
@@ -51,7 +51,8 @@ pub fn simulate(
     observer: &dyn Observer,
 ) -> Result<Simulated> {
     let start = Instant::now();
-    let map = read_map(map_file)?;
+    let map = map_source.read()?;
+    let map_file = map_source.file.as_deref().unwrap_or(Path::new("map"));
     let DwellTimes { path, dwell_s } = read_dwell_times(dwell_file)?;
     let ds_mm = path.ds_mm();
     let m = &map.map;
@@ -101,9 +102,10 @@ pub fn simulate(
         &solution,
         &removal,
         &ds_mm,
-        map.skipped_rows,
+        map.input.invalid_points,
         build_seconds,
     );
+    report.map_input = Some(map.input.clone());
     report.solver = match motion {
         Motion::Discrete => "simulate".into(),
         Motion::Continuous { samples_per_point } => {

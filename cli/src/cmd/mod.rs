@@ -2,6 +2,8 @@ pub mod asphere;
 pub mod bench;
 pub mod fit;
 pub mod iterate;
+pub mod map;
+pub mod map_input;
 pub mod nc;
 pub mod path;
 pub mod register;
