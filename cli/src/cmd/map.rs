@@ -128,7 +128,7 @@ struct ConvertSummary<'a> {
 }
 
 fn convert(a: ConvertArgs, detrend: bool) -> anyhow::Result<ExitCode> {
-    if detrend && a.input.remove.as_ref().is_none_or(|r| r.is_empty()) {
+    if detrend && a.input.remove.as_ref().is_none_or(|r| r.0.is_empty()) {
         bail!("map detrend needs --remove (for example piston,tilt,power)");
     }
     let r = read(&a.map, &a.input, a.pitch)?;

@@ -48,8 +48,14 @@ fn parse_units(s: &str) -> Result<Units, String> {
 fn parse_aperture(s: &str) -> Result<ApertureSpec, String> {
     s.parse().map_err(|e: preston_io::Error| e.to_string())
 }
-fn parse_remove(s: &str) -> Result<Vec<FormTerm>, String> {
-    parse_form_terms(s).map_err(|e| e.to_string())
+/// A `--remove` list (one value holding several terms).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RemoveList(pub Vec<FormTerm>);
+
+fn parse_remove(s: &str) -> Result<RemoveList, String> {
+    parse_form_terms(s)
+        .map(RemoveList)
+        .map_err(|e| e.to_string())
 }
 
 /// How to read the map given by `--map`.
@@ -71,7 +77,7 @@ pub struct MapInputArgs {
     pub aperture: Option<ApertureSpec>,
     /// Form terms removed by least squares: piston,tilt,power,astig,coma,trefoil,spherical.
     #[arg(long, value_name = "LIST", value_parser = parse_remove)]
-    pub remove: Option<Vec<FormTerm>>,
+    pub remove: Option<RemoveList>,
 }
 
 impl MapInputArgs {
@@ -90,7 +96,7 @@ impl MapInputArgs {
             src.aperture = Some(a.clone());
         }
         if let Some(r) = &self.remove {
-            src.remove.clone_from(r);
+            src.remove.clone_from(&r.0);
         }
     }
 
