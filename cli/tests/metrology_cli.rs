@@ -499,3 +499,133 @@ fn broken_binary_files_exit_2_naming_file_place_and_cause() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("HDF5"));
 }
+
+/// The spot target: 6 nm/s peak, sigma 1.2 mm, centre (0.3, -0.2) mm, 10 s dwell, 0.2 nm/mm
+/// tilt between the measurements, 0.5 nm RMS noise, a NaN border.
+const SPOT_PEAK: f64 = 6.0;
+const SPOT_SIGMA_MM: f64 = 1.2;
+/// Peak and FWHM, relative.
+const SPOT_REL_TOL: f64 = 0.03;
+/// Fitted sigma, relative.
+const SIGMA_REL_TOL: f64 = 0.02;
+/// Centroid after recentring, mm.
+const CENTROID_TOL_MM: f64 = 0.02;
+
+/// Standard normal samples from a fixed xorshift stream (Box-Muller).
+fn normals(n: usize) -> Vec<f64> {
+    let mut s: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut u = || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        ((s >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    (0..n)
+        .map(|_| {
+            let (a, b) = (u(), u());
+            (-2.0 * a.ln()).sqrt() * (2.0 * std::f64::consts::PI * b).cos()
+        })
+        .collect()
+}
+
+#[test]
+fn tif_from_a_measured_spot_meets_the_targets_and_solves_the_sample_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (before, after) = (d.join("before.xyz"), d.join("after.xyz"));
+    let n = 121; // 0.1 mm pixels over +-6 mm
+    let noise = normals(2 * n * n);
+    let (mut tb, mut ta) = (String::new(), String::new());
+    for i in 0..n {
+        for j in 0..n {
+            let (x, y) = (-6.0 + 0.1 * j as f64, -6.0 + 0.1 * i as f64);
+            let border = i < 3 || j < 3 || i >= n - 3 || j >= n - 3;
+            let g = SPOT_PEAK
+                * (-((x - 0.3).powi(2) + (y + 0.2).powi(2)) / (2.0 * SPOT_SIGMA_MM.powi(2))).exp();
+            let figure = 4.0 * (0.5 * x).sin() * (0.3 * y).cos();
+            let k = i * n + j;
+            let zb = figure + 0.5 * noise[2 * k];
+            let za = figure - 10.0 * g + 0.2 * x + 0.5 * noise[2 * k + 1];
+            writeln!(tb, "{x} {y} {zb}").unwrap();
+            if border {
+                writeln!(ta, "{x} {y} nan").unwrap();
+            } else {
+                writeln!(ta, "{x} {y} {za}").unwrap();
+            }
+        }
+    }
+    std::fs::write(&before, tb).unwrap();
+    std::fs::write(&after, ta).unwrap();
+    let tif = d.join("tif.csv");
+    let out = preston(&[
+        "tif",
+        "spot",
+        "--before",
+        s(&before),
+        "--after",
+        s(&after),
+        "--dwell-s",
+        "10",
+        "--remove",
+        "tilt",
+        "--crop-radius-mm",
+        "4.5",
+        "--recentre",
+        "--fit",
+        "gaussian",
+        "--out",
+        s(&tif),
+    ]);
+    ok(&out);
+    let j = json(&out);
+    let peak = j["peak_rate_nm_per_s"].as_f64().unwrap();
+    let fwhm = j["fwhm_mm"].as_f64().unwrap();
+    let fwhm_true = 2.0 * (2.0 * 2f64.ln()).sqrt() * SPOT_SIGMA_MM; // 2.826 mm
+    assert!(
+        (peak - SPOT_PEAK).abs() <= SPOT_REL_TOL * SPOT_PEAK,
+        "peak {peak}"
+    );
+    assert!(
+        (fwhm - fwhm_true).abs() <= SPOT_REL_TOL * fwhm_true,
+        "fwhm {fwhm} vs {fwhm_true}"
+    );
+    let c = &j["centroid_mm"];
+    let (cx, cy) = (c[0].as_f64().unwrap(), c[1].as_f64().unwrap());
+    assert!(cx.hypot(cy) < CENTROID_TOL_MM, "centroid ({cx}, {cy})");
+    let sc = &j["spot_centroid_mm"];
+    assert!((sc[0].as_f64().unwrap() - 0.3).abs() < 0.05, "{sc}");
+    assert!((sc[1].as_f64().unwrap() + 0.2).abs() < 0.05, "{sc}");
+    for key in ["sigma_x_mm", "sigma_y_mm"] {
+        let v = j[key].as_f64().unwrap();
+        assert!(
+            (v - SPOT_SIGMA_MM).abs() <= SIGMA_REL_TOL * SPOT_SIGMA_MM,
+            "{key} {v}"
+        );
+    }
+    // Volume of the Gaussian: 2 pi A sigma^2 nm mm^2/s = 2 pi 6 1.44 1e-6 mm^3/s, x 60 per min.
+    let vol = j["volume_rate_mm3_per_min"].as_f64().unwrap();
+    let vol_true = 2.0 * std::f64::consts::PI * SPOT_PEAK * SPOT_SIGMA_MM.powi(2) * 1e-6 * 60.0;
+    assert!(
+        (vol - vol_true).abs() < 0.05 * vol_true,
+        "{vol} vs {vol_true}"
+    );
+
+    // The TIF solves the sample job.
+    let job = concat!(env!("CARGO_MANIFEST_DIR"), "/../data/job.toml");
+    let out_dir = d.join("job");
+    let out = preston(&[
+        "solve",
+        "--job",
+        job,
+        "--tif",
+        s(&tif),
+        "--out",
+        s(&out_dir),
+    ]);
+    ok(&out);
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("report.json")).unwrap())
+            .unwrap();
+    assert_eq!(r["status"], "converged");
+    assert!(r["rms_after_nm"].as_f64().unwrap() < r["rms_before_nm"].as_f64().unwrap());
+}

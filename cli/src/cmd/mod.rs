@@ -12,3 +12,4 @@ pub mod solve;
 pub mod surface;
 pub mod tif;
 pub mod tif_source;
+pub mod tif_spot;
