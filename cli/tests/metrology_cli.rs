@@ -180,6 +180,11 @@ fn every_reader_gives_the_same_points_and_rms() {
         assert_eq!(j["points"], valid.len(), "{name}");
         assert_eq!(j["invalid_points"], NX * NY - valid.len(), "{name}");
         let rms = j["rms_nm"].as_f64().unwrap();
+        eprintln!(
+            "{format}: {} points, rms {rms} nm vs NaN-aware std {std} nm (relative {:.1e})",
+            j["points"],
+            (rms - std).abs() / std
+        );
         assert!(
             (rms - std).abs() <= READER_REL_TOL * std,
             "{name}: rms {rms} vs {std}"
@@ -393,6 +398,14 @@ fn detrend_and_zernike_fit_on_a_holed_disk() {
     let got = read_points(&out_csv);
     let want = plane_power_residual(&pts);
     assert_eq!(got.len(), pts.len());
+    let worst = pts
+        .iter()
+        .zip(&want)
+        .map(|(&(x, y, _), w)| {
+            (got[&((x * 1e6).round() as i64, (y * 1e6).round() as i64)].2 - w).abs()
+        })
+        .fold(0.0, f64::max);
+    eprintln!("map detrend: largest difference from the normal-equation residual {worst:.2e} nm");
     for (&(x, y, _), w) in pts.iter().zip(&want) {
         let g = got[&((x * 1e6).round() as i64, (y * 1e6).round() as i64)].2;
         assert!((g - w).abs() < DETREND_TOL_NM, "({x}, {y}): {g} vs {w}");
@@ -415,6 +428,11 @@ fn detrend_and_zernike_fit_on_a_holed_disk() {
     let c = j["coefficients_nm"].as_array().unwrap();
     assert_eq!(c.len(), 37);
     let z11c = c[10].as_f64().unwrap();
+    eprintln!(
+        "map fit: Z11 = {z11c} nm (relative error {:.2e}), residual rms {} nm",
+        (z11c - 20.0).abs() / 20.0,
+        j["rms_nm"]
+    );
     assert!(
         (z11c - 20.0).abs() <= ZERNIKE_REL_TOL * 20.0,
         "Z11 = {z11c}"
@@ -578,6 +596,7 @@ fn tif_from_a_measured_spot_meets_the_targets_and_solves_the_sample_job() {
     ]);
     ok(&out);
     let j = json(&out);
+    eprintln!("tif spot summary: {j}");
     let peak = j["peak_rate_nm_per_s"].as_f64().unwrap();
     let fwhm = j["fwhm_mm"].as_f64().unwrap();
     let fwhm_true = 2.0 * (2.0 * 2f64.ln()).sqrt() * SPOT_SIGMA_MM; // 2.826 mm
