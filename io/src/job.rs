@@ -263,6 +263,34 @@ mod tests {
     }
 
     #[test]
+    fn map_options_parse_and_polygon_paths_resolve() {
+        let dir = tempfile::tempdir().unwrap();
+        let job = dir.path().join("j.toml");
+        std::fs::write(
+            &job,
+            "[map]\nfile='m.datx'\nformat='zygo-datx'\nunits='mm,mm,um'\ncolumns='z,x,y'\n\
+             pitch_mm=0.1\naperture='polygon:outline.csv'\nremove=['piston','tilt','power']\n",
+        )
+        .unwrap();
+        let j = Job::load(&job).unwrap();
+        assert_eq!(j.map.format, Some(crate::metrology::MapFormat::ZygoDatx));
+        assert_eq!(j.map.remove.len(), 3);
+        assert_eq!(j.map.pitch_mm, Some(0.1));
+        assert_eq!(
+            j.map.aperture,
+            Some(ApertureSpec::PolygonFile(dir.path().join("outline.csv")))
+        );
+        let e = Job::parse("[map]\naperture='circle:-1'\n", Path::new("j.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("radius"), "{e}");
+        let e = Job::parse("[map]\nremove=['focus']\n", Path::new("j.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("focus"), "{e}");
+    }
+
+    #[test]
     fn machine_tables_parse() {
         let j = Job::parse(
             "[machine]\nv_max_mm_per_min=3000\na_max_mm_per_s2=250\ncorner_angle_deg=45\n\

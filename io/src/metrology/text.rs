@@ -56,8 +56,8 @@ fn conversion_note(axis: &str, from: LengthUnit, to: LengthUnit, assumed: bool) 
 }
 
 /// Reads a CSV map. `x_mm,y_mm,z_nm` is read as is; `x_um`/`x_m`, `y_um`/`y_m` and
-/// `z_um`/`z_mm`/`z_m` are converted (with a note); other headers, or `--columns`, are read as
-/// delimited text.
+/// `z_um`/`z_mm`/`z_m` are converted (with a note); with `--columns` or `--units` the file is read
+/// as delimited text; any other header is an error naming the missing column.
 pub(crate) fn read_csv(path: &Path, src: &MapSource) -> Result<RawPoints> {
     if src.columns.is_some() {
         return read_delimited(path, src, Some(b','));
@@ -70,7 +70,15 @@ pub(crate) fn read_csv(path: &Path, src: &MapSource) -> Result<RawPoints> {
             .find(|(n, _)| names.iter().any(|h| h == n))
     };
     let (Some(x), Some(y), Some(z)) = (pick(&X_NAMES), pick(&Y_NAMES), pick(&Z_NAMES)) else {
-        return read_delimited(path, src, Some(b','));
+        if src.units.is_some() {
+            return read_delimited(path, src, Some(b','));
+        }
+        // The map reader's error: the missing column and a same-named column in another unit.
+        read_map(path)?;
+        return Err(Error::Empty {
+            file: path.to_path_buf(),
+            why: "no x_mm, y_mm and z_nm columns (or the same in um or m)".into(),
+        });
     };
     if (x.0, y.0, z.0) == ("x_mm", "y_mm", "z_nm") {
         let m = read_map(path)?;
@@ -141,15 +149,19 @@ fn split_line(line: &str, delim: Option<u8>) -> Vec<&str> {
     }
 }
 
-/// The role and unit a header name gives (`x_um` -> x in um; `Z` -> z, no unit).
-fn header_role(name: &str) -> Option<(char, Option<LengthUnit>)> {
+/// The role and unit a header name gives (`x_um` -> x in um; `Z` -> z, no unit); `Err` with the
+/// suffix when a coordinate column carries a unit Preston does not know (`z_pm`).
+fn header_role(name: &str) -> Option<(char, std::result::Result<Option<LengthUnit>, String>)> {
     let lower = name.to_ascii_lowercase();
     let (stem, unit) = match lower.split_once(['_', '(', '[', ' ']) {
-        Some((s, u)) => (
-            s.to_string(),
-            u.trim_matches([')', ']', ' ']).parse::<LengthUnit>().ok(),
-        ),
-        None => (lower.clone(), None),
+        Some((s, u)) => {
+            let u = u.trim_matches([')', ']', ' ']);
+            (
+                s.to_string(),
+                u.parse::<LengthUnit>().map(Some).map_err(|_| u.to_string()),
+            )
+        }
+        None => (lower.clone(), Ok(None)),
     };
     match stem.as_str() {
         "x" => Some(('x', unit)),
@@ -229,6 +241,20 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
                             'x' => 0,
                             'y' => 1,
                             _ => 2,
+                        };
+                        let unit = match unit {
+                            Ok(u) => u,
+                            Err(_) if pos.is_some() || src.units.is_some() => None,
+                            Err(u) => {
+                                return Err(Error::Csv {
+                                    file: path.to_path_buf(),
+                                    line: line_no,
+                                    why: format!(
+                                        "column `{t}`: unit `{u}` is not m, mm, um or nm; \
+                                         convert it or give --units"
+                                    ),
+                                })
+                            }
                         };
                         if found[slot].is_none() {
                             found[slot] = Some(k);
@@ -395,6 +421,15 @@ mod tests {
         let (_d, p) = file("a.xyz", "a b c\n0 0 1\n");
         let e = read_xyz(&p, &MapSource::default()).unwrap_err().to_string();
         assert!(e.contains("--columns"), "{e}");
+        let (_d, p) = file("a.txt", "x_mm y_mm z_pm\n0 0 1\n");
+        let e = read_xyz(&p, &MapSource::default()).unwrap_err().to_string();
+        assert!(e.contains("z_pm") && e.contains("`pm`"), "{e}");
+        let (_d, p) = file("a.csv", "x_mm,y_mm,z_pm\n0,0,1\n");
+        let e = read_csv(&p, &MapSource::default()).unwrap_err().to_string();
+        assert!(
+            e.contains("missing column `z_nm`") && e.contains("z_pm"),
+            "{e}"
+        );
         let (_d, p) = file("a.xyz", "0 0 1\n0 0 2\n");
         let e = read_xyz(&p, &MapSource::default()).unwrap_err().to_string();
         assert!(e.contains("line 2 repeats"), "{e}");
