@@ -292,6 +292,39 @@ fn aperture_and_removal_reach_solve_and_its_report() {
     assert!(terms[2]["coefficient_nm"].as_f64().unwrap().abs() < 1e-9);
     let residual = std::fs::read_to_string(out_dir.join("residual.csv")).unwrap();
     assert_eq!(residual.lines().count(), inside + 1);
+    // `simulate` with the same map flags reads the same map: the discrete simulation of the
+    // solve's dwell program reproduces its residual statistics.
+    let sim_dir = d.join("sim");
+    let out = preston(&[
+        "simulate",
+        "--map",
+        s(&map),
+        "--aperture",
+        "circle:8@1,0",
+        "--remove",
+        "piston,tilt",
+        "--gaussian-sigma-mm",
+        "1",
+        "--gaussian-peak-nm-per-s",
+        "10",
+        "--dwell",
+        s(&out_dir.join("dwell.csv")),
+        "--out",
+        s(&sim_dir),
+    ]);
+    ok(&out);
+    let sim: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sim_dir.join("report.json")).unwrap())
+            .unwrap();
+    assert_eq!(sim["m"], inside);
+    for key in ["rms_before_nm", "rms_after_nm"] {
+        let (a, b) = (r[key].as_f64().unwrap(), sim[key].as_f64().unwrap());
+        assert!(
+            (a - b).abs() <= 1e-9 * a.abs().max(1.0),
+            "{key}: {a} vs {b}"
+        );
+    }
+    assert_eq!(sim["map_input"]["removed"], r["map_input"]["removed"]);
     // Bad aperture text exits 2 with the accepted forms.
     let out = preston(&[
         "map",

@@ -626,6 +626,47 @@ mod tests {
     use super::*;
 
     #[test]
+    fn apertures_from_text_and_files_drop_points_outside() {
+        let dir = tempfile::tempdir().unwrap();
+        let map = dir.path().join("m.csv");
+        let mut t = String::from("x_mm,y_mm,z_nm\n");
+        for i in -5..=5 {
+            for j in -5..=5 {
+                t.push_str(&format!("{i},{j},{}\n", i * j));
+            }
+        }
+        std::fs::write(&map, t).unwrap();
+        let poly = dir.path().join("tri.csv");
+        std::fs::write(&poly, "x_mm,y_mm\n0,0\n4,0\n0,4\n").unwrap();
+        let count = |aperture: &str| {
+            let src = MapSource {
+                file: Some(map.clone()),
+                aperture: Some(
+                    aperture
+                        .replace("FILE", poly.to_str().unwrap())
+                        .parse()
+                        .unwrap(),
+                ),
+                ..MapSource::default()
+            };
+            let r = src.read().unwrap();
+            assert_eq!(r.map.len() + r.input.outside_aperture, 121);
+            r.map.len()
+        };
+        // Lattice points in each shape, counted by hand.
+        assert_eq!(count("circle:1"), 5);
+        assert_eq!(count("annulus:1.2,2"), 8);
+        assert_eq!(count("rect:4,2"), 15);
+        assert_eq!(count("polygon:FILE"), 15);
+        let src = MapSource {
+            file: Some(map.clone()),
+            aperture: Some("polygon:/nonexistent/p.csv".parse().unwrap()),
+            ..MapSource::default()
+        };
+        assert!(src.read().unwrap_err().to_string().contains("p.csv"));
+    }
+
+    #[test]
     fn option_strings_parse_and_print() {
         let a: ApertureSpec = "circle:50@1.5,-2".parse().unwrap();
         assert_eq!(
