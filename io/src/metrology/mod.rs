@@ -48,8 +48,8 @@ pub enum MapFormat {
 }
 
 impl MapFormat {
-    /// The format a file's extension implies (`.csv`, `.xyz`/`.txt`/`.asc`/`.dat`... see the
-    /// README), `None` when the extension says nothing.
+    /// The format a file's extension implies (`.csv`, `.xyz`/`.txt`/`.asc`, `.npy`, `.dat`,
+    /// `.datx`, `.h5`/`.hdf5`/`.4d`), `None` for any other (read as CSV).
     pub fn from_extension(path: &Path) -> Option<Self> {
         let ext = path.extension()?.to_str()?.to_ascii_lowercase();
         Some(match ext.as_str() {
@@ -515,20 +515,11 @@ impl MapSource {
         }
     }
 
-    /// The format to read: `format`, else the file's extension.
-    pub fn resolved_format(&self, file: &Path) -> Result<MapFormat> {
+    /// The format to read: `format`, else the file's extension, else CSV (the map contract).
+    pub fn resolved_format(&self, file: &Path) -> MapFormat {
         self.format
             .or_else(|| MapFormat::from_extension(file))
-            .ok_or_else(|| {
-                Error::option(
-                    "--map-format",
-                    format!(
-                        "{}: the extension does not say the format; give --map-format \
-                         (csv, xyz, npy, zygo-dat, zygo-datx, four-d)",
-                        file.display()
-                    ),
-                )
-            })
+            .unwrap_or(MapFormat::Csv)
     }
 
     /// Reads the map: the format's reader, then the aperture, then the form removal.
@@ -537,7 +528,7 @@ impl MapSource {
             .file
             .as_deref()
             .ok_or_else(|| Error::option("--map", "no map file given"))?;
-        let format = self.resolved_format(file)?;
+        let format = self.resolved_format(file);
         let raw = match format {
             MapFormat::Csv => text::read_csv(file, self)?,
             MapFormat::Xyz => text::read_xyz(file, self)?,

@@ -145,6 +145,7 @@ fn split_line(line: &str, delim: Option<u8>) -> Vec<&str> {
     match delim {
         Some(d) => line.split(d as char).map(str::trim).collect(),
         None if line.contains(';') => line.split(';').map(str::trim).collect(),
+        None if line.contains(',') => line.split(',').map(str::trim).collect(),
         None => line.split_whitespace().collect(),
     }
 }
@@ -197,8 +198,8 @@ fn parse_cell(path: &Path, line: u64, column: &str, text: Option<&&str>) -> Resu
     }
 }
 
-/// Delimited text: `delim` (comma for CSV) or, for `None`, semicolons when the line has one and
-/// whitespace otherwise. Lines starting with `#`, `%` or `//` are comments. A first line that is
+/// Delimited text: `delim` (comma for CSV) or, for `None`, semicolons when the line has one,
+/// else commas when it has one, else whitespace. Lines starting with `#`, `%` or `//` are comments. A first line that is
 /// not all numbers is a header naming `x`, `y`, `z` (optionally with a unit suffix such as
 /// `z_um`); `--columns` gives the order instead, `--units` the units (default mm, mm, nm).
 fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<RawPoints> {
@@ -402,6 +403,13 @@ mod tests {
         let (_d, p) = file("b.txt", "X[mm];Y[mm];Z[um]\n0;0;1\n1;0;2\n");
         let r = read_xyz(&p, &MapSource::default()).unwrap();
         assert_eq!(r.z_nm, vec![1000.0, 2000.0]);
+        let (_d, p) = file("d.txt", "x_mm,y_mm,z_nm\n0,0,1\n1,0,2\n");
+        let r = read_xyz(&p, &MapSource::default()).unwrap();
+        assert_eq!(
+            (r.x_mm.clone(), r.z_nm.clone()),
+            (vec![0.0, 1.0], vec![1.0, 2.0])
+        );
+        assert!(r.notes.is_empty(), "{:?}", r.notes);
         let (_d, p) = file("c.txt", "5 0 0\n6 1 0\n");
         let src = MapSource {
             columns: Some("z,x,y".parse().unwrap()),
