@@ -39,6 +39,8 @@ enum Command {
     Path(cmd::path::Args),
     /// Simulate the removal of a dwell program (discrete dwell or continuous motion).
     Simulate(cmd::simulate::Args),
+    /// Measured maps: convert any format to CSV, remove form terms, fit Zernike/Legendre.
+    Map(cmd::map::Args),
     /// The measure-register-solve-polish loop on a virtual part, or one run on a measured map.
     Iterate(cmd::iterate::Args),
 }
@@ -56,6 +58,7 @@ fn main() -> ExitCode {
         Command::Path(args) => cmd::path::run(args),
         Command::Simulate(args) => cmd::simulate::run(args),
         Command::Iterate(args) => cmd::iterate::run(args),
+        Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
     };
     match result {
@@ -90,4 +93,15 @@ fn is_broken_pipe(e: &anyhow::Error) -> bool {
         c.downcast_ref::<std::io::Error>()
             .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
     })
+}
+
+#[cfg(test)]
+mod tests {
+    /// Every subcommand's flags are distinct and well formed (clap's own consistency checks,
+    /// run for the whole command tree, including the shared map-input flags).
+    #[test]
+    fn the_command_line_definition_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
 }

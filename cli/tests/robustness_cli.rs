@@ -93,14 +93,15 @@ fn csv_errors_name_file_line_and_column() {
         let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
         expect_failure(&args, needles);
     };
-    // Misspelt header, wrong unit (with a hint), infinity, duplicate point, empty file.
+    // Misspelt header, unknown unit, infinity, duplicate point, empty file (a map in um or m is
+    // converted: `cli/tests/metrology_cli.rs`).
     run(
         &write(p, "misspelt.csv", "x_mm,y_nm,z_nm\n0,0,1\n"),
         &["misspelt.csv", "line 1", "missing column `y_mm`"],
     );
     run(
-        &write(p, "units.csv", "x_mm,y_mm,z_um\n0,0,1\n"),
-        &["units.csv", "missing column `z_nm`", "found `z_um`"],
+        &write(p, "units.csv", "x_mm,y_mm,z_pm\n0,0,1\n"),
+        &["units.csv", "missing column `z_nm`", "found `z_pm`"],
     );
     run(
         &write(p, "inf.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,inf\n"),

@@ -103,6 +103,24 @@ pub enum Error {
         /// The engine's error.
         source: preston_solver::Error,
     },
+    /// A binary file (instrument data, HDF5, NPY) is malformed or truncated: where, and why.
+    #[error("{}: {at}: {why}", file.display())]
+    Binary {
+        /// The file.
+        file: PathBuf,
+        /// Where in the file: a byte offset, a header field or an HDF5 object path.
+        at: String,
+        /// What is wrong (never the file's bytes).
+        why: String,
+    },
+    /// A command-line or job option could not be used.
+    #[error("{option}: {why}")]
+    Option {
+        /// The option (`--aperture`, `[map] columns`, ...).
+        option: String,
+        /// Why it was rejected.
+        why: String,
+    },
     /// An engine error not tied to one file.
     #[error(transparent)]
     Solver(#[from] preston_solver::Error),
@@ -117,6 +135,23 @@ impl Error {
         Error::Engine {
             file: file.into(),
             source,
+        }
+    }
+
+    /// A malformed binary file: `at` names the offset, field or object.
+    pub fn binary(file: impl Into<PathBuf>, at: impl Into<String>, why: impl Into<String>) -> Self {
+        Error::Binary {
+            file: file.into(),
+            at: at.into(),
+            why: why.into(),
+        }
+    }
+
+    /// A rejected option.
+    pub fn option(option: impl Into<String>, why: impl Into<String>) -> Self {
+        Error::Option {
+            option: option.into(),
+            why: why.into(),
         }
     }
 

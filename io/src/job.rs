@@ -3,7 +3,10 @@
 //!
 //! ```toml
 //! [map]
-//! file = "mirror_error_118x8mm.csv"      # x_mm,y_mm,z_nm
+//! file = "mirror_error_118x8mm.csv"      # x_mm,y_mm,z_nm, or .xyz/.npy/.dat/.datx/.h5
+//! # format = "zygo-datx"                # optional: overrides the extension
+//! # aperture = "circle:50"               # optional: circle:R[@x,y], annulus:R1,R2, rect:W,H, polygon:FILE
+//! # remove = ["piston", "tilt", "power"] # optional: form terms removed by least squares
 //!
 //! [tif]
 //! file = "tif_fluid_jet_10mm.csv"        # x_mm,y_mm,rate_nm_per_s; or instead:
@@ -34,6 +37,8 @@
 
 use crate::error::{Error, Result};
 use crate::machine::NcSection;
+use crate::metrology::ApertureSpec;
+pub use crate::metrology::MapSource;
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::machine::compensation::NormalDisplacement;
@@ -84,14 +89,6 @@ pub struct SurfaceSource {
     pub file: Option<PathBuf>,
     /// Orientation of the TIF's x axis in the tangent plane.
     pub tif_frame: TifFrame,
-}
-
-/// Where the map comes from.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MapSource {
-    /// CSV file `x_mm,y_mm,z_nm`.
-    pub file: Option<PathBuf>,
 }
 
 /// Where the TIF comes from: a grid file or a Gaussian model (exactly one).
@@ -165,6 +162,11 @@ impl Job {
         .into_iter()
         .flatten()
         {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        }
+        if let Some(ApertureSpec::PolygonFile(p)) = &mut job.map.aperture {
             if p.is_relative() {
                 *p = base.join(&*p);
             }
@@ -258,6 +260,34 @@ mod tests {
         assert!(j.solver.min_time);
         assert_eq!(j.feed_limits().unwrap().v_max_mm_per_min, 3000.0);
         assert_eq!(j.accel_limits().unwrap(), None);
+    }
+
+    #[test]
+    fn map_options_parse_and_polygon_paths_resolve() {
+        let dir = tempfile::tempdir().unwrap();
+        let job = dir.path().join("j.toml");
+        std::fs::write(
+            &job,
+            "[map]\nfile='m.datx'\nformat='zygo-datx'\nunits='mm,mm,um'\ncolumns='z,x,y'\n\
+             pitch_mm=0.1\naperture='polygon:outline.csv'\nremove=['piston','tilt','power']\n",
+        )
+        .unwrap();
+        let j = Job::load(&job).unwrap();
+        assert_eq!(j.map.format, Some(crate::metrology::MapFormat::ZygoDatx));
+        assert_eq!(j.map.remove.len(), 3);
+        assert_eq!(j.map.pitch_mm, Some(0.1));
+        assert_eq!(
+            j.map.aperture,
+            Some(ApertureSpec::PolygonFile(dir.path().join("outline.csv")))
+        );
+        let e = Job::parse("[map]\naperture='circle:-1'\n", Path::new("j.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("radius"), "{e}");
+        let e = Job::parse("[map]\nremove=['focus']\n", Path::new("j.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("focus"), "{e}");
     }
 
     #[test]

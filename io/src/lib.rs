@@ -8,6 +8,7 @@ pub mod atomic;
 pub mod bench;
 pub mod error;
 pub mod machine;
+pub mod metrology;
 pub mod readers;
 pub mod report;
 pub mod surface;

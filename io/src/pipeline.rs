@@ -4,7 +4,8 @@ use crate::atomic::commit_all;
 use crate::error::{Error, Result};
 use crate::job::Job;
 use crate::machine::read_dwell_times;
-use crate::readers::{read_dwell, read_map, read_tif};
+use crate::metrology::MapInput;
+use crate::readers::{read_dwell, read_tif};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
@@ -29,6 +30,8 @@ pub struct Prepared {
     pub map: HeightMap,
     /// Map rows skipped.
     pub skipped_rows: usize,
+    /// How the map was read (format, dropped points, removed form terms).
+    pub map_input: MapInput,
     /// The TIF.
     pub tif: Tif,
     /// The dwell path.
@@ -89,7 +92,7 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         file: job_path.to_path_buf(),
         why: "no map: set [map] file (or --map)".into(),
     })?;
-    let map_file = read_map(map_path)?;
+    let map_file = job.map.read()?;
     let tif = load_tif(job, job_path)?;
     let (path, previous_dwell_s) = match (&job.dwell.file, job.dwell.raster_pitch_mm) {
         (Some(f), None) => {
@@ -167,7 +170,8 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     .map_err(|e| Error::engine(job_path, e))?;
     Ok(Prepared {
         map,
-        skipped_rows: map_file.skipped_rows,
+        skipped_rows: map_file.input.invalid_points,
+        map_input: map_file.input,
         tif,
         path,
         ds_mm,
@@ -350,6 +354,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    report.map_input = Some(prepared.map_input.clone());
     let schedule = FeedSchedule::new(
         &prepared.path,
         &solution.dwell_s,

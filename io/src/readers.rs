@@ -114,7 +114,7 @@ pub fn read_dwell(path: &Path) -> Result<DwellFile> {
 /// Rejects two rows with bit-identical coordinates (+0.0 and -0.0 alike), naming both lines (the
 /// earliest repeat in file order). Sorts 32-bit row indices by coordinates: 4 bytes per row, so
 /// large maps stream through with little memory on top of their values.
-fn check_duplicates(path: &Path, x: &[f64], y: &[f64], lines: &[u64]) -> Result<()> {
+pub(crate) fn check_duplicates(path: &Path, x: &[f64], y: &[f64], lines: &[u64]) -> Result<()> {
     let n = u32::try_from(x.len()).map_err(|_| Error::Empty {
         file: path.to_path_buf(),
         why: format!(

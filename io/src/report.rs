@@ -65,6 +65,9 @@ pub struct Report {
     /// Indices (0-based, path order) of the unreachable dwell points.
     #[serde(default)]
     pub unreachable_dwell_indices: Vec<usize>,
+    /// How the map was read: format, dropped points, unit notes, removed form terms.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub map_input: Option<crate::metrology::MapInput>,
     /// Warnings about the inputs (for example a TIF wider than the map), also printed on stderr.
     #[serde(default)]
     pub warnings: Vec<String>,
@@ -187,6 +190,7 @@ impl Report {
             min_time: solution.min_time,
             unreachable_dwell_points: empty.len(),
             unreachable_dwell_indices: empty,
+            map_input: None,
             warnings: Vec::new(),
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,

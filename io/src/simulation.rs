@@ -4,8 +4,8 @@
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
 use crate::machine::{read_dwell_times, DwellTimes};
+use crate::metrology::MapSource;
 use crate::plots::{plot_convergence, plot_map, plot_path};
-use crate::readers::read_map;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
@@ -50,7 +50,7 @@ pub struct Simulated {
 /// on the map with `tif` under `motion`. With `limits`, `max_bound_violation_s` reports how far
 /// the program is outside the feed limits.
 pub fn simulate(
-    map_file: &Path,
+    map_source: &MapSource,
     tif: &Tif,
     dwell_file: &Path,
     motion: Motion,
@@ -58,7 +58,8 @@ pub fn simulate(
     observer: &dyn Observer,
 ) -> Result<Simulated> {
     let start = Instant::now();
-    let map = read_map(map_file)?;
+    let map = map_source.read()?;
+    let map_file = map_source.file.as_deref().unwrap_or(Path::new("map"));
     let DwellTimes { path, dwell_s } = read_dwell_times(dwell_file)?;
     let m = &map.map;
     let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
@@ -106,7 +107,7 @@ struct Sweep {
 
 /// The report of a simulated sweep (same keys as `preston solve`).
 fn assemble(
-    map: crate::readers::MapFile,
+    map: crate::metrology::MapRead,
     map_file: &Path,
     dwell_file: &Path,
     sweep: Sweep,
@@ -159,9 +160,10 @@ fn assemble(
         &solution,
         &removal,
         &ds_mm,
-        map.skipped_rows,
+        map.input.invalid_points,
         build_seconds,
     );
+    report.map_input = Some(map.input.clone());
     report.solver = label;
     if dwell_s
         .iter()
@@ -227,14 +229,15 @@ pub struct ProgramSimulated {
 /// reads it back, executes its motion, integrates the TIF along the contact motion and reports on
 /// the map in `map_file`.
 pub fn simulate_program(
-    map_file: &Path,
+    map_source: &MapSource,
     tif: &Tif,
     program_file: &Path,
     options: ProgramOptions,
     observer: &dyn Observer,
 ) -> Result<ProgramSimulated> {
     let start = Instant::now();
-    let map = read_map(map_file)?;
+    let map = map_source.read()?;
+    let map_file = map_source.file.as_deref().unwrap_or(Path::new("map"));
     let meta = std::fs::metadata(program_file).map_err(|e| Error::io(program_file, e))?;
     if !meta.is_file() {
         return Err(Error::engine(

@@ -10,6 +10,7 @@
 // Input checks are written `!(x > 0.0)` on purpose: the negated form also rejects NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod aperture;
 pub mod dwell;
 pub mod error;
 pub mod fit;
@@ -18,6 +19,7 @@ pub mod iterate;
 mod lstsq;
 pub mod machine;
 pub mod map;
+pub mod modal;
 pub mod observer;
 pub mod path;
 pub mod registration;

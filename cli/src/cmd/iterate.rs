@@ -1,11 +1,11 @@
 //! `preston iterate`: the measure-register-solve-polish loop on a virtual part, or one planned
 //! run on a real part's measured map (`--map`).
 
+use super::map_input::{print_input_notes, MapInputArgs};
 use super::solve::SolverArg;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::{bail, Context};
-use preston_io::readers::read_map;
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FeedLimits, Settings};
@@ -31,9 +31,15 @@ pub struct Args {
     pub surface: Option<PathBuf>,
     #[command(flatten)]
     pub tif: TifArgs,
-    /// Real part: plan one run on this measured map `x_mm,y_mm,z_nm` instead of a virtual loop.
-    #[arg(long, value_name = "M.csv")]
+    /// Real part: plan one run on this measured map (CSV `x_mm,y_mm,z_nm` or any format of
+    /// `preston map convert`) instead of a virtual loop.
+    #[arg(long, value_name = "FILE")]
     pub map: Option<PathBuf>,
+    #[command(flatten)]
+    pub map_input: MapInputArgs,
+    /// Pixel pitch of a .npy map grid (or a 4D file without one), mm.
+    #[arg(long, value_name = "MM")]
+    pub map_pitch_mm: Option<f64>,
     /// Real part: the loop iteration this run is (chooses the intersection path's direction
     /// and shift).
     #[arg(long, default_value_t = 0)]
@@ -182,7 +188,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let bars = Bars::new();
     let outcome = match &args.map {
         Some(m) => {
-            let map = read_map(m)?;
+            let map = args.map_input.source(m.clone(), args.map_pitch_mm).read()?;
+            print_input_notes(&map.input);
             plan_measured(&surface, &map.map, &tif, &settings, args.iteration, &bars)
                 .with_context(|| format!("planning a run on {}", m.display()))?
         }

@@ -1,6 +1,7 @@
 //! `preston simulate`: the removal a dwell plan produces (discrete or continuous motion), or the
 //! removal a G-code program produces as the machine runs it (`--program`).
 
+use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::DialectArg;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
@@ -29,9 +30,13 @@ pub enum MotionArg {
 /// Arguments of `preston simulate`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Error map CSV `x_mm,y_mm,z_nm`.
-    #[arg(long, value_name = "M.csv")]
+    /// Error map: CSV `x_mm,y_mm,z_nm` or any format of `preston map convert`.
+    #[arg(long, value_name = "FILE")]
     pub map: PathBuf,
+    #[command(flatten)]
+    pub map_input: MapInputArgs,
+    #[command(flatten)]
+    pub map_pitch: PitchArg,
     #[command(flatten)]
     pub tif: TifArgs,
     /// Dwell plan CSV `x_mm,y_mm,dwell_s` in path order (the dwell.csv of `preston solve`).
@@ -124,10 +129,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         v_min_mm_per_min: 0.0,
     });
     let bars = Bars::new();
-    let sim = simulate(&args.map, &tif, dwell, motion, limits.as_ref(), &bars)?;
+    let map = args
+        .map_input
+        .source(args.map.clone(), args.map_pitch.pitch_mm);
+    let sim = simulate(&map, &tif, dwell, motion, limits.as_ref(), &bars)?;
     write_simulation(&sim, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.report;
+    if let Some(input) = &r.map_input {
+        print_input_notes(input);
+    }
     eprintln!(
         "preston simulate ({}): {} map points, {} dwell points; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, total dwell {:.2} s; wrote {}",
         r.solver,
@@ -171,7 +182,13 @@ fn run_program(args: &Args, tif: &Tif, program: &Path) -> anyhow::Result<ExitCod
         sample_step_mm: args.sample_step_mm,
         part,
     };
-    let sim = simulate_program(&args.map, tif, program, options, &bars)?;
+    let map = args
+        .map_input
+        .source(args.map.clone(), args.map_pitch.pitch_mm);
+    let sim = simulate_program(&map, tif, program, options, &bars)?;
+    if let Some(input) = &sim.sim.report.map_input {
+        print_input_notes(input);
+    }
     write_program_simulation(&sim, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.sim.report;

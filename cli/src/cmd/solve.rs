@@ -1,5 +1,6 @@
 //! `preston solve`: dwell times and feeds for a map, a TIF and a dwell path.
 
+use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::print_program_check;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
@@ -105,9 +106,13 @@ pub struct Args {
     /// Job file (TOML) holding all inputs; flags below override it.
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
-    /// Error map CSV `x_mm,y_mm,z_nm`.
-    #[arg(long, value_name = "M.csv")]
+    /// Error map: CSV `x_mm,y_mm,z_nm` or any format of `preston map convert`.
+    #[arg(long, value_name = "FILE")]
     pub map: Option<PathBuf>,
+    #[command(flatten)]
+    pub map_input: MapInputArgs,
+    #[command(flatten)]
+    pub map_pitch: PitchArg,
     /// The TIF (overrides the job's `[tif]`).
     #[command(flatten)]
     pub tif: TifArgs,
@@ -188,6 +193,10 @@ impl Args {
         };
         if let Some(m) = self.map {
             job.map.file = Some(m);
+        }
+        self.map_input.apply(&mut job.map);
+        if let Some(p) = self.map_pitch.pitch_mm {
+            job.map.pitch_mm = Some(p);
         }
         if let Some(t) = self.tif.tif.clone() {
             job.tif.file = Some(t);
@@ -277,6 +286,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     pipeline::write_outputs(&solved, &out)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     let r = &solved.report;
+    print_input_notes(&solved.prepared.map_input);
     eprintln!(
         "preston solve: {} map points, {} dwell points, {} non-zeros ({}){}",
         r.m,

@@ -29,6 +29,8 @@ enum Kind {
     Gaussian(GaussianArgs),
     /// Measured grid: resample, recentre on the centroid, scale to a peak or volume rate.
     Grid(GridArgs),
+    /// Measured removal spot: (before - after) / dwell, background removed, cropped.
+    Spot(super::tif_spot::SpotArgs),
 }
 
 /// `preston tif hertz`.
@@ -189,6 +191,7 @@ struct Summary {
 /// Runs `preston tif`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let (grid, out, mut summary) = match args.kind {
+        Kind::Spot(a) => return super::tif_spot::run(a),
         Kind::Hertz(a) => {
             let p = HertzParams {
                 force_n: a.force_n,
@@ -321,7 +324,7 @@ fn blank() -> Summary {
 }
 
 /// Writes the grid as `x_mm,y_mm,rate_nm_per_s`, row-major, atomically.
-fn write_grid(path: &Path, g: &GridTif) -> anyhow::Result<()> {
+pub(super) fn write_grid(path: &Path, g: &GridTif) -> anyhow::Result<()> {
     let (nx, ny) = g.shape();
     let (x0, y0) = g.origin_mm();
     let (px, py) = g.pitch_mm();

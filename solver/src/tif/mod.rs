@@ -9,6 +9,7 @@ pub mod curvature;
 pub mod gaussian;
 pub mod grid;
 pub mod hertz;
+pub mod spot;
 
 pub use bonnet::{BonnetParams, BonnetTif};
 pub use gaussian::GaussianTif;
