@@ -178,6 +178,49 @@ fn acceleration_limit_binds_and_holds() {
     let want = dwell + (v(&rows[0]) + v(&rows[n - 1])) / (2.0 * a_max);
     let got = lim["machining_time_s"].as_f64().unwrap();
     assert!((got - want).abs() <= 1e-9 * want, "{got} vs {want}");
+
+    // The plan as executed at the limit: the report's figures are those of `nc` then
+    // `simulate --program --a-max-mm-per-s2` on the same plan.
+    let e = &lim["executed"];
+    assert_eq!(e["a_max_mm_per_s2"].as_f64().unwrap(), a_max);
+    let prog = d.path().join("limited.nc");
+    run_ok(
+        preston()
+            .args(["nc", "--dwell"])
+            .arg(lim_dir.join("dwell.csv"))
+            .args(["--v-max", "600", "--out"])
+            .arg(&prog),
+    );
+    let sim_dir = d.path().join("executed");
+    let map = d.path().join("map.csv");
+    run_ok(preston().args([
+        "simulate",
+        "--map",
+        map.to_str().unwrap(),
+        "--program",
+        prog.to_str().unwrap(),
+        "--a-max-mm-per-s2",
+        &a_max.to_string(),
+        "--gaussian-sigma-mm",
+        "1",
+        "--gaussian-peak-nm-per-s",
+        "100",
+        "--gaussian-truncation-mm",
+        "3",
+        "--sample-step-mm",
+        &(3.0 / 64.0).to_string(),
+        "--out",
+        sim_dir.to_str().unwrap(),
+    ]));
+    let sim = read_json(&sim_dir.join("report.json"));
+    let (a, b) = (
+        e["rms_after_nm"].as_f64().unwrap(),
+        sim["rms_after_nm"].as_f64().unwrap(),
+    );
+    assert!((a - b).abs() <= 1e-9 * b, "{a} vs {b}");
+    let stretch = e["stretch_time_s"].as_f64().unwrap();
+    assert!((stretch - sim["total_dwell_s"].as_f64().unwrap()).abs() <= 1e-9 * stretch);
+    assert!(free.get("executed").is_none());
 }
 
 #[test]

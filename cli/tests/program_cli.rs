@@ -106,6 +106,31 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
     assert!(
         report["machining_time_s"].as_f64().unwrap() >= report["total_dwell_s"].as_f64().unwrap()
     );
+    // Machinability keys, recomputed independently from dwell.csv and the map.
+    let (_, plan_rows) = rows(&dwell);
+    let ratio = plan_rows
+        .windows(2)
+        .filter(|w| w[0][4] > 0.0 && w[1][4] > 0.0)
+        .map(|w| (w[0][4] / w[1][4]).max(w[1][4] / w[0][4]))
+        .fold(1.0, f64::max);
+    let got = report["max_neighbour_feed_ratio"].as_f64().unwrap();
+    assert!((got - ratio).abs() <= 1e-9 * ratio, "{got} vs {ratio}");
+    let (_, map_rows) = rows(&data("mirror_error_118x8mm.csv"));
+    // The map is a 0.32 mm grid: a dwell point is off the map when no map point is within 0.32 mm.
+    let outside: f64 = plan_rows
+        .iter()
+        .filter(|d| {
+            map_rows
+                .iter()
+                .all(|m| (m[0] - d[0]).hypot(m[1] - d[1]) > 0.32 + 1e-9)
+        })
+        .map(|d| d[3])
+        .sum();
+    let got = report["dwell_outside_map_s"].as_f64().unwrap();
+    assert!(
+        (got - outside).abs() <= 1e-9 * outside.max(1.0),
+        "{got} vs {outside}"
+    );
     // `--out` into a directory that does not exist yet.
     let prog = d.path().join("nc/new/program.nc");
     let msg = ok(&preston(&["nc", "--dwell", s(&dwell), "--out", s(&prog)]));

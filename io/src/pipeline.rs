@@ -6,7 +6,7 @@ use crate::job::Job;
 use crate::machine::read_dwell_times;
 use crate::metrology::MapInput;
 use crate::readers::{read_dwell, read_tif};
-use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
+use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::fft::FftOperator;
@@ -15,9 +15,16 @@ use preston_solver::dwell::{
 };
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::machine::feeds::FeedSchedule;
-use preston_solver::map::HeightMap;
+use preston_solver::machine::gcode::motion::{
+    check_stretches, execute, sample_contact, Kinematics,
+};
+use preston_solver::machine::gcode::write_and_check;
+use preston_solver::machine::nc::{NcProgram, NcSettings};
+use preston_solver::machine::Flat;
+use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 use preston_solver::path::{raster, DwellPath};
+use preston_solver::simulate::{removal_of_samples, SampledProgram};
 use preston_solver::surface::influence::assemble_on_surface;
 use preston_solver::tif::{InfluenceFunction, Tif};
 use std::path::Path;
@@ -362,11 +369,74 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         job.corner_angle_deg(),
     )?;
     report.set_machine(&schedule, accel.as_ref());
+    report.set_map_coverage(&prepared.map, &prepared.path, &solution.dwell_s);
+    if let (Some(l), None) = (&limits, &job.surface.file) {
+        match executed_at_limit(
+            &prepared,
+            &solution.dwell_s,
+            job,
+            l.a_max_mm_per_s2,
+            observer,
+        ) {
+            Ok(mut e) => {
+                e.rms_ratio_to_plan = e.rms_after_nm / report.rms_after_nm;
+                report.executed = Some(e);
+            }
+            Err(e) => report
+                .warnings
+                .push(format!("the plan cannot be written as a program: {e}")),
+        }
+    }
     Ok(Solved {
         prepared,
         solution,
         removal_nm,
         report,
+    })
+}
+
+/// The default program for `dwell_s` (ISO, G94, flat part, the job's feed limit) executed at
+/// `a_max` with look-ahead, and the removal integrated along the executed motion
+/// ([`preston_solver::machine::gcode::motion`]), on the prepared map.
+fn executed_at_limit(
+    prepared: &Prepared,
+    dwell_s: &[f64],
+    job: &Job,
+    a_max_mm_per_s2: f64,
+    observer: &dyn Observer,
+) -> std::result::Result<ExecutedReport, preston_solver::Error> {
+    let settings = NcSettings {
+        a_max_mm_per_s2: Some(a_max_mm_per_s2),
+        corner_angle_deg: job.corner_angle_deg(),
+        v_max_mm_per_min: job.machine.v_max_mm_per_min,
+        ..NcSettings::default()
+    };
+    let nc = NcProgram::plan(&prepared.path, dwell_s, &Flat, &settings)?;
+    let check = write_and_check(&nc, &[])?;
+    let kinematics = Kinematics::Trapezoidal {
+        a_max_mm_per_s2,
+        corner_angle_deg: settings.corner_angle_deg,
+    };
+    let executed = execute(&check.program, kinematics)?;
+    let stretches = check_stretches(&check.program, &executed);
+    let step = prepared.tif.support_radius_mm() / 64.0;
+    let samples = sample_contact(&check.program, &executed, step)?;
+    let sampled = SampledProgram {
+        x_mm: samples.x_mm,
+        y_mm: samples.y_mm,
+        dwell_s: samples.time_s,
+    };
+    let m = &prepared.map;
+    let removal = removal_of_samples(m.x_mm(), m.y_mm(), &sampled, &prepared.tif, observer)?;
+    let after = HeightStats::of(&centred_residual_nm(m.z_nm(), &removal));
+    Ok(ExecutedReport {
+        a_max_mm_per_s2,
+        rms_after_nm: after.rms_nm,
+        pv_after_nm: after.pv_nm,
+        rms_ratio_to_plan: f64::NAN,
+        stretch_time_s: stretches.executed_total_s,
+        max_stretch_error: stretches.max_relative_error,
+        stretches_over_5_percent: stretches.over_5_percent,
     })
 }
 

@@ -3,7 +3,9 @@
 use preston_solver::dwell::accel::AccelReport;
 use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
 use preston_solver::machine::feeds::FeedSchedule;
-use preston_solver::map::HeightStats;
+use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
+use preston_solver::map::{HeightMap, HeightStats};
+use preston_solver::path::DwellPath;
 use serde::{Deserialize, Serialize};
 
 /// The report of one solve (or simulation). Key names are a contract: tests and benchmarks
@@ -71,8 +73,8 @@ pub struct Report {
     /// Warnings about the inputs (for example a TIF wider than the map), also printed on stderr.
     #[serde(default)]
     pub warnings: Vec<String>,
-    /// Machining time of the feed schedule, s: moves `2 s_j / (v_j + v_{j+1})` plus run-in and
-    /// run-out, plus the acceleration ramps when `a_max` is set
+    /// Machining time of the feed schedule, s: every stretch at its point's feed (`sum t_j`),
+    /// plus the acceleration ramps when `a_max` is set
     /// ([`preston_solver::machine::feeds`]). Set by [`Report::set_machine`].
     #[serde(default)]
     pub machining_time_s: f64,
@@ -96,6 +98,38 @@ pub struct Report {
     /// maximum acceleration of the feed-limited optimum). Absent without a limit.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub accel: Option<AccelReport>,
+    /// Largest feed ratio of two consecutive moving dwell points
+    /// ([`preston_solver::machine::machinability`]).
+    #[serde(default)]
+    pub max_neighbour_feed_ratio: f64,
+    /// Dwell on points with no map point under the TIF centre, s (nearest map point farther
+    /// than the map's pitch). Set by [`Report::set_map_coverage`].
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub dwell_outside_map_s: Option<f64>,
+    /// With an acceleration limit on a flat part: the default program (ISO, G94) executed at
+    /// that limit and its removal integrated along the motion, against the plan.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub executed: Option<ExecutedReport>,
+}
+
+/// The plan as the machine executes it at an acceleration limit (`preston simulate --program
+/// --a-max-mm-per-s2` on the program `preston nc` writes).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExecutedReport {
+    /// The path acceleration, mm/s^2.
+    pub a_max_mm_per_s2: f64,
+    /// Residual RMS of the executed motion (piston removed), nm.
+    pub rms_after_nm: f64,
+    /// Residual PV of the executed motion, nm.
+    pub pv_after_nm: f64,
+    /// `rms_after_nm / planned rms_after_nm`.
+    pub rms_ratio_to_plan: f64,
+    /// Time of the dwell stretches as executed, s.
+    pub stretch_time_s: f64,
+    /// Largest `|executed - planned| / planned` over the stretches.
+    pub max_stretch_error: f64,
+    /// Stretches more than 5% off their dwell.
+    pub stretches_over_5_percent: usize,
 }
 
 /// Feed at each dwell point, mm/min: `ds / dwell * 60` (0 where `ds` is 0).
@@ -198,7 +232,21 @@ impl Report {
             accel_iterations: None,
             rms_feed_limited_only_nm: None,
             accel: None,
+            max_neighbour_feed_ratio: max_neighbour_feed_ratio(&feeds),
+            dwell_outside_map_s: None,
+            executed: None,
         }
+    }
+
+    /// Sets `dwell_outside_map_s` from the map points and the dwell points with their dwell.
+    pub fn set_map_coverage(&mut self, map: &HeightMap, path: &DwellPath, dwell_s: &[f64]) {
+        self.dwell_outside_map_s = Some(dwell_outside_map_s(
+            map.x_mm(),
+            map.y_mm(),
+            path.x_mm(),
+            path.y_mm(),
+            dwell_s,
+        ));
     }
 
     /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the

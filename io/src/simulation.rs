@@ -165,6 +165,7 @@ fn assemble(
     );
     report.map_input = Some(map.input.clone());
     report.solver = label;
+    report.set_map_coverage(&map.map, &path, &dwell_s);
     if dwell_s
         .iter()
         .zip(&ds_mm)

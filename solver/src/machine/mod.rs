@@ -10,6 +10,7 @@ pub mod compensation;
 pub mod feeds;
 pub mod gcode;
 pub mod geometry;
+pub mod machinability;
 pub mod nc;
 
 use crate::error::Result;
