@@ -6,7 +6,6 @@ use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use preston_solver::machine::asphere::{write_nc, AsphereJob, AsphereLine, ProfileError};
-use preston_solver::machine::gcode::write::program_text;
 use preston_solver::machine::nc::{NcProgram, ToolAxis};
 use preston_solver::path::DwellPath;
 use serde::{Deserialize, Serialize};
@@ -80,12 +79,6 @@ pub struct NcSection {
     pub tool_radius_mm: Option<f64>,
     /// How the `B` word is written (default: vertical tool, no `B`).
     pub tool_axis: Option<ToolAxis>,
-}
-
-/// Stages the G-code of a planned program, with `notes` as extra header comments.
-pub fn stage_gcode(path: &Path, program: &NcProgram, notes: &[String]) -> Result<Staged> {
-    let text = program_text(program, notes).map_err(|e| Error::engine(path, e))?;
-    stage(path, |w| w.write_all(text.as_bytes()))
 }
 
 /// Stages the point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` of a program.

@@ -15,16 +15,13 @@ use preston_solver::dwell::{
 };
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::machine::feeds::FeedSchedule;
-use preston_solver::machine::gcode::motion::{
-    check_stretches, execute, sample_contact, Kinematics,
-};
-use preston_solver::machine::gcode::write_and_check;
+use preston_solver::machine::gcode::motion::Kinematics;
+use preston_solver::machine::gcode::{run_on_map, write_and_check};
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::Flat;
 use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 use preston_solver::path::{raster, DwellPath};
-use preston_solver::simulate::{removal_of_samples, SampledProgram};
 use preston_solver::surface::influence::assemble_on_surface;
 use preston_solver::tif::{InfluenceFunction, Tif};
 use std::path::Path;
@@ -371,17 +368,10 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
     report.set_machine(&schedule, accel.as_ref());
     report.set_map_coverage(&prepared.map, &prepared.path, &solution.dwell_s);
     if let (Some(l), None) = (&limits, &job.surface.file) {
-        match executed_at_limit(
-            &prepared,
-            &solution.dwell_s,
-            job,
-            l.a_max_mm_per_s2,
-            observer,
-        ) {
-            Ok(mut e) => {
-                e.rms_ratio_to_plan = e.rms_after_nm / report.rms_after_nm;
-                report.executed = Some(e);
-            }
+        let planned = report.rms_after_nm;
+        let a = l.a_max_mm_per_s2;
+        match executed_at_limit(&prepared, &solution.dwell_s, job, a, planned, observer) {
+            Ok(e) => report.executed = Some(e),
             Err(e) => report
                 .warnings
                 .push(format!("the plan cannot be written as a program: {e}")),
@@ -403,6 +393,7 @@ fn executed_at_limit(
     dwell_s: &[f64],
     job: &Job,
     a_max_mm_per_s2: f64,
+    planned_rms_nm: f64,
     observer: &dyn Observer,
 ) -> std::result::Result<ExecutedReport, preston_solver::Error> {
     let settings = NcSettings {
@@ -417,26 +408,26 @@ fn executed_at_limit(
         a_max_mm_per_s2,
         corner_angle_deg: settings.corner_angle_deg,
     };
-    let executed = execute(&check.program, kinematics)?;
-    let stretches = check_stretches(&check.program, &executed);
-    let step = prepared.tif.support_radius_mm() / 64.0;
-    let samples = sample_contact(&check.program, &executed, step)?;
-    let sampled = SampledProgram {
-        x_mm: samples.x_mm,
-        y_mm: samples.y_mm,
-        dwell_s: samples.time_s,
-    };
     let m = &prepared.map;
-    let removal = removal_of_samples(m.x_mm(), m.y_mm(), &sampled, &prepared.tif, observer)?;
-    let after = HeightStats::of(&centred_residual_nm(m.z_nm(), &removal));
+    let run = run_on_map(
+        &check.program,
+        kinematics,
+        prepared.tif.support_radius_mm() / 64.0,
+        None,
+        m.x_mm(),
+        m.y_mm(),
+        &prepared.tif,
+        observer,
+    )?;
+    let after = HeightStats::of(&centred_residual_nm(m.z_nm(), &run.removal_nm));
     Ok(ExecutedReport {
         a_max_mm_per_s2,
         rms_after_nm: after.rms_nm,
         pv_after_nm: after.pv_nm,
-        rms_ratio_to_plan: f64::NAN,
-        stretch_time_s: stretches.executed_total_s,
-        max_stretch_error: stretches.max_relative_error,
-        stretches_over_5_percent: stretches.over_5_percent,
+        rms_ratio_to_plan: after.rms_nm / planned_rms_nm,
+        stretch_time_s: run.check.executed_total_s,
+        max_stretch_error: run.check.max_relative_error,
+        stretches_over_5_percent: run.check.over_5_percent,
     })
 }
 

@@ -14,15 +14,14 @@ use preston_solver::influence::InfluenceMatrix;
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
-use preston_solver::machine::gcode::motion::{
-    check_stretches, contact_xy, execute, sample_contact, Kinematics, StretchCheck,
-};
+use preston_solver::machine::gcode::motion::{Kinematics, StretchCheck};
 use preston_solver::machine::gcode::program::{Program, MAX_PROGRAM_BYTES};
+use preston_solver::machine::gcode::{run_on_map, ProgramRun};
 use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
-use preston_solver::simulate::{removal_nm, removal_of_samples, Motion, SampledProgram};
+use preston_solver::simulate::{removal_nm, Motion};
 use preston_solver::tif::InfluenceFunction;
 use preston_solver::tif::Tif;
 use std::io::Write;
@@ -285,35 +284,26 @@ pub fn simulate_program(
             ),
         ));
     }
-    let executed =
-        execute(&program, options.kinematics).map_err(|e| Error::engine(program_file, e))?;
-    let check = check_stretches(&program, &executed);
     let step = options
         .sample_step_mm
         .unwrap_or_else(|| default_sample_step_mm(tif));
-    let mut samples =
-        sample_contact(&program, &executed, step).map_err(|e| Error::engine(program_file, e))?;
-    if let Some((geometry, offset_mm)) = options.part {
-        for k in 0..samples.time_s.len() {
-            let (x, y) = contact_xy(
-                geometry,
-                offset_mm,
-                [samples.x_mm[k], samples.y_mm[k], samples.z_mm[k]],
-            )
-            .map_err(|e| Error::engine(program_file, e))?;
-            samples.x_mm[k] = x;
-            samples.y_mm[k] = y;
-        }
-    }
     let m = &map.map;
-    let sampled = SampledProgram {
-        x_mm: samples.x_mm,
-        y_mm: samples.y_mm,
-        dwell_s: samples.time_s,
-    };
-    let n_samples = sampled.dwell_s.len();
-    let removal = removal_of_samples(m.x_mm(), m.y_mm(), &sampled, tif, observer)
-        .map_err(|e| Error::engine(program_file, e))?;
+    let ProgramRun {
+        executed,
+        check,
+        removal_nm: removal,
+        samples: n_samples,
+    } = run_on_map(
+        &program,
+        options.kinematics,
+        step,
+        options.part,
+        m.x_mm(),
+        m.y_mm(),
+        tif,
+        observer,
+    )
+    .map_err(|e| Error::engine(program_file, e))?;
     let px: Vec<f64> = program.stretches.iter().map(|s| s.x_mm).collect();
     let py: Vec<f64> = program.stretches.iter().map(|s| s.y_mm).collect();
     let path = DwellPath::new(px, py).map_err(|e| Error::engine(program_file, e))?;

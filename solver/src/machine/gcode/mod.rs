@@ -49,3 +49,55 @@ pub fn write_and_check(nc: &NcProgram, notes: &[String]) -> Result<ProgramCheck>
         accelerated,
     })
 }
+
+/// A program run on a map: its executed motion, the stretch check and the removal it leaves.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProgramRun {
+    /// Executed motion.
+    pub executed: motion::Executed,
+    /// Executed stretch times against the plan.
+    pub check: StretchCheck,
+    /// Removal at the map points, nm.
+    pub removal_nm: Vec<f64>,
+    /// Removal samples used.
+    pub samples: usize,
+}
+
+/// Executes `program` under `kinematics`, samples the contact motion with pieces of at most
+/// `step_mm` ([`motion::sample_contact`]), maps tool centres back to contact points on `part`
+/// (a surface and the tool-centre offset along its normal; none: X, Y are the contact points),
+/// and integrates the removal of `tif` at the map points.
+#[allow(clippy::too_many_arguments)]
+pub fn run_on_map<T: crate::tif::InfluenceFunction + ?Sized>(
+    program: &Program,
+    kinematics: Kinematics,
+    step_mm: f64,
+    part: Option<(&dyn crate::machine::PartGeometry, f64)>,
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    tif: &T,
+    observer: &dyn crate::observer::Observer,
+) -> Result<ProgramRun> {
+    let executed = execute(program, kinematics)?;
+    let check = check_stretches(program, &executed);
+    let mut samples = motion::sample_contact(program, &executed, step_mm)?;
+    if let Some((geometry, offset_mm)) = part {
+        for k in 0..samples.time_s.len() {
+            let tool = [samples.x_mm[k], samples.y_mm[k], samples.z_mm[k]];
+            (samples.x_mm[k], samples.y_mm[k]) = motion::contact_xy(geometry, offset_mm, tool)?;
+        }
+    }
+    let sampled = crate::simulate::SampledProgram {
+        x_mm: samples.x_mm,
+        y_mm: samples.y_mm,
+        dwell_s: samples.time_s,
+    };
+    let removal_nm =
+        crate::simulate::removal_of_samples(map_x_mm, map_y_mm, &sampled, tif, observer)?;
+    Ok(ProgramRun {
+        executed,
+        check,
+        removal_nm,
+        samples: sampled.dwell_s.len(),
+    })
+}
