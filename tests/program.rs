@@ -352,3 +352,173 @@ fn programs_refuse_what_a_controller_cannot_run() {
     assert!((w.max_slowdown - 1.2).abs() < 1e-9, "{}", w.max_slowdown);
     assert!(w.text.contains("F100.000") && !w.text.contains("F120"));
 }
+
+/// Hand-written circular moves read back against the closed forms: end points on the circle,
+/// length `r theta`, time `60 L / F` (G94) or `60 / F` (G93), helix `sqrt((r theta)^2 + dz^2)`,
+/// full circle `2 pi r`, in both dialect families.
+#[test]
+fn circular_moves_read_back_to_closed_forms() {
+    use preston::solver::machine::gcode::program::ARC_RADIUS_TOLERANCE_MM;
+    let pi = std::f64::consts::PI;
+    for (d, g2, g3) in [
+        (Dialect::Iso, "G02", "G03"),
+        (Dialect::Fanuc, "G02", "G03"),
+        (Dialect::Linuxcnc, "G2", "G3"),
+        (Dialect::Sinumerik, "G2", "G3"),
+    ] {
+        let text = format!(
+            "G17 G90 G94\nG0 X10 Y0 Z0\n{g3} X0 Y10 I-10 J0 F600\n{g2} X10 Y0 I0 J-10\n\
+             {g3} X10 Y0 Z2 I-10 J0\nG93 {g3} X-10 Y0 I-10 J0 F30\n"
+        );
+        let p = Program::parse(&text, d).unwrap();
+        let b = &p.blocks;
+        assert_eq!(b[1].kind, BlockKind::Circular);
+        // Quarter circle ccw, then back cw along the same quarter.
+        for k in [1, 2] {
+            assert!((b[k].length_mm() - 10.0 * pi / 2.0).abs() < 1e-12);
+            assert!((b[k].programmed_time_s - 60.0 * 5.0 * pi / 600.0).abs() < 1e-12);
+            for i in 0..=20 {
+                let q = b[k].point_at(i as f64 / 20.0);
+                assert!((q[0].hypot(q[1]) - 10.0).abs() < 1e-12);
+                // First quadrant throughout.
+                assert!(q[0] >= -1e-12 && q[1] >= -1e-12);
+            }
+        }
+        let mid = b[1].point_at(0.5);
+        assert!((mid[0] - 10.0 * (pi / 4.0).cos()).abs() < 1e-12);
+        // Full helical turn: start = end in XY.
+        let l = (2.0 * pi * 10.0f64).hypot(2.0);
+        assert!((b[3].length_mm() - l).abs() < 1e-12);
+        assert!((b[3].programmed_time_s - 60.0 * l / 600.0).abs() < 1e-12);
+        // Inverse time: half circle in 2 s.
+        assert!((b[4].length_mm() - 10.0 * pi).abs() < 1e-12);
+        assert!((b[4].programmed_time_s - 2.0).abs() < 1e-12);
+        // End radius off by more than the limit: refused naming the line.
+        let bad = format!(
+            "G0 X10 Y0 Z0\n{g3} X0 Y{} I-10 J0 F600\n",
+            10.0 + 2.0 * ARC_RADIUS_TOLERANCE_MM
+        );
+        let e = Program::parse(&bad, d).unwrap_err().to_string();
+        assert!(e.contains("line 2") || e.contains('2'), "{e}");
+        assert!(Program::parse("G0 X10 Y0 Z0\nG3 X0 Y10 R10 F600\n", d).is_err());
+    }
+}
+
+fn circle_path(r: f64, n: usize, turn: f64) -> DwellPath {
+    let (x, y): (Vec<f64>, Vec<f64>) = (0..n)
+        .map(|i| {
+            let a = turn * i as f64 / (n - 1) as f64;
+            (5.0 + r * a.cos(), -3.0 + r * a.sin())
+        })
+        .unzip();
+    DwellPath::new(x, y).unwrap()
+}
+
+/// A dwell path with circular runs (a clockwise arc, a straight run, a counter-clockwise arc)
+/// written with G02/G03: every stretch still takes its dwell in every dialect and feed mode, the
+/// arcs are found, and the points written lie on their circles.
+#[test]
+fn arcs_keep_the_stretch_contract() {
+    // Arc of radius 20 clockwise through 120 degrees, a straight leg, an arc of radius 8 ccw.
+    let a = circle_path(20.0, 60, -2.0 * std::f64::consts::PI / 3.0);
+    let (mut x, mut y) = (a.x_mm().to_vec(), a.y_mm().to_vec());
+    let (lx, ly) = (x[x.len() - 1], y[y.len() - 1]);
+    for i in 1..10 {
+        x.push(lx + 0.7 * i as f64);
+        y.push(ly);
+    }
+    let (sx, sy) = (x[x.len() - 1], y[y.len() - 1]);
+    for i in 1..40 {
+        let t = std::f64::consts::PI * i as f64 / 40.0;
+        x.push(sx + 8.0 * t.sin());
+        y.push(sy + 8.0 - 8.0 * t.cos());
+    }
+    let path = DwellPath::new(x, y).unwrap();
+    let dwell: Vec<f64> = (0..path.len())
+        .map(|j| 0.2 + 0.9 * ((j * 7) % 11) as f64 / 11.0)
+        .collect();
+    for d in Dialect::ALL {
+        for m in MODES {
+            let s = NcSettings {
+                arc_tolerance_mm: Some(1e-3),
+                ..settings(d, m)
+            };
+            assert_delivers(&path, &dwell, &Flat, &s);
+            let nc = NcProgram::plan(&path, &dwell, &Flat, &s).unwrap();
+            let w = write_program(&nc, &[]).unwrap();
+            assert_eq!(w.arc_runs, 2, "{d:?}");
+            // Each run of k points gives 2 (k - 1) circular blocks.
+            assert_eq!(w.arc_blocks, 2 * 59 + 2 * 39, "{d:?}");
+            let p = Program::parse(&w.text, d).unwrap();
+            let mut arc_len = 0.0;
+            for b in p.blocks.iter().filter(|b| b.kind == BlockKind::Circular) {
+                let a = b.arc.unwrap();
+                let first = (a.centre_mm[0] - 5.0).hypot(a.centre_mm[1] + 3.0) < 1e-2;
+                let r = if first { 20.0 } else { 8.0 };
+                for f in [0.0, 0.5, 1.0] {
+                    let q = b.point_at(f);
+                    assert!(
+                        ((q[0] - a.centre_mm[0]).hypot(q[1] - a.centre_mm[1]) - r).abs() < 2e-4
+                    );
+                }
+                if first {
+                    arc_len += b.length_mm();
+                    assert!(!a.ccw);
+                } else {
+                    assert!(a.ccw);
+                }
+            }
+            // The first run's blocks cover its 120 degrees from point 0 to point 59: r theta.
+            let expect = 20.0 * 2.0 * std::f64::consts::PI / 3.0;
+            assert!((arc_len - expect).abs() < 1e-3, "{arc_len} vs {expect}");
+        }
+    }
+}
+
+/// The removal of an arcs program executed and integrated equals that of the straight program
+/// (the arcs depart from the chords by their sagitta only).
+#[test]
+fn arcs_program_removes_what_the_straight_one_does() {
+    use preston::solver::machine::gcode::run_on_map;
+    use preston::solver::observer::Silent;
+    use preston::solver::tif::gaussian::GaussianTif;
+    let path = circle_path(15.0, 181, 2.0 * std::f64::consts::PI * 0.99);
+    let dwell: Vec<f64> = (0..path.len())
+        .map(|j| 0.5 + 0.4 * (j as f64 * 0.21).sin())
+        .collect();
+    let tif = GaussianTif::new(1.5, 10.0, 4.5).unwrap();
+    let (mut mx, mut my) = (Vec::new(), Vec::new());
+    for i in 0..81 {
+        for k in 0..81 {
+            mx.push(-15.0 + 0.5 * i as f64);
+            my.push(-23.0 + 0.5 * k as f64);
+        }
+    }
+    let mut removal = Vec::new();
+    for arcs in [None, Some(1e-3)] {
+        let s = NcSettings {
+            arc_tolerance_mm: arcs,
+            ..settings(Dialect::Iso, FeedMode::PerMinute)
+        };
+        let nc = NcProgram::plan(&path, &dwell, &Flat, &s).unwrap();
+        let w = write_program(&nc, &[]).unwrap();
+        assert_eq!(w.arc_blocks > 0, arcs.is_some());
+        let p = Program::parse(&w.text, Dialect::Iso).unwrap();
+        let run = run_on_map(
+            &p,
+            Kinematics::ProgrammedFeed,
+            0.05,
+            None,
+            &mx,
+            &my,
+            &tif,
+            &Silent,
+        )
+        .unwrap();
+        removal.push(run.removal_nm);
+    }
+    let rms = |v: &[f64]| (v.iter().map(|a| a * a).sum::<f64>() / v.len() as f64).sqrt();
+    let diff: Vec<f64> = removal[0].iter().zip(&removal[1]).map(|(a, b)| a - b).collect();
+    let rel = rms(&diff) / rms(&removal[0]);
+    assert!(rms(&removal[0]) > 1.0 && rel < 1e-3, "relative RMS difference {rel}");
+}

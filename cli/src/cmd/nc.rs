@@ -136,6 +136,12 @@ pub struct Args {
     pub coolant: bool,
     /// Point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (default: the G-code path
     /// with the extension `.csv`).
+    /// Write G02/G03 (G17, I J centre offsets) where the tool-centre path is a circular arc.
+    #[arg(long)]
+    pub arcs: bool,
+    /// With --arcs: largest distance of a dwell point from the arc it is written on, um.
+    #[arg(long, value_name = "UM", default_value_t = 1.0)]
+    pub arc_tolerance_um: f64,
     #[arg(long, value_name = "P.csv")]
     pub points_out: Option<PathBuf>,
     /// Output G-code program (its directory is created).
@@ -182,6 +188,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         v_max_mm_per_min: args.v_max_mm_per_min.or(job.machine.v_max_mm_per_min),
         spindle_rpm: args.spindle_rpm,
         coolant: args.coolant,
+        arc_tolerance_mm: args.arcs.then_some(1e-3 * args.arc_tolerance_um),
     };
     settings.validate()?;
     let dwell = read_dwell_times(&args.dwell)?;

@@ -251,6 +251,9 @@ struct RandomArgs {
     /// Longest straight run, steps (at least 3).
     #[arg(long, default_value_t = 20)]
     max_run: usize,
+    /// Node jitter, fraction of the pitch in [0, 1] (0: nodes on the lattice).
+    #[arg(long, default_value_t = 0.0)]
+    jitter: f64,
     #[command(flatten)]
     common: Common,
 }
@@ -428,13 +431,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     pitch_mm: a.pitch_mm,
                     seed: a.seed,
                     max_run: a.max_run,
+                    jitter: a.jitter,
                 },
             )?;
             let p = write(&r.path, surface.as_ref(), &a.common.out)?;
             (
                 json!({"kind": "random", "points": p.len(), "nodes": r.nodes,
                        "region_nodes": r.region_nodes, "longest_run": r.longest_run,
-                       "tree_exchanges": r.swaps, "seed": a.seed,
+                       "tree_exchanges": r.swaps, "seed": a.seed, "jitter": a.jitter,
                        "length_mm": p.ds_mm.iter().sum::<f64>()}),
                 a.common.out,
             )

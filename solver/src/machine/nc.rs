@@ -76,6 +76,9 @@ pub struct NcSettings {
     pub spindle_rpm: Option<f64>,
     /// Coolant or slurry on (`M8`) during the program, off (`M9`) at the end.
     pub coolant: bool,
+    /// Write `G02`/`G03` where the tool-centre path is a circular arc within this tolerance, mm
+    /// ([`super::gcode::write`]); none: straight moves only.
+    pub arc_tolerance_mm: Option<f64>,
 }
 
 impl Default for NcSettings {
@@ -94,6 +97,7 @@ impl Default for NcSettings {
             v_max_mm_per_min: None,
             spindle_rpm: None,
             coolant: false,
+            arc_tolerance_mm: None,
         }
     }
 }
@@ -139,6 +143,15 @@ impl NcSettings {
         }
         if let Some(s) = self.spindle_rpm {
             Error::require_positive(&[("spindle_rpm", s)])?;
+        }
+        if let Some(t) = self.arc_tolerance_mm {
+            let most = super::gcode::write::MAX_ARC_TOLERANCE_MM;
+            if !(t.is_finite() && t > 0.0 && t <= most) {
+                return Err(Error::invalid(
+                    "arc_tolerance_mm",
+                    format!("must be in (0, {most}] mm, got {t}"),
+                ));
+            }
         }
         Ok(())
     }

@@ -31,6 +31,10 @@ pub struct RandomPathSettings {
     pub seed: u64,
     /// Longest straight run allowed, in steps (at least 3).
     pub max_run: usize,
+    /// Node jitter as a fraction of the pitch, in [0, 1]: each node moves by independent uniform
+    /// offsets in `[-j P / 2, j P / 2]` along x and y (kept inside the region), drawn from a
+    /// stream of its own so the cycle of a seed does not change. 0: the plain lattice.
+    pub jitter: f64,
 }
 
 impl Default for RandomPathSettings {
@@ -39,6 +43,7 @@ impl Default for RandomPathSettings {
             pitch_mm: 1.0,
             seed: 1,
             max_run: 20,
+            jitter: 0.0,
         }
     }
 }
@@ -53,7 +58,7 @@ pub struct RandomPath {
     /// Grid nodes of the region along x and y (one more than `nodes` where that count is odd:
     /// the last column or row is then left out, as a 2 x 2 block construction needs even sides).
     pub region_nodes: [usize; 2],
-    /// Longest straight run of the path, steps.
+    /// Longest straight run of the path, steps (of the lattice cycle, before any jitter).
     pub longest_run: usize,
     /// Tree edges exchanged to meet `max_run`.
     pub swaps: usize,
@@ -262,6 +267,12 @@ pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> 
             format!("must be positive, got {p}"),
         ));
     }
+    if !(settings.jitter.is_finite() && (0.0..=1.0).contains(&settings.jitter)) {
+        return Err(Error::invalid(
+            "jitter",
+            format!("must be in [0, 1] (a fraction of the pitch), got {}", settings.jitter),
+        ));
+    }
     if settings.max_run < 3 {
         return Err(Error::invalid(
             "max_run",
@@ -391,8 +402,26 @@ pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> 
             )
         })
         .unzip();
-    let path = DwellPath::new(x, y)?;
+    let mut path = DwellPath::new(x, y)?;
     let longest = longest_run(&path);
+    if settings.jitter > 0.0 {
+        let mut jr = SplitMix64::new(settings.seed ^ 0x6a09_e667_f3bc_c909);
+        let h = 0.5 * settings.jitter * p;
+        let (x, y): (Vec<f64>, Vec<f64>) = path
+            .x_mm()
+            .iter()
+            .zip(path.y_mm())
+            .map(|(&x, &y)| {
+                let dx = h * (2.0 * jr.uniform() - 1.0);
+                let dy = h * (2.0 * jr.uniform() - 1.0);
+                (
+                    (x + dx).clamp(region.x_min_mm, region.x_max_mm),
+                    (y + dy).clamp(region.y_min_mm, region.y_max_mm),
+                )
+            })
+            .unzip();
+        path = DwellPath::new(x, y)?;
+    }
     Ok(RandomPath {
         path,
         nodes: [2 * mx, 2 * my],
@@ -472,6 +501,7 @@ mod tests {
                 pitch_mm: p,
                 seed,
                 max_run,
+                jitter: 0.0,
             };
             let r = random_unicursal(&reg, &s).unwrap();
             check(&r, &reg, p, max_run);
@@ -539,5 +569,40 @@ mod tests {
         ] {
             assert!(random_unicursal(&reg, &s).is_err(), "{s:?}");
         }
+    }
+
+    #[test]
+    fn jitter_moves_nodes_within_its_bound_and_keeps_the_cycle() {
+        let reg = region(20.0, 20.0);
+        let plain = random_unicursal(&reg, &RandomPathSettings::default()).unwrap();
+        let j = RandomPathSettings {
+            jitter: 0.6,
+            ..RandomPathSettings::default()
+        };
+        let a = random_unicursal(&reg, &j).unwrap();
+        let b = random_unicursal(&reg, &j).unwrap();
+        assert_eq!(a.path.x_mm(), b.path.x_mm());
+        assert_eq!(a.path.len(), plain.path.len());
+        let h = 0.5 * 0.6 * 1.0;
+        let mut moved = 0.0f64;
+        for k in 0..a.path.len() {
+            let (dx, dy) = (
+                a.path.x_mm()[k] - plain.path.x_mm()[k],
+                a.path.y_mm()[k] - plain.path.y_mm()[k],
+            );
+            assert!(dx.abs() <= h + 1e-12 && dy.abs() <= h + 1e-12);
+            moved = moved.max(dx.abs());
+            assert!((0.0..=20.0).contains(&a.path.x_mm()[k]));
+            assert!((0.0..=20.0).contains(&a.path.y_mm()[k]));
+        }
+        assert!(moved > 0.5 * h);
+        assert!(random_unicursal(
+            &reg,
+            &RandomPathSettings {
+                jitter: 1.5,
+                ..RandomPathSettings::default()
+            }
+        )
+        .is_err());
     }
 }

@@ -118,6 +118,17 @@ impl Dialect {
         }
     }
 
+    /// Circular-move words: `G02`/`G03` or, on Sinumerik, `G2`/`G3` (counter-clockwise seen
+    /// from +Z when `ccw`).
+    pub fn arc_word(self, ccw: bool) -> &'static str {
+        match (self, ccw) {
+            (Dialect::Sinumerik, false) => "G2",
+            (Dialect::Sinumerik, true) => "G3",
+            (_, false) => "G02",
+            (_, true) => "G03",
+        }
+    }
+
     /// Whether the whole program is wrapped in `%` lines.
     pub fn percent_wrapped(self) -> bool {
         !matches!(self, Dialect::Sinumerik)

@@ -13,6 +13,10 @@
 //!   Automation*, 2nd ed., ch. 6). Each block then accelerates at `a` from its entry speed to at
 //!   most its cruise speed `L / T` and decelerates at `a` to its exit speed.
 //!
+//! Circular blocks run along their arc ([`Block::point_at`]); their length is the arc length and
+//! the turn at a junction is measured between the tangents. The path acceleration limit applies
+//! along the arc; the centripetal acceleration `v^2 / r` is not limited by this model.
+//!
 //! Removal sampling: each contact block is cut into `ceil(L / h)` equal pieces of arc length; a
 //! sample at each piece's midpoint carries the time the executed motion spends in that piece
 //! (exact for both models: the time at arc length `s` has a closed form on each phase). This is
@@ -93,17 +97,12 @@ pub struct Executed {
 }
 
 fn turn_angle_deg(a: &Block, b: &Block) -> f64 {
-    let da = [
-        a.end_mm[0] - a.start_mm[0],
-        a.end_mm[1] - a.start_mm[1],
-        a.end_mm[2] - a.start_mm[2],
-    ];
-    let db = [
-        b.end_mm[0] - b.start_mm[0],
-        b.end_mm[1] - b.start_mm[1],
-        b.end_mm[2] - b.start_mm[2],
-    ];
-    let (la, lb) = (a.length_mm(), b.length_mm());
+    // Direction at the end of `a` and at the start of `b` (the chord of a straight move, the
+    // tangent of a circular one).
+    let da = a.tangent_at(1.0);
+    let db = b.tangent_at(0.0);
+    let la = (da[0] * da[0] + da[1] * da[1] + da[2] * da[2]).sqrt();
+    let lb = (db[0] * db[0] + db[1] * db[1] + db[2] * db[2]).sqrt();
     if la == 0.0 || lb == 0.0 {
         return 180.0;
     }
@@ -119,7 +118,7 @@ pub fn execute(program: &Program, kinematics: Kinematics) -> Result<Executed> {
         .iter()
         .map(|b| {
             let l = b.length_mm();
-            if b.kind == BlockKind::Linear && l > 0.0 && b.programmed_time_s > 0.0 {
+            if matches!(b.kind, BlockKind::Linear | BlockKind::Circular) && l > 0.0 && b.programmed_time_s > 0.0 {
                 l / b.programmed_time_s
             } else {
                 0.0
@@ -281,12 +280,10 @@ pub fn sample_contact(
                 p.time_at(s1)
             };
             let f = (i as f64 + 0.5) / pieces as f64;
-            for (k, v) in [&mut out.x_mm, &mut out.y_mm, &mut out.z_mm]
-                .into_iter()
-                .enumerate()
-            {
-                v.push(b.start_mm[k] + f * (b.end_mm[k] - b.start_mm[k]));
-            }
+            let q = b.point_at(f);
+            out.x_mm.push(q[0]);
+            out.y_mm.push(q[1]);
+            out.z_mm.push(q[2]);
             out.time_s.push(t1 - t_prev);
             t_prev = t1;
         }

@@ -5,7 +5,16 @@
 //! `%` and `O` lines, `N` numbers, `( )` and `;` comments, `G0`/`G1` (`G00`/`G01`), `G4` pauses,
 //! `G17`, `G20`/`G21` (`G70`/`G71`, `G700`/`G710`), `G90`/`G91`, `G93`/`G94`, axis words `X Y Z`
 //! and one rotary axis `A`, `B` or `C`, `F`, and the `M` and `S` words (ignored). Circular moves
-//! and feed per revolution are refused with the line that holds them.
+//! `G2` (clockwise) and `G3` (counter-clockwise, seen from +Z) in the `G17` plane with the centre
+//! as `I J` offsets from the start (incremental in `G90` and `G91`, as on ISO, Fanuc, LinuxCNC and
+//! Sinumerik controllers; `Z` makes a helix) are read into [`ArcMove`]s: the end radius may differ
+//! from the start radius by at most [`ARC_RADIUS_TOLERANCE_MM`], the radius then varies linearly
+//! with the angle, and start = end is a full circle. `R`-form arcs, `K`, other planes, a rotary
+//! axis on an arc and feed per revolution are refused with the line that holds them.
+//!
+//! A circular block's programmed path length is its arc length ([`arc_length_mm`]): the sweep
+//! times the mean of the start and end radii, combined with the `Z` travel of a helix as
+//! `sqrt((S r)^2 + dZ^2)`; `G94` gives it the time `60 L / F`, `G93` `60 / F`.
 //!
 //! Dwell stretches are marked by comments that `preston nc` writes before the blocks of each
 //! stretch, `DWELL <j> <t_s> S AT <x_mm> <y_mm>` (the dwell point's index, its planned dwell and
@@ -26,6 +35,8 @@ pub enum BlockKind {
     Rapid,
     /// `G1`: a straight move at the programmed feed.
     Linear,
+    /// `G2`/`G3`: a circular move at the programmed feed ([`Block::arc`]).
+    Circular,
     /// `G4`: the axes stand still for the programmed time.
     Pause,
 }
@@ -47,17 +58,103 @@ pub struct Block {
     pub programmed_time_s: f64,
     /// Whether the tool touches the part during the block (module documentation).
     pub contact: bool,
+    /// The circle of a `G2`/`G3` block; `None` for straight moves and pauses.
+    pub arc: Option<ArcMove>,
+}
+
+/// Largest difference between the end and the start radius of a circular move, mm.
+pub const ARC_RADIUS_TOLERANCE_MM: f64 = 0.002;
+
+/// A circular move in the XY plane (`G17`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ArcMove {
+    /// Centre `(x, y)`, mm.
+    pub centre_mm: [f64; 2],
+    /// Counter-clockwise seen from +Z (`G3`); clockwise (`G2`) when false.
+    pub ccw: bool,
+}
+
+/// Start radius, end radius, start angle and sweep (positive, radians; `2 pi` when start and end
+/// coincide) of the arc from `start` to `end` about `centre`.
+pub fn arc_sweep(start: [f64; 2], end: [f64; 2], centre: [f64; 2], ccw: bool) -> [f64; 4] {
+    let (u, v) = (
+        [start[0] - centre[0], start[1] - centre[1]],
+        [end[0] - centre[0], end[1] - centre[1]],
+    );
+    let (a0, a1) = (u[1].atan2(u[0]), v[1].atan2(v[0]));
+    let tau = std::f64::consts::TAU;
+    let mut d = if ccw { a1 - a0 } else { a0 - a1 };
+    d = d.rem_euclid(tau);
+    if d == 0.0 {
+        d = tau;
+    }
+    [u[0].hypot(u[1]), v[0].hypot(v[1]), a0, d]
+}
+
+/// Programmed path length of a circular move, mm: `sqrt((S (r0 + r1) / 2)^2 + dZ^2)` with the
+/// sweep `S` and radii of [`arc_sweep`] (a circle's `r theta` when `r0 = r1`, `dZ = 0`).
+pub fn arc_length_mm(start: [f64; 3], end: [f64; 3], arc: &ArcMove) -> f64 {
+    let [r0, r1, _, sweep] = arc_sweep(
+        [start[0], start[1]],
+        [end[0], end[1]],
+        arc.centre_mm,
+        arc.ccw,
+    );
+    (sweep * 0.5 * (r0 + r1)).hypot(end[2] - start[2])
 }
 
 impl Block {
-    /// Straight-line tool-centre distance, mm.
+    /// Tool-centre path length, mm: the straight distance, or the arc length of a circular move.
     pub fn length_mm(&self) -> f64 {
+        if let Some(a) = &self.arc {
+            return arc_length_mm(self.start_mm, self.end_mm, a);
+        }
         let d = [
             self.end_mm[0] - self.start_mm[0],
             self.end_mm[1] - self.start_mm[1],
             self.end_mm[2] - self.start_mm[2],
         ];
         (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+    }
+
+    /// Tool-centre position at the fraction `f` of the block (of the sweep for a circular move:
+    /// angle, radius and Z linear in it), mm.
+    pub fn point_at(&self, f: f64) -> [f64; 3] {
+        let (s, e) = (self.start_mm, self.end_mm);
+        match &self.arc {
+            None => [0, 1, 2].map(|k| s[k] + f * (e[k] - s[k])),
+            Some(a) => {
+                let [r0, r1, a0, sweep] = arc_sweep([s[0], s[1]], [e[0], e[1]], a.centre_mm, a.ccw);
+                let sign = if a.ccw { 1.0 } else { -1.0 };
+                let ang = a0 + sign * f * sweep;
+                let r = r0 + f * (r1 - r0);
+                [
+                    a.centre_mm[0] + r * ang.cos(),
+                    a.centre_mm[1] + r * ang.sin(),
+                    s[2] + f * (e[2] - s[2]),
+                ]
+            }
+        }
+    }
+
+    /// Direction of motion (not normalised) at the fraction `f` of the block.
+    pub fn tangent_at(&self, f: f64) -> [f64; 3] {
+        let (s, e) = (self.start_mm, self.end_mm);
+        match &self.arc {
+            None => [e[0] - s[0], e[1] - s[1], e[2] - s[2]],
+            Some(a) => {
+                let [r0, r1, a0, sweep] = arc_sweep([s[0], s[1]], [e[0], e[1]], a.centre_mm, a.ccw);
+                let sign = if a.ccw { 1.0 } else { -1.0 };
+                let ang = a0 + sign * f * sweep;
+                let r = r0 + f * (r1 - r0);
+                let w = sign * sweep * r;
+                [
+                    (r1 - r0) * ang.cos() - w * ang.sin(),
+                    (r1 - r0) * ang.sin() + w * ang.cos(),
+                    e[2] - s[2],
+                ]
+            }
+        }
     }
 }
 
@@ -160,6 +257,7 @@ struct State {
     feed_mode: FeedMode,
     feed: Option<f64>,
     motion: Option<BlockKind>,
+    ccw: bool,
     blocks: Vec<Block>,
     stretches: Vec<StretchMark>,
     marked: bool,
@@ -175,6 +273,7 @@ struct Words {
     rotary: Option<f64>,
     f: Option<f64>,
     p: Option<f64>,
+    centre: [Option<f64>; 2],
     x_for_pause: Option<f64>,
     m_end: bool,
 }
@@ -209,6 +308,7 @@ impl State {
             feed_mode: FeedMode::PerMinute,
             feed: None,
             motion: None,
+            ccw: false,
             blocks: Vec::new(),
             stretches: Vec::new(),
             marked: false,
@@ -372,10 +472,13 @@ impl State {
                 }
                 'F' => w.f = Some(value),
                 'P' => w.p = Some(value),
-                'I' | 'J' | 'K' | 'R' => {
+                'I' => w.centre[0] = Some(value),
+                'J' => w.centre[1] = Some(value),
+                'K' | 'R' => {
                     return Err(program_error(
                         line,
-                        "circular moves (I, J, K, R words) are not supported by the read-back",
+                        "circular moves are read with I J centre offsets in the G17 plane; \
+                         K and R words are not supported by the read-back",
                     ))
                 }
                 other => {
@@ -395,11 +498,13 @@ impl State {
             match g {
                 0 => self.motion = Some(BlockKind::Rapid),
                 1 => self.motion = Some(BlockKind::Linear),
-                2 | 3 => {
-                    return Err(program_error(
-                        line,
-                        "circular moves (G2, G3) are not supported by the read-back",
-                    ))
+                2 => {
+                    self.motion = Some(BlockKind::Circular);
+                    self.ccw = false;
+                }
+                3 => {
+                    self.motion = Some(BlockKind::Circular);
+                    self.ccw = true;
                 }
                 4 => pause = true,
                 17 | 40 | 49 | 54..=59 | 64 | 61 | 80 => {}
@@ -438,6 +543,7 @@ impl State {
                 rotary_deg: [self.rotary_deg; 2],
                 programmed_time_s: t,
                 contact: false,
+                arc: None,
             });
             if w.m_end {
                 self.ended = true;
@@ -449,11 +555,13 @@ impl State {
                 self.feed = Some(f * self.mm_per_unit);
             }
         }
-        let moves = w.axes.iter().any(Option::is_some) || w.rotary.is_some();
+        let moves = w.axes.iter().any(Option::is_some)
+            || w.rotary.is_some()
+            || (self.motion == Some(BlockKind::Circular) && w.centre.iter().any(Option::is_some));
         if moves {
             let kind = self
                 .motion
-                .ok_or_else(|| program_error(line, "axis words before any G0 or G1 motion mode"))?;
+                .ok_or_else(|| program_error(line, "axis words before any G0, G1, G2 or G3 motion mode"))?;
             let start = match self.position_mm {
                 Some(p) => p,
                 None if kind == BlockKind::Rapid || self.absolute => {
@@ -482,6 +590,41 @@ impl State {
                 Some(v) => b0 + v,
                 None => b0,
             };
+            let arc = if kind == BlockKind::Circular {
+                if w.rotary.is_some() {
+                    return Err(program_error(
+                        line,
+                        "a rotary axis on a circular move is not supported by the read-back",
+                    ));
+                }
+                if w.centre.iter().all(Option::is_none) {
+                    return Err(program_error(line, "a circular move needs I or J"));
+                }
+                let centre = [
+                    start[0] + w.centre[0].unwrap_or(0.0) * self.mm_per_unit,
+                    start[1] + w.centre[1].unwrap_or(0.0) * self.mm_per_unit,
+                ];
+                let a = ArcMove {
+                    centre_mm: centre,
+                    ccw: self.ccw,
+                };
+                let [r0, r1, _, _] = arc_sweep([start[0], start[1]], [end[0], end[1]], centre, a.ccw);
+                if !(r0 > 0.0) || (r1 - r0).abs() > ARC_RADIUS_TOLERANCE_MM {
+                    return Err(program_error(
+                        line,
+                        format!(
+                            "circular move: start radius {r0} mm and end radius {r1} mm differ by \
+                             more than {ARC_RADIUS_TOLERANCE_MM} mm"
+                        ),
+                    ));
+                }
+                Some(a)
+            } else {
+                if w.centre.iter().any(Option::is_some) {
+                    return Err(program_error(line, "I or J words outside a circular move"));
+                }
+                None
+            };
             let time = match kind {
                 BlockKind::Rapid => 0.0,
                 _ if first => {
@@ -491,8 +634,13 @@ impl State {
                     ))
                 }
                 _ => {
-                    let d = [end[0] - start[0], end[1] - start[1], end[2] - start[2]];
-                    let len = self.dialect.path_length_mm(d, b1 - b0);
+                    let len = match &arc {
+                        Some(a) => arc_length_mm(start, end, a),
+                        None => {
+                            let d = [end[0] - start[0], end[1] - start[1], end[2] - start[2]];
+                            self.dialect.path_length_mm(d, b1 - b0)
+                        }
+                    };
                     match self.feed_mode {
                         FeedMode::PerMinute => {
                             let f = self.feed.ok_or_else(|| {
@@ -523,6 +671,7 @@ impl State {
                 rotary_deg: [b0, b1],
                 programmed_time_s: time,
                 contact: false,
+                arc,
             });
             self.position_mm = Some(end);
             self.rotary_deg = b1;

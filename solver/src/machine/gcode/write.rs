@@ -27,8 +27,22 @@
 //! block time moves by more than 0.01% through formatting; it is never `0` and never above
 //! `v_max_mm_per_min`. A stretch whose tool-centre move would need more than `v_max` is written at
 //! `v_max` (it then takes longer than planned; counted in [`Written::slowed_stretches`]).
+//!
+//! # Circular moves
+//!
+//! With [`crate::machine::nc::NcSettings::arc_tolerance_mm`] the writer looks for runs of at
+//! least [`MIN_ARC_POINTS`] consecutive dwell points whose tool centres (as written) lie within
+//! the tolerance of one circle in the XY plane (algebraic least-squares circle of Kasa, *IEEE
+//! Trans. Instrum. Meas.* 25, 1976, checked point by point), at one Z and one B, turning the same
+//! way by less than 90 degrees per step, radius at most [`MAX_ARC_RADIUS_MM`]. Inside a run the
+//! stretch boundaries move from the chord midpoints onto the circle (mid-angle, mean radius of
+//! the two points) and both blocks of each stretch are `G02`/`G03` with the centre as `I J`
+//! offsets (the same 4 decimals as the coordinates). The block lengths are the arc lengths the
+//! reader computes from the written words ([`super::program::arc_length_mm`]), so the feed
+//! contract above holds per stretch exactly as for straight blocks.
 
 use super::dialect::{Dialect, FeedMode};
+use super::program::{arc_length_mm, ArcMove};
 use crate::error::{Error, Result};
 use crate::machine::fixed;
 use crate::machine::nc::{NcProgram, COORD_DECIMALS};
@@ -39,6 +53,131 @@ pub const MIN_FEED_DECIMALS: usize = 3;
 pub const MAX_FEED_DECIMALS: usize = 9;
 /// Largest relative change of a block time through the formatting of `F`.
 pub const FEED_ROUNDING: f64 = 1e-4;
+
+/// Fewest consecutive dwell points written as a circular run.
+pub const MIN_ARC_POINTS: usize = 5;
+/// Largest radius written as a circular move, mm (flatter runs stay straight).
+pub const MAX_ARC_RADIUS_MM: f64 = 1e4;
+/// Largest arc tolerance, mm: half the reader's start/end radius limit
+/// ([`super::program::ARC_RADIUS_TOLERANCE_MM`]).
+pub const MAX_ARC_TOLERANCE_MM: f64 = 0.5 * super::program::ARC_RADIUS_TOLERANCE_MM;
+
+/// A circular run of dwell points `first..=last` about `centre`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ArcRun {
+    /// First dwell point of the run.
+    pub first: usize,
+    /// Last dwell point of the run.
+    pub last: usize,
+    /// Centre, mm.
+    pub centre_mm: [f64; 2],
+    /// Radius, mm.
+    pub radius_mm: f64,
+    /// Counter-clockwise seen from +Z.
+    pub ccw: bool,
+}
+
+/// Algebraic least-squares circle (Kasa) through `pts` (shifted to the first for conditioning):
+/// centre and radius, or `None` when the points are (nearly) collinear.
+fn kasa_circle(pts: &[[f64; 2]]) -> Option<([f64; 2], f64)> {
+    let o = *pts.first()?;
+    let mut m = [[0.0f64; 3]; 3];
+    let mut rhs = [0.0f64; 3];
+    for p in pts {
+        let (u, v) = (p[0] - o[0], p[1] - o[1]);
+        let z = u * u + v * v;
+        let row = [u, v, 1.0];
+        for i in 0..3 {
+            for j in 0..3 {
+                m[i][j] += row[i] * row[j];
+            }
+            rhs[i] -= row[i] * z;
+        }
+    }
+    let det3 = |a: &[[f64; 3]; 3]| {
+        a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+            - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+            + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
+    };
+    let d = det3(&m);
+    let scale = m[0][0].max(m[1][1]).max(1.0);
+    if !(d.abs() > 1e-12 * scale * scale * m[2][2]) {
+        return None;
+    }
+    let mut sol = [0.0; 3];
+    for (k, s) in sol.iter_mut().enumerate() {
+        let mut a = m;
+        for i in 0..3 {
+            a[i][k] = rhs[i];
+        }
+        *s = det3(&a) / d;
+    }
+    let c = [-0.5 * sol[0], -0.5 * sol[1]];
+    let r2 = c[0] * c[0] + c[1] * c[1] - sol[2];
+    (r2 > 0.0).then(|| ([c[0] + o[0], c[1] + o[1]], r2.sqrt()))
+}
+
+/// Signed turn of the chords `a b`, `b c` (cross product) if the turn is below 90 degrees.
+fn turn_sign(a: [f64; 2], b: [f64; 2], c: [f64; 2]) -> Option<f64> {
+    let u = [b[0] - a[0], b[1] - a[1]];
+    let v = [c[0] - b[0], c[1] - b[1]];
+    let dot = u[0] * v[0] + u[1] * v[1];
+    let cross = u[0] * v[1] - u[1] * v[0];
+    (dot > 0.0 && cross != 0.0).then_some(cross.signum())
+}
+
+/// Whether every point of `pts` lies within `tol` of the circle and the run turns one way.
+fn run_fits(pts: &[[f64; 2]], c: [f64; 2], r: f64, tol: f64, sign: f64) -> bool {
+    pts.iter()
+        .all(|p| ((p[0] - c[0]).hypot(p[1] - c[1]) - r).abs() <= tol)
+        && pts
+            .windows(3)
+            .all(|w| turn_sign(w[0], w[1], w[2]) == Some(sign))
+}
+
+/// Circular runs of `xy` (tool centres as written) with equal `level` (Z and B as written) within
+/// `tol` (module documentation): greedy, each run grown point by point while the refitted circle
+/// holds every point.
+pub fn find_arc_runs(xy: &[[f64; 2]], level: &[(f64, Option<f64>)], tol: f64) -> Vec<ArcRun> {
+    let n = xy.len();
+    let mut runs = Vec::new();
+    let mut a = 0usize;
+    while a + MIN_ARC_POINTS <= n {
+        let mut e = a + MIN_ARC_POINTS - 1;
+        let same = |i: usize| level[i] == level[a];
+        let ok = |e: usize| -> Option<([f64; 2], f64, f64)> {
+            if !(a..=e).all(same) {
+                return None;
+            }
+            let pts = &xy[a..=e];
+            let (c, r) = kasa_circle(pts)?;
+            let sign = turn_sign(pts[0], pts[1], pts[2])?;
+            (r <= MAX_ARC_RADIUS_MM && run_fits(pts, c, r, tol, sign)).then_some((c, r, sign))
+        };
+        let Some(mut fit) = ok(e) else {
+            a += 1;
+            continue;
+        };
+        while e + 1 < n {
+            match ok(e + 1) {
+                Some(f) => {
+                    fit = f;
+                    e += 1;
+                }
+                None => break,
+            }
+        }
+        runs.push(ArcRun {
+            first: a,
+            last: e,
+            centre_mm: fit.0,
+            radius_mm: fit.1,
+            ccw: fit.2 > 0.0,
+        });
+        a = e + 1;
+    }
+    runs
+}
 
 /// A written program and what the writer had to change.
 #[derive(Debug, Clone, PartialEq)]
@@ -59,6 +198,10 @@ pub struct Written {
     pub stretch_time_s: f64,
     /// Programmed time of the plunge, s.
     pub plunge_time_s: f64,
+    /// Circular blocks (`G02`/`G03`) among the feed blocks.
+    pub arc_blocks: usize,
+    /// Circular runs of dwell points written with them.
+    pub arc_runs: usize,
 }
 
 /// The text of `program` with `notes` as extra header comments (module documentation).
@@ -205,13 +348,68 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         max_slowdown: 1.0,
         stretch_time_s: 0.0,
         plunge_time_s: 0.0,
+        arc_blocks: 0,
+        arc_runs: 0,
+    };
+    // Circular runs: boundaries inside a run move onto its circle; `arc_of[j]` is the run of
+    // dwell point j (module documentation).
+    let mut bnd = bnd;
+    let mut arc_of: Vec<Option<ArcRun>> = vec![None; n];
+    if let Some(tol) = s.arc_tolerance_mm {
+        let xy: Vec<[f64; 2]> = at.iter().map(|p| [p.xyz[0], p.xyz[1]]).collect();
+        let level: Vec<(f64, Option<f64>)> = at.iter().map(|p| (p.xyz[2], p.b)).collect();
+        for run in find_arc_runs(&xy, &level, tol) {
+            written.arc_runs += 1;
+            let c = run.centre_mm;
+            for j in run.first..=run.last {
+                arc_of[j] = Some(run);
+            }
+            for j in run.first + 1..=run.last {
+                let (p, q) = (xy[j - 1], xy[j]);
+                let (ap, aq) = ((p[1] - c[1]).atan2(p[0] - c[0]), (q[1] - c[1]).atan2(q[0] - c[0]));
+                let mut d = aq - ap;
+                d -= std::f64::consts::TAU * (d / std::f64::consts::TAU).round();
+                let ang = ap + 0.5 * d;
+                let r = 0.5 * ((p[0] - c[0]).hypot(p[1] - c[1]) + (q[0] - c[0]).hypot(q[1] - c[1]));
+                bnd[j] = Pose::new(
+                    [c[0] + r * ang.cos(), c[1] + r * ang.sin(), at[j].xyz[2]],
+                    at[j].b,
+                );
+            }
+        }
+    }
+    // The circle of the block from `a` to `b` when both lie on one run, with its I J words.
+    let arc_block = |j: usize, second: bool| -> Option<(ArcMove, String)> {
+        let run = arc_of[j]?;
+        let inside = if second { j < run.last } else { j > run.first };
+        if !inside {
+            return None;
+        }
+        let start = if second { &at[j] } else { &bnd[j] };
+        let (is, iv) = as_written(run.centre_mm[0] - start.xyz[0]);
+        let (js, jv) = as_written(run.centre_mm[1] - start.xyz[1]);
+        Some((
+            ArcMove {
+                centre_mm: [start.xyz[0] + iv, start.xyz[1] + jv],
+                ccw: run.ccw,
+            },
+            format!(" I{is} J{js}"),
+        ))
     };
     let (mut f_lo, mut f_hi) = (f64::INFINITY, 0.0f64);
     for (j, p) in pts.iter().enumerate() {
         let t = p.dwell_s;
         body.push(d.comment(&format!("DWELL {j} {t} S AT {} {}", p.x_mm, p.y_mm)));
         let halves = [(&bnd[j], &at[j]), (&at[j], &bnd[j + 1])];
-        let lens = halves.map(|(a, b)| a.length_to(b, d));
+        let arcs = [arc_block(j, false), arc_block(j, true)];
+        let mut lens = [0.0; 2];
+        for k in 0..2 {
+            let (a, b) = halves[k];
+            lens[k] = match &arcs[k] {
+                Some((m, _)) => arc_length_mm(a.xyz, b.xyz, m),
+                None => a.length_to(b, d),
+            };
+        }
         let len = lens[0] + lens[1];
         if len == 0.0 {
             if t > 0.0 {
@@ -253,6 +451,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             .map(|l| t_run * l / len)
             .fold(f64::INFINITY, f64::min);
         let merged = shortest_s < min_block_s * (1.0 - FEED_ROUNDING)
+            && arcs.iter().all(Option::is_none)
             && collinear(&bnd[j], &at[j], &bnd[j + 1]);
         let (ends, blens, count) = if merged {
             written.merged_stretches += 1;
@@ -300,7 +499,18 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                     ),
                 ));
             }
-            body.push(format!("{lin} {} F{}", ends[k].words, words[k]));
+            match (&arcs[k], merged) {
+                (Some((m, ij)), false) => {
+                    body.push(format!(
+                        "{} {}{ij} F{}",
+                        d.arc_word(m.ccw),
+                        ends[k].words,
+                        words[k]
+                    ));
+                    written.arc_blocks += 1;
+                }
+                _ => body.push(format!("{lin} {} F{}", ends[k].words, words[k])),
+            }
             written.feed_blocks += 1;
             written.stretch_time_s += times[k];
         }
@@ -407,6 +617,14 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         "TOOL RADIUS {} MM, TOOL CENTRE = CONTACT + R * NORMAL",
         fixed(s.tool_radius_mm, COORD_DECIMALS)
     ));
+    if let Some(t) = s.arc_tolerance_mm {
+        header.push(format!(
+            "CIRCULAR MOVES G17 I J: {} RUNS, {} BLOCKS, TOLERANCE {} MM",
+            written.arc_runs,
+            written.arc_blocks,
+            fixed(t, 6)
+        ));
+    }
     if s.compensation.is_some() {
         let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
             (a.min(p.delta_mm), b.max(p.delta_mm))
