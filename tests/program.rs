@@ -225,7 +225,8 @@ fn reader_handles_dialect_words_and_refuses_what_it_cannot_time() {
     assert_eq!(p.blocks[2].programmed_time_s, 2.0);
     for (bad, needle) in [
         ("G0 X0 Y0\nG93 G1 X1 F1\nG1 X2\n", "own F word"),
-        ("G0 X0 Y0\nG2 X1 Y1 I1 J0 F10\n", "circular"),
+        ("G0 X0 Y0\nG2 X1 Y1 R1 F10\n", "circular"),
+        ("G0 X0 Y0\nG2 X1 Y1.01 I1 J0 F10\n", "radius"),
         ("G0 X0\nG95 G1 X1 F0.1\n", "per revolution"),
         ("G1 X1 F10\n", "unknown position"),
         ("G0 X0\nG1 X1 F0\n", "not positive"),

@@ -371,6 +371,43 @@ fn paths_intersection_spiral_chord_height_edge() {
     assert!(lines.len() >= 5);
     let (h, _) = read_csv(&eo);
     assert_eq!(h, header);
+    // The 4-corner 60 mm square, bonnet R 40 mm, 0.5 mm overhang: 4 straight Bezier segments,
+    // every point inside the edge by at least r_min - overhang, none repeated.
+    let sq = dir.path().join("square.csv");
+    std::fs::write(&sq, "x_mm,y_mm\n-30,-30\n30,-30\n30,30\n-30,30\n").unwrap();
+    let so = dir.path().join("sq_path.csv");
+    let j = ok(&preston(&[
+        "path",
+        "edge-offset",
+        "--edge",
+        s(&sq),
+        "--bonnet-radius-mm",
+        "40",
+        "--spot-max-mm",
+        "6",
+        "--spot-min-mm",
+        "1.5",
+        "--ratio",
+        "0.8",
+        "--residual-um",
+        "1",
+        "--overhang-mm",
+        "0.5",
+        "--out",
+        s(&so),
+    ]));
+    assert_eq!(j["corners"].as_u64(), Some(4));
+    assert!(j["bezier_max_error_mm"].as_f64().unwrap() < 1e-9);
+    let (_, rows) = read_csv(&so);
+    let mut prev: Option<(f64, f64)> = None;
+    for r in &rows {
+        let inside_by = 30.0 - r[0].abs().max(r[1].abs());
+        assert!(inside_by >= 1.5 - 0.5 - 1e-9, "{r:?}");
+        if let Some(p) = prev {
+            assert!((r[0] - p.0).hypot(r[1] - p.1) > 1e-6, "repeated point {r:?}");
+        }
+        prev = Some((r[0], r[1]));
+    }
     // Bad input: exit 2, no file.
     let bad = dir.path().join("bad.csv");
     let o = preston(&[

@@ -221,7 +221,7 @@ struct EdgeArgs {
     /// Residual height between lines, um.
     #[arg(long)]
     residual_um: f64,
-    /// Edge overhang of the smallest spot, mm.
+    /// How far the smallest spot may reach beyond the edge, mm (0: tangent to it from inside).
     #[arg(long, default_value_t = 0.0)]
     overhang_mm: f64,
     /// Bezier fit tolerance, mm.
@@ -411,6 +411,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             (
                 json!({"kind": "edge_offset", "points": p.len(),
                        "bezier_segments": t.edge.len(), "bezier_max_error_mm": t.fit_error_mm,
+                       "corners": t.corners,
                        "lines": t.lines, "line_starts": t.line_starts}),
                 a.common.out,
             )
