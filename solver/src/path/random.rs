@@ -605,4 +605,52 @@ mod tests {
         )
         .is_err());
     }
+
+    /// `|sum over the path's segments of the integral of exp(-2 pi i x / P) ds|`: the Fourier
+    /// coefficient at the pitch frequency along x of the path's line measure (the ripple along
+    /// x a constant-feed sweep leaves, up to the TIF's transform), mm.
+    fn pitch_coefficient_x(path: &DwellPath, p: f64) -> f64 {
+        let (x, y) = (path.x_mm(), path.y_mm());
+        let (mut re, mut im) = (0.0, 0.0);
+        for k in 1..x.len() {
+            let l = (x[k] - x[k - 1]).hypot(y[k] - y[k - 1]);
+            let phi = 2.0 * std::f64::consts::PI * (x[k] - x[k - 1]) / p;
+            let a = -2.0 * std::f64::consts::PI * x[k - 1] / p;
+            // l e^{i a} (e^{-i phi} - 1) / (-i phi), or l e^{i a} when phi = 0.
+            let (fr, fi) = if phi.abs() < 1e-12 {
+                (1.0, 0.0)
+            } else {
+                (phi.sin() / phi, (phi.cos() - 1.0) / phi)
+            };
+            re += l * (a.cos() * fr - a.sin() * fi);
+            im += l * (a.cos() * fi + a.sin() * fr);
+        }
+        re.hypot(im)
+    }
+
+    #[test]
+    fn lattice_paths_keep_the_pitch_ripple_and_jitter_breaks_it() {
+        // On the lattice every step along x spans one period and contributes nothing; every
+        // step along y sits at a multiple of P and contributes P in phase: the coefficient is
+        // P times the number of y steps, whatever their order (a raster along y has them all).
+        let reg = region(40.0, 40.0);
+        let plain = random_unicursal(&reg, &RandomPathSettings::default()).unwrap();
+        let (x, y) = (plain.path.x_mm(), plain.path.y_mm());
+        let ny = (1..x.len()).filter(|&k| (y[k] - y[k - 1]).abs() > 0.5).count();
+        let c = pitch_coefficient_x(&plain.path, 1.0);
+        assert!((c - ny as f64).abs() < 1e-9 * ny as f64, "{c} vs {ny}");
+        assert!(ny as f64 > 0.4 * (x.len() - 1) as f64);
+        // Nodes jittered over a whole pitch: the coherent sum is gone (a random-walk sum of
+        // order sqrt(N) remains).
+        let j = random_unicursal(
+            &reg,
+            &RandomPathSettings {
+                jitter: 1.0,
+                ..RandomPathSettings::default()
+            },
+        )
+        .unwrap();
+        let cj = pitch_coefficient_x(&j.path, 1.0);
+        assert!(cj < 0.1 * ny as f64, "{cj} vs {ny}");
+    }
 }
