@@ -519,7 +519,14 @@ fn arcs_program_removes_what_the_straight_one_does() {
         removal.push(run.removal_nm);
     }
     let rms = |v: &[f64]| (v.iter().map(|a| a * a).sum::<f64>() / v.len() as f64).sqrt();
-    let diff: Vec<f64> = removal[0].iter().zip(&removal[1]).map(|(a, b)| a - b).collect();
+    let diff: Vec<f64> = removal[0]
+        .iter()
+        .zip(&removal[1])
+        .map(|(a, b)| a - b)
+        .collect();
     let rel = rms(&diff) / rms(&removal[0]);
-    assert!(rms(&removal[0]) > 1.0 && rel < 1e-3, "relative RMS difference {rel}");
+    assert!(
+        rms(&removal[0]) > 1.0 && rel < 1e-3,
+        "relative RMS difference {rel}"
+    );
 }

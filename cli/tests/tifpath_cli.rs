@@ -404,7 +404,10 @@ fn paths_intersection_spiral_chord_height_edge() {
         let inside_by = 30.0 - r[0].abs().max(r[1].abs());
         assert!(inside_by >= 1.5 - 0.5 - 1e-9, "{r:?}");
         if let Some(p) = prev {
-            assert!((r[0] - p.0).hypot(r[1] - p.1) > 1e-6, "repeated point {r:?}");
+            assert!(
+                (r[0] - p.0).hypot(r[1] - p.1) > 1e-6,
+                "repeated point {r:?}"
+            );
         }
         prev = Some((r[0], r[1]));
     }

@@ -444,7 +444,9 @@ impl EdgeIndex {
             }
         }
         // At most about 4096 cells per side.
-        let cell = cell.max((hi[0] - lo[0]).max(hi[1] - lo[1]) / 4096.0).max(1e-9);
+        let cell = cell
+            .max((hi[0] - lo[0]).max(hi[1] - lo[1]) / 4096.0)
+            .max(1e-9);
         let nx = ((hi[0] - lo[0]) / cell).floor() as usize + 1;
         let ny = ((hi[1] - lo[1]) / cell).floor() as usize + 1;
         let mut cells = vec![Vec::new(); nx * ny];
@@ -482,11 +484,7 @@ impl EdgeIndex {
         let (i0, i1) = span(p[0], self.origin[0], self.nx);
         let (j0, j1) = span(p[1], self.origin[1], self.ny);
         let mut best = f64::INFINITY;
-        if p[0] + reach < self.origin[0]
-            || p[1] + reach < self.origin[1]
-            || i0 > i1
-            || j0 > j1
-        {
+        if p[0] + reach < self.origin[0] || p[1] + reach < self.origin[1] || i0 > i1 || j0 > j1 {
             return best;
         }
         let n = self.pts.len();
@@ -653,8 +651,7 @@ fn clean_polygon(edge: &[[f64; 2]]) -> Result<(Vec<[f64; 2]>, bool)> {
         .max(1.0);
     let mut p: Vec<[f64; 2]> = Vec::with_capacity(edge.len());
     for &q in edge {
-        if p
-            .last()
+        if p.last()
             .is_none_or(|l: &[f64; 2]| (l[0] - q[0]).hypot(l[1] - q[1]) > 1e-12 * scale)
         {
             p.push(q);
@@ -667,7 +664,10 @@ fn clean_polygon(edge: &[[f64; 2]]) -> Result<(Vec<[f64; 2]>, bool)> {
         p.pop();
     }
     if p.len() < 3 {
-        return Err(Error::invalid("edge", "needs at least three distinct points"));
+        return Err(Error::invalid(
+            "edge",
+            "needs at least three distinct points",
+        ));
     }
     let n = p.len();
     let area2: f64 = (0..n)
@@ -699,7 +699,11 @@ fn fit_closed_edge(
     let corner: Vec<usize> = (0..n)
         .filter(|&i| t[i].abs() > CORNER_TURN_DEG.to_radians())
         .collect();
-    let starts = if corner.is_empty() { vec![0] } else { corner.clone() };
+    let starts = if corner.is_empty() {
+        vec![0]
+    } else {
+        corner.clone()
+    };
     let mut spline = Vec::new();
     let mut err: f64 = 0.0;
     for (k, &s) in starts.iter().enumerate() {
@@ -814,7 +818,9 @@ fn trimmed_offset(
         }
         let next = &spline[(k + 1) % ns];
         let (Some(n0), Some(n1)) = (left_normal(c, 1.0), left_normal(next, 0.0)) else {
-            return Err(Error::Geometry("degenerate Bezier segment of the edge".into()));
+            return Err(Error::Geometry(
+                "degenerate Bezier segment of the edge".into(),
+            ));
         };
         let phi = (n0[0] * n1[1] - n0[1] * n1[0]).atan2(n0[0] * n1[0] + n0[1] * n1[1]);
         let q = c.eval(1.0);
@@ -1249,14 +1255,20 @@ mod tests {
                 assert!(d >= s.spot_min_mm - s.overhang_mm - tol - chord);
                 if j + 1 < end {
                     let step = (x[j + 1] - x[j]).hypot(y[j + 1] - y[j]);
-                    assert!(step > 1e-3 && step <= s.step_mm * (1.0 + 1e-9), "step {step}");
+                    assert!(
+                        step > 1e-3 && step <= s.step_mm * (1.0 + 1e-9),
+                        "step {step}"
+                    );
                 }
             }
         }
         let mut pts: Vec<(f64, f64)> = x.iter().copied().zip(y.iter().copied()).collect();
         pts.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
         for w in pts.windows(2) {
-            assert!((w[0].0 - w[1].0).hypot(w[0].1 - w[1].1) > 1e-6, "repeated {w:?}");
+            assert!(
+                (w[0].0 - w[1].0).hypot(w[0].1 - w[1].1) > 1e-6,
+                "repeated {w:?}"
+            );
         }
         t
     }

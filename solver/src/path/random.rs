@@ -270,7 +270,10 @@ pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> 
     if !(settings.jitter.is_finite() && (0.0..=1.0).contains(&settings.jitter)) {
         return Err(Error::invalid(
             "jitter",
-            format!("must be in [0, 1] (a fraction of the pitch), got {}", settings.jitter),
+            format!(
+                "must be in [0, 1] (a fraction of the pitch), got {}",
+                settings.jitter
+            ),
         ));
     }
     if settings.max_run < 3 {
@@ -636,7 +639,9 @@ mod tests {
         let reg = region(40.0, 40.0);
         let plain = random_unicursal(&reg, &RandomPathSettings::default()).unwrap();
         let (x, y) = (plain.path.x_mm(), plain.path.y_mm());
-        let ny = (1..x.len()).filter(|&k| (y[k] - y[k - 1]).abs() > 0.5).count();
+        let ny = (1..x.len())
+            .filter(|&k| (y[k] - y[k - 1]).abs() > 0.5)
+            .count();
         let c = pitch_coefficient_x(&plain.path, 1.0);
         assert!((c - ny as f64).abs() < 1e-9 * ny as f64, "{c} vs {ny}");
         assert!(ny as f64 > 0.4 * (x.len() - 1) as f64);

@@ -118,7 +118,10 @@ pub fn execute(program: &Program, kinematics: Kinematics) -> Result<Executed> {
         .iter()
         .map(|b| {
             let l = b.length_mm();
-            if matches!(b.kind, BlockKind::Linear | BlockKind::Circular) && l > 0.0 && b.programmed_time_s > 0.0 {
+            if matches!(b.kind, BlockKind::Linear | BlockKind::Circular)
+                && l > 0.0
+                && b.programmed_time_s > 0.0
+            {
                 l / b.programmed_time_s
             } else {
                 0.0

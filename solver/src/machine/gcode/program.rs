@@ -559,9 +559,9 @@ impl State {
             || w.rotary.is_some()
             || (self.motion == Some(BlockKind::Circular) && w.centre.iter().any(Option::is_some));
         if moves {
-            let kind = self
-                .motion
-                .ok_or_else(|| program_error(line, "axis words before any G0, G1, G2 or G3 motion mode"))?;
+            let kind = self.motion.ok_or_else(|| {
+                program_error(line, "axis words before any G0, G1, G2 or G3 motion mode")
+            })?;
             let start = match self.position_mm {
                 Some(p) => p,
                 None if kind == BlockKind::Rapid || self.absolute => {
@@ -608,7 +608,8 @@ impl State {
                     centre_mm: centre,
                     ccw: self.ccw,
                 };
-                let [r0, r1, _, _] = arc_sweep([start[0], start[1]], [end[0], end[1]], centre, a.ccw);
+                let [r0, r1, _, _] =
+                    arc_sweep([start[0], start[1]], [end[0], end[1]], centre, a.ccw);
                 if !(r0 > 0.0) || (r1 - r0).abs() > ARC_RADIUS_TOLERANCE_MM {
                     return Err(program_error(
                         line,

@@ -366,7 +366,10 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             }
             for j in run.first + 1..=run.last {
                 let (p, q) = (xy[j - 1], xy[j]);
-                let (ap, aq) = ((p[1] - c[1]).atan2(p[0] - c[0]), (q[1] - c[1]).atan2(q[0] - c[0]));
+                let (ap, aq) = (
+                    (p[1] - c[1]).atan2(p[0] - c[0]),
+                    (q[1] - c[1]).atan2(q[0] - c[0]),
+                );
                 let mut d = aq - ap;
                 d -= std::f64::consts::TAU * (d / std::f64::consts::TAU).round();
                 let ang = ap + 0.5 * d;
