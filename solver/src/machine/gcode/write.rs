@@ -361,9 +361,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         for run in find_arc_runs(&xy, &level, tol) {
             written.arc_runs += 1;
             let c = run.centre_mm;
-            for j in run.first..=run.last {
-                arc_of[j] = Some(run);
-            }
+            arc_of[run.first..=run.last].fill(Some(run));
             for j in run.first + 1..=run.last {
                 let (p, q) = (xy[j - 1], xy[j]);
                 let (ap, aq) = (
