@@ -1,7 +1,8 @@
 //! The first-order dwell solver against the QP, its certificate, and its determinism.
 
+use preston::solver::dwell::certificate::{ConvergenceCriterion, GapBoundReason};
 use preston::solver::dwell::{
-    self, DwellBounds, FeedLimits, FirstOrderMethod, Problem, Settings, SolverChoice,
+    self, DwellBounds, FeedLimits, FirstOrderMethod, Problem, Settings, SolverChoice, Status,
 };
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::observer::Silent;
@@ -239,6 +240,97 @@ fn gap_bound_covers_the_qp_optimum_with_rho() {
         assert!(sol.kkt_residual.unwrap() >= 0.0);
     }
 }
+
+/// With `rho = 0` and no `v_min` no dual bound is finite away from an exact optimum: the solve
+/// reports no bound and says why, rather than the objective itself; when it still converges, it
+/// names the KKT residual as the test met.
+#[test]
+fn no_gap_bound_without_time_weight_or_upper_bound() {
+    let p = sized_problem(15, 9, 3, 0.0, 0.0, 0.0);
+    assert!(p.bounds().upper_s().is_none());
+    for method in METHODS {
+        for iters in [5, 50] {
+            let s = Settings {
+                first_order_max_iterations: iters,
+                first_order_tolerance: 1e-15,
+                ..first_order(method)
+            };
+            let sol = dwell::solve(&p, &s, &Silent).unwrap();
+            assert_eq!(
+                sol.objective_gap_bound, None,
+                "{method:?}, {iters} iterations"
+            );
+            assert_eq!(
+                sol.gap_bound_reason,
+                Some(GapBoundReason::UnboundedDwellWithoutTimeWeight)
+            );
+            assert_eq!(sol.converged_by, None, "not converged, so no criterion");
+        }
+        let sol = dwell::solve(&p, &first_order(method), &Silent).unwrap();
+        if sol.status.is_converged() && sol.objective_gap_bound.is_none() {
+            assert_eq!(sol.converged_by, Some(ConvergenceCriterion::KktResidual));
+        }
+    }
+}
+
+/// A converged first-order solve names the test it met, and that test holds on the report's
+/// own figures.
+#[test]
+fn converged_by_names_a_test_that_holds() {
+    let p = problem(7, 0.0, 0.5, 2.0);
+    for method in METHODS {
+        let s = first_order(method);
+        let sol = dwell::solve(&p, &s, &Silent).unwrap();
+        assert!(sol.status.is_converged(), "{method:?}");
+        let f = full_objective(&p, &sol.dwell_s);
+        match sol.converged_by {
+            Some(ConvergenceCriterion::ObjectiveGap) => {
+                let gap = sol.objective_gap_bound.unwrap();
+                assert!(gap / f <= s.first_order_tolerance, "{gap} / {f}");
+            }
+            Some(ConvergenceCriterion::KktResidual) => {
+                let tol = match sol.status {
+                    Status::AlmostConverged => s.first_order_tolerance.sqrt(),
+                    _ => s.first_order_tolerance,
+                };
+                assert!(sol.kkt_residual.unwrap() <= tol);
+            }
+            other => panic!("{method:?}: converged by {other:?}"),
+        }
+    }
+}
+
+/// The QP's answer carries the same dual certificate, recomputed from `R` at its point: finite
+/// with `rho > 0` or `v_min`, at least the true gap to a tighter first-order optimum, and tiny
+/// relative to the objective; the interior-point tolerances are named as the test met.
+#[test]
+fn qp_solutions_carry_a_valid_gap_bound() {
+    for p in [problem(13, 0.0, 1.0, 0.0), problem(5, 300.0, 0.0, 0.0)] {
+        let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
+        assert_eq!(qp.converged_by, Some(ConvergenceCriterion::InteriorPoint));
+        let bound = qp.objective_gap_bound.unwrap();
+        let f_qp = full_objective(&p, &qp.dwell_s);
+        assert!(
+            bound >= 0.0 && bound / f_qp < QP_GAP_REL,
+            "{bound} vs {f_qp}"
+        );
+        let tight = Settings {
+            first_order_tolerance: 1e-12,
+            first_order_max_iterations: 200_000,
+            ..first_order(FirstOrderMethod::NewtonCg)
+        };
+        let fo = dwell::solve(&p, &tight, &Silent).unwrap();
+        let f_fo = full_objective(&p, &fo.dwell_s);
+        assert!(
+            bound >= f_qp - f_fo,
+            "bound {bound} below the gap to a better point {}",
+            f_qp - f_fo
+        );
+    }
+}
+
+/// How close to optimal Clarabel's default tolerances put the QP, relative (gap bound / objective).
+const QP_GAP_REL: f64 = 1e-5;
 
 #[test]
 fn first_order_is_independent_of_the_thread_count() {

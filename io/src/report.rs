@@ -1,6 +1,7 @@
 //! `report.json`: what a solve achieved, in the keys of the engine contract.
 
 use preston_solver::dwell::accel::AccelReport;
+use preston_solver::dwell::certificate::ConvergenceCriterion;
 use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
@@ -56,9 +57,16 @@ pub struct Report {
     /// Projected-gradient (KKT) residual, when the solver computes one.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub kkt_residual: Option<f64>,
-    /// Proven upper bound on `objective - optimum`, when the solver gives one.
-    #[serde(skip_serializing_if = "Option::is_none", default)]
+    /// Proven upper bound on `full objective - optimum` (nm^2); `null` when none exists, with
+    /// the reason in `gap_bound_reason`.
+    #[serde(default)]
     pub objective_gap_bound: Option<f64>,
+    /// Why `objective_gap_bound` is `null` (a sentence), absent when there is a bound.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub gap_bound_reason: Option<String>,
+    /// Which test a converged solve met: `objective_gap`, `kkt_residual` or `interior_point`.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub converged_by: Option<ConvergenceCriterion>,
     /// The `rho = 0` optimum a minimum-time solve started from.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub min_time: Option<MinTimeReport>,
@@ -221,6 +229,8 @@ impl Report {
             status: status_name(solution.status),
             kkt_residual: solution.kkt_residual,
             objective_gap_bound: solution.objective_gap_bound,
+            gap_bound_reason: solution.gap_bound_reason.map(|r| r.to_string()),
+            converged_by: solution.converged_by,
             min_time: solution.min_time,
             unreachable_dwell_points: empty.len(),
             unreachable_dwell_indices: empty,

@@ -152,6 +152,8 @@ fn assemble(
         solve_seconds: sim_start.elapsed().as_secs_f64(),
         kkt_residual: None,
         objective_gap_bound: None,
+        gap_bound_reason: None,
+        converged_by: None,
         min_time: None,
     };
     let mut report = Report::new(

@@ -348,15 +348,28 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             r.rms_after_nm
         );
     }
+    let mut certificate = Vec::new();
+    if let Some(k) = r.kkt_residual {
+        certificate.push(format!("KKT residual {k:.2e}"));
+    }
+    match (r.objective_gap_bound, &r.gap_bound_reason) {
+        (Some(g), _) => certificate.push(format!("objective gap <= {g:.3e} nm^2")),
+        (None, Some(why)) => certificate.push(format!("no gap bound: {why}")),
+        (None, None) => {}
+    }
     eprintln!(
-        "  solver {}{} ({} iterations, status {}), build {:.3} s, solve {:.3} s; wrote {}",
+        "  solver {}{} ({} iterations, status {}{}), build {:.3} s, solve {:.3} s; wrote {}",
         r.solver,
-        match (r.kkt_residual, r.objective_gap_bound) {
-            (Some(k), Some(g)) => format!(" [KKT residual {k:.2e}, objective gap <= {g:.3e} nm^2]"),
-            _ => String::new(),
+        if certificate.is_empty() {
+            String::new()
+        } else {
+            format!(" [{}]", certificate.join(", "))
         },
         r.iterations,
         r.status,
+        r.converged_by
+            .map(|c| format!(" by {c}"))
+            .unwrap_or_default(),
         r.build_seconds,
         r.solve_seconds,
         out.display()

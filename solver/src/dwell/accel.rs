@@ -412,6 +412,8 @@ pub fn solve(
         solve_seconds: start.elapsed().as_secs_f64(),
         kkt_residual: None,
         objective_gap_bound: None,
+        gap_bound_reason: None,
+        converged_by: None,
         min_time: reference.min_time,
     };
     Ok(AccelSolution {

@@ -49,15 +49,16 @@
 //!   + sum_j min_{l_j <= s_j <= U_j} c_j s_j` with `c = alpha (R^T r + lambda D^T D t) + rho`.
 //!   `U_j` is `u_j` or, when `rho > 0`, the level-set bound `l_j + (f(t) - rho 1'l) / rho` (every
 //!   minimiser has `rho 1't* <= f(t*) <= f(t)`). `d` is maximised over a few `alpha` in `[0, 1]`
-//!   (`alpha = 0` gives `f* >= rho 1'l`) and `f(t) - d` plus a rounding margin is reported. At
-//!   `alpha = 1` this is the Frank-Wolfe gap; with `rho = 0` and no upper bound only the trivial
-//!   `alpha = 0` bound is finite unless every gradient entry is non-negative.
+//!   and `f(t) - d` plus a rounding margin is reported ([`super::certificate`]). At `alpha = 1`
+//!   this is the Frank-Wolfe gap; with `rho = 0` and no upper bound no finite bound exists unless
+//!   every gradient entry is non-negative, and none is reported.
 //!
 //! The solve stops when the relative gap bound or the relative KKT residual is below the
-//! tolerance. Products with `R` and `R^T` are parallel with fixed-order sums, every other
+//! tolerance, and says which ([`ConvergenceCriterion`]). Products with `R` and `R^T` are parallel with fixed-order sums, every other
 //! reduction uses fixed chunks: the result is bit-identical for any thread count. No allocation
 //! happens inside the iteration loop.
 
+use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
 use super::operator::{fill_and_sum, fixed_sum, LinearOperator, SparseOperator};
 use super::{DwellBounds, FirstOrderMethod, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
@@ -91,8 +92,10 @@ pub struct FirstOrderResult {
     pub full_objective: f64,
     /// Relative KKT residual (see the module documentation).
     pub kkt_residual: f64,
-    /// Proven upper bound on `f(t) - min f`, nm^2.
-    pub objective_gap_bound: f64,
+    /// Proven upper bound on `f(t) - min f` (nm^2), or why there is none.
+    pub objective_gap_bound: GapBound,
+    /// The test met, when the status is converged.
+    pub converged_by: Option<ConvergenceCriterion>,
 }
 
 /// Solves the contract on `problem` with its operator (the assembled `R` or the FFT operator),
@@ -144,7 +147,9 @@ pub fn solve(
         iterations: res.iterations,
         solve_seconds: t0.elapsed().as_secs_f64(),
         kkt_residual: Some(res.kkt_residual),
-        objective_gap_bound: Some(res.objective_gap_bound),
+        objective_gap_bound: res.objective_gap_bound.value(),
+        gap_bound_reason: res.objective_gap_bound.reason(),
+        converged_by: res.converged_by,
         min_time: None,
     })
 }
@@ -284,7 +289,7 @@ impl Data<'_> {
 }
 
 /// `(D^T D t)_j` for the first-difference matrix `D` along the path.
-fn dtd(t: &[f64], j: usize) -> f64 {
+pub(crate) fn dtd(t: &[f64], j: usize) -> f64 {
     let mut dd = 0.0;
     if j > 0 {
         dd += t[j] - t[j - 1];
@@ -469,6 +474,13 @@ fn minimise_here(
         full_objective: cert.f,
         kkt_residual: cert.kkt,
         objective_gap_bound: cert.gap,
+        converged_by: match status {
+            Status::Converged => limits.met(&cert),
+            // Stalled at rounding level with the KKT residual below the square root of the
+            // tolerance.
+            Status::AlmostConverged => Some(ConvergenceCriterion::KktResidual),
+            _ => None,
+        },
     })
 }
 
@@ -484,14 +496,29 @@ struct Limits {
 impl Limits {
     /// The status the certificate earns, if the iteration should stop.
     fn stop(&self, cert: &Certificate) -> Option<Status> {
-        let rel_gap = cert.gap / cert.f.abs().max(f64::MIN_POSITIVE);
-        if rel_gap <= self.tol || cert.kkt <= self.tol {
+        if self.met(cert).is_some() {
             Some(Status::Converged)
         } else if self.began.elapsed().as_secs_f64() > self.time_limit_s {
             Some(Status::TimeLimit)
         } else {
             None
         }
+    }
+}
+
+impl Limits {
+    /// The test `cert` passes, if any: the relative gap bound first, then the relative KKT
+    /// residual. Non-finite values pass nothing.
+    fn met(&self, cert: &Certificate) -> Option<ConvergenceCriterion> {
+        if !cert.f.is_finite() {
+            return None;
+        }
+        if let GapBound::Bound(gap) = cert.gap {
+            if gap / cert.f.abs().max(f64::MIN_POSITIVE) <= self.tol {
+                return Some(ConvergenceCriterion::ObjectiveGap);
+            }
+        }
+        (cert.kkt.is_finite() && cert.kkt <= self.tol).then_some(ConvergenceCriterion::KktResidual)
     }
 }
 
@@ -784,7 +811,7 @@ fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
 struct Certificate {
     f: f64,
     kkt: f64,
-    gap: f64,
+    gap: GapBound,
 }
 
 fn certificate(
@@ -812,47 +839,14 @@ fn certificate(
     let z = data.z;
     let rt = &work.rt;
     let zr = fixed_sum(z.len(), &mut work.partials, |i| z[i] * rt[i]);
-    let lower = bounds.lower_s();
-    let sum_l = fixed_sum(n, &mut work.partials, |j| lower[j]);
-    let level = if rho > 0.0 {
-        ((f - rho * sum_l) / rho).max(0.0)
-    } else {
-        f64::INFINITY
+    let inputs = DualInputs {
+        f,
+        zr,
+        quad: 2.0 * (half_r2 + half_d2),
+        g,
+        sum_t,
+        rho,
     };
-    let quad = 2.0 * (half_r2 + half_d2);
-    let upper_of = |j: usize| bounds.upper(j).min(lower[j] + level);
-    let dual = |alpha: f64, partials: &mut Vec<f64>| -> f64 {
-        let lin = fixed_sum(n, partials, |j| {
-            let c = alpha * g[j] + rho;
-            if c >= 0.0 {
-                c * lower[j]
-            } else {
-                let u = upper_of(j);
-                if u.is_finite() {
-                    c * u
-                } else {
-                    f64::NEG_INFINITY
-                }
-            }
-        });
-        -alpha * zr - 0.5 * alpha * alpha * quad + lin
-    };
-    let mut alphas = vec![1.0, 0.999, 0.99, 0.9, 0.5, 0.0];
-    if rho > 0.0 {
-        let worst = g.iter().fold(0.0_f64, |a, &gj| a.max(-gj));
-        if worst > 0.0 {
-            alphas.push((rho / worst).min(1.0));
-        }
-    }
-    let mut best = f64::NEG_INFINITY;
-    for a in alphas {
-        let d = dual(a, &mut work.partials);
-        if d > best {
-            best = d;
-        }
-    }
-    // Rounding margin: a few ulps of the magnitudes that cancel.
-    let margin = 1e-12 * (f.abs() + zr.abs() + quad + rho * sum_t.abs());
-    let gap = (f - best).max(0.0) + margin;
+    let gap = gap_bound(&inputs, bounds, &mut work.partials);
     Certificate { f, kkt, gap }
 }

@@ -6,6 +6,7 @@
 
 pub mod accel;
 pub mod bounds;
+pub mod certificate;
 pub mod fft;
 pub mod first_order;
 pub mod operator;
@@ -574,8 +575,12 @@ pub struct Solution {
     pub solve_seconds: f64,
     /// Projected-gradient (KKT) residual of the returned point, when computed.
     pub kkt_residual: Option<f64>,
-    /// Upper bound on `objective - optimum`, when the solver proves one.
+    /// Proven upper bound on `full objective - optimum` (nm^2), when one exists.
     pub objective_gap_bound: Option<f64>,
+    /// Why `objective_gap_bound` is absent.
+    pub gap_bound_reason: Option<certificate::GapBoundReason>,
+    /// Which test a converged solve met.
+    pub converged_by: Option<certificate::ConvergenceCriterion>,
     /// The `rho = 0` stage of a minimum-time solve.
     pub min_time: Option<MinTimeReport>,
 }
@@ -646,7 +651,15 @@ fn dispatch(
     start: Option<&[f64]>,
 ) -> Result<Solution> {
     match settings.solver.resolve(problem, settings.min_time) {
-        SolverKind::Qp => qp::solve(problem, settings, observer),
+        SolverKind::Qp => {
+            let mut sol = qp::solve(problem, settings, observer)?;
+            if sol.objective_gap_bound.is_none() && sol.min_time.is_none() {
+                let gap = certificate::certify(problem, &sol.dwell_s)?;
+                sol.objective_gap_bound = gap.value();
+                sol.gap_bound_reason = gap.reason();
+            }
+            Ok(sol)
+        }
         SolverKind::FirstOrder => first_order::solve(problem, settings, observer, start),
     }
 }

@@ -13,6 +13,7 @@
 //! The minimum-time mode solves that with `rho = 0` for `f*`, then minimises `1't` subject to
 //! `||(r, sqrt(lambda) D t)|| <= sqrt(2 (1 + tol) f*)` (a second-order cone).
 
+use super::certificate::ConvergenceCriterion;
 use super::{
     DwellBounds, Evaluation, MinTimeReport, Problem, Settings, Solution, SolverKind, Status,
 };
@@ -96,6 +97,10 @@ pub(crate) fn finish(
         solve_seconds: start.elapsed().as_secs_f64(),
         kkt_residual: None,
         objective_gap_bound: None,
+        gap_bound_reason: None,
+        converged_by: status
+            .is_converged()
+            .then_some(ConvergenceCriterion::InteriorPoint),
         min_time,
     })
 }
