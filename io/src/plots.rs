@@ -5,6 +5,7 @@
 //! Text uses the DejaVu Sans font shipped in `io/assets` (Bitstream Vera licence, see
 //! `io/assets/DejaVuSans-LICENSE.txt`), so plots look the same on every machine.
 
+use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
@@ -32,7 +33,7 @@ fn plot_error<E: std::fmt::Display>(path: &Path, e: E) -> Error {
     Error::io(path, std::io::Error::other(format!("plotting failed: {e}")))
 }
 
-/// Draws into a temporary PNG in `path`'s directory with `draw`, then renames it to `path`.
+/// Draws on a canvas of [`PLOT_SIZE_PX`] with `draw` and writes the PNG to `path` atomically.
 fn write_png<F>(path: &Path, draw: F) -> Result<()>
 where
     F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
@@ -45,28 +46,34 @@ fn write_png_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<()>
 where
     F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
 {
+    stage_png_sized(path, size_px, draw)?.commit()
+}
+
+/// Draws on a canvas of `size_px` in memory with `draw` and stages the PNG for `path` (committed
+/// together with the other outputs, see [`crate::atomic::stage`]).
+fn stage_png_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<Staged>
+where
+    F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
+{
     register_font();
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_else(|| "plot".into());
-    let temp = tempfile::Builder::new()
-        .prefix(&format!(".{name}."))
-        .suffix(".png")
-        .tempfile_in(&dir)
-        .map_err(|e| Error::io(path, e))?;
+    let (w, h) = size_px;
+    let mut rgb = vec![0u8; w as usize * h as usize * 3];
     {
-        let root = BitMapBackend::new(temp.path(), size_px).into_drawing_area();
+        let root = BitMapBackend::with_buffer(&mut rgb, size_px).into_drawing_area();
         root.fill(&WHITE).map_err(|e| plot_error(path, e))?;
         draw(&root)?;
         root.present().map_err(|e| plot_error(path, e))?;
     }
-    temp.persist(path).map_err(|e| Error::io(path, e.error))?;
-    Ok(())
+    stage(path, |out: &mut dyn std::io::Write| {
+        let mut encoder = png::Encoder::new(out, w, h);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().map_err(std::io::Error::other)?;
+        writer
+            .write_image_data(&rgb)
+            .map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)
+    })
 }
 
 /// Finite range of `v`, widened when all values are equal; `None` when none is finite.
@@ -345,6 +352,18 @@ pub fn plot_map(
     y: &[f64],
     v: &[f64],
 ) -> Result<()> {
+    stage_map(path, title, unit, x, y, v)?.commit()
+}
+
+/// [`plot_map`], staged for a commit together with other outputs.
+pub fn stage_map(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    x: &[f64],
+    y: &[f64],
+    v: &[f64],
+) -> Result<Staged> {
     let n = x.len().min(y.len()).min(v.len());
     let (x, y, v) = (&x[..n], &y[..n], &v[..n]);
     let (x0, x1) = value_range(x).ok_or_else(|| Error::Empty {
@@ -360,7 +379,7 @@ pub fn plot_map(
     let (ex0, ex1, ey0, ey1) = (x0 - half, x1 + half, y0 - half, y1 + half);
     let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
     let heading = titled(title, unit, v);
-    write_png_sized(path, layout.canvas_px, |root| {
+    stage_png_sized(path, layout.canvas_px, |root| {
         root.draw(&Text::new(
             heading.as_str(),
             (layout.data_origin_px.0 as i32, 10),
@@ -465,6 +484,11 @@ fn colour_bar(
 /// Plots a tool path (mm) as a polyline with its start marked, at equal mm per pixel on both
 /// axes (the layout of [`plot_map`], without the colour bar).
 pub fn plot_path(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<()> {
+    stage_path_plot(path, title, x, y)?.commit()
+}
+
+/// [`plot_path`], staged for a commit together with other outputs.
+pub fn stage_path_plot(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<Staged> {
     let n = x.len().min(y.len());
     let (x0, x1) = value_range(&x[..n]).ok_or_else(|| Error::Empty {
         file: path.to_path_buf(),
@@ -476,7 +500,7 @@ pub fn plot_path(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<()> {
     let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
     let canvas = (layout.canvas_px.0, layout.canvas_px.1 - BAR_AREA_PX);
     let heading = format!("{title}: {n} points");
-    write_png_sized(path, canvas, |root| {
+    stage_png_sized(path, canvas, |root| {
         root.draw(&Text::new(
             heading.as_str(),
             (layout.data_origin_px.0 as i32, 10),
@@ -522,6 +546,91 @@ pub fn plot_path(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<()> {
                 .draw_series(std::iter::once(Circle::new(at(0), 5, RED.filled())))
                 .map_err(|e| plot_error(path, e))?;
         }
+        Ok(())
+    })
+}
+
+/// One PSD curve: label and PSD values (nm^2 mm) at the plot's frequencies.
+pub type PsdCurve<'a> = (&'a str, &'a [f64]);
+
+/// Plots 1-D PSDs (nm^2 mm) against spatial frequency (1/mm) on log-log axes, with a dashed line
+/// at `marker_per_mm` (for example the raster pitch's frequency) when given. The zero frequency
+/// is left out.
+pub fn stage_psd_plot(
+    path: &Path,
+    title: &str,
+    frequency_per_mm: &[f64],
+    curves: &[PsdCurve<'_>],
+    marker_per_mm: Option<(f64, &str)>,
+) -> Result<Staged> {
+    let keep: Vec<usize> = (0..frequency_per_mm.len())
+        .filter(|&k| frequency_per_mm[k] > 0.0 && frequency_per_mm[k].is_finite())
+        .collect();
+    let freqs: Vec<f64> = keep.iter().map(|&k| frequency_per_mm[k]).collect();
+    let (f0, f1) = value_range(&freqs).ok_or_else(|| Error::Empty {
+        file: path.to_path_buf(),
+        why: "no positive frequency to plot".into(),
+    })?;
+    let values: Vec<f64> = curves
+        .iter()
+        .flat_map(|(_, c)| keep.iter().filter_map(|&k| c.get(k).copied()))
+        .filter(|v| *v > 0.0 && v.is_finite())
+        .collect();
+    let (lo, hi) = value_range(&values).unwrap_or((1e-6, 1.0));
+    stage_png_sized(path, PLOT_SIZE_PX, |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d((f0..f1).log_scale(), (lo * 0.5..hi * 2.0).log_scale())
+            .map_err(|e| plot_error(path, e))?;
+        chart
+            .configure_mesh()
+            .light_line_style(TRANSPARENT)
+            .x_desc("spatial frequency (1/mm)")
+            .y_desc("PSD (nm^2 mm)")
+            .x_labels(8)
+            .x_label_formatter(&|v| format!("{}", (v * 1e3).round() / 1e3))
+            .y_label_formatter(&|v| format!("{v:.0e}"))
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(|e| plot_error(path, e))?;
+        let palette = [BLUE, RED, GREEN, MAGENTA, BLACK];
+        for (i, (label, c)) in curves.iter().enumerate() {
+            let colour = palette[i % palette.len()];
+            let pts: Vec<(f64, f64)> = keep
+                .iter()
+                .filter_map(|&k| Some((frequency_per_mm[k], *c.get(k)?)))
+                .filter(|p| p.1 > 0.0 && p.1.is_finite())
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts, colour.stroke_width(2)))
+                .map_err(|e| plot_error(path, e))?
+                .label(*label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
+        }
+        if let Some((f, label)) = marker_per_mm.filter(|m| m.0 >= f0 && m.0 <= f1) {
+            let grey = RGBColor(40, 40, 40);
+            chart
+                .draw_series(DashedLineSeries::new(
+                    vec![(f, lo * 0.5), (f, hi * 2.0)],
+                    6,
+                    4,
+                    grey.stroke_width(2),
+                ))
+                .map_err(|e| plot_error(path, e))?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(|e| plot_error(path, e))?;
         Ok(())
     })
 }
