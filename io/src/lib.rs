@@ -7,6 +7,7 @@
 pub mod atomic;
 pub mod bench;
 pub mod error;
+pub mod figures;
 pub mod machine;
 pub mod metrology;
 pub mod readers;

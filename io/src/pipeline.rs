@@ -22,6 +22,7 @@ use preston_solver::machine::Flat;
 use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 use preston_solver::path::{raster, DwellPath};
+use preston_solver::psd::LineAxis;
 use preston_solver::surface::influence::assemble_on_surface;
 use preston_solver::tif::{InfluenceFunction, Tif};
 use std::path::Path;
@@ -434,11 +435,26 @@ fn executed_at_limit(
 /// Writes `dwell.csv`, `residual.csv` and `report.json` into `out_dir` (created if needed). All
 /// three are fully written to temporary files before any is renamed into place.
 pub fn write_outputs(solved: &Solved, out_dir: &Path) -> Result<()> {
+    write_outputs_with_figures(solved, out_dir, None).map(|_| ())
+}
+
+/// [`write_outputs`], with the figure set of [`crate::figures`] when `figures` gives the raster
+/// direction (and pitch); everything is staged first and committed together. Returns notes on
+/// figures left out.
+pub fn write_outputs_with_figures(
+    solved: &Solved,
+    out_dir: &Path,
+    figures: Option<(LineAxis, Option<f64>)>,
+) -> Result<Vec<String>> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
+    let (mut staged, notes) = match figures {
+        Some((axis, pitch)) => crate::figures::stage_solve_figures(solved, out_dir, axis, pitch)?,
+        None => (Vec::new(), Vec::new()),
+    };
     let p = &solved.prepared;
     let feeds = feeds_mm_per_min(&p.ds_mm, &solved.solution.dwell_s);
     let residual = centred_residual_nm(p.map.z_nm(), &solved.removal_nm);
-    let staged = vec![
+    staged.extend([
         stage_dwell_csv(
             &out_dir.join("dwell.csv"),
             p.path.x_mm(),
@@ -456,6 +472,7 @@ pub fn write_outputs(solved: &Solved, out_dir: &Path) -> Result<()> {
             &residual,
         )?,
         stage_report(&out_dir.join("report.json"), &solved.report)?,
-    ];
-    commit_all(staged)
+    ]);
+    commit_all(staged)?;
+    Ok(notes)
 }

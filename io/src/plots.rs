@@ -5,6 +5,7 @@
 //! Text uses the DejaVu Sans font shipped in `io/assets` (Bitstream Vera licence, see
 //! `io/assets/DejaVuSans-LICENSE.txt`), so plots look the same on every machine.
 
+use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
@@ -13,8 +14,6 @@ use std::sync::Once;
 
 /// Plot width and height, pixels.
 pub const PLOT_SIZE_PX: (u32, u32) = (900, 700);
-/// Width of the colour-bar strip, pixels.
-const COLOUR_BAR_PX: u32 = 130;
 
 static FONT: Once = Once::new();
 
@@ -34,33 +33,47 @@ fn plot_error<E: std::fmt::Display>(path: &Path, e: E) -> Error {
     Error::io(path, std::io::Error::other(format!("plotting failed: {e}")))
 }
 
-/// Draws into a temporary PNG in `path`'s directory with `draw`, then renames it to `path`.
+/// Draws on a canvas of [`PLOT_SIZE_PX`] with `draw` and writes the PNG to `path` atomically.
 fn write_png<F>(path: &Path, draw: F) -> Result<()>
 where
     F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
 {
+    write_png_sized(path, PLOT_SIZE_PX, draw)
+}
+
+/// [`write_png`] on a canvas of `size_px`.
+fn write_png_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<()>
+where
+    F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
+{
+    stage_png_sized(path, size_px, draw)?.commit()
+}
+
+/// Draws on a canvas of `size_px` in memory with `draw` and stages the PNG for `path` (committed
+/// together with the other outputs, see [`crate::atomic::stage`]).
+fn stage_png_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<Staged>
+where
+    F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
+{
     register_font();
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_else(|| "plot".into());
-    let temp = tempfile::Builder::new()
-        .prefix(&format!(".{name}."))
-        .suffix(".png")
-        .tempfile_in(&dir)
-        .map_err(|e| Error::io(path, e))?;
+    let (w, h) = size_px;
+    let mut rgb = vec![0u8; w as usize * h as usize * 3];
     {
-        let root = BitMapBackend::new(temp.path(), PLOT_SIZE_PX).into_drawing_area();
+        let root = BitMapBackend::with_buffer(&mut rgb, size_px).into_drawing_area();
         root.fill(&WHITE).map_err(|e| plot_error(path, e))?;
         draw(&root)?;
         root.present().map_err(|e| plot_error(path, e))?;
     }
-    temp.persist(path).map_err(|e| Error::io(path, e.error))?;
-    Ok(())
+    stage(path, |out: &mut dyn std::io::Write| {
+        let mut encoder = png::Encoder::new(out, w, h);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().map_err(std::io::Error::other)?;
+        writer
+            .write_image_data(&rgb)
+            .map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)
+    })
 }
 
 /// Finite range of `v`, widened when all values are equal; `None` when none is finite.
@@ -85,8 +98,252 @@ fn value_range(v: &[f64]) -> Option<(f64, f64)> {
     }
 }
 
-/// Plots scattered values `v` at `(x, y)` (mm) as squares of the mean point spacing, coloured on
-/// the viridis scale, with a colour bar labelled `unit`.
+/// Width of every map plot, pixels; the height follows the data's aspect ratio.
+pub const MAP_WIDTH_PX: u32 = 1000;
+/// Height above the data for the title, pixels.
+const TITLE_PX: u32 = 44;
+/// Room left of the data for the y tick labels and axis name, pixels.
+const Y_LABELS_PX: u32 = 72;
+/// Blank margin at the canvas's left edge, pixels (inside `Y_LABELS_PX`).
+const LEFT_PX: u32 = 10;
+/// Room below the data for the x tick labels and axis name, pixels.
+const X_LABELS_PX: u32 = 48;
+/// Margin right of the data, pixels.
+const RIGHT_PX: u32 = 36;
+/// Height of the colour-bar strip below the map (bar, ticks, unit), pixels.
+const BAR_AREA_PX: u32 = 76;
+/// Tallest data area, pixels (near-square parts).
+const MAX_DATA_HEIGHT_PX: u32 = 720;
+/// Shortest data area, pixels (very thin strips stay readable; the aspect is then kept by
+/// narrowing the width instead).
+const MIN_DATA_HEIGHT_PX: u32 = 40;
+/// Colour of pixels inside the plot frame that no data point covers (outside the aperture).
+const NO_DATA: RGBColor = RGBColor(200, 200, 200);
+
+/// Where a map plot puts its data: equal mm per pixel on both axes, the part's long axis across
+/// the width (a part taller than wide is turned a quarter turn clockwise: `y` across, `x` down).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapLayout {
+    /// Canvas size, pixels.
+    pub canvas_px: (u32, u32),
+    /// Top-left corner of the data area on the canvas, pixels.
+    pub data_origin_px: (u32, u32),
+    /// Size of the data area, pixels.
+    pub data_size_px: (u32, u32),
+    /// True when the plot shows `y` across and `x` down.
+    pub rotated: bool,
+}
+
+impl MapLayout {
+    /// The layout for a data extent of `width_mm` by `height_mm` (x by y, both positive).
+    pub fn for_extent(width_mm: f64, height_mm: f64) -> Self {
+        let rotated = height_mm > width_mm;
+        let (across, down) = if rotated {
+            (height_mm, width_mm)
+        } else {
+            (width_mm, height_mm)
+        };
+        let max_w = MAP_WIDTH_PX - Y_LABELS_PX - RIGHT_PX;
+        let mut w = max_w as f64;
+        let mut h = w * down / across;
+        if h > MAX_DATA_HEIGHT_PX as f64 {
+            h = MAX_DATA_HEIGHT_PX as f64;
+            w = h * across / down;
+        }
+        if h < MIN_DATA_HEIGHT_PX as f64 {
+            // Thinner than this, keep the aspect by the height alone (the width then exceeds
+            // the canvas and the canvas grows with it).
+            h = MIN_DATA_HEIGHT_PX as f64;
+            w = h * across / down;
+        }
+        let (w, h) = (w.round().max(1.0) as u32, h.round().max(1.0) as u32);
+        MapLayout {
+            canvas_px: (
+                (Y_LABELS_PX + w + RIGHT_PX).max(MAP_WIDTH_PX),
+                TITLE_PX + h + X_LABELS_PX + BAR_AREA_PX,
+            ),
+            data_origin_px: (Y_LABELS_PX, TITLE_PX),
+            data_size_px: (w, h),
+            rotated,
+        }
+    }
+}
+
+/// Which colour scale a map gets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Scale {
+    /// Viridis from the smallest to the largest value (one-signed quantities).
+    Sequential,
+    /// Moreland's cool-warm map, symmetric about zero (signed quantities).
+    Diverging,
+}
+
+/// Moreland's diverging cool-warm map (K. Moreland, "Diverging Color Maps for Scientific
+/// Visualization", ISVC 2009), sampled at nine points; grey at zero, never white.
+const COOL_WARM: [(f64, (u8, u8, u8)); 9] = [
+    (0.0, (59, 76, 192)),
+    (0.125, (98, 130, 234)),
+    (0.25, (141, 176, 254)),
+    (0.375, (184, 208, 249)),
+    (0.5, (221, 221, 221)),
+    (0.625, (245, 196, 173)),
+    (0.75, (244, 154, 123)),
+    (0.875, (222, 96, 77)),
+    (1.0, (180, 4, 38)),
+];
+
+fn cool_warm(u: f64) -> RGBColor {
+    let u = if u.is_finite() {
+        u.clamp(0.0, 1.0)
+    } else {
+        0.5
+    };
+    let k = COOL_WARM
+        .windows(2)
+        .position(|w| u <= w[1].0)
+        .unwrap_or(COOL_WARM.len() - 2);
+    let ((a, ca), (b, cb)) = (COOL_WARM[k], COOL_WARM[k + 1]);
+    let f = (u - a) / (b - a);
+    let mix = |p: u8, q: u8| (p as f64 + f * (q as f64 - p as f64)).round() as u8;
+    RGBColor(mix(ca.0, cb.0), mix(ca.1, cb.1), mix(ca.2, cb.2))
+}
+
+impl Scale {
+    /// Signed data (values of both signs) get the diverging scale.
+    fn for_values(lo: f64, hi: f64) -> Self {
+        if lo < 0.0 && hi > 0.0 {
+            Scale::Diverging
+        } else {
+            Scale::Sequential
+        }
+    }
+
+    /// The value range the colours span.
+    fn range(self, lo: f64, hi: f64) -> (f64, f64) {
+        match self {
+            Scale::Sequential => (lo, hi),
+            Scale::Diverging => {
+                let a = lo.abs().max(hi.abs());
+                (-a, a)
+            }
+        }
+    }
+
+    fn colour(self, v: f64, lo: f64, hi: f64) -> RGBColor {
+        match self {
+            Scale::Sequential => ViridisRGB::get_color_normalized(v, lo, hi),
+            Scale::Diverging => cool_warm((v - lo) / (hi - lo)),
+        }
+    }
+}
+
+/// Scattered points binned into square cells for drawing: each cell holds the index of the last
+/// point that falls in it. The cell is the lattice pitch on lattice maps (the smallest step
+/// between distinct coordinates) unless that would make more than four cells per point, else the
+/// mean spacing `sqrt(area / n)`.
+struct CellIndex {
+    x0: f64,
+    y0: f64,
+    cell_mm: f64,
+    nx: usize,
+    ny: usize,
+    cells: Vec<u32>,
+}
+
+const EMPTY_CELL: u32 = u32::MAX;
+
+impl CellIndex {
+    fn new(x: &[f64], y: &[f64], v: &[f64], extent: (f64, f64, f64, f64)) -> Self {
+        let (x0, x1, y0, y1) = extent;
+        let n = x.len().max(1) as f64;
+        let mean_spacing = ((x1 - x0).max(1e-9) * (y1 - y0).max(1e-9) / n).sqrt();
+        let lattice = preston_solver::dwell::fft::FftOperator::lattice_pitch_mm(x, y);
+        let cells_at = |c: f64| ((x1 - x0) / c + 1.0) * ((y1 - y0) / c + 1.0);
+        let cell_mm = match lattice {
+            Some(p) if p > 0.0 && cells_at(p) <= 4.0 * n => p,
+            _ => mean_spacing.max(1e-9),
+        };
+        let nx = ((x1 - x0) / cell_mm).round() as usize + 1;
+        let ny = ((y1 - y0) / cell_mm).round() as usize + 1;
+        let mut cells = vec![EMPTY_CELL; nx * ny];
+        for i in 0..x.len() {
+            if !v[i].is_finite() || !x[i].is_finite() || !y[i].is_finite() {
+                continue;
+            }
+            let ix = (((x[i] - x0) / cell_mm).round() as usize).min(nx - 1);
+            let iy = (((y[i] - y0) / cell_mm).round() as usize).min(ny - 1);
+            cells[iy * nx + ix] = i as u32;
+        }
+        CellIndex {
+            x0,
+            y0,
+            cell_mm,
+            nx,
+            ny,
+            cells,
+        }
+    }
+
+    /// The point drawn at `(x, y)` mm: its own cell, else the nearest filled cell of the eight
+    /// around it (so that scattered data leave no holes).
+    fn at(&self, x: f64, y: f64) -> Option<usize> {
+        let fx = (x - self.x0) / self.cell_mm;
+        let fy = (y - self.y0) / self.cell_mm;
+        let (cx, cy) = (fx.round(), fy.round());
+        let mut best: Option<(f64, usize)> = None;
+        for dy in -1..=1_i64 {
+            for dx in -1..=1_i64 {
+                let (ix, iy) = (cx as i64 + dx, cy as i64 + dy);
+                if ix < 0 || iy < 0 || ix >= self.nx as i64 || iy >= self.ny as i64 {
+                    continue;
+                }
+                let k = self.cells[iy as usize * self.nx + ix as usize];
+                if k == EMPTY_CELL {
+                    continue;
+                }
+                let d = (ix as f64 - fx).powi(2) + (iy as f64 - fy).powi(2);
+                if (dx, dy) != (0, 0) && d > 1.0 {
+                    continue;
+                }
+                if best.is_none_or(|(bd, _)| d < bd) {
+                    best = Some((d, k as usize));
+                }
+            }
+        }
+        best.map(|(_, k)| k)
+    }
+}
+
+/// The title with the map's statistics: PV and RMS about the mean for heights (`nm`), as
+/// `report.json` computes them ([`preston_solver::map::HeightStats`]); the value range otherwise.
+fn titled(title: &str, unit: &str, v: &[f64]) -> String {
+    let finite: Vec<f64> = v.iter().copied().filter(|a| a.is_finite()).collect();
+    if unit == "nm" {
+        let s = preston_solver::map::HeightStats::of(&finite);
+        format!("{title}: PV {:.3} nm, RMS {:.3} nm", s.pv_nm, s.rms_nm)
+    } else {
+        match value_range(&finite) {
+            Some((lo, hi)) => format!("{title}: {} to {} {unit}", sig(lo), sig(hi)),
+            None => title.to_string(),
+        }
+    }
+}
+
+/// Four significant digits, without an exponent for everyday magnitudes.
+fn sig(v: f64) -> String {
+    let a = v.abs();
+    if a == 0.0 || (1e-3..1e5).contains(&a) {
+        let decimals = (3 - a.log10().floor() as i32).clamp(0, 6) as usize;
+        format!("{v:.decimals$}")
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
+/// Plots scattered values `v` at `(x, y)` (mm) as an image at equal mm per pixel on both axes
+/// (each pixel takes the value of the point in its cell, see [`MapLayout`]), with PV and RMS (or
+/// the range) in the title and a colour bar labelled `unit` below. Signed data get a diverging
+/// scale centred on zero, one-signed data viridis.
 pub fn plot_map(
     path: &Path,
     title: &str,
@@ -95,42 +352,88 @@ pub fn plot_map(
     y: &[f64],
     v: &[f64],
 ) -> Result<()> {
+    stage_map(path, title, unit, x, y, v)?.commit()
+}
+
+/// [`plot_map`], staged for a commit together with other outputs.
+pub fn stage_map(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    x: &[f64],
+    y: &[f64],
+    v: &[f64],
+) -> Result<Staged> {
     let n = x.len().min(y.len()).min(v.len());
-    let (x0, x1) = value_range(&x[..n]).ok_or_else(|| Error::Empty {
+    let (x, y, v) = (&x[..n], &y[..n], &v[..n]);
+    let (x0, x1) = value_range(x).ok_or_else(|| Error::Empty {
         file: path.to_path_buf(),
         why: "nothing to plot".into(),
     })?;
-    let (y0, y1) = value_range(&y[..n]).unwrap_or((x0, x1));
-    let (lo, hi) = value_range(&v[..n]).unwrap_or((0.0, 1.0));
-    // Half the mean spacing of points spread over the bounding box.
-    let half = 0.5 * ((x1 - x0) * (y1 - y0) / n.max(1) as f64).sqrt().max(1e-9);
-    write_png(path, |root| {
-        let (main, bar) = root.split_horizontally(PLOT_SIZE_PX.0 - COLOUR_BAR_PX);
-        let mut chart = ChartBuilder::on(&main)
-            .caption(title, ("sans-serif", 24))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x0 - half..x1 + half, y0 - half..y1 + half)
+    let (y0, y1) = value_range(y).unwrap_or((x0, x1));
+    let (lo, hi) = value_range(v).unwrap_or((0.0, 1.0));
+    let scale = Scale::for_values(lo, hi);
+    let (lo, hi) = scale.range(lo, hi);
+    let cells = CellIndex::new(x, y, v, (x0, x1, y0, y1));
+    let half = 0.5 * cells.cell_mm;
+    let (ex0, ex1, ey0, ey1) = (x0 - half, x1 + half, y0 - half, y1 + half);
+    let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
+    let heading = titled(title, unit, v);
+    stage_png_sized(path, layout.canvas_px, |root| {
+        root.draw(&Text::new(
+            heading.as_str(),
+            (layout.data_origin_px.0 as i32, 10),
+            ("sans-serif", 22).into_font(),
+        ))
+        .map_err(|e| plot_error(path, e))?;
+        let (top, bar) = root.split_vertically(layout.canvas_px.1 - BAR_AREA_PX);
+        let (_, body) = top.split_vertically(TITLE_PX);
+        let right = layout.canvas_px.0 - Y_LABELS_PX - layout.data_size_px.0;
+        let builder = |b: &mut ChartBuilder<'_, '_, BitMapBackend<'_>>| {
+            b.margin_right(right)
+                .margin_left(LEFT_PX)
+                .x_label_area_size(X_LABELS_PX)
+                .y_label_area_size(Y_LABELS_PX - LEFT_PX);
+        };
+        let mut cb = ChartBuilder::on(&body);
+        builder(&mut cb);
+        // Across and down in plot terms; a rotated plot shows y across and x downwards.
+        let (across, down, across_name, down_name) = if layout.rotated {
+            ((ey0, ey1), (ex1, ex0), "y (mm)", "x (mm)")
+        } else {
+            ((ex0, ex1), (ey0, ey1), "x (mm)", "y (mm)")
+        };
+        let mut chart = cb
+            .build_cartesian_2d(across.0..across.1, down.0..down.1)
             .map_err(|e| plot_error(path, e))?;
         chart
             .configure_mesh()
             .disable_mesh()
-            .x_desc("x (mm)")
-            .y_desc("y (mm)")
+            .set_all_tick_mark_size(0)
+            .x_desc(across_name)
+            .y_desc(down_name)
+            .x_labels(8)
+            .y_labels(if layout.data_size_px.1 < 120 { 3 } else { 8 })
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| plot_error(path, e))?;
-        chart
-            .draw_series((0..n).filter(|&i| v[i].is_finite()).map(|i| {
-                let c = ViridisRGB::get_color_normalized(v[i], lo, hi);
-                Rectangle::new(
-                    [(x[i] - half, y[i] - half), (x[i] + half, y[i] + half)],
-                    c.filled(),
-                )
-            }))
-            .map_err(|e| plot_error(path, e))?;
-        colour_bar(path, &bar, unit, lo, hi)
+        let (xr, yr) = chart.plotting_area().get_pixel_range();
+        let (w, h) = ((xr.end - xr.start).max(1), (yr.end - yr.start).max(1));
+        for py in 0..h {
+            for px in 0..w {
+                // Pixel centre in plot units, then in part coordinates.
+                let a = across.0 + (across.1 - across.0) * (px as f64 + 0.5) / w as f64;
+                let d = down.1 + (down.0 - down.1) * (py as f64 + 0.5) / h as f64;
+                let (qx, qy) = if layout.rotated { (d, a) } else { (a, d) };
+                let colour = match cells.at(qx, qy) {
+                    Some(i) => scale.colour(v[i], lo, hi),
+                    None => NO_DATA,
+                };
+                root.draw_pixel((xr.start + px, yr.start + py), &colour)
+                    .map_err(|e| plot_error(path, e))?;
+            }
+        }
+        colour_bar(path, &bar, unit, lo, hi, scale, layout)
     })
 }
 
@@ -140,65 +443,194 @@ fn colour_bar(
     unit: &str,
     lo: f64,
     hi: f64,
+    scale: Scale,
+    layout: MapLayout,
 ) -> Result<()> {
+    let bar_w = layout.data_size_px.0.min(600);
+    let right = layout.canvas_px.0 - Y_LABELS_PX - bar_w;
     let mut chart = ChartBuilder::on(area)
-        .margin_top(50)
-        .margin_bottom(52)
-        .margin_right(10)
-        .y_label_area_size(70)
-        .caption(unit, ("sans-serif", 16))
-        .build_cartesian_2d(0.0..1.0, lo..hi)
+        .margin_top(14)
+        .margin_right(right)
+        .margin_left(LEFT_PX)
+        .x_label_area_size(44)
+        .y_label_area_size(Y_LABELS_PX - LEFT_PX)
+        .build_cartesian_2d(lo..hi, 0.0..1.0)
         .map_err(|e| plot_error(path, e))?;
     chart
         .configure_mesh()
         .disable_mesh()
-        .disable_x_axis()
+        .set_all_tick_mark_size(0)
+        .disable_y_axis()
+        .x_labels(6)
+        .x_label_formatter(&|v| sig(*v))
+        .x_desc(unit)
         .label_style(("sans-serif", 13))
         .draw()
         .map_err(|e| plot_error(path, e))?;
-    let steps = 200;
+    let steps = 300;
     chart
         .draw_series((0..steps).map(|k| {
             let a = lo + (hi - lo) * k as f64 / steps as f64;
             let b = lo + (hi - lo) * (k + 1) as f64 / steps as f64;
-            let c = ViridisRGB::get_color_normalized(0.5 * (a + b), lo, hi);
-            Rectangle::new([(0.0, a), (1.0, b)], c.filled())
+            Rectangle::new(
+                [(a, 0.0), (b, 1.0)],
+                scale.colour(0.5 * (a + b), lo, hi).filled(),
+            )
         }))
         .map_err(|e| plot_error(path, e))?;
     Ok(())
 }
 
-/// Plots a tool path (mm) as a polyline with its start marked.
+/// Plots a tool path (mm) as a polyline with its start marked, at equal mm per pixel on both
+/// axes (the layout of [`plot_map`], without the colour bar).
 pub fn plot_path(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<()> {
+    stage_path_plot(path, title, x, y)?.commit()
+}
+
+/// [`plot_path`], staged for a commit together with other outputs.
+pub fn stage_path_plot(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<Staged> {
     let n = x.len().min(y.len());
     let (x0, x1) = value_range(&x[..n]).ok_or_else(|| Error::Empty {
         file: path.to_path_buf(),
         why: "nothing to plot".into(),
     })?;
     let (y0, y1) = value_range(&y[..n]).unwrap_or((x0, x1));
-    write_png(path, |root| {
-        let mut chart = ChartBuilder::on(root)
-            .caption(title, ("sans-serif", 24))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d(x0..x1, y0..y1)
+    let pad = 0.02 * (x1 - x0).max(y1 - y0);
+    let (ex0, ex1, ey0, ey1) = (x0 - pad, x1 + pad, y0 - pad, y1 + pad);
+    let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
+    let canvas = (layout.canvas_px.0, layout.canvas_px.1 - BAR_AREA_PX);
+    let heading = format!("{title}: {n} points");
+    stage_png_sized(path, canvas, |root| {
+        root.draw(&Text::new(
+            heading.as_str(),
+            (layout.data_origin_px.0 as i32, 10),
+            ("sans-serif", 22).into_font(),
+        ))
+        .map_err(|e| plot_error(path, e))?;
+        let (_, body) = root.split_vertically(TITLE_PX);
+        let right = layout.canvas_px.0 - Y_LABELS_PX - layout.data_size_px.0;
+        let (across, down, across_name, down_name) = if layout.rotated {
+            ((ey0, ey1), (ex1, ex0), "y (mm)", "x (mm)")
+        } else {
+            ((ex0, ex1), (ey0, ey1), "x (mm)", "y (mm)")
+        };
+        let mut chart = ChartBuilder::on(&body)
+            .margin_right(right)
+            .margin_left(LEFT_PX)
+            .x_label_area_size(X_LABELS_PX)
+            .y_label_area_size(Y_LABELS_PX - LEFT_PX)
+            .build_cartesian_2d(across.0..across.1, down.0..down.1)
             .map_err(|e| plot_error(path, e))?;
         chart
             .configure_mesh()
-            .x_desc("x (mm)")
-            .y_desc("y (mm)")
+            .x_desc(across_name)
+            .y_desc(down_name)
+            .x_labels(8)
+            .y_labels(if layout.data_size_px.1 < 120 { 3 } else { 8 })
+            .set_all_tick_mark_size(0)
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| plot_error(path, e))?;
+        let at = |i: usize| {
+            if layout.rotated {
+                (y[i], x[i])
+            } else {
+                (x[i], y[i])
+            }
+        };
         chart
-            .draw_series(LineSeries::new((0..n).map(|i| (x[i], y[i])), BLUE))
+            .draw_series(LineSeries::new((0..n).map(at), BLUE))
             .map_err(|e| plot_error(path, e))?;
         if n > 0 {
             chart
-                .draw_series(std::iter::once(Circle::new((x[0], y[0]), 5, RED.filled())))
+                .draw_series(std::iter::once(Circle::new(at(0), 5, RED.filled())))
                 .map_err(|e| plot_error(path, e))?;
         }
+        Ok(())
+    })
+}
+
+/// One PSD curve: label and PSD values (nm^2 mm) at the plot's frequencies.
+pub type PsdCurve<'a> = (&'a str, &'a [f64]);
+
+/// Plots 1-D PSDs (nm^2 mm) against spatial frequency (1/mm) on log-log axes, with a dashed line
+/// at `marker_per_mm` (for example the raster pitch's frequency) when given. The zero frequency
+/// is left out.
+pub fn stage_psd_plot(
+    path: &Path,
+    title: &str,
+    frequency_per_mm: &[f64],
+    curves: &[PsdCurve<'_>],
+    marker_per_mm: Option<(f64, &str)>,
+) -> Result<Staged> {
+    let keep: Vec<usize> = (0..frequency_per_mm.len())
+        .filter(|&k| frequency_per_mm[k] > 0.0 && frequency_per_mm[k].is_finite())
+        .collect();
+    let freqs: Vec<f64> = keep.iter().map(|&k| frequency_per_mm[k]).collect();
+    let (f0, f1) = value_range(&freqs).ok_or_else(|| Error::Empty {
+        file: path.to_path_buf(),
+        why: "no positive frequency to plot".into(),
+    })?;
+    let values: Vec<f64> = curves
+        .iter()
+        .flat_map(|(_, c)| keep.iter().filter_map(|&k| c.get(k).copied()))
+        .filter(|v| *v > 0.0 && v.is_finite())
+        .collect();
+    let (lo, hi) = value_range(&values).unwrap_or((1e-6, 1.0));
+    stage_png_sized(path, PLOT_SIZE_PX, |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d((f0..f1).log_scale(), (lo * 0.5..hi * 2.0).log_scale())
+            .map_err(|e| plot_error(path, e))?;
+        chart
+            .configure_mesh()
+            .light_line_style(TRANSPARENT)
+            .x_desc("spatial frequency (1/mm)")
+            .y_desc("PSD (nm^2 mm)")
+            .x_labels(8)
+            .x_label_formatter(&|v| format!("{}", (v * 1e3).round() / 1e3))
+            .y_label_formatter(&|v| format!("{v:.0e}"))
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(|e| plot_error(path, e))?;
+        let palette = [BLUE, RED, GREEN, MAGENTA, BLACK];
+        for (i, (label, c)) in curves.iter().enumerate() {
+            let colour = palette[i % palette.len()];
+            let pts: Vec<(f64, f64)> = keep
+                .iter()
+                .filter_map(|&k| Some((frequency_per_mm[k], *c.get(k)?)))
+                .filter(|p| p.1 > 0.0 && p.1.is_finite())
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts, colour.stroke_width(2)))
+                .map_err(|e| plot_error(path, e))?
+                .label(*label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
+        }
+        if let Some((f, label)) = marker_per_mm.filter(|m| m.0 >= f0 && m.0 <= f1) {
+            let grey = RGBColor(40, 40, 40);
+            chart
+                .draw_series(DashedLineSeries::new(
+                    vec![(f, lo * 0.5), (f, hi * 2.0)],
+                    6,
+                    4,
+                    grey.stroke_width(2),
+                ))
+                .map_err(|e| plot_error(path, e))?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(|e| plot_error(path, e))?;
         Ok(())
     })
 }
@@ -217,7 +649,10 @@ pub fn plot_convergence(path: &Path, title: &str, unit: &str, curves: &[Curve<'_
     let it_max = curves
         .iter()
         .flat_map(|(_, c)| c.iter().map(|p| p.0))
-        .fold(1.0, f64::max);
+        .fold(1.0, f64::max)
+        .ceil();
+    // Whole iterations only: at most ten ticks, on integers.
+    let ticks = (it_max as usize + 1).min(10);
     write_png(path, |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 24))
@@ -229,6 +664,14 @@ pub fn plot_convergence(path: &Path, title: &str, unit: &str, curves: &[Curve<'_
         chart
             .configure_mesh()
             .x_desc("iteration")
+            .x_labels(ticks)
+            .x_label_formatter(&|v| {
+                if (v - v.round()).abs() < 1e-9 {
+                    format!("{}", v.round() as i64)
+                } else {
+                    String::new()
+                }
+            })
             .y_desc(unit)
             .label_style(("sans-serif", 14))
             .draw()
@@ -248,6 +691,7 @@ pub fn plot_convergence(path: &Path, title: &str, unit: &str, curves: &[Curve<'_
         }
         chart
             .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
             .background_style(WHITE.mix(0.8))
             .border_style(BLACK)
             .label_font(("sans-serif", 14))
@@ -291,7 +735,7 @@ mod tests {
         let a = dir.path().join("a.png");
         plot_map(&a, "error before", "nm", &x, &y, &v).unwrap();
         let (w, h, pa, bpp) = decode(&a);
-        assert_eq!((w, h), PLOT_SIZE_PX);
+        assert_eq!((w, h), MapLayout::for_extent(30.0, 30.0).canvas_px);
         // Change the data in the lower-left quarter only: pixels change, and only some of them.
         let mut v2 = v.clone();
         for (k, val) in v2.iter_mut().enumerate() {
@@ -328,7 +772,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("path.png");
         plot_path(&p, "path", &[0.0, 1.0, 1.0, 0.0], &[0.0, 0.0, 1.0, 1.0]).unwrap();
-        assert_eq!(decode(&p).0, PLOT_SIZE_PX.0);
+        assert_eq!(decode(&p).0, MAP_WIDTH_PX);
         let c = dir.path().join("conv.png");
         plot_convergence(
             &c,
@@ -347,5 +791,94 @@ mod tests {
         let e = dir.path().join("empty.png");
         assert!(plot_map(&e, "t", "nm", &[], &[], &[]).is_err());
         assert!(!e.exists());
+    }
+
+    /// The sample mirror's lattice: 372 x 26 points at 0.32 mm (118.72 x 8 mm).
+    fn strip() -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let (mut x, mut y, mut v) = (Vec::new(), Vec::new(), Vec::new());
+        for j in 0..26 {
+            for i in 0..372 {
+                let (a, b) = (i as f64 * 0.32, j as f64 * 0.32);
+                x.push(a);
+                y.push(b);
+                v.push(30.0 * (a / 9.0).sin() + 4.0 * (b / 2.0).cos());
+            }
+        }
+        (x, y, v)
+    }
+
+    /// Relative tolerance on the data area's aspect against the part's.
+    const ASPECT_REL_TOL: f64 = 0.05;
+
+    fn rgb(p: &[u8]) -> (u8, u8, u8) {
+        (p[0], p[1], p[2])
+    }
+
+    /// Equal mm per pixel: the data area of the strip has the part's aspect (the long axis across
+    /// the width), every pixel in it is data (no white grid lines, no gaps), and a part taller than
+    /// wide gets the same layout turned a quarter turn.
+    #[test]
+    fn map_plots_keep_the_aspect_and_fill_the_data_area() {
+        let dir = tempfile::tempdir().unwrap();
+        let (x, y, v) = strip();
+        let f = dir.path().join("strip.png");
+        plot_map(&f, "residual", "nm", &x, &y, &v).unwrap();
+        let (w, h, px, bpp) = decode(&f);
+        let layout = MapLayout::for_extent(118.72 + 0.32, 8.0 + 0.32);
+        assert_eq!((w, h), layout.canvas_px);
+        let (dw, dh) = layout.data_size_px;
+        let aspect = dw as f64 / dh as f64;
+        assert!(
+            (aspect / (118.0 / 8.0) - 1.0).abs() < ASPECT_REL_TOL,
+            "aspect {aspect}"
+        );
+        let (ox, oy) = layout.data_origin_px;
+        for r in oy..oy + dh {
+            for c in ox..ox + dw {
+                let k = (r * w + c) as usize * bpp;
+                let p = rgb(&px[k..k + bpp]);
+                assert_ne!(p, (255, 255, 255), "white pixel at ({c}, {r})");
+                assert_ne!(p, (NO_DATA.0, NO_DATA.1, NO_DATA.2), "gap at ({c}, {r})");
+            }
+        }
+        // Just outside the data area: the white canvas (the area found is the one drawn).
+        let k = ((oy + dh / 2) * w + ox + dw + 3) as usize * bpp;
+        assert_eq!(rgb(&px[k..k + bpp]), (255, 255, 255));
+        let tall = MapLayout::for_extent(8.32, 119.04);
+        assert!(tall.rotated && !layout.rotated);
+        assert_eq!(tall.data_size_px, layout.data_size_px);
+    }
+
+    /// The title carries the PV and RMS that `report.json` computes from the same values.
+    #[test]
+    fn titles_carry_pv_and_rms_of_the_values() {
+        let (_, _, v) = strip();
+        let s = preston_solver::map::HeightStats::of(&v);
+        let t = titled("Residual", "nm", &v);
+        assert_eq!(
+            t,
+            format!("Residual: PV {:.3} nm, RMS {:.3} nm", s.pv_nm, s.rms_nm)
+        );
+        assert_eq!(
+            titled("Dwell", "s", &[0.5, 2.0, 1234.6]),
+            "Dwell: 0.5000 to 1235 s"
+        );
+    }
+
+    /// Signed data: the scale is symmetric about zero, zero is the neutral grey (not white) and
+    /// equal magnitudes of opposite sign get the two ends; one-signed data keep viridis.
+    #[test]
+    fn signed_maps_get_a_diverging_scale_centred_on_zero() {
+        let scale = Scale::for_values(-3.0, 10.0);
+        assert_eq!(scale, Scale::Diverging);
+        assert_eq!(scale.range(-3.0, 10.0), (-10.0, 10.0));
+        assert_eq!(scale.colour(0.0, -10.0, 10.0), RGBColor(221, 221, 221));
+        assert_eq!(scale.colour(-10.0, -10.0, 10.0), RGBColor(59, 76, 192));
+        assert_eq!(scale.colour(10.0, -10.0, 10.0), RGBColor(180, 4, 38));
+        // Monotone in lightness towards the centre from both ends (green channel).
+        let g = |v: f64| scale.colour(v, -10.0, 10.0).1;
+        assert!(g(-10.0) < g(-5.0) && g(-5.0) < g(0.0) && g(0.0) > g(5.0) && g(5.0) > g(10.0));
+        assert_eq!(Scale::for_values(0.0, 10.0), Scale::Sequential);
+        assert_eq!(Scale::Sequential.range(2.0, 10.0), (2.0, 10.0));
     }
 }

@@ -22,6 +22,7 @@ pub mod map;
 pub mod modal;
 pub mod observer;
 pub mod path;
+pub mod psd;
 pub mod registration;
 pub mod simulate;
 pub mod surface;

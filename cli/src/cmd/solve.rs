@@ -13,6 +13,7 @@ use preston_solver::machine::gcode::write_and_check;
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::path::raster::RasterAxis;
+use preston_solver::psd::LineAxis;
 use preston_solver::surface::influence::TifFrame;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -173,6 +174,10 @@ pub struct Args {
     /// Exit 0 even when the solver stops before converging (the status is still reported).
     #[arg(long)]
     pub accept_best_iterate: bool,
+    /// Also write PNG figures (error_before, removal, residual, dwell, feed, tif, path) and the
+    /// PSD of error and residual along the raster direction (psd.png, psd.csv).
+    #[arg(long)]
+    pub plots: bool,
     /// Design surface JSON of a curved part: the TIF acts in each dwell point's tangent plane.
     #[arg(long, value_name = "S.json")]
     pub surface: Option<PathBuf>,
@@ -279,12 +284,23 @@ impl Args {
 
 /// Runs `preston solve`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let plots = args.plots;
     let (job, job_path, out, accept_best) = args.into_job()?;
     let bars = Bars::new();
     let prepared = pipeline::prepare(&job, &job_path, &bars)?;
     let solved = pipeline::solve(prepared, &job, &bars)?;
-    pipeline::write_outputs(&solved, &out)
+    let figures = plots.then(|| {
+        let axis = match job.dwell.raster_along {
+            RasterAxis::X => LineAxis::X,
+            RasterAxis::Y => LineAxis::Y,
+        };
+        (axis, job.dwell.raster_pitch_mm)
+    });
+    let notes = pipeline::write_outputs_with_figures(&solved, &out, figures)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
+    for note in notes {
+        eprintln!("  note: {note}");
+    }
     let r = &solved.report;
     print_input_notes(&solved.prepared.map_input);
     eprintln!(
