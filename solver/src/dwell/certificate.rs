@@ -4,8 +4,8 @@
 //! **Gap bound** (Lagrangian duality). With `r = P(R t - z)` the piston-free residual at `t`,
 //! `0.5 ||a||^2 >= a'y - 0.5 ||y||^2` for every `y`; taking `y = alpha r` (and `alpha D t` for
 //! the smoothing term) every feasible `s` has
-//! `f(s) >= d(alpha) = -alpha z'r - 0.5 alpha^2 (||r||^2 + lambda ||D t||^2)
-//! + sum_j min_{l_j <= s_j <= U_j} c_j s_j`, `c = alpha (R^T r + lambda D^T D t) + rho`
+//! `f(s) >= d(alpha) = -alpha z'r - 0.5 alpha^2 (||r||^2 + lambda ||D t||^2) +
+//! sum_j min_{l_j <= s_j <= U_j} c_j s_j`, `c = alpha (R^T r + lambda D^T D t) + rho`
 //! (Boyd & Vandenberghe, *Convex Optimization*, 2004, sections 5.1-5.2). `U_j` is the dwell upper
 //! bound `u_j` (from `v_min`) or, when `rho > 0`, the level-set bound `l_j + (f(t) - rho 1'l) /
 //! rho` (every minimiser has `rho 1't* <= f(t*) <= f(t)`). `d` is maximised over a few `alpha`

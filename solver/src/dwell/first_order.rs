@@ -45,8 +45,8 @@
 //!   in the scaled variables (zero exactly at the optimum);
 //! * gap bound, from Lagrangian duality: `0.5 ||a||^2 >= a'y - 0.5 ||y||^2` for every `y`, so with
 //!   `y = alpha r` (`r = P(R t - z)`, the current residual) and `v = alpha D t` every feasible `s`
-//!   has `f(s) >= d(alpha) = -alpha z'r - 0.5 alpha^2 (||r||^2 + lambda ||D t||^2)
-//!   + sum_j min_{l_j <= s_j <= U_j} c_j s_j` with `c = alpha (R^T r + lambda D^T D t) + rho`.
+//!   has `f(s) >= d(alpha) = -alpha z'r - 0.5 alpha^2 (||r||^2 + lambda ||D t||^2) +
+//!   sum_j min_{l_j <= s_j <= U_j} c_j s_j` with `c = alpha (R^T r + lambda D^T D t) + rho`.
 //!   `U_j` is `u_j` or, when `rho > 0`, the level-set bound `l_j + (f(t) - rho 1'l) / rho` (every
 //!   minimiser has `rho 1't* <= f(t*) <= f(t)`). `d` is maximised over a few `alpha` in `[0, 1]`
 //!   and `f(t) - d` plus a rounding margin is reported ([`super::certificate`]). At `alpha = 1`
