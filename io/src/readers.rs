@@ -66,6 +66,7 @@ pub fn read_tif(path: &Path) -> Result<GridTif> {
             why: "no data rows".into(),
         });
     }
+    check_duplicates(path, t.column(0), t.column(1), &t.lines)?;
     GridTif::from_samples(t.column(0), t.column(1), t.column(2)).map_err(|e| Error::engine(path, e))
 }
 

@@ -257,7 +257,11 @@ pub fn simulate_program(
             ),
         ));
     }
-    let bytes = std::fs::read(program_file).map_err(|e| Error::io(program_file, e))?;
+    let bytes = crate::limits::read_regular(
+        program_file,
+        preston_solver::budget::limit_bytes(),
+        "program",
+    )?;
     let text = String::from_utf8(bytes).map_err(|e| {
         Error::engine(
             program_file,
