@@ -105,6 +105,14 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let (path, previous_dwell_s) = match (&job.dwell.file, job.dwell.raster_pitch_mm) {
         (Some(f), None) => {
             let d = read_dwell(f)?;
+            if d.path.len() < 2 {
+                return Err(Error::Empty {
+                    file: f.clone(),
+                    why: "one dwell point: a path of length zero has no feed; give at least two \
+                          points"
+                        .into(),
+                });
+            }
             (d.path, d.dwell_s)
         }
         (None, Some(pitch)) => {

@@ -1,10 +1,11 @@
 //! PNG plots (plotters): maps of scattered values with a colour bar in their unit, tool paths,
 //! TIFs and convergence curves. Every plot is drawn into a temporary `.png` next to its
-//! destination and renamed into place, like every other output.
+//! destination and renamed into place together with the command's other outputs.
 //!
 //! Text uses the DejaVu Sans font shipped in `io/assets` (Bitstream Vera licence, see
 //! `io/assets/DejaVuSans-LICENSE.txt`), so plots look the same on every machine.
 
+use crate::atomic::{commit_all, Staged};
 use crate::error::{Error, Result};
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
@@ -35,7 +36,7 @@ fn plot_error<E: std::fmt::Display>(path: &Path, e: E) -> Error {
 }
 
 /// Draws into a temporary PNG in `path`'s directory with `draw`, then renames it to `path`.
-fn write_png<F>(path: &Path, draw: F) -> Result<()>
+fn write_png<F>(path: &Path, draw: F) -> Result<Staged>
 where
     F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
 {
@@ -49,7 +50,7 @@ where
         .map(|n| n.to_string_lossy().to_string())
         .unwrap_or_else(|| "plot".into());
     let temp = tempfile::Builder::new()
-        .prefix(&format!(".{name}."))
+        .prefix(&crate::atomic::temp_prefix(&name))
         .suffix(".png")
         .tempfile_in(&dir)
         .map_err(|e| Error::io(path, e))?;
@@ -59,8 +60,7 @@ where
         draw(&root)?;
         root.present().map_err(|e| plot_error(path, e))?;
     }
-    temp.persist(path).map_err(|e| Error::io(path, e.error))?;
-    Ok(())
+    Ok(crate::atomic::staged_file(temp, path))
 }
 
 /// Finite range of `v`, widened when all values are equal; `None` when none is finite.
@@ -95,6 +95,19 @@ pub fn plot_map(
     y: &[f64],
     v: &[f64],
 ) -> Result<()> {
+    commit_all(vec![stage_map_plot(path, title, unit, x, y, v)?])
+}
+
+/// [`plot_map`], staged: drawn into its temporary file, renamed by [`commit_all`] with the rest
+/// of a command's outputs.
+pub fn stage_map_plot(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    x: &[f64],
+    y: &[f64],
+    v: &[f64],
+) -> Result<Staged> {
     let n = x.len().min(y.len()).min(v.len());
     let (x0, x1) = value_range(&x[..n]).ok_or_else(|| Error::Empty {
         file: path.to_path_buf(),
@@ -170,6 +183,11 @@ fn colour_bar(
 
 /// Plots a tool path (mm) as a polyline with its start marked.
 pub fn plot_path(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<()> {
+    commit_all(vec![stage_path_plot(path, title, x, y)?])
+}
+
+/// [`plot_path`], staged (see [`stage_map_plot`]).
+pub fn stage_path_plot(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<Staged> {
     let n = x.len().min(y.len());
     let (x0, x1) = value_range(&x[..n]).ok_or_else(|| Error::Empty {
         file: path.to_path_buf(),
@@ -208,6 +226,16 @@ pub type Curve<'a> = (&'a str, Vec<(f64, f64)>);
 
 /// Plots curves against the iteration with a logarithmic value axis (`unit` labels it).
 pub fn plot_convergence(path: &Path, title: &str, unit: &str, curves: &[Curve<'_>]) -> Result<()> {
+    commit_all(vec![stage_convergence_plot(path, title, unit, curves)?])
+}
+
+/// [`plot_convergence`], staged (see [`stage_map_plot`]).
+pub fn stage_convergence_plot(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    curves: &[Curve<'_>],
+) -> Result<Staged> {
     let all: Vec<f64> = curves
         .iter()
         .flat_map(|(_, c)| c.iter().map(|p| p.1))
