@@ -167,4 +167,24 @@ mod tests {
     fn the_command_line_definition_is_consistent() {
         super::command_tree().debug_assert();
     }
+
+    /// Every option that takes a value, on every subcommand at every depth, accepts a negative
+    /// number as its value, so that `--rho -1` reaches the option's own validation.
+    #[test]
+    fn every_valued_option_accepts_negative_numbers() {
+        fn walk(cmd: &clap::Command, path: &str, checked: &mut usize) {
+            for a in cmd.get_arguments() {
+                if a.get_action().takes_values() {
+                    assert!(a.is_allow_negative_numbers_set(), "{path} --{}", a.get_id());
+                    *checked += 1;
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                walk(sub, &format!("{path} {}", sub.get_name()), checked);
+            }
+        }
+        let mut checked = 0;
+        walk(&super::command_tree(), "preston", &mut checked);
+        assert!(checked > 100, "only {checked} options seen");
+    }
 }

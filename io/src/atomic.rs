@@ -111,6 +111,18 @@ pub fn commit_all(staged: Vec<Staged>) -> Result<()> {
         locks.push(DirLock::acquire(d, lock_wait_s())?);
         remove_stale_temps(d);
     }
+    // What would make a rename fail is checked before the first one.
+    for s in &staged {
+        if std::fs::symlink_metadata(&s.dest).is_ok_and(|m| m.is_dir()) {
+            return Err(Error::io(
+                &s.dest,
+                std::io::Error::new(
+                    std::io::ErrorKind::IsADirectory,
+                    "is a directory; nothing was written",
+                ),
+            ));
+        }
+    }
     for s in staged {
         s.commit()?;
     }
@@ -189,7 +201,8 @@ impl DirLock {
                 _ => {}
             }
             if began.elapsed().as_secs_f64() >= wait_s {
-                let who = holder.map_or_else(|| "another run".to_string(), |p| format!("process {p}"));
+                let who =
+                    holder.map_or_else(|| "another run".to_string(), |p| format!("process {p}"));
                 return Err(Error::io(
                     &file,
                     std::io::Error::new(
@@ -287,7 +300,9 @@ mod tests {
     #[test]
     fn stale_temps_and_locks_of_dead_processes_are_cleared_live_ones_kept() {
         let dir = tempfile::tempdir().unwrap();
-        let dead = dir.path().join(format!(".dwell.csv.preston-{DEAD_PID}-abc.tmp"));
+        let dead = dir
+            .path()
+            .join(format!(".dwell.csv.preston-{DEAD_PID}-abc.tmp"));
         let live = dir
             .path()
             .join(format!(".dwell.csv.preston-{}-abc.tmp", std::process::id()));
@@ -305,7 +320,10 @@ mod tests {
     #[test]
     fn a_live_lock_is_waited_for_then_refused_naming_its_holder() {
         let dir = tempfile::tempdir().unwrap();
-        let mut holder = std::process::Command::new("sleep").arg("30").spawn().unwrap();
+        let mut holder = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
         std::fs::write(dir.path().join(LOCK_FILE), format!("{}\n", holder.id())).unwrap();
         let t0 = std::time::Instant::now();
         let e = DirLock::acquire(dir.path(), 0.2).unwrap_err().to_string();

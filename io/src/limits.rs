@@ -319,7 +319,11 @@ mod tests {
         };
         let mut out = Vec::new();
         let e = r.read_to_end(&mut out).unwrap_err();
-        let inner = e.get_ref().unwrap().downcast_ref::<LimitExceeded>().unwrap();
+        let inner = e
+            .get_ref()
+            .unwrap()
+            .downcast_ref::<LimitExceeded>()
+            .unwrap();
         assert_eq!(inner.line, 3);
         let text = format!("a,b\n{}\n", ",".repeat(20));
         let mut r = LimitedReader {
@@ -327,7 +331,10 @@ mod tests {
             ..LimitedReader::new(text.as_bytes(), b',')
         };
         let e = r.read_to_end(&mut out).unwrap_err().to_string();
-        assert!(e.contains("line 2") && e.contains("more than 10 fields"), "{e}");
+        assert!(
+            e.contains("line 2") && e.contains("more than 10 fields"),
+            "{e}"
+        );
         // Within the limits everything passes through unchanged.
         let mut out = Vec::new();
         LimitedReader::new(&b"x,y\n1,2\n"[..], b',')
@@ -339,7 +346,9 @@ mod tests {
     #[cfg(unix)]
     #[test]
     fn non_regular_files_are_refused_without_reading() {
-        let e = open_regular(Path::new("/dev/zero")).unwrap_err().to_string();
+        let e = open_regular(Path::new("/dev/zero"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("a device"), "{e}");
         let dir = tempfile::tempdir().unwrap();
         let e = open_regular(dir.path()).unwrap_err().to_string();

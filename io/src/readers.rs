@@ -122,8 +122,7 @@ pub fn read_dwell(path: &Path) -> Result<DwellFile> {
             ),
         });
     }
-    let dp = DwellPath::new(x, y)
-        .map_err(|e| Error::engine(path, e))?;
+    let dp = DwellPath::new(x, y).map_err(|e| Error::engine(path, e))?;
     Ok(DwellFile { path: dp, dwell_s })
 }
 

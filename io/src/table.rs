@@ -297,7 +297,7 @@ fn csv_error(path: &Path, e: &csv::Error) -> Error {
                     why: limit.why.clone(),
                 };
             }
-            return Error::io(path, std::io::Error::new(err.kind(), err.to_string()))
+            return Error::io(path, std::io::Error::new(err.kind(), err.to_string()));
         }
         _ => e.to_string(),
     };

@@ -152,7 +152,9 @@ pub fn sample_program(path: &DwellPath, dwell_s: &[f64], motion: Motion) -> Resu
             let n = path.len();
             crate::budget::check_f64s(
                 "--samples-per-point",
-                &format!("{k} samples for each of {n} dwell points (x, y, dwell and removal terms)"),
+                &format!(
+                    "{k} samples for each of {n} dwell points (x, y, dwell and removal terms)"
+                ),
                 n as f64 * k as f64,
                 4.0,
             )?;
