@@ -16,7 +16,8 @@ struct Cli {
     #[command(subcommand)]
     command: Command,
     /// Memory budget, GB (10^9 bytes): sizes implied by arguments and file headers are checked
-    /// against it before anything is allocated [default: 8 GiB = 8.59 GB].
+    /// against it before anything is allocated [default: 8 GiB = 8.59 GB, or half the physical
+    /// memory where less].
     #[arg(long, global = true, value_name = "GB")]
     max_memory_gb: Option<f64>,
     /// Longest line a text input may have, bytes [default: 1048576].

@@ -167,7 +167,20 @@ fn oversized_arguments_are_refused_before_allocating() {
         &capped(&solve_args(s(&map), &["--raster-pitch-mm", "1e-5"], o)),
         &["--raster-pitch-mm", "over the limit"],
     );
-    // Two stray dwell points 5 m away stretch the FFT operator's lattice to 5000 x 5000 cells of
+    refused(
+        &capped(&[
+            "map",
+            "fit",
+            "--map",
+            s(&map),
+            "--basis",
+            "legendre",
+            "--terms",
+            "1000000000000",
+        ]),
+        &["--terms", "over the limit"],
+    );
+        // Two stray dwell points 5 m away stretch the FFT operator's lattice to 5000 x 5000 cells of
     // 1 mm: refused under a 0.5 GB budget, naming the lattice.
     let mut stray = String::from("x_mm,y_mm\n");
     for k in 0..21 {
