@@ -169,6 +169,21 @@ fn oversized_arguments_are_refused_before_allocating() {
     );
     refused(
         &capped(&[
+            "path",
+            "raster",
+            "--x-mm",
+            "0,118",
+            "--y-mm",
+            "0,8",
+            "--pitch-mm",
+            "1e-6",
+            "--out",
+            &format!("{o}/p.csv"),
+        ]),
+        &["--pitch-mm", "over the limit"],
+    );
+    refused(
+        &capped(&[
             "map",
             "fit",
             "--map",
@@ -180,7 +195,7 @@ fn oversized_arguments_are_refused_before_allocating() {
         ]),
         &["--terms", "over the limit"],
     );
-        // Two stray dwell points 5 m away stretch the FFT operator's lattice to 5000 x 5000 cells of
+    // Two stray dwell points 5 m away stretch the FFT operator's lattice to 5000 x 5000 cells of
     // 1 mm: refused under a 0.5 GB budget, naming the lattice.
     let mut stray = String::from("x_mm,y_mm\n");
     for k in 0..21 {

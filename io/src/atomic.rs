@@ -255,10 +255,11 @@ pub fn remove_stale_temps(dir: &Path) -> usize {
     for e in entries.flatten() {
         let name = e.file_name().to_string_lossy().to_string();
         if let Some(pid) = temp_pid(&name) {
-            if !pid_alive(pid) && e.file_type().is_ok_and(|t| t.is_file()) {
-                if std::fs::remove_file(e.path()).is_ok() {
-                    removed += 1;
-                }
+            if !pid_alive(pid)
+                && e.file_type().is_ok_and(|t| t.is_file())
+                && std::fs::remove_file(e.path()).is_ok()
+            {
+                removed += 1;
             }
         }
     }
