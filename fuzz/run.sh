@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs each Preston fuzz target for SECONDS (default 60) with cargo-fuzz on the stable toolchain.
 #
-#   fuzz/run.sh [SECONDS] [TARGET...]      # targets: csv_table job tif_csv (default: all)
+#   fuzz/run.sh [SECONDS] [TARGET...]      # targets: csv_table job tif_csv map_xyz map_npy
+#                                            map_zygo_dat map_zygo_datx map_four_d_h5 (default: all)
 #
 # cargo-fuzz passes nightly-only flags (-Z...) to rustc; RUSTC_BOOTSTRAP=1 lets the stable
 # compiler accept them. `-s none` turns AddressSanitizer off (it needs -Zsanitizer and the
@@ -16,7 +17,7 @@ cd "$(dirname "$0")"
 if [ "$#" -gt 0 ]; then
     targets=("$@")
 else
-    targets=(csv_table job tif_csv)
+    targets=(csv_table job tif_csv map_xyz map_npy map_zygo_dat map_zygo_datx map_four_d_h5)
 fi
 export RUSTC_BOOTSTRAP="${RUSTC_BOOTSTRAP:-1}"
 

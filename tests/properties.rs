@@ -16,10 +16,14 @@ const SPECS: [ColumnSpec; 3] = [
     ColumnSpec::required_skip("z_nm"),
 ];
 
+/// Finite values within every column's physical range (|x|, |y| <= 1e5 mm, |z| <= 1e7 nm; see
+/// `preston_io::limits`), bit patterns of every magnitude down to subnormals included.
 fn finite() -> impl Strategy<Value = f64> {
     prop_oneof![
-        -1e6..1e6f64,
-        any::<f64>().prop_filter("finite", |v| v.is_finite()),
+        -1e5..1e5f64,
+        any::<f64>().prop_filter("finite, in range", |v| v.is_finite() && v.abs() <= 1e5),
+        Just(1e5),
+        Just(-1e5),
         Just(0.0),
         Just(-0.0),
     ]
@@ -61,6 +65,38 @@ proptest! {
             prop_assert_eq!(t.column(2)[k].to_bits(), z.to_bits());
             prop_assert_eq!(t.lines[k], k as u64 + 2);
         }
+    }
+
+    /// A finite value beyond its column's physical range is an error naming its line and column.
+    #[test]
+    fn values_beyond_the_physical_range_are_named(
+        n in 2usize..20,
+        row in 0usize..20,
+        col in 0usize..3,
+        value in prop_oneof![1.0000001e5..1e308f64, -1e308..-1.0000001e5f64],
+    ) {
+        let row = row % n;
+        // Heights may reach 1e7 nm: beyond 1e5 only the coordinates are out of range there.
+        let value = if col == 2 { value.signum() * value.abs().max(1.0000001e7) } else { value };
+        let names = ["x_mm", "y_mm", "z_nm"];
+        let mut text = String::from("x_mm,y_mm,z_nm\n");
+        for k in 0..n {
+            let mut cells = [k.to_string(), (2 * k).to_string(), "1.5".to_string()];
+            if k == row { cells[col] = value.to_string(); }
+            text.push_str(&cells.join(","));
+            text.push('\n');
+        }
+        let e = read_table_from(text.as_bytes(), Path::new("far.csv"), &SPECS)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        let line = format!("line {}", row + 2);
+        let column = format!("`{}`", names[col]);
+        prop_assert!(
+            e.contains(&line) && e.contains(&column) && e.contains("physical range"),
+            "{}",
+            e
+        );
     }
 
     /// Arbitrary bytes never panic the CSV reader.

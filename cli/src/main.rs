@@ -15,6 +15,63 @@ use std::process::ExitCode;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Memory budget, GB (10^9 bytes): sizes implied by arguments and file headers are checked
+    /// against it before anything is allocated [default: 8 GiB = 8.59 GB, or half the physical
+    /// memory where less].
+    #[arg(long, global = true, value_name = "GB")]
+    max_memory_gb: Option<f64>,
+    /// Longest line a text input may have, bytes [default: 1048576].
+    #[arg(long, global = true, value_name = "BYTES")]
+    max_line_bytes: Option<u64>,
+    /// Most fields a line of a delimited text input may have [default: 1000].
+    #[arg(long, global = true, value_name = "N")]
+    max_fields: Option<u64>,
+}
+
+/// The command tree with negative numbers accepted as values of every option that takes one
+/// (`--rho -1` reaches the option's own validation instead of being taken for a flag).
+fn command_tree() -> clap::Command {
+    fn negatives(cmd: clap::Command) -> clap::Command {
+        cmd.mut_args(|a| {
+            if a.get_action().takes_values() {
+                a.allow_negative_numbers(true)
+            } else {
+                a
+            }
+        })
+        .mut_subcommands(negatives)
+    }
+    use clap::CommandFactory;
+    negatives(Cli::command())
+}
+
+/// Applies the global limits; an unusable value is an error naming the flag.
+fn apply_limits(cli: &Cli) -> anyhow::Result<()> {
+    if let Some(gb) = cli.max_memory_gb {
+        if !(gb.is_finite() && gb > 0.0 && gb <= 1e6) {
+            anyhow::bail!("--max-memory-gb: must be a positive number of GB, got {gb}");
+        }
+        preston_solver::budget::set_limit_bytes((gb * 1e9) as u64);
+    }
+    for (flag, v, set) in [
+        (
+            "--max-line-bytes",
+            cli.max_line_bytes,
+            preston_io::limits::set_max_line_bytes as fn(u64),
+        ),
+        (
+            "--max-fields",
+            cli.max_fields,
+            preston_io::limits::set_max_fields as fn(u64),
+        ),
+    ] {
+        match v {
+            Some(0) => anyhow::bail!("{flag}: must be at least 1"),
+            Some(n) => set(n),
+            None => {}
+        }
+    }
+    Ok(())
 }
 
 #[derive(Debug, Subcommand)]
@@ -46,7 +103,15 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    use clap::FromArgMatches;
+    let cli = match Cli::from_arg_matches(&command_tree().get_matches()) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
+    if let Err(e) = apply_limits(&cli) {
+        eprintln!("error: {}", message(&e));
+        return ExitCode::from(2);
+    }
     let result = match cli.command {
         Command::Solve(args) => cmd::solve::run(args),
         Command::Fit(args) => cmd::fit::run(args),
@@ -101,7 +166,26 @@ mod tests {
     /// run for the whole command tree, including the shared map-input flags).
     #[test]
     fn the_command_line_definition_is_consistent() {
-        use clap::CommandFactory;
-        super::Cli::command().debug_assert();
+        super::command_tree().debug_assert();
+    }
+
+    /// Every option that takes a value, on every subcommand at every depth, accepts a negative
+    /// number as its value, so that `--rho -1` reaches the option's own validation.
+    #[test]
+    fn every_valued_option_accepts_negative_numbers() {
+        fn walk(cmd: &clap::Command, path: &str, checked: &mut usize) {
+            for a in cmd.get_arguments() {
+                if a.get_action().takes_values() {
+                    assert!(a.is_allow_negative_numbers_set(), "{path} --{}", a.get_id());
+                    *checked += 1;
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                walk(sub, &format!("{path} {}", sub.get_name()), checked);
+            }
+        }
+        let mut checked = 0;
+        walk(&super::command_tree(), "preston", &mut checked);
+        assert!(checked > 100, "only {checked} options seen");
     }
 }

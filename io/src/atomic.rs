@@ -1,6 +1,16 @@
 //! Atomic output: write to a temporary file in the destination's directory, then rename it into
 //! place, so a reader (or a crash) sees either the old file or the whole new one. Files are
 //! created with the process umask, as `File::create` would (0644 under umask 022).
+//!
+//! A command stages every output (CSV, JSON, G-code and plots) before it renames any: a failure
+//! while writing one of them leaves all previous outputs in place. The renames of one commit run
+//! under a lock on each output directory (`.preston.lock`, created exclusively, holding the
+//! process id), so two runs into one directory commit one after the other and the directory
+//! ends up with one run's complete set, never a mix. A lock whose process is gone is taken over;
+//! a live one is waited for up to [`DEFAULT_LOCK_WAIT_S`] seconds (`PRESTON_LOCK_WAIT_S`
+//! overrides), then the commit fails naming the holder. Temporary files carry the writer's
+//! process id (`.dwell.csv.preston-1234-XXXXXX.tmp`); those of processes that no longer run (a
+//! run killed while writing) are removed at the next commit into their directory.
 
 use crate::error::{Error, Result};
 use std::io::{BufWriter, Write};
@@ -13,7 +23,7 @@ where
     F: FnOnce(&mut dyn Write) -> std::io::Result<()>,
 {
     let staged = stage(path, fill)?;
-    staged.commit()
+    commit_all(vec![staged])
 }
 
 /// A fully written temporary file waiting to be renamed into place.
@@ -48,7 +58,7 @@ where
         .file_name()
         .map(|n| n.to_string_lossy().to_string())
         .unwrap_or_else(|| "output".into());
-    let prefix = format!(".{name}.");
+    let prefix = temp_prefix(&name);
     let mut builder = tempfile::Builder::new();
     builder.prefix(&prefix).suffix(".tmp");
     #[cfg(unix)]
@@ -70,12 +80,190 @@ where
     })
 }
 
-/// Commits staged files in order (all were fully written before any is renamed).
+/// The prefix of a temporary file for the output `name` written by this process.
+pub(crate) fn temp_prefix(name: &str) -> String {
+    format!(".{name}.{TEMP_TAG}{}-", std::process::id())
+}
+
+/// Wraps a temporary file already written in full (a plot) as staged for `dest`.
+pub(crate) fn staged_file(temp: tempfile::NamedTempFile, dest: &Path) -> Staged {
+    Staged {
+        temp,
+        dest: dest.to_path_buf(),
+    }
+}
+
+/// Marks Preston's temporary files: `.NAME.preston-PID-XXXXXX.tmp`.
+const TEMP_TAG: &str = "preston-";
+/// The lock file of an output directory.
+pub const LOCK_FILE: &str = ".preston.lock";
+/// How long a commit waits for another run's lock on its directory, s.
+pub const DEFAULT_LOCK_WAIT_S: f64 = 60.0;
+
+/// Commits staged files together: all were fully written and synced before any is renamed, and
+/// the renames run under the lock of each output directory (see the module documentation).
 pub fn commit_all(staged: Vec<Staged>) -> Result<()> {
+    let mut dirs: Vec<PathBuf> = staged.iter().map(|s| dir_of(&s.dest)).collect();
+    dirs.sort();
+    dirs.dedup();
+    let mut locks = Vec::with_capacity(dirs.len());
+    for d in &dirs {
+        locks.push(DirLock::acquire(d, lock_wait_s())?);
+        remove_stale_temps(d);
+    }
+    // What would make a rename fail is checked before the first one.
+    for s in &staged {
+        if std::fs::symlink_metadata(&s.dest).is_ok_and(|m| m.is_dir()) {
+            return Err(Error::io(
+                &s.dest,
+                std::io::Error::new(
+                    std::io::ErrorKind::IsADirectory,
+                    "is a directory; nothing was written",
+                ),
+            ));
+        }
+    }
     for s in staged {
         s.commit()?;
     }
+    drop(locks);
     Ok(())
+}
+
+fn dir_of(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    }
+}
+
+fn lock_wait_s() -> f64 {
+    std::env::var("PRESTON_LOCK_WAIT_S")
+        .ok()
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|v| v.is_finite() && *v >= 0.0)
+        .unwrap_or(DEFAULT_LOCK_WAIT_S)
+}
+
+/// Whether process `pid` runs (Linux: `/proc/PID`; elsewhere every process counts as running,
+/// so nothing is taken over or removed).
+fn pid_alive(pid: u32) -> bool {
+    if pid == std::process::id() {
+        return true;
+    }
+    if cfg!(target_os = "linux") {
+        Path::new(&format!("/proc/{pid}")).exists()
+    } else {
+        true
+    }
+}
+
+/// The lock on an output directory, released (its file removed) when dropped.
+#[derive(Debug)]
+pub struct DirLock {
+    file: PathBuf,
+}
+
+impl DirLock {
+    /// Takes the lock of `dir`, taking over one whose process is gone and waiting up to
+    /// `wait_s` seconds for a live one.
+    pub fn acquire(dir: &Path, wait_s: f64) -> Result<Self> {
+        let file = dir.join(LOCK_FILE);
+        let began = std::time::Instant::now();
+        loop {
+            match std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&file)
+            {
+                Ok(mut f) => {
+                    // The pid is informative; the lock is the file's existence.
+                    let _ = writeln!(f, "{}", std::process::id());
+                    return Ok(Self { file });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+                Err(e) => return Err(Error::io(&file, e)),
+            }
+            let holder = std::fs::read_to_string(&file)
+                .ok()
+                .and_then(|t| t.trim().parse::<u32>().ok());
+            match holder {
+                Some(pid) if !pid_alive(pid) => {
+                    // Left by a run that was killed: take it over.
+                    let _ = std::fs::remove_file(&file);
+                    continue;
+                }
+                None if age_s(&file) > 10.0 => {
+                    // Unreadable and not being written: left by a run killed while creating it.
+                    let _ = std::fs::remove_file(&file);
+                    continue;
+                }
+                _ => {}
+            }
+            if began.elapsed().as_secs_f64() >= wait_s {
+                let who =
+                    holder.map_or_else(|| "another run".to_string(), |p| format!("process {p}"));
+                return Err(Error::io(
+                    &file,
+                    std::io::Error::new(
+                        std::io::ErrorKind::WouldBlock,
+                        format!(
+                            "{who} is writing into {} (waited {wait_s} s); run one command per \
+                             output directory at a time, or remove the lock file if no such run exists",
+                            dir.display()
+                        ),
+                    ),
+                ));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for DirLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.file);
+    }
+}
+
+fn age_s(path: &Path) -> f64 {
+    std::fs::metadata(path)
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|t| t.elapsed().ok())
+        .map_or(0.0, |d| d.as_secs_f64())
+}
+
+/// The writer's pid of a Preston temporary file name (`.NAME.preston-PID-XXXXXX.tmp|.png`).
+fn temp_pid(name: &str) -> Option<u32> {
+    if !name.starts_with('.') || !(name.ends_with(".tmp") || name.ends_with(".png")) {
+        return None;
+    }
+    let at = name.rfind(TEMP_TAG)? + TEMP_TAG.len();
+    let rest = &name[at..];
+    let end = rest.find('-')?;
+    rest[..end].parse().ok()
+}
+
+/// Removes the temporary files in `dir` left by Preston processes that no longer run. Best
+/// effort: a file that cannot be removed stays.
+pub fn remove_stale_temps(dir: &Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().to_string();
+        if let Some(pid) = temp_pid(&name) {
+            if !pid_alive(pid)
+                && e.file_type().is_ok_and(|t| t.is_file())
+                && std::fs::remove_file(e.path()).is_ok()
+            {
+                removed += 1;
+            }
+        }
+    }
+    removed
 }
 
 #[cfg(test)]
@@ -95,6 +283,59 @@ mod tests {
         assert_eq!(std::fs::read_to_string(&p).unwrap(), "old\n");
         let entries: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(entries.len(), 1, "temporary file left behind");
+    }
+
+    /// A pid no process has (beyond Linux's pid_max, 2^22).
+    const DEAD_PID: u32 = 4_194_305;
+
+    #[test]
+    fn temp_names_carry_the_pid() {
+        assert_eq!(temp_pid(".dwell.csv.preston-1234-abcDEF.tmp"), Some(1234));
+        assert_eq!(temp_pid(".residual.png.preston-77-x1.png"), Some(77));
+        assert_eq!(temp_pid("dwell.csv"), None);
+        assert_eq!(temp_pid(".dwell.csv.abc.tmp"), None);
+        assert!(temp_prefix("a.csv").starts_with(".a.csv.preston-"));
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn stale_temps_and_locks_of_dead_processes_are_cleared_live_ones_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let dead = dir
+            .path()
+            .join(format!(".dwell.csv.preston-{DEAD_PID}-abc.tmp"));
+        let live = dir
+            .path()
+            .join(format!(".dwell.csv.preston-{}-abc.tmp", std::process::id()));
+        std::fs::write(&dead, "partial").unwrap();
+        std::fs::write(&live, "staging").unwrap();
+        std::fs::write(dir.path().join(LOCK_FILE), format!("{DEAD_PID}\n")).unwrap();
+        let p = dir.path().join("dwell.csv");
+        write_atomic(&p, |w| w.write_all(b"new\n")).unwrap();
+        assert_eq!(std::fs::read_to_string(&p).unwrap(), "new\n");
+        assert!(!dead.exists() && live.exists());
+        assert!(!dir.path().join(LOCK_FILE).exists(), "lock not released");
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_live_lock_is_waited_for_then_refused_naming_its_holder() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut holder = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        std::fs::write(dir.path().join(LOCK_FILE), format!("{}\n", holder.id())).unwrap();
+        let t0 = std::time::Instant::now();
+        let e = DirLock::acquire(dir.path(), 0.2).unwrap_err().to_string();
+        assert!(t0.elapsed().as_secs_f64() >= 0.2);
+        assert!(e.contains(&format!("process {}", holder.id())), "{e}");
+        holder.kill().unwrap();
+        holder.wait().unwrap();
+        // Its process gone, the lock is taken over at once.
+        let lock = DirLock::acquire(dir.path(), 0.0).unwrap();
+        drop(lock);
+        assert!(!dir.path().join(LOCK_FILE).exists());
     }
 
     #[cfg(unix)]

@@ -5,7 +5,7 @@
 use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::pipeline::Solved;
-use crate::plots::{stage_map, stage_path_plot, stage_psd_plot};
+use crate::plots::{stage_map_plot, stage_path_plot, stage_psd_plot};
 use crate::report::{centred_residual_nm, feeds_mm_per_min};
 use preston_solver::psd::{line_psd, LineAxis, LinePsd};
 use preston_solver::tif::InfluenceFunction;
@@ -34,7 +34,7 @@ pub fn stage_solve_figures(
     let dwell = &solved.solution.dwell_s;
     let feeds = feeds_mm_per_min(&p.ds_mm, dwell);
     let mut staged = vec![
-        stage_map(
+        stage_map_plot(
             &out_dir.join("error_before.png"),
             "Surface error before",
             "nm",
@@ -42,7 +42,7 @@ pub fn stage_solve_figures(
             my,
             z,
         )?,
-        stage_map(
+        stage_map_plot(
             &out_dir.join("removal.png"),
             "Predicted removal",
             "nm",
@@ -50,7 +50,7 @@ pub fn stage_solve_figures(
             my,
             &solved.removal_nm,
         )?,
-        stage_map(
+        stage_map_plot(
             &out_dir.join("residual.png"),
             "Residual (piston removed)",
             "nm",
@@ -58,8 +58,8 @@ pub fn stage_solve_figures(
             my,
             &residual,
         )?,
-        stage_map(&out_dir.join("dwell.png"), "Dwell time", "s", px, py, dwell)?,
-        stage_map(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, &feeds)?,
+        stage_map_plot(&out_dir.join("dwell.png"), "Dwell time", "s", px, py, dwell)?,
+        stage_map_plot(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, &feeds)?,
         stage_path_plot(&out_dir.join("path.png"), "Dwell path", px, py)?,
     ];
     let radius = p.tif.support_radius_mm();
@@ -74,7 +74,7 @@ pub fn stage_solve_figures(
                 tv.push(p.tif.rate_nm_per_s(dx, dy));
             }
         }
-        staged.push(stage_map(
+        staged.push(stage_map_plot(
             &out_dir.join("tif.png"),
             "Tool influence function",
             "nm/s",

@@ -149,7 +149,7 @@ pub struct ObjectiveWeights {
 impl Job {
     /// Reads a job file; relative paths in it are resolved against its directory.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::limits::read_document(path, "job file")?;
         let mut job = Self::parse(&text, path)?;
         let base = path.parent().unwrap_or_else(|| Path::new("."));
         for p in [
@@ -178,7 +178,7 @@ impl Job {
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
         toml::from_str(text).map_err(|e| Error::Job {
             file: path.to_path_buf(),
-            why: e.to_string().trim_end().to_string(),
+            why: crate::limits::quote_message(e.to_string().trim_end()),
         })
     }
 

@@ -18,6 +18,7 @@ pub mod writers;
 
 pub use error::{Error, Result};
 pub mod job;
+pub mod limits;
 pub mod pipeline;
 pub mod plots;
 pub mod simulation;

@@ -85,6 +85,10 @@ pub fn load_tif(job: &Job, job_path: &Path) -> Result<Tif> {
     }
 }
 
+/// Values held per dwell point through a solve (path, lengths, dwell, feeds, solver work
+/// vectors), not counting the influence matrix: the memory budget's lower bound.
+const DWELL_POINT_VALUES: f64 = 16.0;
+
 /// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
 pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Prepared> {
     let start = Instant::now();
@@ -102,6 +106,14 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let (path, previous_dwell_s) = match (&job.dwell.file, job.dwell.raster_pitch_mm) {
         (Some(f), None) => {
             let d = read_dwell(f)?;
+            if d.path.len() < 2 {
+                return Err(Error::Empty {
+                    file: f.clone(),
+                    why: "one dwell point: a path of length zero has no feed; give at least two \
+                          points"
+                        .into(),
+                });
+            }
             (d.path, d.dwell_s)
         }
         (None, Some(pitch)) => {
@@ -113,6 +125,19 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
                     why: "no data rows".into(),
                 })?
                 .expanded(tif.nominal_radius_mm());
+            if pitch.is_finite() && pitch > 0.0 {
+                let points = ((bbox.x_max_mm - bbox.x_min_mm) / pitch + 1.0)
+                    * ((bbox.y_max_mm - bbox.y_min_mm) / pitch + 1.0);
+                preston_solver::budget::check_f64s(
+                    "--raster-pitch-mm",
+                    &format!(
+                        "a raster of pitch {pitch} mm over the map plus the TIF radius \
+                         ({points:.3e} dwell points, at least {DWELL_POINT_VALUES} values each)"
+                    ),
+                    points,
+                    DWELL_POINT_VALUES,
+                )?;
+            }
             let p = raster::serpentine(&bbox, pitch, job.dwell.raster_along)
                 .map_err(|e| Error::engine(job_path, e))?;
             (p, None)

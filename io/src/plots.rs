@@ -5,7 +5,7 @@
 //! Text uses the DejaVu Sans font shipped in `io/assets` (Bitstream Vera licence, see
 //! `io/assets/DejaVuSans-LICENSE.txt`), so plots look the same on every machine.
 
-use crate::atomic::{stage, Staged};
+use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
@@ -31,22 +31,6 @@ fn register_font() {
 
 fn plot_error<E: std::fmt::Display>(path: &Path, e: E) -> Error {
     Error::io(path, std::io::Error::other(format!("plotting failed: {e}")))
-}
-
-/// Draws on a canvas of [`PLOT_SIZE_PX`] with `draw` and writes the PNG to `path` atomically.
-fn write_png<F>(path: &Path, draw: F) -> Result<()>
-where
-    F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
-{
-    write_png_sized(path, PLOT_SIZE_PX, draw)
-}
-
-/// [`write_png`] on a canvas of `size_px`.
-fn write_png_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<()>
-where
-    F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
-{
-    stage_png_sized(path, size_px, draw)?.commit()
 }
 
 /// Draws on a canvas of `size_px` in memory with `draw` and stages the PNG for `path` (committed
@@ -352,11 +336,11 @@ pub fn plot_map(
     y: &[f64],
     v: &[f64],
 ) -> Result<()> {
-    stage_map(path, title, unit, x, y, v)?.commit()
+    commit_all(vec![stage_map_plot(path, title, unit, x, y, v)?])
 }
 
 /// [`plot_map`], staged for a commit together with other outputs.
-pub fn stage_map(
+pub fn stage_map_plot(
     path: &Path,
     title: &str,
     unit: &str,
@@ -484,7 +468,7 @@ fn colour_bar(
 /// Plots a tool path (mm) as a polyline with its start marked, at equal mm per pixel on both
 /// axes (the layout of [`plot_map`], without the colour bar).
 pub fn plot_path(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result<()> {
-    stage_path_plot(path, title, x, y)?.commit()
+    commit_all(vec![stage_path_plot(path, title, x, y)?])
 }
 
 /// [`plot_path`], staged for a commit together with other outputs.
@@ -640,6 +624,16 @@ pub type Curve<'a> = (&'a str, Vec<(f64, f64)>);
 
 /// Plots curves against the iteration with a logarithmic value axis (`unit` labels it).
 pub fn plot_convergence(path: &Path, title: &str, unit: &str, curves: &[Curve<'_>]) -> Result<()> {
+    commit_all(vec![stage_convergence_plot(path, title, unit, curves)?])
+}
+
+/// [`plot_convergence`], staged for a commit together with other outputs.
+pub fn stage_convergence_plot(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    curves: &[Curve<'_>],
+) -> Result<Staged> {
     let all: Vec<f64> = curves
         .iter()
         .flat_map(|(_, c)| c.iter().map(|p| p.1))
@@ -653,7 +647,7 @@ pub fn plot_convergence(path: &Path, title: &str, unit: &str, curves: &[Curve<'_
         .ceil();
     // Whole iterations only: at most ten ticks, on integers.
     let ticks = (it_max as usize + 1).min(10);
-    write_png(path, |root| {
+    stage_png_sized(path, PLOT_SIZE_PX, |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 24))
             .margin(12)

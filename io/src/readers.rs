@@ -66,6 +66,7 @@ pub fn read_tif(path: &Path) -> Result<GridTif> {
             why: "no data rows".into(),
         });
     }
+    check_duplicates(path, t.column(0), t.column(1), &t.lines)?;
     GridTif::from_samples(t.column(0), t.column(1), t.column(2)).map_err(|e| Error::engine(path, e))
 }
 
@@ -106,8 +107,22 @@ pub fn read_dwell(path: &Path) -> Result<DwellFile> {
             });
         }
     }
-    let dp = DwellPath::new(t.take(0).unwrap_or_default(), t.take(1).unwrap_or_default())
-        .map_err(|e| Error::engine(path, e))?;
+    let (x, y) = (t.take(0).unwrap_or_default(), t.take(1).unwrap_or_default());
+    // A point equal to the one before it makes a segment of length zero: its feed would be 0.
+    if let Some(k) = (1..x.len()).find(|&k| x[k] == x[k - 1] && y[k] == y[k - 1]) {
+        return Err(Error::Csv {
+            file: path.to_path_buf(),
+            line: t.lines.get(k).copied().unwrap_or(0),
+            why: format!(
+                "repeats the point ({}, {}) mm of line {}: a segment of length zero has no feed; \
+                 remove the repeat",
+                x[k],
+                y[k],
+                t.lines.get(k - 1).copied().unwrap_or(0)
+            ),
+        });
+    }
+    let dp = DwellPath::new(x, y).map_err(|e| Error::engine(path, e))?;
     Ok(DwellFile { path: dp, dwell_s })
 }
 

@@ -5,7 +5,7 @@ use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
 use crate::machine::{read_dwell_times, DwellTimes};
 use crate::metrology::MapSource;
-use crate::plots::{plot_convergence, plot_map, plot_path};
+use crate::plots::{stage_convergence_plot, stage_map_plot, stage_path_plot};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
@@ -259,7 +259,11 @@ pub fn simulate_program(
             ),
         ));
     }
-    let bytes = std::fs::read(program_file).map_err(|e| Error::io(program_file, e))?;
+    let bytes = crate::limits::read_regular(
+        program_file,
+        preston_solver::budget::limit_bytes(),
+        "program",
+    )?;
     let text = String::from_utf8(bytes).map_err(|e| {
         Error::engine(
             program_file,
@@ -397,35 +401,34 @@ fn write_simulation_with(
         )?,
         stage_report(&out_dir.join("report.json"), &sim.report)?,
     ]);
-    commit_all(staged)?;
     if plots {
         let (x, y) = (sim.map.x_mm(), sim.map.y_mm());
-        plot_map(
+        staged.push(stage_map_plot(
             &out_dir.join("error_before.png"),
             "Surface error before",
             "nm",
             x,
             y,
             sim.map.z_nm(),
-        )?;
-        plot_map(
+        )?);
+        staged.push(stage_map_plot(
             &out_dir.join("removal.png"),
             "Simulated removal",
             "nm",
             x,
             y,
             &sim.removal_nm,
-        )?;
-        plot_map(
+        )?);
+        staged.push(stage_map_plot(
             &out_dir.join("residual.png"),
             "Residual (piston removed)",
             "nm",
             x,
             y,
             &residual,
-        )?;
+        )?);
     }
-    Ok(())
+    commit_all(staged)
 }
 
 /// Header of `convergence.csv` (a contract: checks outside the project read it).
@@ -490,19 +493,19 @@ pub fn write_loop(outcome: &LoopOutcome, out_dir: &Path, plots: bool) -> Result<
             run.measured.z_nm(),
         )?);
     }
-    commit_all(staged)?;
     if plots {
-        write_loop_plots(outcome, out_dir)?;
+        staged.extend(stage_loop_plots(outcome, out_dir)?);
     }
-    Ok(())
+    commit_all(staged)
 }
 
-fn write_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<()> {
+fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>> {
+    let mut staged = Vec::new();
     let rec = &outcome.records;
     let series = |f: fn(&IterationRecord) -> f64| -> Vec<(f64, f64)> {
         rec.iter().map(|r| (r.iteration as f64, f(r))).collect()
     };
-    plot_convergence(
+    staged.push(stage_convergence_plot(
         &out_dir.join("convergence.png"),
         "Form error per iteration",
         "nm",
@@ -511,55 +514,67 @@ fn write_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<()> {
             ("RMS", series(|r| r.rms_nm)),
             ("mean |dev|", series(|r| r.mean_abs_nm)),
         ],
-    )?;
+    )?);
     let fin = &outcome.final_measured;
-    plot_map(
+    staged.push(stage_map_plot(
         &out_dir.join("final_error.png"),
         "Measured form error after the last run",
         "nm",
         fin.x_mm(),
         fin.y_mm(),
         fin.z_nm(),
-    )?;
+    )?);
     if let Some(run) = &outcome.last_run {
         let m = &run.measured;
         let residual = centred_residual_nm(&run.target_nm, &run.predicted_removal_nm);
-        plot_map(
+        staged.push(stage_map_plot(
             &out_dir.join("error_before.png"),
             "Measured form error before the last run",
             "nm",
             m.x_mm(),
             m.y_mm(),
             m.z_nm(),
-        )?;
-        plot_map(
+        )?);
+        staged.push(stage_map_plot(
             &out_dir.join("removal.png"),
             "Predicted removal",
             "nm",
             m.x_mm(),
             m.y_mm(),
             &run.predicted_removal_nm,
-        )?;
-        plot_map(
+        )?);
+        staged.push(stage_map_plot(
             &out_dir.join("residual.png"),
             "Predicted residual (piston removed)",
             "nm",
             m.x_mm(),
             m.y_mm(),
             &residual,
-        )?;
+        )?);
         let (px, py) = (run.path.x_mm(), run.path.y_mm());
-        plot_map(
+        staged.push(stage_map_plot(
             &out_dir.join("dwell.png"),
             "Dwell time",
             "s",
             px,
             py,
             &run.dwell_s,
-        )?;
+        )?);
         let feeds = feeds_mm_per_min(&run.path.ds_mm(), &run.dwell_s);
-        plot_map(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, &feeds)?;
-        plot_path(&out_dir.join("path.png"), "Tool path", px, py)?;
+        staged.push(stage_map_plot(
+            &out_dir.join("feed.png"),
+            "Feed",
+            "mm/min",
+            px,
+            py,
+            &feeds,
+        )?);
+        staged.push(stage_path_plot(
+            &out_dir.join("path.png"),
+            "Tool path",
+            px,
+            py,
+        )?);
     }
-    Ok(())
+    Ok(staged)
 }

@@ -13,10 +13,10 @@ use std::path::Path;
 
 /// Reads and validates a surface JSON document (`{"type": "xy_polynomial", ...}`).
 pub fn read_surface(path: &Path) -> Result<Surface> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = crate::limits::read_document(path, "surface file")?;
     let surface: Surface = serde_json::from_str(&text).map_err(|e| Error::Json {
         file: path.to_path_buf(),
-        why: e.to_string(),
+        why: crate::limits::quote_message(&e.to_string()),
     })?;
     surface.validate().map_err(|e| Error::engine(path, e))?;
     Ok(surface)

@@ -5,7 +5,7 @@
 //! column. Memory grows with the requested columns only (8 bytes per value and row).
 
 use crate::error::{Error, Result};
-use std::fs::File;
+use crate::limits::{column_range, LimitedReader};
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
@@ -98,12 +98,14 @@ impl Table {
 
 /// Reads the requested columns of a CSV file.
 pub fn read_table(path: &Path, specs: &[ColumnSpec]) -> Result<Table> {
-    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let file = crate::limits::open_regular(path)?;
     read_table_from(BufReader::with_capacity(1 << 20, file), path, specs)
 }
 
 /// Reads the requested columns from any reader; `path` names the source in messages.
 pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) -> Result<Table> {
+    let reader = LimitedReader::new(reader, b',');
+    let ranges: Vec<Option<(f64, &str)>> = specs.iter().map(|s| column_range(s.name)).collect();
     let mut rdr = csv::ReaderBuilder::new()
         .has_headers(true)
         .flexible(false)
@@ -147,7 +149,7 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
                 return Err(Error::MissingColumn {
                     file: path.to_path_buf(),
                     column: spec.name.to_string(),
-                    found: names.join(","),
+                    found: truncate(&names.join(",")),
                     hint: hint_for(spec.name, &names),
                 })
             }
@@ -175,7 +177,12 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
             continue; // a blank line
         }
         let mut skip = false;
-        for ((spec, k), slot) in specs.iter().zip(&index).zip(row_values.iter_mut()) {
+        for (spec_k, ((spec, k), slot)) in specs
+            .iter()
+            .zip(&index)
+            .zip(row_values.iter_mut())
+            .enumerate()
+        {
             let Some(k) = *k else { continue };
             let cell = record.get(k).unwrap_or(b"");
             let text = std::str::from_utf8(cell).map_err(|_| Error::Cell {
@@ -194,10 +201,22 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
                             file: path.to_path_buf(),
                             line,
                             column: spec.name.to_string(),
-                            why: format!("`{text}` is infinite"),
+                            why: format!("`{}` is infinite", truncate(text)),
                         })
                     }
                     Ok(v) => Some(v),
+                    Err(_) if text.contains(';') && !text.contains(',') => {
+                        return Err(Error::Cell {
+                            file: path.to_path_buf(),
+                            line,
+                            column: spec.name.to_string(),
+                            why: format!(
+                                "`{}` is not a number; the values look separated by `;`, Preston's \
+                                 CSV is comma-separated",
+                                truncate(text)
+                            ),
+                        })
+                    }
                     Err(_) => {
                         return Err(Error::Cell {
                             file: path.to_path_buf(),
@@ -208,6 +227,19 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
                     }
                 }
             };
+            if let (Some(v), Some(Some((max, what)))) = (parsed, ranges.get(spec_k)) {
+                if v.abs() > *max {
+                    return Err(Error::Cell {
+                        file: path.to_path_buf(),
+                        line,
+                        column: spec.name.to_string(),
+                        why: format!(
+                            "{v:e} is beyond the physical range of a {what} (|value| <= {max:e}); \
+                             check the units"
+                        ),
+                    });
+                }
+            }
             match (parsed, spec.missing) {
                 (Some(v), _) => *slot = v,
                 (None, Missing::SkipRow) => skip = true,
@@ -219,7 +251,7 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
                         why: if text.is_empty() {
                             "empty cell".into()
                         } else {
-                            format!("`{text}` is not a finite number")
+                            format!("`{}` is not a finite number", truncate(text))
                         },
                     })
                 }
@@ -245,11 +277,7 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
 }
 
 fn truncate(s: &str) -> String {
-    if s.chars().count() > 40 {
-        format!("{}...", s.chars().take(40).collect::<String>())
-    } else {
-        s.to_string()
-    }
+    crate::limits::quote(s)
 }
 
 fn csv_error(path: &Path, e: &csv::Error) -> Error {
@@ -259,7 +287,17 @@ fn csv_error(path: &Path, e: &csv::Error) -> Error {
             expected_len, len, ..
         } => format!("has {len} fields where the header has {expected_len}"),
         csv::ErrorKind::Io(err) => {
-            return Error::io(path, std::io::Error::new(err.kind(), err.to_string()))
+            if let Some(limit) = err
+                .get_ref()
+                .and_then(|e| e.downcast_ref::<crate::limits::LimitExceeded>())
+            {
+                return Error::Csv {
+                    file: path.to_path_buf(),
+                    line: limit.line,
+                    why: limit.why.clone(),
+                };
+            }
+            return Error::io(path, std::io::Error::new(err.kind(), err.to_string()));
         }
         _ => e.to_string(),
     };
@@ -272,6 +310,16 @@ fn csv_error(path: &Path, e: &csv::Error) -> Error {
 
 /// Suggests a present column with the same quantity and another unit (`x_um` for `x_mm`).
 fn hint_for(wanted: &str, names: &[String]) -> String {
+    if let [only] = names {
+        for (d, name) in [(';', "semicolons"), ('\t', "tabs"), ('|', "bars")] {
+            if only.contains(d) {
+                return format!(
+                    "; the header is separated by {name}, not commas: Preston's CSV is \
+                     comma-separated (write the file with `,` between fields)"
+                );
+            }
+        }
+    }
     let stem = wanted.split('_').next().unwrap_or(wanted);
     let unit = wanted.strip_prefix(stem).unwrap_or("");
     let close: Vec<&String> = names

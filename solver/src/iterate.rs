@@ -280,6 +280,30 @@ impl LoopSettings {
                 format!("must be positive, got {}", self.path_pitch_mm),
             ));
         }
+        let points = self.grid[0] as f64 * self.grid[1] as f64;
+        crate::budget::check_f64s(
+            "--grid",
+            &format!(
+                "a {} x {} measurement grid (about {GRID_ARRAYS} values per point)",
+                self.grid[0], self.grid[1]
+            ),
+            points,
+            GRID_ARRAYS,
+        )?;
+        // The path covers the aperture (plus a margin of the order of the tool's radius, not
+        // known here): a lower bound of its points.
+        let cells = ((a.x_max_mm - a.x_min_mm) / self.path_pitch_mm + 1.0)
+            * ((a.y_max_mm - a.y_min_mm) / self.path_pitch_mm + 1.0);
+        crate::budget::check_f64s(
+            "--pitch-mm",
+            &format!(
+                "a path of pitch {} mm over the aperture (at least {cells:.3e} dwell points, \
+                 about {PATH_ARRAYS} values each)",
+                self.path_pitch_mm
+            ),
+            cells,
+            PATH_ARRAYS,
+        )?;
         if let Some(m) = self.path_margin_mm {
             if !(m.is_finite() && m >= 0.0) {
                 return Err(Error::invalid(
@@ -547,6 +571,12 @@ pub struct LoopOutcome {
 pub fn intersection_path(region: &BoundingBox, pitch_mm: f64, k: usize) -> Result<DwellPath> {
     crate::path::intersection::intersection(region, pitch_mm, k)
 }
+
+/// Values held per measurement grid point through a loop iteration (design point and normal,
+/// measured point, error, removal, registration work arrays): the budget's estimate.
+const GRID_ARRAYS: f64 = 16.0;
+/// Values held per dwell point (path, dwell, feeds, solver work vectors): the budget's estimate.
+const PATH_ARRAYS: f64 = 16.0;
 
 fn grid_points(a: &BoundingBox, grid: [usize; 2]) -> (Vec<f64>, Vec<f64>) {
     let (nx, ny) = (grid[0], grid[1]);

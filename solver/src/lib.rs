@@ -11,6 +11,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod aperture;
+pub mod budget;
 pub mod dwell;
 pub mod error;
 pub mod fit;

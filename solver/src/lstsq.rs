@@ -21,6 +21,15 @@ where
     F: Fn(usize, &mut [f64]) -> Result<()> + Sync,
 {
     let n_blocks = n_rows.div_ceil(BLOCK_ROWS);
+    // Blocks in flight (one per thread) plus the stacked factors, each `rows x n_cols`.
+    let block = BLOCK_ROWS.min(n_rows.max(1)) as f64 * n_cols as f64;
+    let stacked = n_blocks as f64 * (n_cols.min(BLOCK_ROWS)) as f64 * n_cols as f64;
+    crate::budget::check_f64s(
+        "terms of the fit",
+        &format!("a dense least-squares fit of {n_rows} points and {n_cols} columns"),
+        block * rayon::current_num_threads() as f64 + stacked,
+        1.0,
+    )?;
     let factors: Vec<Mat<f64>> = (0..n_blocks)
         .into_par_iter()
         .map(|b| {

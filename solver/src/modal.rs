@@ -234,6 +234,14 @@ pub fn fit(
     if n_terms == 0 {
         return Err(Error::invalid("terms", "must be at least 1"));
     }
+    // The dense fit holds a block of rows per thread and the stacked factors, each with
+    // n_terms + 1 columns (see `lstsq::tsqr`): at least rows x (n_terms + 1) values.
+    crate::budget::check_f64s(
+        "--terms",
+        &format!("{n_terms} terms fitted to {} points", z_nm.len()),
+        (z_nm.len().min(4096) as f64) * (n_terms as f64 + 1.0),
+        1.0,
+    )?;
     let terms: Vec<usize> = (1..=n_terms).collect();
     let (coefficients_nm, residual_nm) =
         fit_terms(x_mm, y_mm, z_nm, basis, &terms, norm_radius_mm)?;

@@ -150,6 +150,14 @@ pub fn sample_program(path: &DwellPath, dwell_s: &[f64], motion: Motion) -> Resu
             }
             let k = samples_per_point;
             let n = path.len();
+            crate::budget::check_f64s(
+                "--samples-per-point",
+                &format!(
+                    "{k} samples for each of {n} dwell points (x, y, dwell and removal terms)"
+                ),
+                n as f64 * k as f64,
+                4.0,
+            )?;
             let seg: Vec<f64> = (1..n)
                 .map(|j| (x[j] - x[j - 1]).hypot(y[j] - y[j - 1]))
                 .collect();

@@ -113,13 +113,33 @@ impl Region {
         if !(self.margin_mm.is_finite() && self.margin_mm >= 0.0) {
             bail!("--margin-mm must be non-negative, got {}", self.margin_mm);
         }
-        Ok(BoundingBox {
+        let bbox = BoundingBox {
             x_min_mm: a.min(b),
             x_max_mm: a.max(b),
             y_min_mm: c.min(d),
             y_max_mm: c.max(d),
         }
-        .expanded(self.margin_mm))
+        .expanded(self.margin_mm);
+        let step = self.step_mm.unwrap_or(self.pitch_mm);
+        if self.pitch_mm > 0.0 && step > 0.0 {
+            // Lines across the region times points along them, x and y of each (and the lines'
+            // own end points): checked before any line is generated.
+            let (w, h) = (bbox.x_max_mm - bbox.x_min_mm, bbox.y_max_mm - bbox.y_min_mm);
+            let along =
+                |across: f64, length: f64| (across / self.pitch_mm + 1.0) * (length / step + 1.0);
+            let points = along(h, w).max(along(w, h));
+            preston_solver::budget::check_f64s(
+                "--pitch-mm",
+                &format!(
+                    "a path of pitch {} mm and step {step} mm over the region (up to {points:.3e} \
+                     points)",
+                    self.pitch_mm
+                ),
+                points,
+                4.0,
+            )?;
+        }
+        Ok(bbox)
     }
 }
 

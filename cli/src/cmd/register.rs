@@ -91,6 +91,10 @@ pub struct Args {
     pub out: PathBuf,
 }
 
+/// Relative eigenvalue of the information matrix below which a motion counts as undetermined
+/// (rank deficiency up to rounding), not merely weak.
+const UNDETERMINED_REL: f64 = 1e-10;
+
 /// Runs `preston register`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let surface = read_surface(&args.surface)?;
@@ -114,6 +118,28 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     let reg = register(&surface, &pts.points(), &settings)
         .with_context(|| format!("registering {}", args.points.display()))?;
+    // Motions the points and the surface leave exactly undetermined (a rank-deficient
+    // information matrix: coplanar points on a plane design leave rz, tx, ty free) are refused
+    // unless the user holds them; merely weak ones are locked with a warning, as documented.
+    let undetermined: Vec<&str> = reg
+        .locked
+        .iter()
+        .filter(|m| {
+            m.source == preston_solver::registration::LockSource::Weak
+                && m.relative_eigenvalue < UNDETERMINED_REL
+        })
+        .map(|m| m.label.as_str())
+        .collect();
+    if !undetermined.is_empty() {
+        anyhow::bail!(
+            "{}: the points and the design surface do not determine these motions \
+             (information matrix rank-deficient, relative eigenvalue below {UNDETERMINED_REL:e}): \
+             {}; hold them with --lock (for points on a plane design: --lock rz,tx,ty) or measure \
+             where the surface is curved",
+            args.points.display(),
+            undetermined.join("; ")
+        );
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let tf = TransformFile::of(&reg, args.probe_radius_mm);

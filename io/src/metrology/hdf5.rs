@@ -31,6 +31,7 @@ fn open(path: &Path) -> Result<File> {
             std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
         ));
     }
+    drop(crate::limits::open_regular(path)?);
     File::open(path).map_err(|e| Error::binary(path, "HDF5 structure", cause(&e)))
 }
 

@@ -554,6 +554,7 @@ impl MapSource {
             pitch_mm,
             notes,
         } = raw;
+        check_ranges(file, &x_mm, &y_mm, &z_nm, None)?;
         let mut outside = 0;
         if let Some(spec) = &self.aperture {
             let a = spec.resolve()?;
@@ -604,6 +605,40 @@ impl MapSource {
                 removed,
             },
         })
+    }
+}
+
+/// Refuses coordinates and heights (after conversion to mm and nm) beyond the physical ranges of
+/// [`crate::limits`], naming the line (`lines`, for text files) or the point (1-based, in file
+/// order, for grids).
+pub(crate) fn check_ranges(
+    file: &Path,
+    x_mm: &[f64],
+    y_mm: &[f64],
+    z_nm: &[f64],
+    lines: Option<&[u64]>,
+) -> Result<()> {
+    use crate::limits::{MAX_ABS_COORDINATE_MM, MAX_ABS_HEIGHT_NM};
+    let bad = (0..x_mm.len()).find(|&k| {
+        !(x_mm[k].abs() <= MAX_ABS_COORDINATE_MM
+            && y_mm[k].abs() <= MAX_ABS_COORDINATE_MM
+            && z_nm.get(k).is_none_or(|z| z.abs() <= MAX_ABS_HEIGHT_NM))
+    });
+    let Some(k) = bad else { return Ok(()) };
+    let why = format!(
+        "the point ({}, {}) mm, height {} nm is beyond the physical range (|x|, |y| <= \
+         {MAX_ABS_COORDINATE_MM:e} mm, |z| <= {MAX_ABS_HEIGHT_NM:e} nm, finite); check the units",
+        x_mm[k],
+        y_mm[k],
+        z_nm.get(k).copied().unwrap_or(0.0)
+    );
+    match lines.and_then(|l| l.get(k)) {
+        Some(&line) => Err(Error::Csv {
+            file: file.to_path_buf(),
+            line,
+            why,
+        }),
+        None => Err(Error::binary(file, format!("point {}", k + 1), why)),
     }
 }
 

@@ -28,7 +28,8 @@ pub(crate) fn read_npy(path: &Path, pitch_mm: Option<f64>, z_unit: LengthUnit) -
             format!("{pitch} is not a positive length"),
         ));
     }
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bytes =
+        crate::limits::read_regular(path, preston_solver::budget::limit_bytes(), "map file")?;
     let npy =
         NpyFile::new(&bytes[..]).map_err(|e| Error::binary(path, "NPY header", e.to_string()))?;
     let (ny, nx) = match npy.shape() {

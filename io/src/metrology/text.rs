@@ -5,7 +5,7 @@ use super::{LengthUnit, MapSource, RawPoints, Units};
 use crate::error::{Error, Result};
 use crate::readers::{check_duplicates, read_map};
 use crate::table::{read_table, ColumnSpec};
-use std::io::{BufRead, BufReader};
+use std::io::BufReader;
 use std::path::Path;
 
 const X_NAMES: [(&str, LengthUnit); 3] = [
@@ -27,11 +27,9 @@ const Z_NAMES: [(&str, LengthUnit); 4] = [
 
 /// The header line of a CSV file, split and trimmed.
 fn csv_header(path: &Path) -> Result<Vec<String>> {
-    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let f = crate::limits::open_regular(path)?;
     let mut line = String::new();
-    BufReader::new(f)
-        .read_line(&mut line)
-        .map_err(|e| Error::io(path, e))?;
+    crate::limits::read_line_limited(&mut BufReader::new(f), &mut line, path, 1)?;
     Ok(line
         .trim_start_matches('\u{feff}')
         .trim()
@@ -116,6 +114,7 @@ pub(crate) fn read_csv(path: &Path, src: &MapSource) -> Result<RawPoints> {
     xs.iter_mut().for_each(|v| *v *= fx);
     ys.iter_mut().for_each(|v| *v *= fy);
     zs.iter_mut().for_each(|v| *v *= fz);
+    super::check_ranges(path, &xs, &ys, &zs, Some(&t.lines))?;
     check_duplicates(path, &xs, &ys, &t.lines)?;
     let notes = [
         conversion_note(x.0, x.1, LengthUnit::Mm, false),
@@ -203,8 +202,9 @@ fn parse_cell(path: &Path, line: u64, column: &str, text: Option<&&str>) -> Resu
 /// not all numbers is a header naming `x`, `y`, `z` (optionally with a unit suffix such as
 /// `z_um`); `--columns` gives the order instead, `--units` the units (default mm, mm, nm).
 fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<RawPoints> {
-    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let f = crate::limits::open_regular(path)?;
     let reader = BufReader::with_capacity(1 << 20, f);
+    let max_fields = crate::limits::max_fields() as usize;
     let mut pos: Option<(usize, usize, usize)> = src.columns.as_ref().map(|c| c.positions());
     let mut header_units: [Option<LengthUnit>; 3] = [None; 3];
     let mut seen_first = false;
@@ -214,8 +214,7 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
     let mut reader = reader;
     let mut line_no = 0u64;
     loop {
-        buf.clear();
-        let n = reader.read_line(&mut buf).map_err(|e| Error::io(path, e))?;
+        let n = crate::limits::read_line_limited(&mut reader, &mut buf, path, line_no + 1)?;
         if n == 0 {
             break;
         }
@@ -229,6 +228,15 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
             continue;
         }
         let toks = split_line(line, delim);
+        if toks.len() > max_fields {
+            return Err(Error::Csv {
+                file: path.to_path_buf(),
+                line: line_no,
+                why: format!(
+                    "more than {max_fields} fields (the limit; raise it with --max-fields)"
+                ),
+            });
+        }
         if !seen_first {
             seen_first = true;
             let numeric = toks
@@ -354,6 +362,7 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
     xs.iter_mut().for_each(|v| *v *= fx);
     ys.iter_mut().for_each(|v| *v *= fy);
     zs.iter_mut().for_each(|v| *v *= fz);
+    super::check_ranges(path, &xs, &ys, &zs, Some(&lines))?;
     check_duplicates(path, &xs, &ys, &lines)?;
     Ok(RawPoints {
         x_mm: xs,

@@ -73,7 +73,7 @@ fn dec(v: f32) -> f64 {
 
 /// Reads the phase frame of a MetroPro `.dat` file as heights in nm.
 pub(crate) fn read_dat(path: &Path) -> Result<Grid> {
-    let b = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let b = crate::limits::read_regular(path, preston_solver::budget::limit_bytes(), "map file")?;
     if b.len() < MIN_HEADER {
         return Err(Error::binary(
             path,

@@ -45,6 +45,9 @@ const ON_LATTICE_TOL: f64 = 1e-6;
 /// Largest lattice (cells) the operator accepts: at about 32 bytes per cell (a real buffer and three
 /// half-spectrum complex ones) 4e8 cells take ~13 GB.
 const MAX_LATTICE_CELLS: usize = 400_000_000;
+/// Bytes per lattice cell for the memory budget: the real buffer and three half-spectrum complex
+/// ones (32), the dwell occupancy and map count masks (5), rounded up.
+const LATTICE_BYTES_PER_CELL: f64 = 40.0;
 
 /// The FFT convolution operator (see the module documentation).
 pub struct FftOperator {
@@ -307,6 +310,14 @@ impl FftOperator {
             dx * smooth_size(need_x.max(nx).div_ceil(dx)),
             dy * smooth_size(need_y.max(ny).div_ceil(dy)),
         );
+        crate::budget::check(
+            "map and dwell points (FFT operator)",
+            &format!(
+                "the points span {nx} x {ny} cells of {pitch_mm} mm; an FFT lattice of {fx} x {fy} \
+                 cells at {LATTICE_BYTES_PER_CELL} bytes each"
+            ),
+            fx as f64 * fy as f64 * LATTICE_BYTES_PER_CELL,
+        )?;
         let cell = |(i, j): (usize, usize)| j * fx + i;
         let map_cells: Vec<usize> = map_ij.iter().map(|&p| cell(p)).collect();
         let dwell_cells: Vec<usize> = dwell_ij.iter().map(|&p| cell(p)).collect();

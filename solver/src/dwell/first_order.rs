@@ -434,7 +434,14 @@ fn minimise_here(
             .sum::<f64>()
             .sqrt();
         let b: f64 = data.s.iter().map(|s| s * s).sum::<f64>().sqrt();
-        (a + rho * b).max(f64::MIN_POSITIVE)
+        // Floor: the scale of an error of KKT_FLOOR_NM over the map, so that a flat map (a and
+        // rho both zero) gives a residual relative to a height far below any measurement
+        // instead of rounding noise divided by the smallest float.
+        let c: f64 = (0..n)
+            .map(|j| (data.column_sums[j] * data.s[j]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        (a + rho * b).max(KKT_FLOOR_NM * c).max(f64::MIN_POSITIVE)
     };
 
     let mut lambda_hat = power_iteration(&data, &mut work);
@@ -483,6 +490,9 @@ fn minimise_here(
         },
     })
 }
+
+/// Height, nm, below which an error map counts as flat in the KKT normalisation (a femtometre).
+const KKT_FLOOR_NM: f64 = 1e-6;
 
 /// Stopping rule shared by the iterations.
 struct Limits {
