@@ -196,8 +196,12 @@ fn virtual_loop_converges_and_writes_table_and_plots() {
     assert!(rows[1][2] < 0.2 * rows[0][2], "{rows:?}");
     assert!(rows[3][2] < DISTURBANCE_FLOOR_NM, "{rows:?}");
     assert!(rows[0][5] > 0.0 && rows[3][5] == 0.0);
+    assert_eq!(
+        png_size(&out.join("convergence.png")),
+        preston_io::plots::PLOT_SIZE_PX
+    );
+    // Maps and the path: as wide as the layout's canvas, as tall as the part's aspect gives.
     for f in [
-        "convergence.png",
         "error_before.png",
         "removal.png",
         "residual.png",
@@ -206,7 +210,9 @@ fn virtual_loop_converges_and_writes_table_and_plots() {
         "path.png",
         "final_error.png",
     ] {
-        assert_eq!(png_size(&out.join(f)), (900, 700), "{f}");
+        let (w, h) = png_size(&out.join(f));
+        assert_eq!(w, preston_io::plots::MAP_WIDTH_PX, "{f}");
+        assert!(h > 100 && h < 1000, "{f}: height {h}");
     }
 }
 

@@ -1,6 +1,7 @@
 //! PNG plots (plotters): maps of scattered values with a colour bar in their unit, tool paths,
-//! TIFs and convergence curves. Every plot is drawn into a temporary `.png` next to its
-//! destination and renamed into place, like every other output.
+//! TIFs, PSDs and convergence curves. Every plot is rendered in memory, staged as a temporary
+//! `.png` next to its destination and renamed into place together with the command's other
+//! outputs ([`crate::atomic::commit_all`]).
 //!
 //! Text uses the DejaVu Sans font shipped in `io/assets` (Bitstream Vera licence, see
 //! `io/assets/DejaVuSans-LICENSE.txt`), so plots look the same on every machine.

@@ -64,8 +64,9 @@ pub struct Report {
     /// Why `objective_gap_bound` is `null` (a sentence), absent when there is a bound.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub gap_bound_reason: Option<String>,
-    /// Which test a converged solve met: `objective_gap`, `kkt_residual` or `interior_point`.
-    #[serde(skip_serializing_if = "Option::is_none", default)]
+    /// Which test a converged solve met: `objective_gap`, `kkt_residual` or `interior_point`;
+    /// `null` when the solve did not converge or no solver ran.
+    #[serde(default)]
     pub converged_by: Option<ConvergenceCriterion>,
     /// The `rho = 0` optimum a minimum-time solve started from.
     #[serde(skip_serializing_if = "Option::is_none", default)]
