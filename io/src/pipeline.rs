@@ -9,10 +9,12 @@ use crate::readers::{read_dwell, read_tif};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
+use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::fft::FftOperator;
 use preston_solver::dwell::{
     self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice, AUTO_FFT_MIN_NNZ,
 };
+use preston_solver::edge;
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::motion::Kinematics;
@@ -44,8 +46,10 @@ pub struct Prepared {
     pub ds_mm: Vec<f64>,
     /// Dwell times of a previous solution read with the path, if the file had them.
     pub previous_dwell_s: Option<Vec<f64>>,
-    /// The validated problem.
+    /// The validated problem: the map's rows first, then the edge extension's.
     pub problem: Problem,
+    /// Edge extension points appended to the map's rows of the problem.
+    pub edge_points: usize,
     /// Seconds spent reading and assembling.
     pub build_seconds: f64,
     /// Warnings about the inputs, for the report and stderr.
@@ -138,11 +142,35 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let bounds =
         DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
     let map = map_file.map;
-    let fft = match fft_pitch(job, job_path, &map, &path, &tif, &mut warnings)? {
+    // The problem's rows: the map, then the edge extension into the dwell area.
+    let extension = edge::extend(
+        &job.edge,
+        map.x_mm(),
+        map.y_mm(),
+        map.z_nm(),
+        path.x_mm(),
+        path.y_mm(),
+        tif.nominal_radius_mm(),
+        tif.support_radius_mm(),
+    )
+    .map_err(|e| Error::engine(map_path, e))?;
+    let edge_points = extension.len();
+    let rows = if extension.is_empty() {
+        map.clone()
+    } else {
+        let cat = |a: &[f64], b: &[f64]| [a, b].concat();
+        HeightMap::new(
+            cat(map.x_mm(), &extension.x_mm),
+            cat(map.y_mm(), &extension.y_mm),
+            cat(map.z_nm(), &extension.z_nm),
+        )
+        .map_err(|e| Error::engine(map_path, e))?
+    };
+    let fft = match fft_pitch(job, job_path, &rows, &path, &tif, &mut warnings)? {
         None => None,
         Some(pitch) => match FftOperator::new(
-            map.x_mm(),
-            map.y_mm(),
+            rows.x_mm(),
+            rows.y_mm(),
             path.x_mm(),
             path.y_mm(),
             pitch,
@@ -160,11 +188,11 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
             }
         },
     };
-    let (z_nm, rho, lambda) = (map.z_nm().to_vec(), job.objective.rho, job.objective.lambda);
+    let (z_nm, rho, lambda) = (rows.z_nm().to_vec(), job.objective.rho, job.objective.lambda);
     let problem = match fft {
         Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
         None => Problem::new(
-            assemble(job, &map, &path, &tif, observer)?,
+            assemble(job, &rows, &path, &tif, observer)?,
             z_nm,
             bounds,
             rho,
@@ -181,6 +209,7 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         ds_mm,
         previous_dwell_s,
         problem,
+        edge_points,
         build_seconds: start.elapsed().as_secs_f64(),
         warnings,
     })
@@ -245,9 +274,9 @@ fn fft_pitch(
     } else if job
         .accel_limits()
         .map_err(|e| Error::engine(job_path, e))?
-        .is_some()
+        .is_some_and(|l| l.method == AccelMethod::ScpQp)
     {
-        Some("an acceleration limit (its sequential QP needs R)")
+        Some("accel_method = \"scp-qp\" (its sequential QP needs R)")
     } else if job.solver.min_time {
         Some("the minimum-time mode (it runs the QP)")
     } else if job.solver.solver == SolverChoice::Qp {
@@ -329,7 +358,7 @@ fn read_warm_start(path: &Path, n: usize) -> Result<Vec<f64>> {
 }
 
 /// Runs the solver on prepared inputs and builds the report. With `[machine] a_max_mm_per_s2`
-/// the acceleration limit is imposed by sequential convex programming ([`dwell::accel::solve`]);
+/// the acceleration limit is imposed by the job's `accel_method` ([`dwell::accel::solve`]);
 /// either way the report gets the machining time and the largest acceleration of the schedule.
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let warm = match &job.dwell.warm_start {
@@ -348,7 +377,8 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
             None,
         ),
     };
-    let removal_nm = prepared.problem.removal_nm(&solution.dwell_s)?;
+    let mut removal_nm = prepared.problem.removal_nm(&solution.dwell_s)?;
+    removal_nm.truncate(prepared.map.len());
     let mut report = Report::new(
         &prepared.problem,
         &solution,
@@ -358,6 +388,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    report.edge = Some(job.edge.method);
     report.map_input = Some(prepared.map_input.clone());
     let schedule = FeedSchedule::new(
         &prepared.path,

@@ -1,6 +1,7 @@
 //! `report.json`: what a solve achieved, in the keys of the engine contract.
 
 use preston_solver::dwell::accel::AccelReport;
+use preston_solver::edge::EdgeMethod;
 use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
@@ -12,8 +13,16 @@ use serde::{Deserialize, Serialize};
 /// outside the project read them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Report {
-    /// Number of measurement points used.
+    /// Number of rows of the problem: measurement points used plus edge extension points.
     pub m: usize,
+    /// Edge extension points among the `m` rows ([`preston_solver::edge`]); the RMS and PV
+    /// figures are on the measured map only.
+    #[serde(default)]
+    pub edge_points: usize,
+    /// The edge model of a solve (`none`, `zero-band`, `gaussian`, `polynomial`,
+    /// `gerchberg-papoulis`); absent for a simulation.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub edge: Option<EdgeMethod>,
     /// Number of dwell points.
     pub n: usize,
     /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
@@ -175,7 +184,8 @@ pub fn centred_residual_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
 }
 
 impl Report {
-    /// Builds the report of `solution` on `problem`; `removal_nm` is `R t`.
+    /// Builds the report of `solution` on `problem`; `removal_nm` is `R t` on the measured map:
+    /// the first `removal_nm.len()` rows of the problem (edge extension rows follow them).
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         problem: &Problem,
@@ -185,13 +195,16 @@ impl Report {
         skipped_rows: usize,
         build_seconds: f64,
     ) -> Self {
-        let before = HeightStats::of(problem.z_nm());
-        let after = HeightStats::of(&centred_residual_nm(problem.z_nm(), removal_nm));
+        let z = &problem.z_nm()[..removal_nm.len().min(problem.m())];
+        let before = HeightStats::of(z);
+        let after = HeightStats::of(&centred_residual_nm(z, removal_nm));
         let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();
         Self {
             m: problem.m(),
+            edge_points: problem.m() - z.len(),
+            edge: None,
             n: problem.n(),
             nnz: problem.nnz(),
             operator: if problem.fft_operator().is_some() {

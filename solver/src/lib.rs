@@ -12,6 +12,7 @@
 
 pub mod aperture;
 pub mod dwell;
+pub mod edge;
 pub mod error;
 pub mod fit;
 pub mod influence;

@@ -8,7 +8,9 @@ use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
 use preston_io::surface::read_surface;
+use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
+use preston_solver::edge::EdgeMethod;
 use preston_solver::machine::gcode::write_and_check;
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
@@ -52,6 +54,51 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
         match m {
             FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
             FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+        }
+    }
+}
+
+/// Edge model on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum EdgeArg {
+    /// No extension beyond the map.
+    None,
+    /// Zero-removal guard band (target: the map's lowest height).
+    ZeroBand,
+    /// Gaussian-weighted extrapolation.
+    Gaussian,
+    /// Local polynomial extrapolation.
+    Polynomial,
+    /// Gerchberg-Papoulis band-limited extension (map on a regular lattice).
+    GerchbergPapoulis,
+}
+
+impl From<EdgeArg> for EdgeMethod {
+    fn from(m: EdgeArg) -> Self {
+        match m {
+            EdgeArg::None => EdgeMethod::None,
+            EdgeArg::ZeroBand => EdgeMethod::ZeroBand,
+            EdgeArg::Gaussian => EdgeMethod::Gaussian,
+            EdgeArg::Polynomial => EdgeMethod::Polynomial,
+            EdgeArg::GerchbergPapoulis => EdgeMethod::GerchbergPapoulis,
+        }
+    }
+}
+
+/// Acceleration-limit method on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum AccelMethodArg {
+    /// Augmented Lagrangian, operator products only (any size, sparse or FFT operator).
+    AugmentedLagrangian,
+    /// Sequential convex programming around the QP (small-case reference; assembled R).
+    ScpQp,
+}
+
+impl From<AccelMethodArg> for AccelMethod {
+    fn from(m: AccelMethodArg) -> Self {
+        match m {
+            AccelMethodArg::AugmentedLagrangian => AccelMethod::AugmentedLagrangian,
+            AccelMethodArg::ScpQp => AccelMethod::ScpQp,
         }
     }
 }
@@ -132,13 +179,22 @@ pub struct Args {
     #[arg(long = "v-min", value_name = "MM_PER_MIN")]
     pub v_min_mm_per_min: Option<f64>,
     /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
-    /// the distance between consecutive dwell points (sequential convex programming).
+    /// the distance between consecutive dwell points (method: --accel-method).
     #[arg(long, value_name = "MM_PER_S2")]
     pub a_max_mm_per_s2: Option<f64>,
+    /// How the acceleration limit is imposed (default: the job's, else augmented-lagrangian).
+    #[arg(long, value_enum)]
+    pub accel_method: Option<AccelMethodArg>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
     pub corner_angle_deg: Option<f64>,
+    /// How the dwell area beyond the map is modelled (default: the job's [edge], else gaussian).
+    #[arg(long, value_enum)]
+    pub edge: Option<EdgeArg>,
+    /// Width of the edge band beyond the map, mm (default: the TIF's nominal radius).
+    #[arg(long, value_name = "MM")]
+    pub edge_width_mm: Option<f64>,
     /// Weight of total dwell time in the objective (nm^2 per s).
     #[arg(long)]
     pub rho: Option<f64>,
@@ -229,8 +285,17 @@ impl Args {
         if let Some(a) = self.a_max_mm_per_s2 {
             job.machine.a_max_mm_per_s2 = Some(a);
         }
+        if let Some(m) = self.accel_method {
+            job.machine.accel_method = Some(m.into());
+        }
         if let Some(c) = self.corner_angle_deg {
             job.machine.corner_angle_deg = Some(c);
+        }
+        if let Some(e) = self.edge {
+            job.edge.method = e.into();
+        }
+        if let Some(w) = self.edge_width_mm {
+            job.edge.width_mm = Some(w);
         }
         if let Some(r) = self.rho {
             job.objective.rho = r;
@@ -288,8 +353,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let r = &solved.report;
     print_input_notes(&solved.prepared.map_input);
     eprintln!(
-        "preston solve: {} map points, {} dwell points, {} non-zeros ({}){}",
-        r.m,
+        "preston solve: {} map points{}, {} dwell points, {} non-zeros ({}){}",
+        r.m - r.edge_points,
+        if r.edge_points > 0 {
+            format!(" + {} edge points", r.edge_points)
+        } else {
+            String::new()
+        },
         r.n,
         r.nnz,
         if r.operator == "fft" {
@@ -344,7 +414,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.rms_feed_limited_only_nm,
     ) {
         eprintln!(
-            "  acceleration limit {a} mm/s^2: {it} SCP iterations, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
+            "  acceleration limit {a} mm/s^2: {it} outer iterations, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
             r.rms_after_nm
         );
     }
