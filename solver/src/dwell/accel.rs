@@ -30,20 +30,7 @@ use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-/// How the acceleration-limited problem is solved.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "kebab-case")]
-pub enum AccelMethod {
-    /// Augmented Lagrangian with a spectral projected-gradient inner solver, operator products
-    /// only ([`super::accel_al`]): the default, for any size and either operator.
-    #[default]
-    AugmentedLagrangian,
-    /// Sequential convex programming around the Clarabel QP (this module): the small-case
-    /// reference; needs the assembled `R`.
-    ScpQp,
-}
-
-/// Acceleration limit and solver settings. Job files may set any field.
+/// Acceleration limit and SCP settings. Job files may set any field.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AccelLimits {
@@ -56,13 +43,10 @@ pub struct AccelLimits {
     pub constraint_tolerance: f64,
     /// The objective has settled when it changes by less than this fraction between iterations.
     pub objective_tolerance: f64,
-    /// Largest number of outer iterations (SCP: QP solves after the feed-limited reference;
-    /// augmented Lagrangian: multiplier updates).
+    /// Largest number of SCP iterations (QP solves after the feed-limited reference).
     pub max_iterations: usize,
     /// Initial relative trust region `tau`: `|t_j - t_j^k| <= tau t_j^k`.
     pub trust_region: f64,
-    /// The method ([`AccelMethod`]).
-    pub method: AccelMethod,
 }
 
 impl Default for AccelLimits {
@@ -74,7 +58,6 @@ impl Default for AccelLimits {
             objective_tolerance: 1e-4,
             max_iterations: 50,
             trust_region: 0.5,
-            method: AccelMethod::default(),
         }
     }
 }
@@ -242,14 +225,14 @@ pub fn max_acceleration_mm_per_s2(path: &DwellPath, dwell_s: &[f64], corner_angl
 
 /// The kinematic data of the constraint: per point `ds`, per segment `2 a_max s` and whether it
 /// is constrained.
-pub(crate) struct Kinematics {
-    pub(crate) ds: Vec<f64>,
-    pub(crate) cap: Vec<f64>,
-    pub(crate) constrained: Vec<bool>,
+struct Kinematics {
+    ds: Vec<f64>,
+    cap: Vec<f64>,
+    constrained: Vec<bool>,
 }
 
 impl Kinematics {
-    pub(crate) fn new(path: &DwellPath, limits: &AccelLimits) -> Self {
+    fn new(path: &DwellPath, limits: &AccelLimits) -> Self {
         let seg = segment_lengths_mm(path);
         Self {
             ds: path.ds_mm(),
@@ -261,7 +244,7 @@ impl Kinematics {
         }
     }
 
-    pub(crate) fn v2(&self, j: usize, t: &[f64]) -> f64 {
+    fn v2(&self, j: usize, t: &[f64]) -> f64 {
         let d = self.ds[j];
         if d == 0.0 {
             0.0
@@ -271,7 +254,7 @@ impl Kinematics {
     }
 
     /// Largest `|dv^2| / cap - 1` over constrained segments (<= 0: the limit holds).
-    pub(crate) fn violation(&self, t: &[f64]) -> f64 {
+    fn violation(&self, t: &[f64]) -> f64 {
         let mut worst = f64::NEG_INFINITY;
         for j in 0..self.cap.len() {
             if !self.constrained[j] {
@@ -295,26 +278,10 @@ impl Kinematics {
     }
 }
 
-/// Solves the dwell problem with the acceleration limit by `limits.method`.
-pub fn solve(
-    problem: &Problem,
-    path: &DwellPath,
-    limits: &AccelLimits,
-    settings: &Settings,
-    observer: &dyn Observer,
-) -> Result<AccelSolution> {
-    match limits.method {
-        AccelMethod::AugmentedLagrangian => {
-            super::accel_al::solve(problem, path, limits, settings, observer)
-        }
-        AccelMethod::ScpQp => solve_scp(problem, path, limits, settings, observer),
-    }
-}
-
 /// Solves the dwell problem with the acceleration limit: first the feed-limited optimum
 /// ([`super::solve`]), then the SCP. `settings` apply to each QP; the SCP minimises the contract
 /// objective (minimum-time mode applies to the reference only).
-pub fn solve_scp(
+pub fn solve(
     problem: &Problem,
     path: &DwellPath,
     limits: &AccelLimits,
@@ -455,7 +422,7 @@ pub fn solve_scp(
 }
 
 /// Boxes on `u_j = v_j^2` implied by the dwell bounds: `[(ds/ub)^2, (ds/lb)^2]`, mm^2/s^2.
-pub(crate) fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
+fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
     let n = kin.ds.len();
     let mut lo = vec![0.0; n];
     let mut hi = vec![0.0; n];
@@ -486,7 +453,7 @@ pub(crate) fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec
 }
 
 /// Forward reachable intervals of `u_j` along each line; an empty one is an error.
-pub(crate) fn forward_reachable(
+fn forward_reachable(
     kin: &Kinematics,
     lo: &[f64],
     hi: &[f64],
@@ -528,7 +495,7 @@ pub(crate) fn forward_reachable(
 
 /// Backward pass: `u_j` nearest to the target inside the reachable interval and within `cap` of
 /// `u_{j+1}`; returns dwell times `t_j = ds_j / sqrt(u_j)`.
-pub(crate) fn feasible_start(
+fn feasible_start(
     kin: &Kinematics,
     reach: &[(f64, f64)],
     target_t: &[f64],
@@ -690,10 +657,7 @@ mod tests {
         let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
         let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
         let a_max = 0.2 * a_free;
-        let limits = AccelLimits {
-            method: AccelMethod::ScpQp,
-            ..AccelLimits::new(a_max)
-        };
+        let limits = AccelLimits::new(a_max);
         let out = solve(&problem, &path, &limits, &settings, &Silent).unwrap();
         let a = max_acceleration_mm_per_s2(&path, &out.solution.dwell_s, 60.0);
         assert!(
@@ -723,109 +687,5 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("no feed schedule"), "{err}");
-    }
-
-    /// Acceleration of every constrained segment recomputed from the dwell times, against the
-    /// limit with the tolerance.
-    fn assert_within_limit(path: &DwellPath, t: &[f64], a_max: f64, tol: f64) {
-        let ds = path.ds_mm();
-        let seg = segment_lengths_mm(path);
-        let cons = constrained_segments(path, 60.0);
-        for j in 0..seg.len() {
-            if !cons[j] {
-                continue;
-            }
-            let (v0, v1) = (ds[j] / t[j], ds[j + 1] / t[j + 1]);
-            let a = (v1 * v1 - v0 * v0).abs() / (2.0 * seg[j]);
-            assert!(a <= a_max * (1.0 + tol), "segment {j}: {a} > {a_max}");
-        }
-    }
-
-    #[test]
-    fn augmented_lagrangian_matches_scp_on_a_line() {
-        let (problem, path) = trench_problem(false);
-        let settings = Settings::default();
-        let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
-        let a_max = 0.2 * max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
-        let scp = solve(
-            &problem,
-            &path,
-            &AccelLimits {
-                method: AccelMethod::ScpQp,
-                ..AccelLimits::new(a_max)
-            },
-            &settings,
-            &Silent,
-        )
-        .unwrap();
-        let al = solve(&problem, &path, &AccelLimits::new(a_max), &settings, &Silent).unwrap();
-        assert_within_limit(&path, &al.solution.dwell_s, a_max, 0.01);
-        assert!(problem.bounds().max_violation_s(&al.solution.dwell_s) < 1e-12);
-        assert!(
-            al.solution.objective <= 1.01 * scp.solution.objective,
-            "AL {} vs SCP {}",
-            al.solution.objective,
-            scp.solution.objective
-        );
-        assert!(al.report.binding_segments > 0, "{:?}", al.report);
-    }
-
-    #[test]
-    fn augmented_lagrangian_matches_scp_on_a_raster() {
-        // 15 x 15 serpentine raster (225 points) at 1 mm over a map with a bump; Gaussian TIF.
-        let mut px = Vec::new();
-        let mut py = Vec::new();
-        for r in 0..15 {
-            for c in 0..15 {
-                let c = if r % 2 == 0 { c } else { 14 - c };
-                px.push(c as f64);
-                py.push(r as f64);
-            }
-        }
-        let path = DwellPath::new(px.clone(), py.clone()).unwrap();
-        let (mut mx, mut my, mut z) = (Vec::new(), Vec::new(), Vec::new());
-        for i in 0..29 {
-            for j in 0..29 {
-                let (x, y) = (i as f64 * 0.5, j as f64 * 0.5);
-                mx.push(x);
-                my.push(y);
-                z.push(
-                    100.0
-                        + 300.0 * (-((x - 5.0).powi(2) + (y - 9.0).powi(2)) / 3.0).exp()
-                        + 20.0 * (0.8 * x).sin(),
-                );
-            }
-        }
-        let tif = GaussianTif::new(1.0, 50.0, 3.0).unwrap();
-        let r = InfluenceMatrix::assemble(&mx, &my, &px, &py, &tif, &Silent).unwrap();
-        let lim = FeedLimits {
-            v_max_mm_per_min: 600.0,
-            v_min_mm_per_min: 6.0,
-        };
-        let b = DwellBounds::from_feeds(&path.ds_mm(), &lim).unwrap();
-        let problem = Problem::new(r, z, b, 0.0, 0.0).unwrap();
-        let settings = Settings::default();
-        let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
-        let a_max = 0.1 * max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
-        let scp = solve(
-            &problem,
-            &path,
-            &AccelLimits {
-                method: AccelMethod::ScpQp,
-                ..AccelLimits::new(a_max)
-            },
-            &settings,
-            &Silent,
-        )
-        .unwrap();
-        let al = solve(&problem, &path, &AccelLimits::new(a_max), &settings, &Silent).unwrap();
-        assert_within_limit(&path, &al.solution.dwell_s, a_max, 0.01);
-        assert!(
-            al.solution.objective <= 1.01 * scp.solution.objective,
-            "AL {} vs SCP {} ({:?})",
-            al.solution.objective,
-            scp.solution.objective,
-            al.report
-        );
     }
 }

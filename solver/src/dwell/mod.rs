@@ -5,7 +5,6 @@
 //! `ds_j / v_max <= t_j <= ds_j / v_min`, where `D` differences consecutive dwell times.
 
 pub mod accel;
-pub mod accel_al;
 pub mod bounds;
 pub mod fft;
 pub mod first_order;
