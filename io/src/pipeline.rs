@@ -187,7 +187,11 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
             }
         },
     };
-    let (z_nm, rho, lambda) = (rows.z_nm().to_vec(), job.objective.rho, job.objective.lambda);
+    let (z_nm, rho, lambda) = (
+        rows.z_nm().to_vec(),
+        job.objective.rho,
+        job.objective.lambda,
+    );
     let problem = match fft {
         Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
         None => Problem::new(
@@ -369,7 +373,18 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         Some(l) => {
             let a =
                 dwell::accel::solve(&prepared.problem, &prepared.path, l, &job.solver, observer)?;
-            (a.solution, Some(a.report))
+            let mut report = a.report;
+            if prepared.edge_points > 0 {
+                // The SCP's RMS figures are over every row; give them on the measured map.
+                let on_map = |t: &[f64]| -> Result<f64> {
+                    let mut h = prepared.problem.removal_nm(t)?;
+                    h.truncate(prepared.map.len());
+                    Ok(HeightStats::of(&centred_residual_nm(prepared.map.z_nm(), &h)).rms_nm)
+                };
+                report.rms_after_nm = on_map(&a.solution.dwell_s)?;
+                report.rms_after_reference_nm = on_map(&a.reference.dwell_s)?;
+            }
+            (a.solution, Some(report))
         }
         None => (
             dwell::solve_from(&prepared.problem, &job.solver, observer, warm.as_deref())?,

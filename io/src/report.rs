@@ -1,8 +1,8 @@
 //! `report.json`: what a solve achieved, in the keys of the engine contract.
 
 use preston_solver::dwell::accel::AccelReport;
-use preston_solver::edge::EdgeMethod;
 use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
+use preston_solver::edge::EdgeMethod;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
 use preston_solver::map::{HeightMap, HeightStats};
@@ -13,10 +13,10 @@ use serde::{Deserialize, Serialize};
 /// outside the project read them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Report {
-    /// Number of rows of the problem: measurement points used plus edge extension points.
+    /// Number of measurement points used.
     pub m: usize,
-    /// Edge extension points among the `m` rows ([`preston_solver::edge`]); the RMS and PV
-    /// figures are on the measured map only.
+    /// Edge extension points appended to the `m` map rows of the problem
+    /// ([`preston_solver::edge`]); the RMS and PV figures are on the measured map only.
     #[serde(default)]
     pub edge_points: usize,
     /// The edge model of a solve (`none`, `zero-band`, `gaussian`, `polynomial`,
@@ -202,7 +202,7 @@ impl Report {
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();
         Self {
-            m: problem.m(),
+            m: z.len(),
             edge_points: problem.m() - z.len(),
             edge: None,
             n: problem.n(),

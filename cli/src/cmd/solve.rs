@@ -329,7 +329,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     print_input_notes(&solved.prepared.map_input);
     eprintln!(
         "preston solve: {} map points{}, {} dwell points, {} non-zeros ({}){}",
-        r.m - r.edge_points,
+        r.m,
         if r.edge_points > 0 {
             format!(" + {} edge points", r.edge_points)
         } else {

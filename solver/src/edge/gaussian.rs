@@ -64,7 +64,9 @@ mod tests {
         let (x, y, z) = grid_map(|a, b| (0.7 * a).sin() * 10.0 + b * b);
         let (lo, hi) = z
             .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
         let (qx, qy) = ([-1.5, 11.0, 4.0], [2.0, 5.5, -3.0]);
         let sigma = 1.3;
         let e = extend(&x, &y, &z, &qx, &qy, sigma).unwrap();

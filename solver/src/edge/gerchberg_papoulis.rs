@@ -117,7 +117,9 @@ pub fn extend(
     let fold = |a: &[f64], b: &[f64]| {
         a.iter()
             .chain(b)
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)))
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                (l.min(v), h.max(v))
+            })
     };
     let (x0, x1) = fold(map_x_mm, x_mm);
     let (y0, y1) = fold(map_y_mm, y_mm);
@@ -158,13 +160,21 @@ pub fn extend(
         values[i] = z - mean;
         known[i] = true;
     }
-    extend_on_lattice(&mut values, &known, nx, ny, p, band_limit_per_mm, iterations)?;
+    extend_on_lattice(
+        &mut values,
+        &known,
+        nx,
+        ny,
+        p,
+        band_limit_per_mm,
+        iterations,
+    )?;
     x_mm.iter()
         .zip(y_mm)
         .map(|(&x, &y)| {
-            node(x, y)
-                .map(|i| values[i] + mean)
-                .ok_or_else(|| Error::invalid("edge gerchberg-papoulis", "extension point off the lattice"))
+            node(x, y).map(|i| values[i] + mean).ok_or_else(|| {
+                Error::invalid("edge gerchberg-papoulis", "extension point off the lattice")
+            })
         })
         .collect()
 }
@@ -178,7 +188,8 @@ mod tests {
     /// and (-2, 1) of the 32 mm period, all below 0.125 cycles/mm.
     fn surface(i: usize, j: usize) -> f64 {
         let (u, v) = (i as f64 / 64.0, j as f64 / 64.0);
-        20.0 * (TAU * 2.0 * u).cos() + 8.0 * (TAU * (u + 3.0 * v)).sin() - 5.0 * (TAU * (-2.0 * u + v) + 0.3).cos()
+        20.0 * (TAU * 2.0 * u).cos() + 8.0 * (TAU * (u + 3.0 * v)).sin()
+            - 5.0 * (TAU * (-2.0 * u + v) + 0.3).cos()
     }
 
     #[test]

@@ -32,12 +32,12 @@ use std::collections::HashMap;
 #[serde(rename_all = "kebab-case")]
 pub enum EdgeMethod {
     /// No extension: dwell points beyond the map are constrained only by the map points in their
-    /// footprint.
+    /// footprint (the default; the sample job sets `gerchberg-papoulis`).
+    #[default]
     None,
     /// Zero-removal guard band: the extension points' target is the map's lowest height.
     ZeroBand,
     /// Gaussian-weighted extrapolation of the map.
-    #[default]
     Gaussian,
     /// Local least-squares polynomial extrapolation of the map.
     Polynomial,
@@ -87,12 +87,18 @@ impl EdgeSettings {
     pub fn validate(&self) -> Result<()> {
         if let Some(w) = self.width_mm {
             if !(w.is_finite() && w >= 0.0) {
-                return Err(Error::invalid("edge width_mm", format!("must be >= 0, got {w}")));
+                return Err(Error::invalid(
+                    "edge width_mm",
+                    format!("must be >= 0, got {w}"),
+                ));
             }
         }
         for (name, v) in [
             ("edge gaussian_sigma_mm", self.gaussian_sigma_mm),
-            ("edge polynomial_fit_radius_mm", self.polynomial_fit_radius_mm),
+            (
+                "edge polynomial_fit_radius_mm",
+                self.polynomial_fit_radius_mm,
+            ),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(Error::invalid(name, format!("must be positive, got {v}")));
@@ -286,9 +292,10 @@ pub fn extension_points(
         .filter(|p| p.is_finite() && *p > 0.0)
         .ok_or_else(|| Error::invalid("map", "edge handling needs at least two distinct points"))?;
     let bounds = |v: &[f64]| {
-        v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| {
-            (a.min(t), b.max(t))
-        })
+        v.iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| {
+                (a.min(t), b.max(t))
+            })
     };
     let (mx0, mx1) = bounds(map_x_mm);
     let (my0, my1) = bounds(map_y_mm);
@@ -368,7 +375,10 @@ mod tests {
         for j in -2..=6 {
             for i in -2..=12 {
                 let (px, py) = (i as f64, j as f64);
-                let d = (0.0 - px).max(px - 10.0).max(0.0).hypot((0.0 - py).max(py - 4.0).max(0.0));
+                let d = (0.0 - px)
+                    .max(px - 10.0)
+                    .max(0.0)
+                    .hypot((0.0 - py).max(py - 4.0).max(0.0));
                 if d > 0.75 && d <= 2.0 {
                     want += 1;
                 }
@@ -394,6 +404,10 @@ mod tests {
             polynomial_degree: 7,
             ..EdgeSettings::default()
         };
-        assert!(s.validate().unwrap_err().to_string().contains("polynomial_degree"));
+        assert!(s
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("polynomial_degree"));
     }
 }

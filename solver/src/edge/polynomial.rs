@@ -38,7 +38,9 @@ pub fn extend(
             };
             let (cx, cy) = (map_x_mm[near], map_y_mm[near]);
             let mut idx = Vec::new();
-            b.within(map_x_mm, map_y_mm, cx, cy, fit_radius_mm, |i, _| idx.push(i));
+            b.within(map_x_mm, map_y_mm, cx, cy, fit_radius_mm, |i, _| {
+                idx.push(i)
+            });
             let k = powers.len();
             let row = |x: f64, y: f64| -> Vec<f64> {
                 let (u, v) = ((x - cx) / fit_radius_mm, (y - cy) / fit_radius_mm);
@@ -75,13 +77,18 @@ mod tests {
 
     #[test]
     fn reproduces_polynomials_of_its_degree() {
-        let quad = |a: f64, b: f64| 3.0 + 0.5 * a - 2.0 * b + 0.1 * a * a - 0.3 * a * b + 0.2 * b * b;
+        let quad =
+            |a: f64, b: f64| 3.0 + 0.5 * a - 2.0 * b + 0.1 * a * a - 0.3 * a * b + 0.2 * b * b;
         let (x, y, z) = grid_map(quad);
         let (qx, qy) = ([-2.0, 12.5, 5.0, 11.0], [1.0, 3.0, -2.5, 6.0]);
         let e = extend(&x, &y, &z, &qx, &qy, 2, 3.0).unwrap();
         for k in 0..qx.len() {
             let want = quad(qx[k], qy[k]);
-            assert!((e[k] - want).abs() < 1e-8 * want.abs().max(1.0), "{} vs {want}", e[k]);
+            assert!(
+                (e[k] - want).abs() < 1e-8 * want.abs().max(1.0),
+                "{} vs {want}",
+                e[k]
+            );
         }
         // Degree 1 reproduces a plane but not the quadratic.
         let plane = |a: f64, b: f64| 1.0 + 0.25 * a - 0.75 * b;
