@@ -402,7 +402,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
-    report.edge = Some(job.edge.method);
+    report.edge = job.edge.method;
     report.map_input = Some(prepared.map_input.clone());
     let schedule = FeedSchedule::new(
         &prepared.path,

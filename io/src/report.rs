@@ -19,10 +19,10 @@ pub struct Report {
     /// ([`preston_solver::edge`]); the RMS and PV figures are on the measured map only.
     #[serde(default)]
     pub edge_points: usize,
-    /// The edge model of a solve (`none`, `zero-band`, `gaussian`, `polynomial`,
-    /// `gerchberg-papoulis`); absent for a simulation.
-    #[serde(skip_serializing_if = "Option::is_none", default)]
-    pub edge: Option<EdgeMethod>,
+    /// The edge model (`none`, `zero-band`, `gaussian`, `polynomial`, `gerchberg-papoulis`);
+    /// `none` for a simulation.
+    #[serde(default)]
+    pub edge: EdgeMethod,
     /// Number of dwell points.
     pub n: usize,
     /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
@@ -204,7 +204,7 @@ impl Report {
         Self {
             m: z.len(),
             edge_points: problem.m() - z.len(),
-            edge: None,
+            edge: EdgeMethod::None,
             n: problem.n(),
             nnz: problem.nnz(),
             operator: if problem.fft_operator().is_some() {
