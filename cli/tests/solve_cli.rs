@@ -200,3 +200,81 @@ fn bad_input_fails_cleanly() {
     );
     expect_failure(&["--job", &job], &["job.toml", "speed"]);
 }
+
+/// The sample job as shipped (Gerchberg-Papoulis edge extension) run at 2000 mm/s^2: no dwell point
+/// outside the map's extent holds more than twice the 95th percentile of the dwell on the map,
+/// the acceleration stays within the limit and the program executed at that limit reproduces
+/// the planned RMS within 10%; `--edge none` on the same job breaks the first target.
+#[test]
+fn sample_job_edge_and_machinability_targets() {
+    let run = |extra: &[&str]| {
+        let out = tempfile::tempdir().unwrap();
+        let o = preston()
+            .args(["solve", "--job"])
+            .arg(data("job.toml"))
+            .args(extra)
+            .arg("--out")
+            .arg(out.path())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.path().join("report.json")).unwrap())
+                .unwrap();
+        let text = std::fs::read_to_string(out.path().join("dwell.csv")).unwrap();
+        let mut lines = text.lines();
+        let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+        let (cx, cy, ct) = (col("x_mm"), col("y_mm"), col("dwell_s"));
+        let rows: Vec<[f64; 3]> = lines
+            .map(|l| {
+                let v: Vec<f64> = l.split(',').map(|f| f.parse().unwrap()).collect();
+                [v[cx], v[cy], v[ct]]
+            })
+            .collect();
+        (r, rows)
+    };
+    // The map's extent: x 0 .. 118.08 mm, y 0 .. 8 mm (0.32 mm grid), read from the map itself.
+    let map = std::fs::read_to_string(data("mirror_error_118x8mm.csv")).unwrap();
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for l in map.lines().skip(1) {
+        let v: Vec<f64> = l.split(',').map(|f| f.parse().unwrap()).collect();
+        x0 = x0.min(v[0]);
+        x1 = x1.max(v[0]);
+        y0 = y0.min(v[1]);
+        y1 = y1.max(v[1]);
+    }
+    let spike_ratio = |rows: &[[f64; 3]]| {
+        let inside = |r: &[f64; 3]| r[0] >= x0 && r[0] <= x1 && r[1] >= y0 && r[1] <= y1;
+        let mut on: Vec<f64> = rows.iter().filter(|r| inside(r)).map(|r| r[2]).collect();
+        on.sort_by(f64::total_cmp);
+        let p95 = on[(0.95 * (on.len() - 1) as f64) as usize];
+        let off = rows
+            .iter()
+            .filter(|r| !inside(r))
+            .map(|r| r[2])
+            .fold(0.0, f64::max);
+        off / p95
+    };
+    let (r, rows) = run(&["--a-max-mm-per-s2", "2000"]);
+    assert_eq!(r["edge"], "gerchberg-papoulis");
+    assert!(r["edge_points"].as_u64().unwrap() > 0);
+    assert_eq!(r["m"], 9672);
+    let ratio = spike_ratio(&rows);
+    assert!(
+        ratio <= 2.0,
+        "largest dwell off the map / p95 on it = {ratio}"
+    );
+    let a_max = r["a_max_mm_per_s2"].as_f64().unwrap();
+    assert!(r["max_accel_mm_per_s2"].as_f64().unwrap() <= a_max * 1.01);
+    let executed = r["executed"]["rms_ratio_to_plan"].as_f64().unwrap();
+    assert!(
+        (executed - 1.0).abs() <= 0.10,
+        "executed / planned RMS = {executed}"
+    );
+
+    let (r, rows) = run(&["--edge", "none"]);
+    assert_eq!(r["edge_points"], 0);
+    let ratio = spike_ratio(&rows);
+    assert!(ratio > 2.0, "without edge handling the ratio is {ratio}");
+}

@@ -30,6 +30,10 @@
 //! solver = "auto"
 //! min_time = false
 //!
+//! [edge]                                 # optional: the dwell area beyond the map
+//! method = "gaussian"                    # none, zero-band, gaussian, polynomial, gerchberg-papoulis
+//! # width_mm = 5.0                       # band beyond the map (default: TIF nominal radius)
+//!
 //! [surface]                              # optional: a curved part
 //! file = "design.json"                   # surface JSON; the TIF acts in the tangent plane
 //! tif_frame = "path_tangent"             # or "machine_x"
@@ -41,6 +45,7 @@ use crate::metrology::ApertureSpec;
 pub use crate::metrology::MapSource;
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Settings};
+use preston_solver::edge::EdgeSettings;
 use preston_solver::machine::compensation::NormalDisplacement;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::surface::influence::TifFrame;
@@ -79,6 +84,10 @@ pub struct Job {
     /// The design surface of a curved part (absent: a flat part).
     #[serde(default)]
     pub surface: SurfaceSource,
+    /// Edge handling: how the dwell area beyond the map is modelled
+    /// ([`preston_solver::edge`]).
+    #[serde(default)]
+    pub edge: EdgeSettings,
 }
 
 /// The design surface on which the TIF is applied in each dwell point's tangent plane.

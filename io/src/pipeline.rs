@@ -13,6 +13,7 @@ use preston_solver::dwell::fft::FftOperator;
 use preston_solver::dwell::{
     self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice, AUTO_FFT_MIN_NNZ,
 };
+use preston_solver::edge;
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::motion::Kinematics;
@@ -45,8 +46,10 @@ pub struct Prepared {
     pub ds_mm: Vec<f64>,
     /// Dwell times of a previous solution read with the path, if the file had them.
     pub previous_dwell_s: Option<Vec<f64>>,
-    /// The validated problem.
+    /// The validated problem: the map's rows first, then the edge extension's.
     pub problem: Problem,
+    /// Edge extension points appended to the map's rows of the problem.
+    pub edge_points: usize,
     /// Seconds spent reading and assembling.
     pub build_seconds: f64,
     /// Warnings about the inputs, for the report and stderr.
@@ -164,11 +167,35 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
     let bounds =
         DwellBounds::from_feeds(&ds_mm, &limits).map_err(|e| Error::engine(job_path, e))?;
     let map = map_file.map;
-    let fft = match fft_pitch(job, job_path, &map, &path, &tif, &mut warnings)? {
+    // The problem's rows: the map, then the edge extension into the dwell area.
+    let extension = edge::extend(
+        &job.edge,
+        map.x_mm(),
+        map.y_mm(),
+        map.z_nm(),
+        path.x_mm(),
+        path.y_mm(),
+        tif.nominal_radius_mm(),
+        tif.support_radius_mm(),
+    )
+    .map_err(|e| Error::engine(map_path, e))?;
+    let edge_points = extension.len();
+    let rows = if extension.is_empty() {
+        map.clone()
+    } else {
+        let cat = |a: &[f64], b: &[f64]| [a, b].concat();
+        HeightMap::new(
+            cat(map.x_mm(), &extension.x_mm),
+            cat(map.y_mm(), &extension.y_mm),
+            cat(map.z_nm(), &extension.z_nm),
+        )
+        .map_err(|e| Error::engine(map_path, e))?
+    };
+    let fft = match fft_pitch(job, job_path, &rows, &path, &tif, &mut warnings)? {
         None => None,
         Some(pitch) => match FftOperator::new(
-            map.x_mm(),
-            map.y_mm(),
+            rows.x_mm(),
+            rows.y_mm(),
             path.x_mm(),
             path.y_mm(),
             pitch,
@@ -186,11 +213,15 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
             }
         },
     };
-    let (z_nm, rho, lambda) = (map.z_nm().to_vec(), job.objective.rho, job.objective.lambda);
+    let (z_nm, rho, lambda) = (
+        rows.z_nm().to_vec(),
+        job.objective.rho,
+        job.objective.lambda,
+    );
     let problem = match fft {
         Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
         None => Problem::new(
-            assemble(job, &map, &path, &tif, observer)?,
+            assemble(job, &rows, &path, &tif, observer)?,
             z_nm,
             bounds,
             rho,
@@ -207,6 +238,7 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         ds_mm,
         previous_dwell_s,
         problem,
+        edge_points,
         build_seconds: start.elapsed().as_secs_f64(),
         warnings,
     })
@@ -367,14 +399,26 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         Some(l) => {
             let a =
                 dwell::accel::solve(&prepared.problem, &prepared.path, l, &job.solver, observer)?;
-            (a.solution, Some(a.report))
+            let mut report = a.report;
+            if prepared.edge_points > 0 {
+                // The SCP's RMS figures are over every row; give them on the measured map.
+                let on_map = |t: &[f64]| -> Result<f64> {
+                    let mut h = prepared.problem.removal_nm(t)?;
+                    h.truncate(prepared.map.len());
+                    Ok(HeightStats::of(&centred_residual_nm(prepared.map.z_nm(), &h)).rms_nm)
+                };
+                report.rms_after_nm = on_map(&a.solution.dwell_s)?;
+                report.rms_after_reference_nm = on_map(&a.reference.dwell_s)?;
+            }
+            (a.solution, Some(report))
         }
         None => (
             dwell::solve_from(&prepared.problem, &job.solver, observer, warm.as_deref())?,
             None,
         ),
     };
-    let removal_nm = prepared.problem.removal_nm(&solution.dwell_s)?;
+    let mut removal_nm = prepared.problem.removal_nm(&solution.dwell_s)?;
+    removal_nm.truncate(prepared.map.len());
     let mut report = Report::new(
         &prepared.problem,
         &solution,
@@ -384,6 +428,7 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    report.edge = job.edge.method;
     report.map_input = Some(prepared.map_input.clone());
     let schedule = FeedSchedule::new(
         &prepared.path,

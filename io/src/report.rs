@@ -3,6 +3,7 @@
 use preston_solver::dwell::accel::AccelReport;
 use preston_solver::dwell::certificate::ConvergenceCriterion;
 use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
+use preston_solver::edge::EdgeMethod;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
 use preston_solver::map::{HeightMap, HeightStats};
@@ -15,6 +16,14 @@ use serde::{Deserialize, Serialize};
 pub struct Report {
     /// Number of measurement points used.
     pub m: usize,
+    /// Edge extension points appended to the `m` map rows of the problem
+    /// ([`preston_solver::edge`]); the RMS and PV figures are on the measured map only.
+    #[serde(default)]
+    pub edge_points: usize,
+    /// The edge model (`none`, `zero-band`, `gaussian`, `polynomial`, `gerchberg-papoulis`);
+    /// `none` for a simulation.
+    #[serde(default)]
+    pub edge: EdgeMethod,
     /// Number of dwell points.
     pub n: usize,
     /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
@@ -184,7 +193,8 @@ pub fn centred_residual_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
 }
 
 impl Report {
-    /// Builds the report of `solution` on `problem`; `removal_nm` is `R t`.
+    /// Builds the report of `solution` on `problem`; `removal_nm` is `R t` on the measured map:
+    /// the first `removal_nm.len()` rows of the problem (edge extension rows follow them).
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         problem: &Problem,
@@ -194,13 +204,16 @@ impl Report {
         skipped_rows: usize,
         build_seconds: f64,
     ) -> Self {
-        let before = HeightStats::of(problem.z_nm());
-        let after = HeightStats::of(&centred_residual_nm(problem.z_nm(), removal_nm));
+        let z = &problem.z_nm()[..removal_nm.len().min(problem.m())];
+        let before = HeightStats::of(z);
+        let after = HeightStats::of(&centred_residual_nm(z, removal_nm));
         let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();
         Self {
-            m: problem.m(),
+            m: z.len(),
+            edge_points: problem.m() - z.len(),
+            edge: EdgeMethod::None,
             n: problem.n(),
             nnz: problem.nnz(),
             operator: if problem.fft_operator().is_some() {

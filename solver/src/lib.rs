@@ -13,6 +13,7 @@
 pub mod aperture;
 pub mod budget;
 pub mod dwell;
+pub mod edge;
 pub mod error;
 pub mod fit;
 pub mod influence;

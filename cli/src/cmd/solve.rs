@@ -9,6 +9,7 @@ use preston_io::job::Job;
 use preston_io::pipeline;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
+use preston_solver::edge::EdgeMethod;
 use preston_solver::machine::gcode::write_and_check;
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
@@ -53,6 +54,33 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
         match m {
             FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
             FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+        }
+    }
+}
+
+/// Edge model on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum EdgeArg {
+    /// No extension beyond the map.
+    None,
+    /// Zero-removal guard band (target: the map's lowest height).
+    ZeroBand,
+    /// Gaussian-weighted extrapolation.
+    Gaussian,
+    /// Local polynomial extrapolation.
+    Polynomial,
+    /// Gerchberg-Papoulis band-limited extension (map on a regular lattice).
+    GerchbergPapoulis,
+}
+
+impl From<EdgeArg> for EdgeMethod {
+    fn from(m: EdgeArg) -> Self {
+        match m {
+            EdgeArg::None => EdgeMethod::None,
+            EdgeArg::ZeroBand => EdgeMethod::ZeroBand,
+            EdgeArg::Gaussian => EdgeMethod::Gaussian,
+            EdgeArg::Polynomial => EdgeMethod::Polynomial,
+            EdgeArg::GerchbergPapoulis => EdgeMethod::GerchbergPapoulis,
         }
     }
 }
@@ -140,6 +168,12 @@ pub struct Args {
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
     pub corner_angle_deg: Option<f64>,
+    /// How the dwell area beyond the map is modelled (default: the job's [edge], else gaussian).
+    #[arg(long, value_enum)]
+    pub edge: Option<EdgeArg>,
+    /// Width of the edge band beyond the map, mm (default: the TIF's nominal radius).
+    #[arg(long, value_name = "MM")]
+    pub edge_width_mm: Option<f64>,
     /// Weight of total dwell time in the objective (nm^2 per s).
     #[arg(long)]
     pub rho: Option<f64>,
@@ -237,6 +271,12 @@ impl Args {
         if let Some(c) = self.corner_angle_deg {
             job.machine.corner_angle_deg = Some(c);
         }
+        if let Some(e) = self.edge {
+            job.edge.method = e.into();
+        }
+        if let Some(w) = self.edge_width_mm {
+            job.edge.width_mm = Some(w);
+        }
         if let Some(r) = self.rho {
             job.objective.rho = r;
         }
@@ -304,8 +344,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let r = &solved.report;
     print_input_notes(&solved.prepared.map_input);
     eprintln!(
-        "preston solve: {} map points, {} dwell points, {} non-zeros ({}){}",
+        "preston solve: {} map points{}, {} dwell points, {} non-zeros ({}){}",
         r.m,
+        if r.edge_points > 0 {
+            format!(" + {} edge points", r.edge_points)
+        } else {
+            String::new()
+        },
         r.n,
         r.nnz,
         if r.operator == "fft" {

@@ -404,7 +404,12 @@ pub fn solve(
     };
     let solution = Solution {
         status,
-        solver: SolverKind::Qp,
+        // The reference's solver when it already met the limit (no QP ran after it).
+        solver: if iterations == 0 {
+            reference.solver
+        } else {
+            SolverKind::Qp
+        },
         piston_nm: eval.piston_nm,
         objective: eval.objective,
         dwell_s: best_t,
