@@ -103,12 +103,15 @@ def test_dwell_points_as_array_and_options(small_job):
     g = small_job["tif"]["gaussian"]
     first = preston.solve(small_job, gaussian=g, solver="first-order", operator="sparse", tolerance=1e-7)
     assert first.report["solver"] != base.report["solver"]
-    assert first.report["objective"] == pytest.approx(base.report["objective"], rel=1e-3)
+    # Both near the optimum: residual RMS within 0.1% of the initial RMS of each other.
+    gap = abs(first.report["rms_after_nm"] - base.report["rms_after_nm"])
+    assert gap < 1e-3 * base.report["rms_before_nm"]
     # Feed = 60 ds / dwell, mm/min, never above v_max.
     np.testing.assert_allclose(base.feed_mm_per_min, 60.0 * base.ds_mm / base.dwell_s, rtol=1e-12)
     assert base.feed_mm_per_min.max() <= 3000.0 * (1 + 1e-9)
-    limited = preston.solve(small_job, a_max=200.0)
-    assert limited.report["a_max_mm_per_s2"] == 200.0
+    slowest = preston.solve(small_job, v_min=600.0)
+    assert slowest.feed_mm_per_min.min() >= 600.0 * (1 - 1e-9)
+    assert base.feed_mm_per_min.min() < 600.0
 
 
 def test_progress_callback(sample_job, py_job_result):
