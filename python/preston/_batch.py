@@ -221,7 +221,7 @@ def batch(
     own_cluster = own_client = None
     if client is None:
         own_cluster = LocalCluster(
-            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0"
         )
         client = own_client = Client(own_cluster)
     elif isinstance(client, str):
