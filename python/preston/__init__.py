@@ -35,6 +35,8 @@ __all__ = [
     "load_job",
     "batch",
     "grid",
+    "simulate",
+    "raster",
     "SolveResult",
     "PrestonError",
     "InputError",
@@ -352,6 +354,54 @@ def read_map(path: PathLike, **format_options: Any) -> Tuple[np.ndarray, np.ndar
     source = {"file": _abs(path), **_map_options(format_options)}
     x, y, z, _how = _preston.read_map(_dumps(source))
     return x, y, z
+
+
+def simulate(
+    map_xyz: ArrayLike,
+    dwell_xy: ArrayLike,
+    dwell_s: ArrayLike,
+    *,
+    tif: Optional[PathLike] = None,
+    tif_xyr: Optional[ArrayLike] = None,
+    gaussian: Optional[Mapping[str, float]] = None,
+    samples_per_point: Optional[int] = None,
+    progress: Optional[Callable[[dict], Any]] = None,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """The removal a dwell program produces: ``(removal_nm, residual_nm)`` at the map points.
+
+    ``map_xyz``: ``(N, 3)`` (x_mm, y_mm, z_nm) or ``(x, y, z)``; ``dwell_xy``: ``(M, 2)`` dwell
+    points in path order, mm; ``dwell_s``: ``(M,)`` dwell times, s. The TIF is one of ``tif``
+    (CSV file), ``tif_xyr`` (``(K, 3)`` grid samples, rate nm/s) or ``gaussian``. Discrete dwells
+    (the solver's model, ``h = R t``) unless ``samples_per_point`` is given: then the tool sweeps
+    the path at the scheduled feeds, integrated with that many midpoint samples per dwell point.
+    ``residual_nm`` is ``z - removal`` with its mean removed (as :func:`solve` reports it)."""
+    m = _columns(map_xyz, 3, "map_xyz")
+    pts = _columns(dwell_xy, 2, "dwell_xy")
+    t = np.ascontiguousarray(dwell_s, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"dwell_s: expected a 1-D array, got shape {t.shape}")
+    if sum(x is not None for x in (tif, tif_xyr, gaussian)) != 1:
+        raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    tif_json = _dumps({"file": _abs(tif) if tif is not None else None, "gaussian": gaussian})
+    xyr = _columns(tif_xyr, 3, "tif_xyr") if tif_xyr is not None else None
+    removal = _preston.simulate(
+        np.ascontiguousarray(m[:, :2]), pts, t, tif_json, xyr, samples_per_point, progress
+    )
+    e = m[:, 2] - removal
+    return removal, e - e.mean()
+
+
+def raster(
+    x_range_mm: Tuple[float, float],
+    y_range_mm: Tuple[float, float],
+    pitch_mm: float,
+    along: str = "x",
+) -> Tuple[np.ndarray, np.ndarray]:
+    """A serpentine raster (the one ``raster_pitch_mm`` generates) over the box
+    ``x_range_mm`` x ``y_range_mm`` at ``pitch_mm``, lines along ``"x"`` or ``"y"``:
+    ``(x_mm, y_mm)`` in path order."""
+    (x0, x1), (y0, y1) = x_range_mm, y_range_mm
+    return _preston.raster(float(x0), float(x1), float(y0), float(y1), float(pitch_mm), along)
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)

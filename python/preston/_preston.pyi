@@ -78,3 +78,20 @@ def solve(
     """Solves a job (JSON) with optional ``(N, 3)`` map / TIF and ``(N, 2)`` dwell arrays."""
 
 def _raise_numerical() -> None: ...
+
+def simulate(
+    map_xy: F64,
+    dwell_xy: F64,
+    dwell_s: F64,
+    tif_json: str = "{}",
+    tif_xyr: Optional[F64] = None,
+    samples_per_point: Optional[int] = None,
+    progress: Optional[Callable[[dict], Any]] = None,
+) -> F64:
+    """Removal (nm) at ``(N, 2)`` map points of a dwell program (discrete, or continuous with
+    ``samples_per_point``)."""
+
+def raster(
+    x_min_mm: float, x_max_mm: float, y_min_mm: float, y_max_mm: float, pitch_mm: float, along: str
+) -> Tuple[F64, F64]:
+    """A serpentine raster over a box, ``(x_mm, y_mm)`` in path order."""

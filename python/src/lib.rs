@@ -7,15 +7,17 @@
 //! the functions here with the job as JSON (the job file's structure, see `preston_io::job`).
 #![warn(missing_docs)]
 
-use numpy::{IntoPyArray, PyArray1, PyReadonlyArray2};
+use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2};
 use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
 use preston_io::pipeline::{self, Inputs, Solved};
 use preston_io::readers::{read_dwell, DwellFile};
 use preston_io::report::{centred_residual_nm, feeds_mm_per_min};
-use preston_solver::map::HeightMap;
+use preston_solver::map::{BoundingBox, HeightMap};
 use preston_solver::observer::{IterationInfo, Observer, Silent, Stage};
+use preston_solver::path::raster::{serpentine, RasterAxis};
 use preston_solver::path::DwellPath;
+use preston_solver::simulate::{removal_nm, Motion};
 use preston_solver::tif::{GridTif, Tif};
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
@@ -470,6 +472,85 @@ fn solve(
     })
 }
 
+/// The TIF of a `[tif]` table (JSON: `file` or `gaussian`), or the `(N, 3)` grid samples.
+fn tif_of(tif_json: &str, tif_xyr: Option<Vec<Vec<f64>>>) -> PyResult<Tif> {
+    if let Some(c) = tif_xyr {
+        return GridTif::from_samples(&c[0], &c[1], &c[2])
+            .map(Tif::Grid)
+            .map_err(|e| engine_to_py("tif_xyr", e));
+    }
+    let mut job = Job::default();
+    job.tif = serde_json::from_str(tif_json)
+        .map_err(|e| InputError::new_err(format!("tif: {e}")))?;
+    pipeline::load_tif(&job, Path::new("tif")).map_err(to_py)
+}
+
+/// Removal (nm) at map points `(N, 2)` of the dwell program `dwell_xy` `(M, 2)` with `dwell_s`
+/// `(M,)`: discrete dwells (`samples_per_point` None; the solver's model, `R t`) or continuous
+/// motion at the scheduled feeds (midpoint rule, `samples_per_point` samples per dwell point).
+#[pyfunction]
+#[pyo3(signature = (map_xy, dwell_xy, dwell_s, tif_json="{}", tif_xyr=None, samples_per_point=None, progress=None))]
+#[allow(clippy::too_many_arguments)]
+fn simulate<'py>(
+    py: Python<'py>,
+    map_xy: PyReadonlyArray2<'py, f64>,
+    dwell_xy: PyReadonlyArray2<'py, f64>,
+    dwell_s: PyReadonlyArray1<'py, f64>,
+    tif_json: &str,
+    tif_xyr: Option<PyReadonlyArray2<'py, f64>>,
+    samples_per_point: Option<usize>,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    let map = columns(&map_xy, "map_xy", 2)?;
+    let mut pts = columns(&dwell_xy, "dwell_xy", 2)?;
+    let dwell = dwell_s.as_array().to_vec();
+    let tif = tif_of(tif_json, tif_xyr.map(|a| columns(&a, "tif_xyr", 3)).transpose()?)?;
+    let (y, x) = (pts.pop().unwrap_or_default(), pts.pop().unwrap_or_default());
+    let path = DwellPath::new(x, y).map_err(|e| engine_to_py("dwell_xy", e))?;
+    let motion = match samples_per_point {
+        None => Motion::Discrete,
+        Some(samples_per_point) => Motion::Continuous { samples_per_point },
+    };
+    let observer = progress.map(PyProgress::new);
+    let removal = py.detach(|| {
+        let obs: &dyn Observer = match &observer {
+            Some(o) => o,
+            None => &Silent,
+        };
+        removal_nm(&map[0], &map[1], &path, &dwell, &tif, motion, obs)
+    });
+    if let Some(e) = observer.as_ref().and_then(PyProgress::take_error) {
+        return Err(e);
+    }
+    Ok(removal
+        .map_err(|e| engine_to_py("simulate", e))?
+        .into_pyarray(py))
+}
+
+/// A serpentine raster at `pitch_mm` over a box (mm), lines along `along` (`"x"` or `"y"`):
+/// `(x_mm, y_mm)` in path order.
+#[pyfunction]
+fn raster<'py>(
+    py: Python<'py>,
+    x_min_mm: f64,
+    x_max_mm: f64,
+    y_min_mm: f64,
+    y_max_mm: f64,
+    pitch_mm: f64,
+    along: &str,
+) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    let axis: RasterAxis = serde_json::from_value(serde_json::Value::String(along.to_string()))
+        .map_err(|e| InputError::new_err(format!("raster along: {e}")))?;
+    let region = BoundingBox {
+        x_min_mm,
+        x_max_mm,
+        y_min_mm,
+        y_max_mm,
+    };
+    let p = serpentine(&region, pitch_mm, axis).map_err(|e| engine_to_py("raster", e))?;
+    Ok((array(py, p.x_mm()), array(py, p.y_mm())))
+}
+
 /// An engine error raised on purpose, for the exception-mapping tests.
 #[pyfunction]
 fn _raise_numerical() -> PyResult<()> {
@@ -495,6 +576,8 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(check_job, m)?)?;
     m.add_function(wrap_pyfunction!(read_map, m)?)?;
     m.add_function(wrap_pyfunction!(solve, m)?)?;
+    m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(raster, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }
