@@ -37,6 +37,7 @@ __all__ = [
     "grid",
     "simulate",
     "raster",
+    "fit",
     "SolveResult",
     "PrestonError",
     "InputError",
@@ -402,6 +403,30 @@ def raster(
     ``(x_mm, y_mm)`` in path order."""
     (x0, x1), (y0, y1) = x_range_mm, y_range_mm
     return _preston.raster(float(x0), float(x1), float(y0), float(y1), float(pitch_mm), along)
+
+
+def fit(
+    points_xyz: ArrayLike,
+    order: int = 10,
+    *,
+    norm_radius_mm: Optional[float] = None,
+    curvature_per_mm: float = 0.0,
+    conic: float = 0.0,
+    fit_conic: bool = False,
+) -> Tuple[dict, dict, np.ndarray]:
+    """Least-squares XY-polynomial surface (``preston fit``) through points ``(N, 3)`` or
+    ``(x, y, z)``, all in mm, on a conic base of vertex curvature ``curvature_per_mm`` (1/mm) and
+    ``conic`` constant (or both fitted with ``fit_conic=True``), polynomial of total ``order``
+    normalised by ``norm_radius_mm`` (default: the largest radius of the points).
+
+    Returns ``(surface, summary, residual_nm)``: the surface as the dict ``preston fit --out``
+    writes (save it with ``json.dump`` for ``solve(surface=...)``), the summary (``rms_nm``,
+    ``pv_nm``, ``condition_number``, ``points``, ...) and the residual at each point, nm."""
+    pts = _columns(points_xyz, 3, "points_xyz")
+    surface, summary, residual = _preston.fit(
+        pts, int(order), norm_radius_mm, float(curvature_per_mm), float(conic), bool(fit_conic)
+    )
+    return json.loads(surface), json.loads(summary), residual
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)

@@ -95,3 +95,13 @@ def raster(
     x_min_mm: float, x_max_mm: float, y_min_mm: float, y_max_mm: float, pitch_mm: float, along: str
 ) -> Tuple[F64, F64]:
     """A serpentine raster over a box, ``(x_mm, y_mm)`` in path order."""
+
+def fit(
+    points_xyz: F64,
+    order: int = 10,
+    norm_radius_mm: Optional[float] = None,
+    curvature_per_mm: float = 0.0,
+    conic: float = 0.0,
+    fit_conic: bool = False,
+) -> Tuple[str, str, F64]:
+    """XY-polynomial fit of ``(N, 3)`` points (mm): ``(surface_json, summary_json, residual_nm)``."""

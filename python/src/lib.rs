@@ -12,7 +12,10 @@ use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
 use preston_io::pipeline::{self, Inputs, Solved};
 use preston_io::readers::{read_dwell, DwellFile};
+use preston_io::surface::FitSummary;
 use preston_io::report::{centred_residual_nm, feeds_mm_per_min};
+use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
+use preston_solver::surface::Surface;
 use preston_solver::map::{BoundingBox, HeightMap};
 use preston_solver::observer::{IterationInfo, Observer, Silent, Stage};
 use preston_solver::path::raster::{serpentine, RasterAxis};
@@ -551,6 +554,45 @@ fn raster<'py>(
     Ok((array(py, p.x_mm()), array(py, p.y_mm())))
 }
 
+/// Least-squares XY-polynomial surface through points `(N, 3)` (x, y, z in mm) of `order` on a
+/// conic base (fixed `curvature_per_mm`/`conic`, or fitted): `(surface_json, summary_json,
+/// residual_nm)`, the surface JSON being what `preston fit --out` writes.
+#[pyfunction]
+#[pyo3(signature = (points_xyz, order=10, norm_radius_mm=None, curvature_per_mm=0.0, conic=0.0, fit_conic=false))]
+fn fit<'py>(
+    py: Python<'py>,
+    points_xyz: PyReadonlyArray2<'py, f64>,
+    order: u32,
+    norm_radius_mm: Option<f64>,
+    curvature_per_mm: f64,
+    conic: f64,
+    fit_conic: bool,
+) -> PyResult<(String, String, Bound<'py, PyArray1<f64>>)> {
+    let c = columns(&points_xyz, "points_xyz", 3)?;
+    let settings = FitSettings {
+        order,
+        norm_radius_mm: norm_radius_mm.unwrap_or(0.0),
+        base: if fit_conic {
+            ConicBase::Fitted
+        } else {
+            ConicBase::Fixed {
+                curvature_per_mm,
+                conic,
+            }
+        },
+        ..FitSettings::default()
+    };
+    let f = py
+        .detach(|| fit_xy_polynomial(&c[0], &c[1], &c[2], &settings))
+        .map_err(|e| engine_to_py("points_xyz", e))?;
+    let json = |v: serde_json::Result<String>| v.map_err(|e| InputError::new_err(e.to_string()));
+    Ok((
+        json(serde_json::to_string(&Surface::XyPolynomial(f.surface.clone())))?,
+        json(serde_json::to_string(&FitSummary::of(&f)))?,
+        array(py, &f.residual_nm),
+    ))
+}
+
 /// An engine error raised on purpose, for the exception-mapping tests.
 #[pyfunction]
 fn _raise_numerical() -> PyResult<()> {
@@ -578,6 +620,7 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(solve, m)?)?;
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
     m.add_function(wrap_pyfunction!(raster, m)?)?;
+    m.add_function(wrap_pyfunction!(fit, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }
