@@ -38,6 +38,7 @@ __all__ = [
     "simulate",
     "raster",
     "fit",
+    "nc",
     "SolveResult",
     "PrestonError",
     "InputError",
@@ -427,6 +428,35 @@ def fit(
         pts, int(order), norm_radius_mm, float(curvature_per_mm), float(conic), bool(fit_conic)
     )
     return json.loads(surface), json.loads(summary), residual
+
+
+def nc(
+    dwell_xy: ArrayLike,
+    dwell_s: ArrayLike,
+    *,
+    surface: Optional[PathLike] = None,
+    notes: Sequence[str] = (),
+    **settings: Any,
+) -> str:
+    """The G-code program of ``preston nc`` for a dwell plan, as text.
+
+    ``dwell_xy``: ``(N, 2)`` dwell points in path order, mm; ``dwell_s``: ``(N,)`` dwell times, s
+    (e.g. ``np.column_stack([r.dwell_x_mm, r.dwell_y_mm])`` and ``r.dwell_s`` of :func:`solve`).
+    ``surface``: design surface JSON (default: a flat part, Z = 0). ``notes``: comment lines
+    of the header. ``settings`` are the keys of the NC settings: ``v_max_mm_per_min``,
+    ``a_max_mm_per_s2``, ``corner_angle_deg``, ``tool_radius_mm``, ``tool_axis``, ``dialect``
+    (``"iso"``, ``"sinumerik"``, ...), ``feed_mode``, ``clearance_mm``,
+    ``plunge_feed_mm_per_min``, ``min_block_time_ms``, ``spindle_rpm``, ``coolant``,
+    ``compensation``. The program is read back and checked against the plan before it is
+    returned; a plan no program can deliver raises :class:`InputError` naming the point."""
+    pts = _columns(dwell_xy, 2, "dwell_xy")
+    t = np.ascontiguousarray(dwell_s, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"dwell_s: expected a 1-D array, got shape {t.shape}")
+    text, _blocks = _preston.nc(
+        pts, t, _dumps(settings), _abs(surface) if surface is not None else None, list(notes)
+    )
+    return text
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)

@@ -105,3 +105,12 @@ def fit(
     fit_conic: bool = False,
 ) -> Tuple[str, str, F64]:
     """XY-polynomial fit of ``(N, 3)`` points (mm): ``(surface_json, summary_json, residual_nm)``."""
+
+def nc(
+    dwell_xy: F64,
+    dwell_s: F64,
+    settings_json: str = "{}",
+    surface_file: Optional[str] = None,
+    notes: list = ...,
+) -> Tuple[str, int]:
+    """G-code for a dwell plan: ``(program_text, feed_blocks)``."""

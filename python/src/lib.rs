@@ -12,10 +12,13 @@ use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
 use preston_io::pipeline::{self, Inputs, Solved};
 use preston_io::readers::{read_dwell, DwellFile};
-use preston_io::surface::FitSummary;
+use preston_io::surface::{read_surface, FitSummary};
 use preston_io::report::{centred_residual_nm, feeds_mm_per_min};
 use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
 use preston_solver::surface::Surface;
+use preston_solver::machine::gcode::write_and_check;
+use preston_solver::machine::nc::{NcProgram, NcSettings};
+use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::map::{BoundingBox, HeightMap};
 use preston_solver::observer::{IterationInfo, Observer, Silent, Stage};
 use preston_solver::path::raster::{serpentine, RasterAxis};
@@ -593,6 +596,43 @@ fn fit<'py>(
     ))
 }
 
+/// The G-code program (`preston nc`) for dwell points `(N, 2)` (mm, path order) and `dwell_s`
+/// `(N,)`, with the settings of a job's `[nc]`-style table (JSON, `NcSettings`) on a flat part or
+/// the design surface in `surface_file`; `notes` are written as comment lines of the header.
+/// Returns `(program_text, feed_blocks)`.
+#[pyfunction]
+#[pyo3(signature = (dwell_xy, dwell_s, settings_json="{}", surface_file=None, notes=Vec::new()))]
+fn nc(
+    py: Python<'_>,
+    dwell_xy: PyReadonlyArray2<'_, f64>,
+    dwell_s: PyReadonlyArray1<'_, f64>,
+    settings_json: &str,
+    surface_file: Option<PathBuf>,
+    notes: Vec<String>,
+) -> PyResult<(String, usize)> {
+    let settings: NcSettings = serde_json::from_str(settings_json)
+        .map_err(|e| InputError::new_err(format!("nc settings: {e}")))?;
+    settings.validate().map_err(|e| engine_to_py("nc settings", e))?;
+    let mut pts = columns(&dwell_xy, "dwell_xy", 2)?;
+    let (y, x) = (pts.pop().unwrap_or_default(), pts.pop().unwrap_or_default());
+    let path = DwellPath::new(x, y).map_err(|e| engine_to_py("dwell_xy", e))?;
+    let dwell = dwell_s.as_array().to_vec();
+    let surface = surface_file
+        .as_deref()
+        .map(read_surface)
+        .transpose()
+        .map_err(to_py)?;
+    let check = py.detach(|| {
+        let geometry: &dyn PartGeometry = match &surface {
+            Some(s) => s,
+            None => &Flat,
+        };
+        NcProgram::plan(&path, &dwell, geometry, &settings).and_then(|p| write_and_check(&p, &notes))
+    });
+    let check = check.map_err(|e| engine_to_py("nc", e))?;
+    Ok((check.written.text, check.written.feed_blocks))
+}
+
 /// An engine error raised on purpose, for the exception-mapping tests.
 #[pyfunction]
 fn _raise_numerical() -> PyResult<()> {
@@ -621,6 +661,7 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
     m.add_function(wrap_pyfunction!(raster, m)?)?;
     m.add_function(wrap_pyfunction!(fit, m)?)?;
+    m.add_function(wrap_pyfunction!(nc, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }
