@@ -19,7 +19,6 @@ and field at fault): :class:`InputError` (bad input), :class:`SolverError` (nume
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 from typing import Any, Callable, Mapping, Optional, Sequence, Tuple, Union

@@ -12,10 +12,9 @@ use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
 use preston_io::pipeline::{self, Inputs, Solved};
 use preston_io::readers::{read_dwell, DwellFile};
-use preston_io::surface::{read_surface, FitSummary};
 use preston_io::report::{centred_residual_nm, feeds_mm_per_min};
+use preston_io::surface::{read_surface, FitSummary};
 use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
-use preston_solver::surface::Surface;
 use preston_solver::machine::gcode::write_and_check;
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
@@ -24,6 +23,7 @@ use preston_solver::observer::{IterationInfo, Observer, Silent, Stage};
 use preston_solver::path::raster::{serpentine, RasterAxis};
 use preston_solver::path::DwellPath;
 use preston_solver::simulate::{removal_nm, Motion};
+use preston_solver::surface::Surface;
 use preston_solver::tif::{GridTif, Tif};
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
@@ -216,7 +216,10 @@ pub struct SolveResult {
     residual: Vec<f64>,
 }
 
-fn array<'py>(py: Python<'py>, v: &[f64]) -> Bound<'py, PyArray1<f64>> {
+/// A numpy float64 vector.
+type Array<'py> = Bound<'py, PyArray1<f64>>;
+
+fn array<'py>(py: Python<'py>, v: &[f64]) -> Array<'py> {
     v.to_vec().into_pyarray(py)
 }
 
@@ -309,8 +312,8 @@ fn job_to_json(job: &Job, job_name: &str) -> PyResult<String> {
             _ => {}
         }
     }
-    let mut v = serde_json::to_value(job)
-        .map_err(|e| InputError::new_err(format!("{job_name}: {e}")))?;
+    let mut v =
+        serde_json::to_value(job).map_err(|e| InputError::new_err(format!("{job_name}: {e}")))?;
     strip_nulls(&mut v);
     Ok(v.to_string())
 }
@@ -337,16 +340,10 @@ fn check_job(job_json: &str, base_dir: Option<PathBuf>, job_name: &str) -> PyRes
 /// Reads a map with the options of a job's `[map]` table (JSON), returning `(x_mm, y_mm, z_nm,
 /// how_read_json)`.
 #[pyfunction]
-#[allow(clippy::type_complexity)]
 fn read_map<'py>(
     py: Python<'py>,
     source_json: &str,
-) -> PyResult<(
-    Bound<'py, PyArray1<f64>>,
-    Bound<'py, PyArray1<f64>>,
-    Bound<'py, PyArray1<f64>>,
-    String,
-)> {
+) -> PyResult<(Array<'py>, Array<'py>, Array<'py>, String)> {
     let source: MapSource = serde_json::from_str(source_json)
         .map_err(|e| InputError::new_err(format!("map options: {e}")))?;
     let read = py.detach(|| source.read()).map_err(to_py)?;
@@ -485,9 +482,11 @@ fn tif_of(tif_json: &str, tif_xyr: Option<Vec<Vec<f64>>>) -> PyResult<Tif> {
             .map(Tif::Grid)
             .map_err(|e| engine_to_py("tif_xyr", e));
     }
-    let mut job = Job::default();
-    job.tif = serde_json::from_str(tif_json)
-        .map_err(|e| InputError::new_err(format!("tif: {e}")))?;
+    let job = Job {
+        tif: serde_json::from_str(tif_json)
+            .map_err(|e| InputError::new_err(format!("tif: {e}")))?,
+        ..Job::default()
+    };
     pipeline::load_tif(&job, Path::new("tif")).map_err(to_py)
 }
 
@@ -510,7 +509,10 @@ fn simulate<'py>(
     let map = columns(&map_xy, "map_xy", 2)?;
     let mut pts = columns(&dwell_xy, "dwell_xy", 2)?;
     let dwell = dwell_s.as_array().to_vec();
-    let tif = tif_of(tif_json, tif_xyr.map(|a| columns(&a, "tif_xyr", 3)).transpose()?)?;
+    let tif = tif_of(
+        tif_json,
+        tif_xyr.map(|a| columns(&a, "tif_xyr", 3)).transpose()?,
+    )?;
     let (y, x) = (pts.pop().unwrap_or_default(), pts.pop().unwrap_or_default());
     let path = DwellPath::new(x, y).map_err(|e| engine_to_py("dwell_xy", e))?;
     let motion = match samples_per_point {
@@ -544,7 +546,7 @@ fn raster<'py>(
     y_max_mm: f64,
     pitch_mm: f64,
     along: &str,
-) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+) -> PyResult<(Array<'py>, Array<'py>)> {
     let axis: RasterAxis = serde_json::from_value(serde_json::Value::String(along.to_string()))
         .map_err(|e| InputError::new_err(format!("raster along: {e}")))?;
     let region = BoundingBox {
@@ -590,7 +592,9 @@ fn fit<'py>(
         .map_err(|e| engine_to_py("points_xyz", e))?;
     let json = |v: serde_json::Result<String>| v.map_err(|e| InputError::new_err(e.to_string()));
     Ok((
-        json(serde_json::to_string(&Surface::XyPolynomial(f.surface.clone())))?,
+        json(serde_json::to_string(&Surface::XyPolynomial(
+            f.surface.clone(),
+        )))?,
         json(serde_json::to_string(&FitSummary::of(&f)))?,
         array(py, &f.residual_nm),
     ))
@@ -612,7 +616,9 @@ fn nc(
 ) -> PyResult<(String, usize)> {
     let settings: NcSettings = serde_json::from_str(settings_json)
         .map_err(|e| InputError::new_err(format!("nc settings: {e}")))?;
-    settings.validate().map_err(|e| engine_to_py("nc settings", e))?;
+    settings
+        .validate()
+        .map_err(|e| engine_to_py("nc settings", e))?;
     let mut pts = columns(&dwell_xy, "dwell_xy", 2)?;
     let (y, x) = (pts.pop().unwrap_or_default(), pts.pop().unwrap_or_default());
     let path = DwellPath::new(x, y).map_err(|e| engine_to_py("dwell_xy", e))?;
@@ -627,7 +633,8 @@ fn nc(
             Some(s) => s,
             None => &Flat,
         };
-        NcProgram::plan(&path, &dwell, geometry, &settings).and_then(|p| write_and_check(&p, &notes))
+        NcProgram::plan(&path, &dwell, geometry, &settings)
+            .and_then(|p| write_and_check(&p, &notes))
     });
     let check = check.map_err(|e| engine_to_py("nc", e))?;
     Ok((check.written.text, check.written.feed_blocks))
