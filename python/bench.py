@@ -15,8 +15,12 @@ import time
 
 import numpy as np
 
-import preston
-from preston._batch import run_job
+# The installed wheel, not the source package beside this script.
+_HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != _HERE]
+
+import preston  # noqa: E402
+from preston._batch import run_job, worker_env  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 JOB = os.path.join(ROOT, "data", "job.toml")
@@ -54,7 +58,8 @@ def bench_batch(workers: int) -> None:
             name = j["name"]
             seq.append(run_job(name, {k: v for k, v in j.items() if k != "name"}, os.path.join(d, "seq")))
         t_seq = time.perf_counter() - t
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                               env=worker_env(workers))
         client = Client(cluster)
         client.run(lambda: __import__("preston"))  # workers import the package before the clock starts
         t = time.perf_counter()

@@ -173,6 +173,14 @@ def _replace_dir(tmp: str, final: str) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def worker_env(n_workers: int) -> Dict[str, str]:
+    """Environment of local worker processes: the engine's thread pool (rayon) gets an equal share
+    of the cores, so that ``n_workers`` solves at once do not oversubscribe the machine (an
+    explicit ``RAYON_NUM_THREADS`` is kept). Results do not depend on the thread count."""
+    share = max(1, (os.cpu_count() or 1) // max(1, n_workers))
+    return {"RAYON_NUM_THREADS": os.environ.get("RAYON_NUM_THREADS", str(share))}
+
+
 def batch(
     jobs: Union[JobSpec, Iterable[JobSpec]],
     client: Any = None,
@@ -187,7 +195,8 @@ def batch(
     :func:`grid`, dotted job keys to lists of values) for a parameter sweep.
 
     ``client``: a ``dask.distributed.Client``, or a scheduler address; ``None`` starts a
-    ``LocalCluster`` of ``n_workers`` single-threaded worker processes for the call.
+    ``LocalCluster`` of ``n_workers`` single-threaded worker processes for the call, each
+    engine's thread pool limited to its share of the cores (:func:`worker_env`).
 
     Each job's ``dwell.csv``, ``residual.csv`` and ``report.json`` go to ``out_dir/<name>/``,
     written into a temporary directory that is renamed into place once complete. A failing job
@@ -221,7 +230,11 @@ def batch(
     own_cluster = own_client = None
     if client is None:
         own_cluster = LocalCluster(
-            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0"
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=":0",
+            env=worker_env(n_workers),
         )
         client = own_client = Client(own_cluster)
     elif isinstance(client, str):
