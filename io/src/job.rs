@@ -160,13 +160,19 @@ impl Job {
     pub fn load(path: &Path) -> Result<Self> {
         let text = crate::limits::read_document(path, "job file")?;
         let mut job = Self::parse(&text, path)?;
-        let base = path.parent().unwrap_or_else(|| Path::new("."));
+        job.resolve_paths(path.parent().unwrap_or_else(|| Path::new(".")));
+        Ok(job)
+    }
+
+    /// Makes every relative file path of the job (map, TIF, dwell, warm start, surface, polygon
+    /// aperture) relative to `base` instead (the job file's directory).
+    pub fn resolve_paths(&mut self, base: &Path) {
         for p in [
-            &mut job.map.file,
-            &mut job.tif.file,
-            &mut job.dwell.file,
-            &mut job.dwell.warm_start,
-            &mut job.surface.file,
+            &mut self.map.file,
+            &mut self.tif.file,
+            &mut self.dwell.file,
+            &mut self.dwell.warm_start,
+            &mut self.surface.file,
         ]
         .into_iter()
         .flatten()
@@ -175,12 +181,11 @@ impl Job {
                 *p = base.join(&*p);
             }
         }
-        if let Some(ApertureSpec::PolygonFile(p)) = &mut job.map.aperture {
+        if let Some(ApertureSpec::PolygonFile(p)) = &mut self.map.aperture {
             if p.is_relative() {
                 *p = base.join(&*p);
             }
         }
-        Ok(job)
     }
 
     /// Parses job text; `path` names it in messages.

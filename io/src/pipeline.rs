@@ -4,8 +4,8 @@ use crate::atomic::commit_all;
 use crate::error::{Error, Result};
 use crate::job::Job;
 use crate::machine::read_dwell_times;
-use crate::metrology::MapInput;
-use crate::readers::{read_dwell, read_tif};
+use crate::metrology::{MapInput, MapRead};
+use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
@@ -92,26 +92,74 @@ pub fn load_tif(job: &Job, job_path: &Path) -> Result<Tif> {
 /// vectors), not counting the influence matrix: the memory budget's lower bound.
 const DWELL_POINT_VALUES: f64 = 16.0;
 
+/// The inputs of a solve, read from files or given in memory (the Python package passes arrays).
+#[derive(Debug, Clone)]
+pub struct Inputs {
+    /// The error map and how it was read.
+    pub map: MapRead,
+    /// The TIF.
+    pub tif: Tif,
+    /// The dwell points (with a previous solution's dwell times when the file had them); `None`:
+    /// the job's `[dwell] raster_pitch_mm` generates a serpentine raster.
+    pub dwell: Option<DwellFile>,
+}
+
+/// Reads the inputs a job names: the map (through its [`crate::metrology::MapSource`]), the TIF
+/// and the dwell file (none when the job asks for a raster).
+pub fn read_inputs(job: &Job, job_path: &Path) -> Result<Inputs> {
+    job.solver
+        .validate()
+        .map_err(|e| Error::engine(job_path, e))?;
+    job.feed_limits().map_err(|e| Error::engine(job_path, e))?;
+    job.accel_limits().map_err(|e| Error::engine(job_path, e))?;
+    if job.map.file.is_none() {
+        return Err(Error::Job {
+            file: job_path.to_path_buf(),
+            why: "no map: set [map] file (or --map)".into(),
+        });
+    }
+    let map = job.map.read()?;
+    let tif = load_tif(job, job_path)?;
+    let dwell = match (&job.dwell.file, job.dwell.raster_pitch_mm) {
+        (Some(f), None) => Some(read_dwell(f)?),
+        _ => None,
+    };
+    Ok(Inputs { map, tif, dwell })
+}
+
 /// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
 pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Prepared> {
     let start = Instant::now();
+    let inputs = read_inputs(job, job_path)?;
+    prepare_inputs(job, job_path, inputs, start, observer)
+}
+
+/// Builds the problem from inputs already read (`started`: when reading began, for the report's
+/// build time). `job_path` names the job in messages; the job's `[dwell]` decides between the
+/// given points and a generated raster, exactly one of which must be set.
+pub fn prepare_inputs(
+    job: &Job,
+    job_path: &Path,
+    inputs: Inputs,
+    started: Instant,
+    observer: &dyn Observer,
+) -> Result<Prepared> {
     job.solver
         .validate()
         .map_err(|e| Error::engine(job_path, e))?;
     let limits = job.feed_limits().map_err(|e| Error::engine(job_path, e))?;
     job.accel_limits().map_err(|e| Error::engine(job_path, e))?;
-    let map_path = job.map.file.as_deref().ok_or_else(|| Error::Job {
-        file: job_path.to_path_buf(),
-        why: "no map: set [map] file (or --map)".into(),
-    })?;
-    let map_file = job.map.read()?;
-    let tif = load_tif(job, job_path)?;
-    let (path, previous_dwell_s) = match (&job.dwell.file, job.dwell.raster_pitch_mm) {
-        (Some(f), None) => {
-            let d = read_dwell(f)?;
+    let map_path = job.map.file.as_deref().unwrap_or(job_path);
+    let Inputs {
+        map: map_file,
+        tif,
+        dwell,
+    } = inputs;
+    let (path, previous_dwell_s) = match (dwell, job.dwell.raster_pitch_mm) {
+        (Some(d), None) => {
             if d.path.len() < 2 {
                 return Err(Error::Empty {
-                    file: f.clone(),
+                    file: job.dwell.file.clone().unwrap_or_else(|| job_path.to_path_buf()),
                     why: "one dwell point: a path of length zero has no feed; give at least two \
                           points"
                         .into(),
@@ -239,7 +287,7 @@ pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Pr
         previous_dwell_s,
         problem,
         edge_points,
-        build_seconds: start.elapsed().as_secs_f64(),
+        build_seconds: started.elapsed().as_secs_f64(),
         warnings,
     })
 }

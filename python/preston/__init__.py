@@ -1,0 +1,461 @@
+"""Preston: dwell times for deterministic sub-aperture polishing, from Python.
+
+The same engine as the ``preston`` command line, with numpy arrays in and out and no files in
+between. Units everywhere: lengths mm, heights and removal nm, times s, removal rates nm/s, feeds
+mm/min.
+
+* :func:`solve` -- dwell times and feeds for an error map, a tool influence function (TIF) and a
+  dwell path (given points or a generated raster), with every solver, operator and limit option
+  of ``preston solve``.
+* :func:`read_map` -- any map format the CLI reads (CSV, XYZ text, NumPy ``.npy``, Zygo ``.dat``
+  / ``.datx``, 4D ``.h5``) with its options (units, columns, pitch, aperture, form removal).
+* :func:`batch` / :func:`grid` -- many solves (job dicts, job files, a parameter grid over one
+  job) on a ``dask.distributed`` cluster, outputs written atomically per job.
+
+Errors are raised as :class:`PrestonError` subclasses carrying Preston's message (the file, line
+and field at fault): :class:`InputError` (bad input), :class:`SolverError` (numerical failure),
+:class:`NotConvergedError` (only when ``require_converged=True``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Callable, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _preston
+from ._preston import InputError, NotConvergedError, PrestonError, SolverError
+
+__all__ = [
+    "solve",
+    "read_map",
+    "load_job",
+    "batch",
+    "grid",
+    "simulate",
+    "raster",
+    "fit",
+    "nc",
+    "SolveResult",
+    "PrestonError",
+    "InputError",
+    "SolverError",
+    "NotConvergedError",
+]
+
+PathLike = Union[str, "os.PathLike[str]"]
+ArrayLike = Any
+
+#: The options of a job's ``[map]`` table that :func:`read_map` and ``map_options`` accept.
+MAP_OPTIONS = ("format", "columns", "units", "pitch_mm", "aperture", "remove")
+
+
+class SolveResult:
+    """The outcome of :func:`solve`.
+
+    Attributes (numpy ``float64`` arrays unless stated):
+
+    * ``dwell_s`` -- dwell time at each dwell point, s, in path order.
+    * ``feed_mm_per_min`` -- feed into each dwell point, mm/min (``60 ds_mm / dwell_s``).
+    * ``ds_mm`` -- path length each dwell point stands for, mm.
+    * ``dwell_x_mm``, ``dwell_y_mm`` -- the dwell points, mm.
+    * ``map_x_mm``, ``map_y_mm``, ``z_nm`` -- the map points kept, mm, and their error, nm.
+    * ``removal_nm`` -- predicted removal at each map point, nm.
+    * ``residual_nm`` -- ``z_nm - removal_nm`` with its mean removed (as in residual.csv), nm.
+    * ``report`` -- dict with the keys of ``report.json`` (RMS/PV before and after in nm, total
+      dwell s, machining time s, solver, status, iterations, warnings, ...).
+    * ``status`` (str), ``converged`` (bool) -- the solver's status.
+    """
+
+    __slots__ = (
+        "_native",
+        "dwell_s",
+        "feed_mm_per_min",
+        "ds_mm",
+        "dwell_x_mm",
+        "dwell_y_mm",
+        "map_x_mm",
+        "map_y_mm",
+        "z_nm",
+        "removal_nm",
+        "residual_nm",
+        "report",
+        "status",
+        "converged",
+    )
+
+    def __init__(self, native: "_preston.SolveResult") -> None:
+        self._native = native
+        self.dwell_s = native.dwell_s
+        self.feed_mm_per_min = native.feed_mm_per_min
+        self.ds_mm = native.ds_mm
+        self.dwell_x_mm = native.dwell_x_mm
+        self.dwell_y_mm = native.dwell_y_mm
+        self.map_x_mm = native.map_x_mm
+        self.map_y_mm = native.map_y_mm
+        self.z_nm = native.z_nm
+        self.removal_nm = native.removal_nm
+        self.residual_nm = native.residual_nm
+        self.report = json.loads(native.report_json)
+        self.status = native.status
+        self.converged = native.converged
+
+    def write(self, out_dir: PathLike) -> None:
+        """Writes ``dwell.csv``, ``residual.csv`` and ``report.json`` (the CLI's files) into
+        ``out_dir``, created if needed; each file appears whole or not at all."""
+        self._native.write(os.fspath(out_dir))
+
+    def __repr__(self) -> str:
+        r = self.report
+        return (
+            f"<preston.SolveResult {len(self.dwell_s)} dwell points, status {self.status}, "
+            f"RMS {r.get('rms_before_nm', float('nan')):.3f} -> "
+            f"{r.get('rms_after_nm', float('nan')):.3f} nm, "
+            f"total dwell {r.get('total_dwell_s', float('nan')):.2f} s>"
+        )
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, os.PathLike):
+        return os.fspath(o)
+    raise TypeError(f"{type(o).__name__} is not a job value")
+
+
+def _dumps(job: Mapping[str, Any]) -> str:
+    try:
+        return json.dumps(job, default=_json_default, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"job: {e}") from None
+
+
+def load_job(job: Union[PathLike, Mapping[str, Any]]) -> dict:
+    """A job as a dict with the structure of a job file (``[map]``, ``[tif]``, ``[dwell]``,
+    ``[machine]``, ``[objective]``, ``[solver]``, ...), every default filled in and every relative
+    path made absolute: a TOML file's paths against its directory, a dict's against the current
+    directory. Unknown keys raise :class:`InputError` naming them."""
+    if isinstance(job, (str, os.PathLike)):
+        return json.loads(_preston.load_job(os.fspath(job)))
+    if isinstance(job, Mapping):
+        text = _preston.check_job(_dumps(job), os.getcwd(), "<job dict>")
+        return json.loads(text)
+    raise InputError(f"job: expected a path to a job file or a dict, got {type(job).__name__}")
+
+
+def _columns(a: ArrayLike, k: int, name: str) -> np.ndarray:
+    """An ``(N, k)`` float64 array from an array or a sequence of ``k`` 1-D columns."""
+    if isinstance(a, (tuple, list)) and len(a) == k and all(np.ndim(c) == 1 for c in a):
+        a = np.column_stack([np.asarray(c, dtype=np.float64) for c in a])
+    try:
+        arr = np.ascontiguousarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{name}: not a float array ({e})") from None
+    if arr.ndim != 2 or arr.shape[1] != k:
+        raise InputError(f"{name}: expected an array of shape (N, {k}), got {arr.shape}")
+    return arr
+
+
+def _abs(p: PathLike) -> str:
+    return os.path.abspath(os.fspath(p))
+
+
+def solve(
+    job: Optional[Union[PathLike, Mapping[str, Any]]] = None,
+    *,
+    map: Optional[PathLike] = None,
+    map_xyz: Optional[ArrayLike] = None,
+    map_options: Optional[Mapping[str, Any]] = None,
+    tif: Optional[PathLike] = None,
+    tif_xyr: Optional[ArrayLike] = None,
+    gaussian: Optional[Mapping[str, float]] = None,
+    dwell: Optional[PathLike] = None,
+    dwell_xy: Optional[ArrayLike] = None,
+    raster_pitch_mm: Optional[float] = None,
+    raster_along: Optional[str] = None,
+    v_max: Optional[float] = None,
+    v_min: Optional[float] = None,
+    a_max: Optional[float] = None,
+    corner_angle_deg: Optional[float] = None,
+    rho: Optional[float] = None,
+    lambda_: Optional[float] = None,
+    min_time: Optional[bool] = None,
+    min_time_tolerance: Optional[float] = None,
+    tolerance: Optional[float] = None,
+    first_order_method: Optional[str] = None,
+    max_iterations: Optional[int] = None,
+    solver: Optional[str] = None,
+    operator: Optional[str] = None,
+    warm_start: Optional[PathLike] = None,
+    surface: Optional[PathLike] = None,
+    tif_frame: Optional[str] = None,
+    progress: Optional[Callable[[dict], Any]] = None,
+    require_converged: bool = False,
+) -> SolveResult:
+    """Dwell times and feeds: the engine of ``preston solve``, arrays in and out.
+
+    ``job`` is a job file (TOML) or a dict of the same structure; the keyword arguments override
+    it exactly as the CLI's flags override ``--job``:
+
+    * map: ``map`` (a file, any format of :func:`read_map`, read with ``map_options``) or
+      ``map_xyz`` (an ``(N, 3)`` array of x_mm, y_mm, z_nm, or a tuple ``(x_mm, y_mm, z_nm)`` such
+      as :func:`read_map` returns).
+    * TIF: ``tif`` (CSV ``x_mm,y_mm,rate_nm_per_s``), ``tif_xyr`` (``(N, 3)`` array x_mm, y_mm,
+      rate_nm_per_s on a regular grid) or ``gaussian`` (``dict(sigma_mm=, peak_rate_nm_per_s=,
+      truncation_radius_mm=)``).
+    * dwell points: ``dwell`` (CSV ``x_mm,y_mm`` in path order), ``dwell_xy`` (``(N, 2)`` array,
+      mm) or ``raster_pitch_mm`` (a serpentine raster at this pitch, mm, over the map extended by
+      the TIF radius; lines along ``raster_along`` = ``"x"`` or ``"y"``).
+    * limits: ``v_max`` / ``v_min`` (feed, mm/min; ``v_max`` required), ``a_max`` (acceleration
+      along a line, mm/s^2), ``corner_angle_deg`` (turns splitting lines, degrees).
+    * objective: ``rho`` (weight of total dwell, nm^2/s), ``lambda_`` (weight of dwell
+      differences, nm^2/s^2), ``min_time`` and ``min_time_tolerance`` (relative).
+    * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,
+      ``"sparse"``, ``"fft"``), ``first_order_method`` (``"fista"``, ``"newton-cg"``),
+      ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous
+      dwell.csv).
+    * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,
+      ``"machine_x"``).
+
+    ``progress(event)`` is called during the work with a dict: ``stage`` (``"assembly"``,
+    ``"solve"``, ``"loop"``), ``event`` (``"start"``, ``"advance"``, ``"finish"``,
+    ``"iteration"``), ``done`` and ``total`` (units of the stage), and for iterations
+    ``iteration``, ``objective`` (nm^2) and ``kkt_residual``. An exception raised by the callback
+    is raised by :func:`solve` once the engine returns.
+
+    The interpreter is released while the engine runs. A solver that stops before converging is
+    a status (``result.converged`` is False), not an error, unless ``require_converged=True``
+    (then :class:`NotConvergedError`).
+    """
+    j = load_job(job) if job is not None else load_job({})
+    name = os.fspath(job) if isinstance(job, (str, os.PathLike)) else "<python>"
+    sections = ("map", "tif", "dwell", "machine", "objective", "solver", "surface")
+    for s in sections:
+        if j.get(s) is None:
+            j[s] = {}
+    m, t, d, mach, obj, sol, surf = (j[s] for s in sections)
+
+    if map is not None and map_xyz is not None:
+        raise InputError("give map= (a file) or map_xyz= (an array), not both")
+    if map is not None:
+        m["file"] = _abs(map)
+    if map_options:
+        unknown = sorted(set(map_options) - set(MAP_OPTIONS))
+        if unknown:
+            raise InputError(f"map_options: unknown {unknown} (known: {', '.join(MAP_OPTIONS)})")
+        m.update(_map_options(map_options))
+    arrays: dict = {}
+    if map_xyz is not None:
+        if m.get("aperture") or m.get("remove"):
+            raise InputError(
+                "map_xyz: aperture and remove apply to a map file; read it with "
+                "preston.read_map(path, aperture=..., remove=...) and pass the result"
+            )
+        m["file"] = None
+        arrays["map_xyz"] = _columns(map_xyz, 3, "map_xyz")
+
+    if sum(x is not None for x in (tif, tif_xyr, gaussian)) > 1:
+        raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    if tif is not None:
+        j["tif"] = {"file": _abs(tif), "gaussian": None}
+    elif gaussian is not None:
+        j["tif"] = {"file": None, "gaussian": dict(gaussian)}
+    elif tif_xyr is not None:
+        j["tif"] = {"file": None, "gaussian": None}
+        arrays["tif_xyr"] = _columns(tif_xyr, 3, "tif_xyr")
+
+    if sum(x is not None for x in (dwell, dwell_xy, raster_pitch_mm)) > 1:
+        raise InputError("give one of dwell=, dwell_xy=, raster_pitch_mm=")
+    if dwell is not None:
+        d["file"], d["raster_pitch_mm"] = _abs(dwell), None
+    elif dwell_xy is not None:
+        d["file"], d["raster_pitch_mm"] = None, None
+        arrays["dwell_xy"] = _columns(dwell_xy, 2, "dwell_xy")
+    elif raster_pitch_mm is not None:
+        d["file"], d["raster_pitch_mm"] = None, raster_pitch_mm
+    if raster_along is not None:
+        d["raster_along"] = raster_along
+    if warm_start is not None:
+        d["warm_start"] = _abs(warm_start)
+
+    for key, value in (
+        ("v_max_mm_per_min", v_max),
+        ("v_min_mm_per_min", v_min),
+        ("a_max_mm_per_s2", a_max),
+        ("corner_angle_deg", corner_angle_deg),
+    ):
+        if value is not None:
+            mach[key] = value
+    if rho is not None:
+        obj["rho"] = rho
+    if lambda_ is not None:
+        obj["lambda"] = lambda_
+    if min_time:
+        sol["min_time"] = True
+    for key, value in (
+        ("min_time_tolerance", min_time_tolerance),
+        ("first_order_method", first_order_method),
+        ("solver", solver),
+        ("operator", operator),
+    ):
+        if value is not None:
+            sol[key] = value
+    if tolerance is not None:
+        sol["tolerance"] = sol["first_order_tolerance"] = tolerance
+    if max_iterations is not None:
+        sol["max_iterations"] = sol["first_order_max_iterations"] = max_iterations
+    if surface is not None:
+        surf["file"] = _abs(surface)
+    if tif_frame is not None:
+        surf["tif_frame"] = tif_frame
+
+    native = _preston.solve(_dumps(j), name, progress=progress, **arrays)
+    result = SolveResult(native)
+    if require_converged and not result.converged:
+        raise NotConvergedError(
+            f"{name}: the solver stopped before converging (status {result.status}, "
+            f"{result.report.get('iterations')} iterations)"
+        )
+    return result
+
+
+def _map_options(options: Mapping[str, Any]) -> dict:
+    out = dict(options)
+    if isinstance(out.get("remove"), str):
+        out["remove"] = [t.strip() for t in out["remove"].split(",") if t.strip()]
+    if isinstance(out.get("aperture"), str) and out["aperture"].startswith("polygon:"):
+        out["aperture"] = "polygon:" + _abs(out["aperture"][len("polygon:") :].strip())
+    return out
+
+
+def read_map(path: PathLike, **format_options: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reads a measured map, returning ``(x_mm, y_mm, z_nm)`` (float64 arrays of the kept points).
+
+    Every format of the CLI: CSV with units in the header (``x_mm,y_mm,z_nm``; ``x_um``,
+    ``z_um``, ... converted), XYZ text, NumPy ``.npy`` (needs ``pitch_mm``), Zygo ``.dat`` and
+    ``.datx``, 4D ``.h5``/``.4D``. ``format_options`` are those of a job's ``[map]``:
+
+    * ``format`` -- ``"csv"``, ``"xyz"``, ``"npy"``, ``"zygo-dat"``, ``"zygo-datx"``,
+      ``"four-d"`` (default: from the extension).
+    * ``columns`` -- column order of a text map, e.g. ``"z,x,y"`` (``_`` skips a column).
+    * ``units`` -- units of x, y, z of a text map (``"mm,mm,um"``; m, mm, um, nm).
+    * ``pitch_mm`` -- pixel pitch of a ``.npy`` grid (or a 4D file without one), mm.
+    * ``aperture`` -- ``"circle:R[@x,y]"``, ``"annulus:R1,R2"``, ``"rect:W,H"``,
+      ``"polygon:FILE"`` (mm); points outside are dropped.
+    * ``remove`` -- form terms removed by least squares: a list or ``"piston,tilt,power"``.
+
+    Invalid pixels (NaN, no-data) are dropped. Gridded files are centred on the origin with the
+    first stored row at the top (largest y).
+    """
+    unknown = sorted(set(format_options) - set(MAP_OPTIONS))
+    if unknown:
+        raise InputError(f"read_map: unknown options {unknown} (known: {', '.join(MAP_OPTIONS)})")
+    source = {"file": _abs(path), **_map_options(format_options)}
+    x, y, z, _how = _preston.read_map(_dumps(source))
+    return x, y, z
+
+
+def simulate(
+    map_xyz: ArrayLike,
+    dwell_xy: ArrayLike,
+    dwell_s: ArrayLike,
+    *,
+    tif: Optional[PathLike] = None,
+    tif_xyr: Optional[ArrayLike] = None,
+    gaussian: Optional[Mapping[str, float]] = None,
+    samples_per_point: Optional[int] = None,
+    progress: Optional[Callable[[dict], Any]] = None,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """The removal a dwell program produces: ``(removal_nm, residual_nm)`` at the map points.
+
+    ``map_xyz``: ``(N, 3)`` (x_mm, y_mm, z_nm) or ``(x, y, z)``; ``dwell_xy``: ``(M, 2)`` dwell
+    points in path order, mm; ``dwell_s``: ``(M,)`` dwell times, s. The TIF is one of ``tif``
+    (CSV file), ``tif_xyr`` (``(K, 3)`` grid samples, rate nm/s) or ``gaussian``. Discrete dwells
+    (the solver's model, ``h = R t``) unless ``samples_per_point`` is given: then the tool sweeps
+    the path at the scheduled feeds, integrated with that many midpoint samples per dwell point.
+    ``residual_nm`` is ``z - removal`` with its mean removed (as :func:`solve` reports it)."""
+    m = _columns(map_xyz, 3, "map_xyz")
+    pts = _columns(dwell_xy, 2, "dwell_xy")
+    t = np.ascontiguousarray(dwell_s, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"dwell_s: expected a 1-D array, got shape {t.shape}")
+    if sum(x is not None for x in (tif, tif_xyr, gaussian)) != 1:
+        raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    tif_json = _dumps({"file": _abs(tif) if tif is not None else None, "gaussian": gaussian})
+    xyr = _columns(tif_xyr, 3, "tif_xyr") if tif_xyr is not None else None
+    removal = _preston.simulate(
+        np.ascontiguousarray(m[:, :2]), pts, t, tif_json, xyr, samples_per_point, progress
+    )
+    e = m[:, 2] - removal
+    return removal, e - e.mean()
+
+
+def raster(
+    x_range_mm: Tuple[float, float],
+    y_range_mm: Tuple[float, float],
+    pitch_mm: float,
+    along: str = "x",
+) -> Tuple[np.ndarray, np.ndarray]:
+    """A serpentine raster (the one ``raster_pitch_mm`` generates) over the box
+    ``x_range_mm`` x ``y_range_mm`` at ``pitch_mm``, lines along ``"x"`` or ``"y"``:
+    ``(x_mm, y_mm)`` in path order."""
+    (x0, x1), (y0, y1) = x_range_mm, y_range_mm
+    return _preston.raster(float(x0), float(x1), float(y0), float(y1), float(pitch_mm), along)
+
+
+def fit(
+    points_xyz: ArrayLike,
+    order: int = 10,
+    *,
+    norm_radius_mm: Optional[float] = None,
+    curvature_per_mm: float = 0.0,
+    conic: float = 0.0,
+    fit_conic: bool = False,
+) -> Tuple[dict, dict, np.ndarray]:
+    """Least-squares XY-polynomial surface (``preston fit``) through points ``(N, 3)`` or
+    ``(x, y, z)``, all in mm, on a conic base of vertex curvature ``curvature_per_mm`` (1/mm) and
+    ``conic`` constant (or both fitted with ``fit_conic=True``), polynomial of total ``order``
+    normalised by ``norm_radius_mm`` (default: the largest radius of the points).
+
+    Returns ``(surface, summary, residual_nm)``: the surface as the dict ``preston fit --out``
+    writes (save it with ``json.dump`` for ``solve(surface=...)``), the summary (``rms_nm``,
+    ``pv_nm``, ``condition_number``, ``points``, ...) and the residual at each point, nm."""
+    pts = _columns(points_xyz, 3, "points_xyz")
+    surface, summary, residual = _preston.fit(
+        pts, int(order), norm_radius_mm, float(curvature_per_mm), float(conic), bool(fit_conic)
+    )
+    return json.loads(surface), json.loads(summary), residual
+
+
+def nc(
+    dwell_xy: ArrayLike,
+    dwell_s: ArrayLike,
+    *,
+    surface: Optional[PathLike] = None,
+    notes: Sequence[str] = (),
+    **settings: Any,
+) -> str:
+    """The G-code program of ``preston nc`` for a dwell plan, as text.
+
+    ``dwell_xy``: ``(N, 2)`` dwell points in path order, mm; ``dwell_s``: ``(N,)`` dwell times, s
+    (e.g. ``np.column_stack([r.dwell_x_mm, r.dwell_y_mm])`` and ``r.dwell_s`` of :func:`solve`).
+    ``surface``: design surface JSON (default: a flat part, Z = 0). ``notes``: comment lines
+    of the header. ``settings`` are the keys of the NC settings: ``v_max_mm_per_min``,
+    ``a_max_mm_per_s2``, ``corner_angle_deg``, ``tool_radius_mm``, ``tool_axis``, ``dialect``
+    (``"iso"``, ``"sinumerik"``, ...), ``feed_mode``, ``clearance_mm``,
+    ``plunge_feed_mm_per_min``, ``min_block_time_ms``, ``spindle_rpm``, ``coolant``,
+    ``compensation``. The program is read back and checked against the plan before it is
+    returned; a plan no program can deliver raises :class:`InputError` naming the point."""
+    pts = _columns(dwell_xy, 2, "dwell_xy")
+    t = np.ascontiguousarray(dwell_s, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"dwell_s: expected a 1-D array, got shape {t.shape}")
+    text, _blocks = _preston.nc(
+        pts, t, _dumps(settings), _abs(surface) if surface is not None else None, list(notes)
+    )
+    return text
+
+
+from ._batch import batch, grid  # noqa: E402  (needs the names above)

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Builds the `preston` Python package into a local virtual environment (.venv at the repository
+# root, created if missing) and runs its pytest suite. Needs python3 (>= 3.9) with venv and pip,
+# and cargo; everything else comes from the package registries.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY="${PYTHON:-python3}"
+if [ ! -x .venv/bin/python ]; then
+    "$PY" -m venv .venv
+fi
+.venv/bin/python -m pip install --quiet --upgrade pip
+.venv/bin/python -m pip install --quiet -r python/requirements-test.txt
+# The CLI the tests compare against.
+cargo build --release -p preston-cli
+rm -rf target/wheels
+.venv/bin/maturin build --release --manifest-path python/Cargo.toml --out target/wheels
+.venv/bin/python -m pip install --quiet --force-reinstall --no-deps target/wheels/preston-*.whl
+# From the repository root, so that the installed wheel (not python/preston) is imported.
+PRESTON_BIN="$PWD/target/release/preston" .venv/bin/python -m pytest -q python/tests "$@"

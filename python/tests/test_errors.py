@@ -1,0 +1,100 @@
+"""Every failure is a PrestonError subclass carrying Preston's message."""
+
+import numpy as np
+import pytest
+
+import preston
+from preston import _preston
+
+from conftest import DATA
+
+
+def test_hierarchy():
+    for e in (preston.InputError, preston.SolverError, preston.NotConvergedError):
+        assert issubclass(e, preston.PrestonError) and issubclass(e, Exception)
+    assert preston.PrestonError.__module__ == "preston"
+
+
+def test_missing_map_file_names_it(small_job, tmp_path):
+    missing = tmp_path / "nowhere.csv"
+    with pytest.raises(preston.InputError, match="nowhere.csv"):
+        preston.solve(small_job, map=missing)
+
+
+def test_missing_job_file():
+    with pytest.raises(preston.InputError, match="no_such_job.toml"):
+        preston.solve("no_such_job.toml")
+
+
+def test_unknown_job_key_is_named(small_job):
+    job = dict(small_job, machine={"v_max_mm_per_min": 3000.0, "vmin": 1.0})
+    with pytest.raises(preston.InputError, match="vmin"):
+        preston.solve(job)
+
+
+def test_bad_choice_is_named(small_job):
+    with pytest.raises(preston.InputError, match="fastest"):
+        preston.solve(small_job, solver="fastest")
+    with pytest.raises(preston.InputError, match="diagonal"):
+        preston.solve(small_job, raster_along="diagonal")
+
+
+def test_feed_limits(small_job):
+    job = dict(small_job, machine={})
+    with pytest.raises(preston.InputError, match="v_max_mm_per_min"):
+        preston.solve(job)
+    with pytest.raises(preston.InputError, match="v_max"):
+        preston.solve(small_job, v_max=-5.0)
+
+
+def test_incompatible_options(small_job):
+    with pytest.raises(preston.InputError, match="cannot be used"):
+        preston.solve(small_job, operator="fft", solver="qp")
+    with pytest.raises(preston.InputError, match="min_time"):
+        preston.solve(small_job, a_max=100.0, min_time=True)
+
+
+def test_bad_arrays(small_job):
+    with pytest.raises(preston.InputError, match=r"\(N, 3\)"):
+        preston.solve(small_job, map_xyz=np.zeros((4, 2)))
+    x, y, z = preston.read_map(small_job["map"]["file"])
+    z = z.copy()
+    z[3] = np.nan
+    with pytest.raises(preston.InputError, match="not finite"):
+        preston.solve(small_job, map_xyz=(x, y, z))
+    tif = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+    with pytest.raises(preston.InputError, match="tif_xyr"):
+        preston.solve(small_job, tif_xyr=tif)
+    with pytest.raises(preston.InputError, match=r"\(N, 2\)"):
+        preston.solve(small_job, dwell_xy=np.zeros(5))
+    with pytest.raises(preston.InputError, match="not both"):
+        preston.solve(small_job, map=small_job["map"]["file"], map_xyz=(x, y, z))
+    with pytest.raises(preston.InputError, match="aperture"):
+        preston.solve(small_job, map_xyz=(x, y, z), map_options={"aperture": "circle:5"})
+
+
+def test_read_map_errors(tmp_path):
+    with pytest.raises(preston.InputError, match="nothing.csv"):
+        preston.read_map(tmp_path / "nothing.csv")
+    with pytest.raises(preston.InputError, match="colour"):
+        preston.read_map(DATA / "mirror_error_118x8mm.csv", colour="red")
+    with pytest.raises(preston.InputError, match="furlong"):
+        preston.read_map(DATA / "mirror_error_118x8mm.csv", units="mm,mm,furlong")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x_mm,y_mm,z_nm\n0,0,1\n1,0,abc\n")
+    with pytest.raises(preston.InputError, match="line 3"):
+        preston.read_map(bad)
+
+
+def test_not_converged(small_job):
+    r = preston.solve(small_job, solver="first-order", max_iterations=2, tolerance=1e-12)
+    assert not r.converged and r.report["status"] == r.status != "converged"
+    with pytest.raises(preston.NotConvergedError, match=r.status):
+        preston.solve(small_job, solver="first-order", max_iterations=2, tolerance=1e-12, require_converged=True)
+
+
+def test_numerical_failure_maps_to_solver_error():
+    """The engine's numerical-failure error becomes SolverError (a hook raises one: no input
+    reliably breaks the factorisations)."""
+    with pytest.raises(preston.SolverError, match="numerical failure in test"):
+        _preston._raise_numerical()

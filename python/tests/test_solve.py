@@ -1,0 +1,166 @@
+"""preston.solve against the CLI on the sample job, the arrays path, the progress callback and
+the release of the interpreter while the engine runs."""
+
+import json
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import preston
+
+from conftest import DATA
+
+# Dwell times equal to the CLI's within this relative tolerance (the same engine, same inputs).
+REL_TOL = 1e-12
+
+
+def read_csv(path):
+    with open(path) as f:
+        header = f.readline().strip().split(",")
+    return header, np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+
+
+@pytest.fixture(scope="module")
+def cli_out(preston_bin, sample_job, tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli")
+    subprocess.run(
+        [str(preston_bin), "solve", "--job", str(sample_job), "--out", str(out)],
+        check=True,
+        capture_output=True,
+    )
+    return out
+
+
+@pytest.fixture(scope="module")
+def py_job_result(sample_job):
+    return preston.solve(sample_job)
+
+
+def assert_close_rel(a, b, rel=REL_TOL):
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape
+    assert np.all(np.abs(a - b) <= rel * np.abs(b)), np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))
+
+
+def test_sample_job_equals_cli(cli_out, py_job_result):
+    r = py_job_result
+    header, d = read_csv(cli_out / "dwell.csv")
+    assert header == ["x_mm", "y_mm", "ds_mm", "dwell_s", "feed_mm_per_min"]
+    for arr in (r.dwell_s, r.feed_mm_per_min, r.residual_nm):
+        assert isinstance(arr, np.ndarray) and arr.dtype == np.float64
+    assert_close_rel(r.dwell_s, d[:, 3])
+    assert_close_rel(r.feed_mm_per_min, d[:, 4])
+    assert_close_rel(r.dwell_x_mm, d[:, 0])
+    _, res = read_csv(cli_out / "residual.csv")
+    np.testing.assert_allclose(r.residual_nm, res[:, 4], rtol=REL_TOL, atol=1e-9)
+    np.testing.assert_allclose(r.removal_nm, res[:, 3], rtol=REL_TOL, atol=1e-9)
+    cli_report = json.loads((cli_out / "report.json").read_text())
+    assert set(r.report) == set(cli_report)
+    for k in ("rms_before_nm", "rms_after_nm", "pv_after_nm", "total_dwell_s", "iterations", "status", "n", "m", "nnz"):
+        assert r.report[k] == cli_report[k], k
+    assert r.converged and r.status == cli_report["status"]
+
+
+def test_arrays_in_equal_files_in(cli_out, py_job_result):
+    """The map and TIF as arrays (no files), every option as a keyword: the same dwell."""
+    x, y, z = preston.read_map(DATA / "mirror_error_118x8mm.csv")
+    tif = np.loadtxt(DATA / "tif_fluid_jet_10mm.csv", delimiter=",", skiprows=1)
+    r = preston.solve(
+        map_xyz=np.column_stack([x, y, z]),
+        tif_xyr=tif,
+        raster_pitch_mm=1.0,
+        raster_along="x",
+        v_max=3000.0,
+        solver="first-order",
+        tolerance=5e-6,
+        first_order_method="newton-cg",
+    )
+    _, d = read_csv(cli_out / "dwell.csv")
+    assert_close_rel(r.dwell_s, d[:, 3])
+    # Arrays have no file format: the report leaves map_input out, and only that.
+    assert set(py_job_result.report) - set(r.report) == {"map_input"}
+
+
+def test_write_gives_the_cli_files(cli_out, py_job_result, tmp_path):
+    py_job_result.write(tmp_path / "out")
+    for f in ("dwell.csv", "residual.csv"):
+        assert (tmp_path / "out" / f).read_text() == (cli_out / f).read_text(), f
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["rms_after_nm"] == py_job_result.report["rms_after_nm"]
+
+
+def test_dwell_points_as_array_and_options(small_job):
+    """Given dwell points reproduce the raster's solve; rho > 0 lowers the total dwell."""
+    base = preston.solve(small_job)
+    pts = np.column_stack([base.dwell_x_mm, base.dwell_y_mm])
+    again = preston.solve(small_job, dwell_xy=pts)
+    np.testing.assert_array_equal(again.dwell_s, base.dwell_s)
+    cheaper = preston.solve(small_job, rho=50.0)
+    assert cheaper.report["total_dwell_s"] < base.report["total_dwell_s"]
+    g = small_job["tif"]["gaussian"]
+    first = preston.solve(small_job, gaussian=g, solver="first-order", operator="sparse", tolerance=1e-7)
+    assert first.report["solver"] != base.report["solver"]
+    # Both near the optimum: residual RMS within 0.1% of the initial RMS of each other.
+    gap = abs(first.report["rms_after_nm"] - base.report["rms_after_nm"])
+    assert gap < 1e-3 * base.report["rms_before_nm"]
+    # Feed = 60 ds / dwell, mm/min, never above v_max.
+    np.testing.assert_allclose(base.feed_mm_per_min, 60.0 * base.ds_mm / base.dwell_s, rtol=1e-12)
+    assert base.feed_mm_per_min.max() <= 3000.0 * (1 + 1e-9)
+    slowest = preston.solve(small_job, v_min=600.0)
+    assert slowest.feed_mm_per_min.min() >= 600.0 * (1 - 1e-9)
+    assert base.feed_mm_per_min.min() < 600.0
+
+
+def test_progress_callback(sample_job, py_job_result):
+    events = []
+    r = preston.solve(sample_job, progress=events.append)
+    np.testing.assert_array_equal(r.dwell_s, py_job_result.dwell_s)
+    stages = [(e["stage"], e["event"]) for e in events if e["event"] in ("start", "finish")]
+    assert stages == [("assembly", "start"), ("assembly", "finish"), ("solve", "start"), ("solve", "finish")]
+    assembly = [e for e in events if e["stage"] == "assembly"]
+    dones = [e["done"] for e in assembly]
+    assert dones == sorted(dones) and assembly[-1]["done"] == assembly[-1]["total"] == r.report["n"]
+    its = [e for e in events if e["event"] == "iteration"]
+    assert its and its[-1]["iteration"] == r.report["iterations"]
+    assert all(np.isfinite(e["objective"]) for e in its)
+
+
+def test_callback_exception_is_raised(small_job):
+    class Stop(Exception):
+        pass
+
+    calls = []
+
+    def cb(event):
+        calls.append(event)
+        raise Stop("stop here")
+
+    with pytest.raises(Stop, match="stop here"):
+        preston.solve(small_job, progress=cb)
+    assert len(calls) == 1  # later calls are skipped once it has raised
+
+
+def test_interpreter_released_during_solve(sample_job):
+    """Another Python thread runs while the engine works."""
+    ticks = []
+    done = threading.Event()
+
+    def count():
+        while not done.is_set():
+            ticks.append(time.perf_counter())
+            time.sleep(0.01)
+
+    t = threading.Thread(target=count)
+    t.start()
+    start = time.perf_counter()
+    try:
+        preston.solve(sample_job)
+    finally:
+        done.set()
+        t.join()
+    elapsed = time.perf_counter() - start
+    # At 10 ms a tick the thread would tick ~100 times a second; demand a quarter of that.
+    assert len(ticks) >= 25 * elapsed, (len(ticks), elapsed)
