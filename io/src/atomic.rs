@@ -85,14 +85,6 @@ pub(crate) fn temp_prefix(name: &str) -> String {
     format!(".{name}.{TEMP_TAG}{}-", std::process::id())
 }
 
-/// Wraps a temporary file already written in full (a plot) as staged for `dest`.
-pub(crate) fn staged_file(temp: tempfile::NamedTempFile, dest: &Path) -> Staged {
-    Staged {
-        temp,
-        dest: dest.to_path_buf(),
-    }
-}
-
 /// Marks Preston's temporary files: `.NAME.preston-PID-XXXXXX.tmp`.
 const TEMP_TAG: &str = "preston-";
 /// The lock file of an output directory.
