@@ -235,6 +235,27 @@ fn oversized_arguments_are_refused_before_allocating() {
 /// Text inputs: lines over the line limit and rows over the field limit are refused at their
 /// line without being held whole; messages quote at most 80 characters of the input;
 /// directories, devices and FIFOs are refused where a regular file is needed.
+/// The assembled influence matrix is counted (one cheap pass over the dwell points) and checked
+/// against the budget before its arrays exist: the sample job's R (about 2e6 candidate non-zeros,
+/// 60 MB) under a 10 MB limit is refused naming it, and nothing is written.
+#[test]
+fn the_influence_matrix_is_budgeted_before_assembly() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/job.toml");
+    let o = capped(&[
+        "--max-memory-gb",
+        "0.01",
+        "solve",
+        "--job",
+        s(&job),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    refused(&o, &["influence matrix R", "non-zeros", "--max-memory-gb"]);
+    assert!(!out.join("dwell.csv").exists());
+}
+
 #[test]
 fn hostile_files_are_refused_cheaply_with_short_messages() {
     let d = tempfile::tempdir().unwrap();

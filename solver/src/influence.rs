@@ -15,6 +15,10 @@ use rayon::prelude::*;
 /// Dwell columns handled by one rayon task.
 const COLUMNS_PER_TASK: usize = 64;
 
+/// Bytes held per non-zero of `R` through a solve: row index and value in the CSC matrix, and
+/// again in the row-major copy the products use.
+pub const NNZ_BYTES: f64 = 32.0;
+
 /// The sparse influence matrix, stored by columns (one column per dwell point).
 #[derive(Debug, Clone, PartialEq)]
 pub struct InfluenceMatrix {
@@ -106,6 +110,14 @@ impl InfluenceMatrix {
             bound_offsets.push(bound_offsets[bound_offsets.len() - 1] + c);
         }
         let capacity = bound_offsets[n];
+        crate::budget::check(
+            "influence matrix R",
+            &format!(
+                "{capacity} candidate non-zeros ({n} dwell points, map points within \
+                 {search_radius_mm} mm of each) x {NNZ_BYTES} bytes (CSC and its row-major copy)"
+            ),
+            capacity as f64 * NNZ_BYTES,
+        )?;
 
         // Pass 2: every task fills its own slice of the arrays (zeroed pages are touched first by
         // the thread that writes them); entries equal to zero are dropped, so a column may end
