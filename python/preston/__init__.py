@@ -191,6 +191,8 @@ def solve(
     warm_start: Optional[PathLike] = None,
     surface: Optional[PathLike] = None,
     tif_frame: Optional[str] = None,
+    edge: Optional[str] = None,
+    edge_width_mm: Optional[float] = None,
     progress: Optional[Callable[[dict], Any]] = None,
     require_converged: bool = False,
 ) -> SolveResult:
@@ -218,6 +220,9 @@ def solve(
       dwell.csv).
     * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,
       ``"machine_x"``).
+    * edges: ``edge`` (``"none"``, ``"zero-band"``, ``"gaussian"``, ``"polynomial"``,
+      ``"gerchberg-papoulis"``: how the map is extended into the dwell area beyond it) and
+      ``edge_width_mm`` (the band's width, mm), as ``--edge`` / ``[edge]``.
 
     ``progress(event)`` is called during the work with a dict: ``stage`` (``"assembly"``,
     ``"solve"``, ``"loop"``), ``event`` (``"start"``, ``"advance"``, ``"finish"``,
@@ -310,6 +315,13 @@ def solve(
         surf["file"] = _abs(surface)
     if tif_frame is not None:
         surf["tif_frame"] = tif_frame
+    if edge is not None or edge_width_mm is not None:
+        e = j.get("edge") or {}
+        if edge is not None:
+            e["method"] = edge
+        if edge_width_mm is not None:
+            e["width_mm"] = edge_width_mm
+        j["edge"] = e
 
     native = _preston.solve(_dumps(j), name, progress=progress, **arrays)
     result = SolveResult(native)

@@ -77,6 +77,7 @@ def test_arrays_in_equal_files_in(cli_out, py_job_result):
         solver="first-order",
         tolerance=5e-6,
         first_order_method="newton-cg",
+        edge="gerchberg-papoulis",
     )
     _, d = read_csv(cli_out / "dwell.csv")
     assert_close_rel(r.dwell_s, d[:, 3])
