@@ -19,7 +19,7 @@
 //! absent with [`GapBoundReason::UnboundedDwellWithoutTimeWeight`], and the KKT residual is the
 //! stopping test.
 
-use super::operator::{fixed_sum, LinearOperator, SparseOperator};
+use super::operator::{fixed_sum, with_operator, LinearOperator};
 use super::{DwellBounds, Problem};
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -194,15 +194,12 @@ pub fn certify(problem: &Problem, dwell_s: &[f64]) -> Result<GapBound> {
             expected: n,
         });
     }
-    let sparse;
-    let op: &dyn LinearOperator = match (problem.influence(), problem.fft_operator()) {
-        (Some(r), _) => {
-            sparse = SparseOperator::new(r.csc());
-            &sparse
-        }
-        (None, Some(fft)) => fft,
-        (None, None) => return Err(Error::invalid("problem", "has no influence operator")),
-    };
+    with_operator(problem, |op| Ok(gap_bound_with(problem, op, dwell_s)))
+}
+
+/// [`certify`] with the operator in hand.
+fn gap_bound_with(problem: &Problem, op: &dyn LinearOperator, dwell_s: &[f64]) -> GapBound {
+    let n = problem.n();
     let z = problem.z_nm();
     let m = z.len();
     let mut partials = Vec::new();
@@ -236,5 +233,5 @@ pub fn certify(problem: &Problem, dwell_s: &[f64]) -> Result<GapBound> {
         sum_t,
         rho,
     };
-    Ok(gap_bound(&inputs, problem.bounds(), &mut partials))
+    gap_bound(&inputs, problem.bounds(), &mut partials)
 }

@@ -59,7 +59,7 @@
 //! happens inside the iteration loop.
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
-use super::operator::{fill_and_sum, fixed_sum, LinearOperator, SparseOperator};
+use super::operator::{fill_and_sum, fixed_sum, with_operator, LinearOperator};
 use super::{DwellBounds, FirstOrderMethod, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
 use crate::observer::{IterationInfo, Observer, Stage};
@@ -114,27 +114,18 @@ pub fn solve(
         ));
     }
     let t0 = Instant::now();
-    let sparse;
-    let op: &dyn LinearOperator = match (problem.influence(), problem.fft_operator()) {
-        (Some(r), _) => {
-            sparse = SparseOperator::new(r.csc());
-            &sparse
-        }
-        (None, Some(fft)) => fft,
-        (None, None) => {
-            return Err(Error::invalid("problem", "has no influence operator"));
-        }
-    };
-    let res = minimise(
-        op,
-        problem.z_nm(),
-        problem.bounds(),
-        problem.rho(),
-        problem.lambda(),
-        settings,
-        start,
-        observer,
-    )?;
+    let res = with_operator(problem, |op| {
+        minimise(
+            op,
+            problem.z_nm(),
+            problem.bounds(),
+            problem.rho(),
+            problem.lambda(),
+            settings,
+            start,
+            observer,
+        )
+    })?;
     let mut dwell_s = res.dwell_s;
     problem.bounds().project(&mut dwell_s);
     let eval = problem.evaluate(&dwell_s)?;
