@@ -608,15 +608,7 @@ pub fn stage_psd_plot(
                 .label(label)
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 14))
-            .draw()
-            .map_err(|e| plot_error(path, e))?;
-        Ok(())
+        draw_legend(&mut chart, path)
     })
 }
 
@@ -684,16 +676,26 @@ pub fn stage_convergence_plot(
                 .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled())))
                 .map_err(|e| plot_error(path, e))?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 14))
-            .draw()
-            .map_err(|e| plot_error(path, e))?;
-        Ok(())
+        draw_legend(&mut chart, path)
     })
+}
+
+/// The series legend, boxed, at the upper right of `chart`.
+fn draw_legend<'a, CT>(
+    chart: &mut ChartContext<'a, BitMapBackend<'a>, CT>,
+    path: &Path,
+) -> Result<()>
+where
+    CT: CoordTranslate,
+{
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 14))
+        .draw()
+        .map_err(|e| plot_error(path, e))
 }
 
 #[cfg(test)]
