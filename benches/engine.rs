@@ -93,8 +93,8 @@ fn sample_job(c: &mut Criterion) {
 }
 
 fn fft_products(c: &mut Criterion) {
-    use preston::solver::dwell::fft::FftOperator;
-    use preston::solver::dwell::operator::LinearOperator;
+    use preston::solver::influence::fft::FftOperator;
+    use preston::solver::influence::operator::LinearOperator;
     let mut group = c.benchmark_group("fft_products");
     group.sample_size(10);
     for n_target in [20_000, 200_000, 1_000_000] {

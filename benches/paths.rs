@@ -5,15 +5,16 @@
 //! shift-invariant case.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use preston::solver::influence::curvature::assemble_curvature_dependent;
 use preston::solver::influence::InfluenceMatrix;
+use preston::solver::influence::{assemble_on_surface, TifFrame};
 use preston::solver::map::BoundingBox;
 use preston::solver::observer::Silent;
 use preston::solver::path::intersection::{intersection, lines_to_path, raster_lines};
 use preston::solver::path::raster::RasterAxis;
 use preston::solver::path::spiral::archimedes;
 use preston::solver::path::{arcs::lines_with_arcs, project};
-use preston::solver::surface::{assemble_on_surface, Conic, Surface, TifFrame};
-use preston::solver::tif::curvature::assemble_curvature_dependent;
+use preston::solver::surface::{Conic, Surface};
 use preston::solver::tif::{HertzParams, HertzTif};
 
 fn paths(c: &mut Criterion) {

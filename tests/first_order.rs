@@ -410,8 +410,8 @@ const ADJOINT_REL_TOL: f64 = 1e-12;
 
 #[test]
 fn fft_operator_matches_sparse_and_is_adjoint() {
-    use preston::solver::dwell::fft::FftOperator;
-    use preston::solver::dwell::operator::{LinearOperator, SparseOperator};
+    use preston::solver::influence::fft::FftOperator;
+    use preston::solver::influence::operator::{LinearOperator, SparseOperator};
     let (x, y, _, path, tif) = case(40, 30, 23);
     let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
     let sparse = SparseOperator::new(r.csc());
@@ -466,9 +466,9 @@ fn fft_operator_matches_sparse_and_is_adjoint() {
 
 #[test]
 fn first_order_with_the_fft_operator_matches_the_sparse_one() {
-    use preston::solver::dwell::fft::FftOperator;
     use preston::solver::dwell::first_order::minimise;
-    use preston::solver::dwell::operator::SparseOperator;
+    use preston::solver::influence::fft::FftOperator;
+    use preston::solver::influence::operator::SparseOperator;
     let (x, y, z, path, tif) = case(25, 15, 29);
     let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
     let limits = FeedLimits {
@@ -494,7 +494,7 @@ fn first_order_with_the_fft_operator_matches_the_sparse_one() {
 
 #[test]
 fn matrix_free_problem_solves_like_the_assembled_one() {
-    use preston::solver::dwell::fft::FftOperator;
+    use preston::solver::influence::fft::FftOperator;
     let (x, y, z, _, tif) = case(31, 21, 41);
     // A raster reaching the TIF radius past the map: its corner points touch no map point.
     let bbox = preston::solver::map::BoundingBox::of_points(&x, &y)

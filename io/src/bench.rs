@@ -10,10 +10,10 @@
 use crate::error::Result;
 use crate::job::Job;
 use crate::pipeline;
-use preston_solver::dwell::fft::FftOperator;
 use preston_solver::dwell::{
     self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
 };
+use preston_solver::influence::fft::FftOperator;
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::map::{BoundingBox, HeightStats};
 use preston_solver::observer::Silent;

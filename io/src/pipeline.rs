@@ -9,11 +9,12 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::dwell::fft::FftOperator;
 use preston_solver::dwell::{
     self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice, AUTO_FFT_MIN_NNZ,
 };
 use preston_solver::edge;
+use preston_solver::influence::fft::FftOperator;
+use preston_solver::influence::surface::assemble_on_surface;
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::motion::Kinematics;
@@ -24,7 +25,6 @@ use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 use preston_solver::path::{raster, DwellPath};
 use preston_solver::psd::LineAxis;
-use preston_solver::surface::influence::assemble_on_surface;
 use preston_solver::tif::{InfluenceFunction, Tif};
 use std::path::Path;
 use std::time::Instant;

@@ -242,7 +242,7 @@ impl CellIndex {
         let (x0, x1, y0, y1) = extent;
         let n = x.len().max(1) as f64;
         let mean_spacing = ((x1 - x0).max(1e-9) * (y1 - y0).max(1e-9) / n).sqrt();
-        let lattice = preston_solver::dwell::fft::FftOperator::lattice_pitch_mm(x, y);
+        let lattice = preston_solver::influence::fft::FftOperator::lattice_pitch_mm(x, y);
         let cells_at = |c: f64| ((x1 - x0) / c + 1.0) * ((y1 - y0) / c + 1.0);
         let cell_mm = match lattice {
             Some(p) if p > 0.0 && cells_at(p) <= 4.0 * n => p,

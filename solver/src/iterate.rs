@@ -22,11 +22,11 @@
 
 use crate::dwell::{self, DwellBounds, FeedLimits, Problem, Settings, Status};
 use crate::error::{Error, Result};
+use crate::influence::surface::{assemble_on_surface, TifFrame};
 use crate::map::{BoundingBox, HeightMap, HeightStats};
 use crate::observer::{Observer, Stage};
 use crate::path::DwellPath;
 use crate::registration::{register, RegisterSettings};
-use crate::surface::influence::{assemble_on_surface, TifFrame};
 use crate::surface::Surface;
 use crate::tif::{InfluenceFunction, ScaledTif, Tif};
 use nalgebra::{Isometry3, Point3, Vector3};

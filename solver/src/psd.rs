@@ -2,7 +2,7 @@
 //! which the raster pitch's mid-spatial-frequency ripple shows as a peak.
 //!
 //! The map's points are put on their lattice (pitch `p`, see
-//! [`crate::dwell::fft::FftOperator::lattice_pitch_mm`]); every line along the chosen axis is cut
+//! [`crate::influence::fft::FftOperator::lattice_pitch_mm`]); every line along the chosen axis is cut
 //! into its runs of consecutive measured points, and each run into Welch segments of `L` points
 //! (half-overlapping, `L` the largest power of two at most half the longest run, at least 8).
 //! Each segment has its mean removed and a Hann window `w` applied; its one-sided periodogram is
@@ -11,8 +11,8 @@
 //! Audio Electroacoust. 15(2); ISO 10110-8 for the 1-D PSD of optical surfaces). Units: heights
 //! in nm give nm^2 mm; `sum_k P(f_k) / (L p)` is the mean variance of the segments (Parseval).
 
-use crate::dwell::fft::FftOperator;
 use crate::error::{Error, Result};
+use crate::influence::fft::FftOperator;
 use realfft::RealFftPlanner;
 
 /// Axis along which the lines run.

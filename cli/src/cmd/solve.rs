@@ -10,12 +10,12 @@ use preston_io::pipeline;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
 use preston_solver::edge::EdgeMethod;
+use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::gcode::write_and_check;
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::LineAxis;
-use preston_solver::surface::influence::TifFrame;
 use std::path::PathBuf;
 use std::process::ExitCode;
 

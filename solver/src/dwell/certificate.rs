@@ -19,9 +19,10 @@
 //! absent with [`GapBoundReason::UnboundedDwellWithoutTimeWeight`], and the KKT residual is the
 //! stopping test.
 
-use super::operator::{fixed_sum, with_operator, LinearOperator};
+use super::with_operator;
 use super::{DwellBounds, Problem};
 use crate::error::{Error, Result};
+use crate::influence::operator::{fixed_sum, LinearOperator};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 

@@ -19,7 +19,7 @@
 //! gradient `g = R^T P (R t - z) + rho 1 + lambda D^T D t`. The iterations evaluate it from the
 //! normal equations, `R^T P (R t - z) = R^T R t - R^T z - ((c't - 1'z) / m) c` with `c = R^T 1`
 //! and `R^T z` computed once, so that an operator can form `R^T R t` in one pass (the FFT
-//! operator does, see [`super::fft`]); the certificate forms the residual itself.
+//! operator does, see [`crate::influence::fft`]); the certificate forms the residual itself.
 //!
 //! **Scaling.** `t = S w` with `S = diag(1 / sqrt(d_j))`, `d_j` the diagonal of the Hessian
 //! `R^T P R + lambda D^T D` (Jacobi preconditioning); the box stays a box. `lambda_hat` is a
@@ -59,9 +59,10 @@
 //! happens inside the iteration loop.
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
-use super::operator::{fill_and_sum, fixed_sum, with_operator, LinearOperator};
+use super::with_operator;
 use super::{DwellBounds, FirstOrderMethod, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
+use crate::influence::operator::{fill_and_sum, fixed_sum, LinearOperator};
 use crate::observer::{IterationInfo, Observer, Stage};
 use rayon::prelude::*;
 use std::time::Instant;

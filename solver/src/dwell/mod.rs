@@ -7,19 +7,16 @@
 pub mod accel;
 pub mod bounds;
 pub mod certificate;
-pub mod fft;
 pub mod first_order;
-pub mod operator;
 pub mod qp;
 
 pub use bounds::{DwellBounds, FeedLimits};
 
 use crate::error::{Error, Result};
 use crate::influence::InfluenceMatrix;
+use crate::influence::{FftOperator, LinearOperator};
 use crate::map::HeightStats;
 use crate::observer::Observer;
-use fft::FftOperator;
-use operator::LinearOperator;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -661,5 +658,18 @@ fn dispatch(
             Ok(sol)
         }
         SolverKind::FirstOrder => first_order::solve(problem, settings, observer, start),
+    }
+}
+
+/// Runs `f` with `problem`'s operator: the assembled `R` (wrapped for products) or the
+/// matrix-free FFT operator.
+pub(crate) fn with_operator<T>(
+    problem: &Problem,
+    f: impl FnOnce(&dyn LinearOperator) -> Result<T>,
+) -> Result<T> {
+    match (problem.influence(), problem.fft_operator()) {
+        (Some(r), _) => f(&crate::influence::SparseOperator::new(r.csc())),
+        (None, Some(fft)) => f(fft),
+        (None, None) => Err(Error::invalid("problem", "has no influence operator")),
     }
 }

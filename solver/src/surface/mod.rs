@@ -8,13 +8,11 @@
 pub mod asphere;
 pub mod closest;
 pub mod conic;
-pub mod influence;
 pub mod xyp;
 
 pub use asphere::EvenAsphere;
 pub use closest::ClosestPoint;
 pub use conic::Conic;
-pub use influence::{assemble_on_surface, assemble_on_surface_with, TifFrame};
 pub use xyp::{monomials, XyPolynomial, XyTerm, MAX_ORDER};
 
 use crate::error::{Error, Result};

@@ -5,7 +5,6 @@
 //! tool's frame.
 
 pub mod bonnet;
-pub mod curvature;
 pub mod gaussian;
 pub mod grid;
 pub mod hertz;

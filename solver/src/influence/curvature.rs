@@ -1,19 +1,19 @@
 //! Curvature-dependent influence: every dwell point gets its own Hertzian TIF from the design
 //! surface's principal curvatures there (the contact radius, pressure and hence the footprint
 //! change with the local curvature), applied in the tangent plane of the dwell point as in
-//! [`crate::surface::assemble_on_surface`] and assembled into one sparse `R`.
+//! [`super::surface::assemble_on_surface`] and assembled into one sparse `R`.
 //!
 //! The per-point models are built in parallel (rayon, collected in dwell order) and the matrix
 //! is assembled by [`InfluenceMatrix::assemble_with`], so the result is identical for any thread
 //! count. With a constant curvature (plane, sphere) every column equals the shift-invariant
 //! assembly with the one TIF.
 
-use super::hertz::{HertzParams, HertzTif};
-use super::InfluenceFunction;
+use super::surface::{assemble_on_surface_with, TifFrame};
+use super::InfluenceMatrix;
 use crate::error::{Error, Result};
-use crate::influence::InfluenceMatrix;
 use crate::observer::Observer;
-use crate::surface::{assemble_on_surface_with, Surface, TifFrame};
+use crate::surface::Surface;
+use crate::tif::{HertzParams, HertzTif, InfluenceFunction};
 use rayon::prelude::*;
 
 /// The Hertz TIF of every dwell point, from the surface's principal curvatures there.
@@ -74,8 +74,9 @@ pub fn assemble_curvature_dependent(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::influence::assemble_on_surface;
     use crate::observer::Silent;
-    use crate::surface::{assemble_on_surface, Conic, Plane};
+    use crate::surface::{Conic, Plane};
 
     fn grid(n: usize, step: f64, x0: f64) -> (Vec<f64>, Vec<f64>) {
         let mut x = Vec::new();

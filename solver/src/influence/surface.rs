@@ -6,10 +6,10 @@
 //! `R[i, j] = tif((P_i - S_j) . t_j, (P_i - S_j) . b_j)`. On the plane `z = 0` with
 //! [`TifFrame::MachineX`] this is bit for bit [`InfluenceMatrix::assemble`].
 
-use super::Surface;
+use super::InfluenceMatrix;
 use crate::error::{Error, Result};
-use crate::influence::InfluenceMatrix;
 use crate::observer::Observer;
+use crate::surface::Surface;
 use crate::tif::InfluenceFunction;
 use serde::{Deserialize, Serialize};
 

@@ -48,22 +48,6 @@ impl<'a> SparseOperator<'a> {
 /// Minimum number of output entries handed to one rayon task.
 const MIN_TASK: usize = 512;
 
-/// Runs `f` with `problem`'s operator: the assembled `R` (wrapped for products) or the
-/// matrix-free FFT operator.
-pub(crate) fn with_operator<T>(
-    problem: &super::Problem,
-    f: impl FnOnce(&dyn LinearOperator) -> crate::error::Result<T>,
-) -> crate::error::Result<T> {
-    match (problem.influence(), problem.fft_operator()) {
-        (Some(r), _) => f(&SparseOperator::new(r.csc())),
-        (None, Some(fft)) => f(fft),
-        (None, None) => Err(crate::error::Error::invalid(
-            "problem",
-            "has no influence operator",
-        )),
-    }
-}
-
 impl LinearOperator for SparseOperator<'_> {
     fn nrows(&self) -> usize {
         self.csc.nrows()

@@ -1,0 +1,21 @@
+//! The influence operator `R` (m x n, nm/s): `R[i, j]` is the removal rate at measurement point `i`
+//! while the tool dwells at point `j`, so the removal is `h = R t` for dwell times `t` (s).
+//!
+//! Everything that builds or applies `R` lives here:
+//! - [`matrix`]: the sparse matrix assembled from a shift-invariant TIF on the plane;
+//! - [`surface`]: the same on a curved part, the TIF applied in each dwell point's tangent frame;
+//! - [`curvature`]: one Hertzian TIF per dwell point from the local principal curvatures;
+//! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
+//! - [`operator`]: the product trait ([`LinearOperator`]: `R t`, `R^T y`) every solver goes through.
+
+pub mod curvature;
+pub mod fft;
+pub mod matrix;
+pub mod operator;
+pub mod surface;
+
+pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
+pub use fft::FftOperator;
+pub use matrix::{InfluenceMatrix, NNZ_BYTES};
+pub use operator::{LinearOperator, SparseOperator};
+pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};
