@@ -11,14 +11,17 @@ use crate::error::Result;
 use crate::job::Job;
 use crate::pipeline;
 use preston_solver::dwell::{
-    self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
+    DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
 };
+use preston_solver::edge::{EdgeMethod, EdgeSettings};
 use preston_solver::influence::fft::FftOperator;
+use preston_solver::influence::surface::TifFrame;
 use preston_solver::influence::InfluenceMatrix;
-use preston_solver::map::{BoundingBox, HeightStats};
+use preston_solver::map::{BoundingBox, HeightMap, HeightStats};
 use preston_solver::observer::Silent;
 use preston_solver::path::raster::{serpentine, RasterAxis};
-use preston_solver::tif::GaussianTif;
+use preston_solver::setup::{Choices, DwellPoints, Setup, SetupData, SetupError, TifModel};
+use preston_solver::tif::{GaussianTif, Tif};
 use serde::Serialize;
 use std::path::Path;
 use std::time::Instant;
@@ -208,15 +211,49 @@ pub fn run_generated(
     settings: &Settings,
 ) -> Result<BenchRow> {
     let start = Instant::now();
-    let problem = generated_problem_with(n_target, 1, settings.operator)?;
-    let build_seconds = start.elapsed().as_secs_f64();
-    let s = Settings {
-        solver,
-        ..settings.clone()
+    let g = generated_inputs(n_target, 1)?;
+    // The generated problem through the set-up stage: no edge model, the assembled `R` unless the
+    // FFT operator is asked for.
+    let choices = Choices {
+        feed: FeedLimits {
+            v_max_mm_per_min: V_MAX_MM_PER_MIN,
+            v_min_mm_per_min: 0.0,
+        },
+        a_max_mm_per_s2: None,
+        corner_angle_deg: None,
+        rho: 0.0,
+        lambda: 0.0,
+        settings: Settings {
+            solver,
+            operator: match settings.operator {
+                OperatorChoice::Fft => OperatorChoice::Fft,
+                OperatorChoice::Auto | OperatorChoice::Sparse => OperatorChoice::Sparse,
+            },
+            ..settings.clone()
+        },
+        edge: EdgeSettings {
+            method: EdgeMethod::None,
+            ..EdgeSettings::default()
+        },
+        tif_model: TifModel::ShiftInvariant,
+        tif_frame: TifFrame::default(),
+        warm_start: false,
     };
-    let sol = dwell::solve(&problem, &s, &Silent)?;
-    let eval = problem.evaluate(&sol.dwell_s)?;
-    let residual: Vec<f64> = eval
+    let setup_error = |e: SetupError| crate::Error::Solver(e.source);
+    let checked = choices.check(&Silent).map_err(setup_error)?;
+    let data = SetupData {
+        map: HeightMap::new(g.x_mm, g.y_mm, g.z_nm)?,
+        tif: Tif::Gaussian(g.tif),
+        dwell: DwellPoints::Given(g.path),
+        surface: None,
+        warm_start_s: None,
+    };
+    let setup = Setup::resolve(checked, data, &Silent).map_err(setup_error)?;
+    let problem = setup.problem(&Silent).map_err(setup_error)?.problem;
+    let build_seconds = start.elapsed().as_secs_f64();
+    let outcome = setup.solve(&problem, &Silent)?;
+    let sol = &outcome.solution;
+    let residual: Vec<f64> = outcome
         .removal_nm
         .iter()
         .zip(problem.z_nm())
@@ -235,7 +272,7 @@ pub fn run_generated(
         rms_before_nm: problem.stats_before().rms_nm,
         rms_after_nm: HeightStats::of(&residual).rms_nm,
         objective: sol.objective,
-        total_dwell_s: eval.total_dwell_s,
+        total_dwell_s: sol.dwell_s.iter().sum(),
         build_seconds,
         solve_seconds: sol.solve_seconds,
         iterations: sol.iterations,

@@ -4,10 +4,10 @@
 
 use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
-use crate::pipeline::Solved;
 use crate::plots::{stage_map_plot, stage_path_plot, stage_psd_plot};
-use crate::report::{centred_residual_nm, feeds_mm_per_min};
+use crate::report::centred_residual_nm;
 use preston_solver::psd::{line_psd, LineAxis, LinePsd};
+use preston_solver::setup::{Outcome, Setup};
 use preston_solver::tif::InfluenceFunction;
 use std::io::Write;
 use std::path::Path;
@@ -18,21 +18,22 @@ pub const PSD_HEADER: &str = "frequency_per_mm,error_psd_nm2_mm,residual_psd_nm2
 /// Samples per side of the TIF plot's grid.
 const TIF_SAMPLES: usize = 121;
 
-/// Stages every figure of `solved` into `out_dir`. `axis` is the raster direction and
+/// Stages every figure of a solve (`setup` solved into `outcome`) into `out_dir`. `axis` is the raster direction and
 /// `raster_pitch_mm` its line spacing (marked on the PSD plot). Returns the staged files and
 /// notes on figures left out (a PSD needs the map on a lattice).
 pub fn stage_solve_figures(
-    solved: &Solved,
+    setup: &Setup,
+    outcome: &Outcome,
     out_dir: &Path,
     axis: LineAxis,
     raster_pitch_mm: Option<f64>,
 ) -> Result<(Vec<Staged>, Vec<String>)> {
-    let p = &solved.prepared;
-    let (mx, my, z) = (p.map.x_mm(), p.map.y_mm(), p.map.z_nm());
-    let residual = centred_residual_nm(z, &solved.removal_nm);
-    let (px, py) = (p.path.x_mm(), p.path.y_mm());
-    let dwell = &solved.solution.dwell_s;
-    let feeds = feeds_mm_per_min(&p.ds_mm, dwell);
+    let map = &setup.map;
+    let (mx, my, z) = (map.x_mm(), map.y_mm(), map.z_nm());
+    let residual = centred_residual_nm(z, &outcome.removal_nm);
+    let (px, py) = (setup.path.x_mm(), setup.path.y_mm());
+    let dwell = &outcome.solution.dwell_s;
+    let feeds = &outcome.feeds_mm_per_min;
     let mut staged = vec![
         stage_map_plot(
             &out_dir.join("error_before.png"),
@@ -48,7 +49,7 @@ pub fn stage_solve_figures(
             "nm",
             mx,
             my,
-            &solved.removal_nm,
+            &outcome.removal_nm,
         )?,
         stage_map_plot(
             &out_dir.join("residual.png"),
@@ -59,10 +60,10 @@ pub fn stage_solve_figures(
             &residual,
         )?,
         stage_map_plot(&out_dir.join("dwell.png"), "Dwell time", "s", px, py, dwell)?,
-        stage_map_plot(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, &feeds)?,
+        stage_map_plot(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, feeds)?,
         stage_path_plot(&out_dir.join("path.png"), "Dwell path", px, py)?,
     ];
-    let radius = p.tif.support_radius_mm();
+    let radius = setup.tif.support_radius_mm();
     if radius.is_finite() && radius > 0.0 {
         let (mut tx, mut ty, mut tv) = (Vec::new(), Vec::new(), Vec::new());
         let step = 2.0 * radius / (TIF_SAMPLES - 1) as f64;
@@ -71,7 +72,7 @@ pub fn stage_solve_figures(
                 let (dx, dy) = (-radius + i as f64 * step, -radius + j as f64 * step);
                 tx.push(dx);
                 ty.push(dy);
-                tv.push(p.tif.rate_nm_per_s(dx, dy));
+                tv.push(setup.tif.rate_nm_per_s(dx, dy));
             }
         }
         staged.push(stage_map_plot(

@@ -49,6 +49,7 @@ use preston_solver::edge::EdgeSettings;
 use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::compensation::NormalDisplacement;
 use preston_solver::path::raster::RasterAxis;
+use preston_solver::setup::{Choices, TifModel};
 use preston_solver::tif::GaussianTif;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -108,6 +109,70 @@ pub struct TifSource {
     pub file: Option<PathBuf>,
     /// A truncated Gaussian model.
     pub gaussian: Option<GaussianTif>,
+}
+
+/// The one TIF source a job names ([`TifSource::resolve`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum TifInput {
+    /// A gridded TIF file.
+    File(PathBuf),
+    /// A truncated Gaussian model.
+    Gaussian(GaussianTif),
+}
+
+impl TifSource {
+    /// The one source this section names: exactly one of `file` and `gaussian` must be set.
+    pub fn resolve(&self, job_path: &Path) -> Result<TifInput> {
+        match (&self.file, &self.gaussian) {
+            (Some(f), None) => Ok(TifInput::File(f.clone())),
+            (None, Some(g)) => Ok(TifInput::Gaussian(g.clone())),
+            (Some(_), Some(_)) => Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "[tif] gives both `file` and `gaussian`; choose one".into(),
+            }),
+            (None, None) => Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "no TIF: set [tif] file or gaussian (or --tif / --gaussian-sigma-mm)".into(),
+            }),
+        }
+    }
+}
+
+/// The one source of dwell points a job names ([`DwellSource::resolve`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum DwellInput {
+    /// A dwell file, `x_mm,y_mm` in path order.
+    File(PathBuf),
+    /// A generated serpentine raster.
+    Raster {
+        /// Pitch, mm.
+        pitch_mm: f64,
+        /// Direction of the lines.
+        along: RasterAxis,
+    },
+}
+
+impl DwellSource {
+    /// The one source this section names: exactly one of `file` and `raster_pitch_mm`.
+    pub fn resolve(&self, job_path: &Path) -> Result<DwellInput> {
+        match (&self.file, self.raster_pitch_mm) {
+            (Some(f), None) => Ok(DwellInput::File(f.clone())),
+            (None, Some(pitch_mm)) => Ok(DwellInput::Raster {
+                pitch_mm,
+                along: self.raster_along,
+            }),
+            (Some(_), Some(_)) => Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "[dwell] gives both `file` and `raster_pitch_mm`; choose one".into(),
+            }),
+            (None, None) => Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "no dwell points: set [dwell] file or raster_pitch_mm (or --dwell / \
+                      --raster-pitch-mm)"
+                    .into(),
+            }),
+        }
+    }
 }
 
 /// Where the dwell points come from: a file or a generated raster (exactly one).
@@ -210,6 +275,32 @@ impl Job {
         };
         limits.validate()?;
         Ok(limits)
+    }
+
+    /// The job's choices for the set-up stage ([`Choices::check`] validates them); the feed
+    /// limit `v_max_mm_per_min` must be given.
+    pub fn choices(&self) -> std::result::Result<Choices, preston_solver::Error> {
+        let v_max = self.machine.v_max_mm_per_min.ok_or_else(|| {
+            preston_solver::Error::invalid(
+                "v_max_mm_per_min",
+                "is required (job [machine] or --v-max)",
+            )
+        })?;
+        Ok(Choices {
+            feed: FeedLimits {
+                v_max_mm_per_min: v_max,
+                v_min_mm_per_min: self.machine.v_min_mm_per_min.unwrap_or(0.0),
+            },
+            a_max_mm_per_s2: self.machine.a_max_mm_per_s2,
+            corner_angle_deg: self.machine.corner_angle_deg,
+            rho: self.objective.rho,
+            lambda: self.objective.lambda,
+            settings: self.solver.clone(),
+            edge: self.edge.clone(),
+            tif_model: TifModel::ShiftInvariant,
+            tif_frame: self.surface.tif_frame,
+            warm_start: self.dwell.warm_start.is_some(),
+        })
     }
 
     /// Corner angle of the machine, degrees (`[machine] corner_angle_deg`, default 60).

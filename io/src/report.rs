@@ -150,20 +150,7 @@ pub struct ExecutedReport {
     pub stretches_over_5_percent: usize,
 }
 
-/// Feed at each dwell point, mm/min: `ds / dwell * 60` (0 where `ds` is 0).
-pub fn feeds_mm_per_min(ds_mm: &[f64], dwell_s: &[f64]) -> Vec<f64> {
-    ds_mm
-        .iter()
-        .zip(dwell_s)
-        .map(|(&d, &t)| {
-            if d > 0.0 && t > 0.0 {
-                d / t * 60.0
-            } else {
-                0.0
-            }
-        })
-        .collect()
-}
+pub use preston_solver::setup::{centred_residual_nm, feeds_mm_per_min};
 
 /// Name of a solver in reports.
 pub fn solver_name(kind: SolverKind) -> String {
@@ -181,17 +168,6 @@ pub fn status_name(status: Status) -> String {
         .unwrap_or_else(|| format!("{status:?}"))
 }
 
-/// Residual about its mean, nm: `(z - h) - mean(z - h)`.
-pub fn centred_residual_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
-    let e: Vec<f64> = z_nm.iter().zip(removal_nm).map(|(z, h)| z - h).collect();
-    let mean = if e.is_empty() {
-        0.0
-    } else {
-        e.iter().sum::<f64>() / e.len() as f64
-    };
-    e.into_iter().map(|v| v - mean).collect()
-}
-
 impl Report {
     /// Builds the report of `solution` on `problem`; `removal_nm` is `R t` on the measured map:
     /// the first `removal_nm.len()` rows of the problem (edge extension rows follow them).
@@ -204,10 +180,29 @@ impl Report {
         skipped_rows: usize,
         build_seconds: f64,
     ) -> Self {
+        let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
+        Self::with_feeds(
+            problem,
+            solution,
+            removal_nm,
+            &feeds,
+            skipped_rows,
+            build_seconds,
+        )
+    }
+
+    /// As [`Report::new`] with the feeds already computed (one per dwell point, mm/min).
+    pub fn with_feeds(
+        problem: &Problem,
+        solution: &Solution,
+        removal_nm: &[f64],
+        feeds: &[f64],
+        skipped_rows: usize,
+        build_seconds: f64,
+    ) -> Self {
         let z = &problem.z_nm()[..removal_nm.len().min(problem.m())];
         let before = HeightStats::of(z);
         let after = HeightStats::of(&centred_residual_nm(z, removal_nm));
-        let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();
         Self {
@@ -256,7 +251,7 @@ impl Report {
             accel_iterations: None,
             rms_feed_limited_only_nm: None,
             accel: None,
-            max_neighbour_feed_ratio: max_neighbour_feed_ratio(&feeds),
+            max_neighbour_feed_ratio: max_neighbour_feed_ratio(feeds),
             dwell_outside_map_s: None,
             executed: None,
         }

@@ -12,7 +12,7 @@ use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
 use preston_io::pipeline::{self, Inputs, Solved};
 use preston_io::readers::{read_dwell, DwellFile};
-use preston_io::report::{centred_residual_nm, feeds_mm_per_min};
+use preston_io::report::centred_residual_nm;
 use preston_io::surface::{read_surface, FitSummary};
 use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
 use preston_solver::machine::gcode::write_and_check;
@@ -228,7 +228,7 @@ impl SolveResult {
     /// Dwell time at each dwell point, s (path order).
     #[getter]
     fn dwell_s<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, &self.solved.solution.dwell_s)
+        array(py, &self.solved.solution().dwell_s)
     }
     /// Feed into each dwell point, mm/min (`ds_mm / dwell_s * 60`).
     #[getter]
@@ -238,37 +238,37 @@ impl SolveResult {
     /// Path length each dwell point stands for, mm.
     #[getter]
     fn ds_mm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, &self.solved.prepared.ds_mm)
+        array(py, self.solved.prepared.ds_mm())
     }
     /// Dwell point x, mm (path order).
     #[getter]
     fn dwell_x_mm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, self.solved.prepared.path.x_mm())
+        array(py, self.solved.prepared.path().x_mm())
     }
     /// Dwell point y, mm (path order).
     #[getter]
     fn dwell_y_mm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, self.solved.prepared.path.y_mm())
+        array(py, self.solved.prepared.path().y_mm())
     }
     /// Map point x, mm (the points kept after reading).
     #[getter]
     fn map_x_mm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, self.solved.prepared.map.x_mm())
+        array(py, self.solved.prepared.map().x_mm())
     }
     /// Map point y, mm.
     #[getter]
     fn map_y_mm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, self.solved.prepared.map.y_mm())
+        array(py, self.solved.prepared.map().y_mm())
     }
     /// Map error height, nm.
     #[getter]
     fn z_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, self.solved.prepared.map.z_nm())
+        array(py, self.solved.prepared.map().z_nm())
     }
     /// Predicted removal at each map point, nm.
     #[getter]
     fn removal_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, &self.solved.removal_nm)
+        array(py, self.solved.removal_nm())
     }
     /// Residual `z - removal` at each map point with its mean removed (as in residual.csv), nm.
     #[getter]
@@ -289,7 +289,7 @@ impl SolveResult {
     /// Whether the solver converged (to the requested or a reduced tolerance).
     #[getter]
     fn converged(&self) -> bool {
-        self.solved.solution.status.is_converged()
+        self.solved.solution().status.is_converged()
     }
     /// Writes dwell.csv, residual.csv and report.json into `out_dir` (created if needed), each
     /// file whole or not at all.
@@ -466,8 +466,8 @@ fn solve(
     }
     let solved = solved.map_err(to_py)?;
     let p = &solved.prepared;
-    let feeds = feeds_mm_per_min(&p.ds_mm, &solved.solution.dwell_s);
-    let residual = centred_residual_nm(p.map.z_nm(), &solved.removal_nm);
+    let feeds = solved.outcome.feeds_mm_per_min.clone();
+    let residual = centred_residual_nm(p.map().z_nm(), solved.removal_nm());
     Ok(SolveResult {
         solved,
         feeds,

@@ -20,13 +20,15 @@
 //! Statistics are those of the registered (measured) form error, which is what the shop sees:
 //! piston and tilt of the true error are indistinguishable from the installation error.
 
-use crate::dwell::{self, DwellBounds, FeedLimits, Problem, Settings, Status};
+use crate::dwell::{FeedLimits, OperatorChoice, Settings, Status};
+use crate::edge::{EdgeMethod, EdgeSettings};
 use crate::error::{Error, Result};
 use crate::influence::surface::{assemble_on_surface, TifFrame};
 use crate::map::{BoundingBox, HeightMap, HeightStats};
 use crate::observer::{Observer, Stage};
 use crate::path::DwellPath;
 use crate::registration::{register, RegisterSettings};
+use crate::setup::{Choices, DwellPoints, Setup, SetupData, TifModel};
 use crate::surface::Surface;
 use crate::tif::{InfluenceFunction, ScaledTif, Tif};
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -39,33 +41,7 @@ const CURVED_TOL: f64 = 1e-12;
 /// Radians per arcsecond.
 const RAD_PER_ARCSEC: f64 = std::f64::consts::PI / (180.0 * 3600.0);
 
-/// Deterministic pseudo-random numbers (splitmix64; Box-Muller for normals), so a virtual run is
-/// reproducible from its seed on any machine and thread count.
-#[derive(Debug, Clone)]
-pub struct SplitMix64(u64);
-
-impl SplitMix64 {
-    /// A generator from a seed.
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    /// Uniform in `[0, 1)`.
-    pub fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Standard normal.
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(1e-300);
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-}
+pub use crate::rng::SplitMix64;
 
 /// A smooth generated form error: a sum of `modes` plane waves with at most `max_cycles` cycles
 /// across the aperture and random directions and phases, scaled to `rms_nm` over the grid.
@@ -415,18 +391,35 @@ pub fn plan_run(
     observer: &dyn Observer,
 ) -> Result<RunArtifacts> {
     let path = intersection_path(region, settings.path_pitch_mm, k)?;
-    let ds = path.ds_mm();
-    let bounds = DwellBounds::from_feeds(&ds, &settings.feed)?;
-    let r = assemble_on_surface(
-        surface,
-        measured.x_mm(),
-        measured.y_mm(),
-        path.x_mm(),
-        path.y_mm(),
-        tif,
-        TifFrame::PathTangent,
-        observer,
-    )?;
+    // The run through the set-up stage: the assembled R in each dwell point's tangent frame of
+    // the design surface, no edge model.
+    let choices = Choices {
+        feed: settings.feed,
+        a_max_mm_per_s2: None,
+        corner_angle_deg: None,
+        rho: settings.rho,
+        lambda: settings.lambda,
+        settings: Settings {
+            operator: OperatorChoice::Sparse,
+            ..settings.solver.clone()
+        },
+        edge: EdgeSettings {
+            method: EdgeMethod::None,
+            ..EdgeSettings::default()
+        },
+        tif_model: TifModel::ShiftInvariant,
+        tif_frame: TifFrame::PathTangent,
+        warm_start: false,
+    };
+    let data = SetupData {
+        map: measured.clone(),
+        tif: tif.clone(),
+        dwell: DwellPoints::Given(path.clone()),
+        surface: Some(surface.clone()),
+        warm_start_s: None,
+    };
+    let setup = Setup::resolve(choices.check(observer)?, data, observer)?;
+    let problem = setup.problem(observer)?.problem;
     let nz: Vec<f64> = measured
         .x_mm()
         .iter()
@@ -434,31 +427,22 @@ pub fn plan_run(
         .map(|(&x, &y)| Ok(surface.derivs(x, y)?.normal()[2]))
         .collect::<Result<_>>()?;
     let curved = nz.iter().any(|&n| 1.0 - n > CURVED_TOL);
-    let problem = Problem::new(
-        r.clone(),
-        measured.z_nm().to_vec(),
-        bounds.clone(),
-        settings.rho,
-        settings.lambda,
-    )?;
-    let mut sol = dwell::solve(&problem, &settings.solver, observer)?;
+    let mut outcome = setup.solve(&problem, observer)?;
     let mut target = measured.z_nm().to_vec();
-    let problem = if curved {
+    if curved {
+        // The piston is removed along the normal: its height component is `c n_z`.
         for (t, n) in target.iter_mut().zip(&nz) {
-            *t -= sol.piston_nm * (1.0 - n);
+            *t -= outcome.solution.piston_nm * (1.0 - n);
         }
-        let p2 = Problem::new(r, target.clone(), bounds, settings.rho, settings.lambda)?;
-        sol = dwell::solve(&p2, &settings.solver, observer)?;
-        p2
-    } else {
-        problem
-    };
-    let predicted = problem.removal_nm(&sol.dwell_s)?;
+        let p2 = problem.with_target_nm(target.clone())?;
+        outcome = setup.solve(&p2, observer)?;
+    }
+    let sol = outcome.solution;
     Ok(RunArtifacts {
         measured: measured.clone(),
         path,
         dwell_s: sol.dwell_s,
-        predicted_removal_nm: predicted,
+        predicted_removal_nm: outcome.removal_nm,
         target_nm: target,
         status: sol.status,
     })

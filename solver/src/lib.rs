@@ -26,6 +26,8 @@ pub mod observer;
 pub mod path;
 pub mod psd;
 pub mod registration;
+pub mod rng;
+pub mod setup;
 pub mod simulate;
 pub mod surface;
 pub mod tif;

@@ -12,6 +12,23 @@ pub enum Stage {
     Loop,
 }
 
+/// A step of the set-up stage, reported to [`Observer::setup_step`] once each per job.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SetupStep {
+    /// The job's choices are validated ([`crate::setup::Choices::check`]).
+    CheckChoices,
+    /// The inputs are resolved: dwell points, bounds ([`crate::setup::Setup::resolve`]).
+    Resolve,
+    /// The problem is built ([`crate::setup::Setup::problem`]).
+    BuildProblem,
+    /// The solver runs ([`crate::setup::Setup::solve`]).
+    Solve,
+    /// The removal `R t` of the solution is computed.
+    Removal,
+    /// The feed schedule of the solution is computed.
+    FeedSchedule,
+}
+
 /// One solver iteration as seen by an observer.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct IterationInfo {
@@ -34,6 +51,8 @@ pub trait Observer: Sync {
     fn finish(&self, _stage: Stage) {}
     /// A solver finished an iteration.
     fn iteration(&self, _info: &IterationInfo) {}
+    /// A step of the set-up stage ([`crate::setup`]) runs.
+    fn setup_step(&self, _step: SetupStep) {}
 }
 
 /// An observer that ignores everything.

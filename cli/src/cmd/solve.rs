@@ -436,7 +436,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         out.display()
     );
     program_check(&solved, &job);
-    if !solved.solution.status.is_converged() {
+    if !solved.solution().status.is_converged() {
         eprintln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
@@ -475,8 +475,8 @@ fn program_check(solved: &pipeline::Solved, job: &Job) {
         Some(s) => s,
         None => &Flat,
     };
-    let p = &solved.prepared.path;
-    let checked = NcProgram::plan(p, &solved.solution.dwell_s, geometry, &settings)
+    let p = solved.prepared.path();
+    let checked = NcProgram::plan(p, &solved.solution().dwell_s, geometry, &settings)
         .and_then(|nc| write_and_check(&nc, &[]));
     match checked {
         Ok(c) => print_program_check(&c),

@@ -290,6 +290,18 @@ pub fn solve(
 ) -> Result<AccelSolution> {
     limits.validate()?;
     settings.validate()?;
+    solve_validated(problem, path, limits, settings, observer)
+}
+
+/// As [`solve`], with `limits` and `settings` already validated (by
+/// [`crate::setup::Choices::check`]).
+pub(crate) fn solve_validated(
+    problem: &Problem,
+    path: &DwellPath,
+    limits: &AccelLimits,
+    settings: &Settings,
+    observer: &dyn Observer,
+) -> Result<AccelSolution> {
     let start = Instant::now();
     let n = problem.n();
     if path.len() != n {
@@ -304,7 +316,7 @@ pub fn solve(
     let (lo_u, hi_u) = speed_boxes(&kin, bounds)?;
     let reachable = forward_reachable(&kin, &lo_u, &hi_u, limits)?;
 
-    let reference = super::solve(problem, settings, observer)?;
+    let reference = super::solve_validated(problem, settings, observer, None)?;
     let settle_scale = 1e-12 * 0.5 * problem.z_nm().iter().map(|z| z * z).sum::<f64>();
     let tol = limits.constraint_tolerance;
 

@@ -242,6 +242,17 @@ impl Problem {
         self.influence.ncols()
     }
 
+    /// The same problem (operator, bounds, weights) with another target `z_nm` (one per row).
+    pub fn with_target_nm(&self, z_nm: Vec<f64>) -> Result<Self> {
+        Self::build(
+            self.influence.clone(),
+            z_nm,
+            self.bounds.clone(),
+            self.rho,
+            self.lambda,
+        )
+    }
+
     /// The same problem with other weights (used by the minimum-time mode).
     pub fn with_weights(&self, rho: f64, lambda: f64) -> Result<Self> {
         Self::build(
@@ -602,6 +613,16 @@ pub fn solve_from(
     warm_start_s: Option<&[f64]>,
 ) -> Result<Solution> {
     settings.validate()?;
+    solve_validated(problem, settings, observer, warm_start_s)
+}
+
+/// As [`solve_from`], with `settings` already validated (by [`crate::setup::Choices::check`]).
+pub(crate) fn solve_validated(
+    problem: &Problem,
+    settings: &Settings,
+    observer: &dyn Observer,
+    warm_start_s: Option<&[f64]>,
+) -> Result<Solution> {
     if let Some(w) = warm_start_s {
         if w.len() != problem.n() {
             return Err(Error::LengthMismatch {

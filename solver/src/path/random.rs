@@ -17,8 +17,8 @@
 
 use super::DwellPath;
 use crate::error::{Error, Result};
-use crate::iterate::SplitMix64;
 use crate::map::BoundingBox;
+use crate::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 
 /// Settings of [`random_unicursal`].

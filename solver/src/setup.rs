@@ -1,0 +1,876 @@
+//! The set-up stage: one job, resolved and validated once, made into a [`Problem`] and solved
+//! into an [`Outcome`].
+//!
+//! ```text
+//! SetupInputs (what the io layer read) --Setup::resolve--> Setup (validated: path, bounds,
+//! limits, weights, settings, warm start) --Setup::problem--> Built { Problem, edge points }
+//! --Setup::solve--> Outcome { solution, removal R t, feeds, feed schedule, statuses }
+//! ```
+//!
+//! Every consumer (the `solve` pipeline, the loop's runs, the benchmarks, the Python package)
+//! goes through these three steps, so the decisions they hold are written once: how the dwell
+//! points are made (a given path or a serpentine raster), how the dwell area beyond the map is
+//! modelled ([`crate::edge`]), how `R` is held (assembled, in the tangent frame of a design
+//! surface, or the matrix-free FFT operator, [`OperatorPlan`]) and whether the acceleration limit
+//! is imposed by sequential convex programming ([`crate::dwell::accel`]). The removal `R t` and
+//! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
+
+use crate::dwell::accel::{self, AccelLimits, AccelReport};
+use crate::dwell::{
+    self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution, SolverChoice,
+    Status, AUTO_FFT_MIN_NNZ,
+};
+use crate::edge::{self, EdgeSettings};
+use crate::error::{Error, Result};
+use crate::influence::curvature::assemble_curvature_dependent;
+use crate::influence::fft::FftOperator;
+use crate::influence::surface::{assemble_on_surface, TifFrame};
+use crate::influence::InfluenceMatrix;
+use crate::machine::feeds::FeedSchedule;
+use crate::machine::gcode::motion::Kinematics;
+use crate::machine::gcode::{run_on_map, write_and_check, ProgramRun};
+use crate::machine::nc::{NcProgram, NcSettings};
+use crate::machine::Flat;
+use crate::map::{HeightMap, HeightStats};
+use crate::observer::Observer;
+use crate::path::raster::{self, RasterAxis};
+use crate::path::DwellPath;
+use crate::surface::Surface;
+use crate::tif::{HertzParams, InfluenceFunction, Tif};
+
+/// Values held per dwell point through a solve (path, lengths, dwell, feeds, solver work
+/// vectors), not counting the influence matrix: the memory budget's lower bound.
+const DWELL_POINT_VALUES: f64 = 16.0;
+
+/// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
+/// per map point (a round aperture fills 79% of its square, i.e. 1.27 cells per point).
+const MAX_LATTICE_CELLS_PER_MAP_POINT: f64 = 4.0;
+
+/// Why a warm start and an acceleration limit are refused together.
+const WARM_START_WITH_ACCEL: &str = "cannot be combined with an acceleration limit: the \
+    sequential convex programme starts from its own feed-limited optimum (drop the warm start or \
+    the limit)";
+
+/// Where the dwell points come from: exactly one of a given path or a generated raster.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DwellPoints {
+    /// Dwell points read from a file, in path order.
+    Given(DwellPath),
+    /// A serpentine raster of this pitch over the map's bounding box extended by the TIF's
+    /// nominal radius ([`raster::serpentine`]).
+    Raster {
+        /// Line spacing and point spacing, mm.
+        pitch_mm: f64,
+        /// Direction of the lines.
+        along: RasterAxis,
+    },
+}
+
+/// How the TIF acts on the part: exactly one of the shift-invariant TIF (in the plane, or in each
+/// dwell point's tangent plane of the design surface) or a Hertzian TIF per dwell point from the
+/// surface's local curvatures ([`crate::influence::curvature`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum TifModel {
+    /// One TIF for every dwell point.
+    ShiftInvariant,
+    /// A Hertz contact TIF per dwell point, from the design surface's principal curvatures
+    /// there; needs a design surface.
+    CurvatureDependent(HertzParams),
+}
+
+/// Which input a set-up failure is about, so that the caller can name the file at fault.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SetupInput {
+    /// The job's settings (limits, weights, solver and operator choice).
+    Job,
+    /// The error map (edge extension, lattice, assembly over the map points).
+    Map,
+    /// The given dwell points.
+    Dwell,
+    /// The design surface.
+    Surface,
+    /// The warm start's dwell times.
+    WarmStart,
+    /// No single input (a resource budget, a numerical failure).
+    None,
+}
+
+/// A set-up failure and the input it is about.
+#[derive(Debug)]
+pub struct SetupError {
+    /// The input at fault.
+    pub input: SetupInput,
+    /// What went wrong.
+    pub source: Error,
+}
+
+impl std::fmt::Display for SetupError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.source.fmt(f)
+    }
+}
+
+impl std::error::Error for SetupError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        Some(&self.source)
+    }
+}
+
+impl From<SetupError> for Error {
+    fn from(e: SetupError) -> Self {
+        e.source
+    }
+}
+
+/// The result of a set-up step.
+pub type SetupResult<T> = std::result::Result<T, SetupError>;
+
+trait At<T> {
+    fn at(self, input: SetupInput) -> SetupResult<T>;
+}
+
+impl<T> At<T> for Result<T> {
+    fn at(self, input: SetupInput) -> SetupResult<T> {
+        self.map_err(|source| SetupError { input, source })
+    }
+}
+
+/// The job's choices (limits, weights, solver settings, edge and TIF model), before anything
+/// is read: [`Choices::check`] validates them once, before the inputs are read.
+#[derive(Debug, Clone)]
+pub struct Choices {
+    /// Feed limits.
+    pub feed: FeedLimits,
+    /// Acceleration limit along a line, mm/s^2 (`None`: none).
+    pub a_max_mm_per_s2: Option<f64>,
+    /// Turn angle above which the path splits into lines, degrees (`None`: 60).
+    pub corner_angle_deg: Option<f64>,
+    /// Weight of the total dwell (nm^2 per s).
+    pub rho: f64,
+    /// Weight of dwell differences along the path (nm^2/s^2).
+    pub lambda: f64,
+    /// Solver settings (solver, operator choice, tolerances).
+    pub settings: Settings,
+    /// Edge handling.
+    pub edge: EdgeSettings,
+    /// How the TIF acts on the part.
+    pub tif_model: TifModel,
+    /// Orientation of the TIF's x axis in the tangent plane (with a surface).
+    pub tif_frame: TifFrame,
+    /// Whether a warm start is given (it cannot be combined with an acceleration limit).
+    pub warm_start: bool,
+}
+
+/// [`Choices`] validated: only [`Choices::check`] makes one.
+#[derive(Debug, Clone)]
+pub struct Checked {
+    choices: Choices,
+    accel: Option<AccelLimits>,
+    corner_angle_deg: f64,
+}
+
+impl Checked {
+    /// The validated choices.
+    pub fn choices(&self) -> &Choices {
+        &self.choices
+    }
+
+    /// The acceleration limit with default SCP settings, validated.
+    pub fn accel(&self) -> Option<&AccelLimits> {
+        self.accel.as_ref()
+    }
+
+    /// The machine's corner angle, degrees.
+    pub fn corner_angle_deg(&self) -> f64 {
+        self.corner_angle_deg
+    }
+}
+
+impl Choices {
+    /// Validates every choice once: solver settings, feed and acceleration limits, weights, the
+    /// TIF model and their combinations. A warm start with an acceleration limit is refused: the
+    /// sequential convex programme starts from its own feed-limited optimum and would not use it.
+    pub fn check(self, observer: &dyn Observer) -> SetupResult<Checked> {
+        observer.setup_step(SetupStep::CheckChoices);
+        self.settings.validate().at(SetupInput::Job)?;
+        self.feed.validate().at(SetupInput::Job)?;
+        for (name, v) in [("rho", self.rho), ("lambda", self.lambda)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(Error::invalid(name, format!("must be >= 0, got {v}")))
+                    .at(SetupInput::Job);
+            }
+        }
+        let corner_angle_deg = self
+            .corner_angle_deg
+            .unwrap_or(AccelLimits::default().corner_angle_deg);
+        let accel = match self.a_max_mm_per_s2 {
+            None => None,
+            Some(a) => {
+                let limits = AccelLimits {
+                    a_max_mm_per_s2: a,
+                    corner_angle_deg,
+                    ..AccelLimits::default()
+                };
+                limits.validate().at(SetupInput::Job)?;
+                if self.settings.min_time {
+                    return Err(Error::invalid(
+                        "a_max_mm_per_s2",
+                        "cannot be combined with min_time (the SCP minimises the residual \
+                         objective)",
+                    ))
+                    .at(SetupInput::Job);
+                }
+                Some(limits)
+            }
+        };
+        if accel.is_some() && self.warm_start {
+            return Err(Error::invalid("warm_start", WARM_START_WITH_ACCEL)).at(SetupInput::Job);
+        }
+        if let TifModel::CurvatureDependent(params) = &self.tif_model {
+            params.validate().at(SetupInput::Job)?;
+        }
+        Ok(Checked {
+            choices: self,
+            accel,
+            corner_angle_deg,
+        })
+    }
+}
+
+/// The data the io layer read (or the caller passed in memory).
+#[derive(Debug, Clone)]
+pub struct SetupData {
+    /// The error map, nm (rows with an empty height already removed).
+    pub map: HeightMap,
+    /// The TIF.
+    pub tif: Tif,
+    /// The dwell points.
+    pub dwell: DwellPoints,
+    /// The design surface of a curved part (`None`: a flat part, plan-view offsets).
+    pub surface: Option<Surface>,
+    /// Dwell times to start the first-order solver from, one per dwell point.
+    pub warm_start_s: Option<Vec<f64>>,
+}
+
+pub use crate::observer::SetupStep;
+
+/// A job resolved and validated once: every later step reads it and checks nothing again.
+#[derive(Debug, Clone)]
+pub struct Setup {
+    /// The error map.
+    pub map: HeightMap,
+    /// The TIF.
+    pub tif: Tif,
+    /// How the TIF acts on the part.
+    pub tif_model: TifModel,
+    /// The dwell path (given or generated).
+    pub path: DwellPath,
+    /// Path length per dwell point, mm.
+    pub ds_mm: Vec<f64>,
+    /// The design surface, if the part is curved.
+    pub surface: Option<Surface>,
+    /// TIF orientation on the surface.
+    pub tif_frame: TifFrame,
+    /// Feed limits.
+    pub feed: FeedLimits,
+    /// The dwell bounds the feed limits give.
+    pub bounds: DwellBounds,
+    /// The acceleration limit, validated (`None`: only feed limits).
+    pub accel: Option<AccelLimits>,
+    /// Corner angle of the machine, degrees.
+    pub corner_angle_deg: f64,
+    /// Weight of the total dwell.
+    pub rho: f64,
+    /// Weight of dwell differences.
+    pub lambda: f64,
+    /// Solver settings, validated.
+    pub settings: Settings,
+    /// Edge handling.
+    pub edge: EdgeSettings,
+    /// The warm start, checked against the dwell points.
+    pub warm_start_s: Option<Vec<f64>>,
+}
+
+/// How `R` is held for a problem.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum OperatorPlan {
+    /// Assemble the sparse `R`.
+    Assembled,
+    /// The matrix-free FFT operator on the lattice of this pitch, mm.
+    Fft {
+        /// Lattice pitch, mm.
+        pitch_mm: f64,
+    },
+}
+
+/// The problem a set-up builds.
+#[derive(Debug, Clone)]
+pub struct Built {
+    /// The validated problem: the map's rows first, then the edge extension's.
+    pub problem: Problem,
+    /// Edge extension points appended to the map's rows.
+    pub edge_points: usize,
+    /// Warnings about the operator choice.
+    pub warnings: Vec<String>,
+}
+
+/// The default program executed at the acceleration limit on the map: what the machine would
+/// remove against the plan.
+#[derive(Debug, Clone)]
+pub struct Executed {
+    /// The path acceleration, mm/s^2.
+    pub a_max_mm_per_s2: f64,
+    /// Statistics of the executed residual (piston removed), nm.
+    pub after: HeightStats,
+    /// The executed run.
+    pub run: ProgramRun,
+}
+
+/// A finished solve: everything downstream needs, computed once.
+#[derive(Debug, Clone)]
+pub struct Outcome {
+    /// The solver's answer.
+    pub solution: Solution,
+    /// Predicted removal `R t` at the measured map points, nm (edge rows dropped).
+    pub removal_nm: Vec<f64>,
+    /// Feed at each dwell point, mm/min (`ds / t * 60`, 0 where either is 0).
+    pub feeds_mm_per_min: Vec<f64>,
+    /// The feed schedule (machining time, largest acceleration).
+    pub schedule: FeedSchedule,
+    /// The acceleration-limited solve's account, with its RMS figures on the measured map.
+    pub accel: Option<AccelReport>,
+    /// With an acceleration limit on a flat part: the default program executed at that limit,
+    /// or why no program can deliver the plan.
+    pub executed: Option<std::result::Result<Executed, Error>>,
+}
+
+impl Outcome {
+    /// How the solve ended.
+    pub fn status(&self) -> Status {
+        self.solution.status
+    }
+}
+
+/// Feed at each dwell point, mm/min: `ds / dwell * 60` (0 where `ds` or the dwell is 0).
+pub fn feeds_mm_per_min(ds_mm: &[f64], dwell_s: &[f64]) -> Vec<f64> {
+    ds_mm
+        .iter()
+        .zip(dwell_s)
+        .map(|(&d, &t)| {
+            if d > 0.0 && t > 0.0 {
+                d / t * 60.0
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// Residual about its mean, nm: `(z - h) - mean(z - h)`.
+pub fn centred_residual_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
+    let e: Vec<f64> = z_nm.iter().zip(removal_nm).map(|(z, h)| z - h).collect();
+    let mean = if e.is_empty() {
+        0.0
+    } else {
+        e.iter().sum::<f64>() / e.len() as f64
+    };
+    e.into_iter().map(|v| v - mean).collect()
+}
+
+impl Setup {
+    /// Resolves the data under the checked choices: the dwell points (generating the raster),
+    /// the dwell bounds and the warm start's length.
+    pub fn resolve(
+        checked: Checked,
+        data: SetupData,
+        observer: &dyn Observer,
+    ) -> SetupResult<Self> {
+        observer.setup_step(SetupStep::Resolve);
+        let Checked {
+            choices,
+            accel,
+            corner_angle_deg,
+        } = checked;
+        let SetupData {
+            map,
+            tif,
+            dwell,
+            surface,
+            warm_start_s,
+        } = data;
+        if warm_start_s.is_some() && accel.is_some() {
+            return Err(Error::invalid("warm_start", WARM_START_WITH_ACCEL)).at(SetupInput::Job);
+        }
+        if matches!(choices.tif_model, TifModel::CurvatureDependent(_)) && surface.is_none() {
+            return Err(Error::invalid(
+                "curvature-dependent TIF",
+                "needs a design surface ([surface] file or --surface)",
+            ))
+            .at(SetupInput::Job);
+        }
+        if let Some(s) = &surface {
+            s.validate().at(SetupInput::Surface)?;
+        }
+        let path = match dwell {
+            DwellPoints::Given(p) => {
+                if p.len() < 2 {
+                    return Err(Error::invalid(
+                        "dwell points",
+                        "one dwell point: a path of length zero has no feed; give at least two \
+                         points",
+                    ))
+                    .at(SetupInput::Dwell);
+                }
+                p
+            }
+            DwellPoints::Raster { pitch_mm, along } => {
+                let bbox = map
+                    .bounding_box_mm()
+                    .ok_or_else(|| Error::invalid("map", "no data rows"))
+                    .at(SetupInput::Map)?
+                    .expanded(tif.nominal_radius_mm());
+                if pitch_mm.is_finite() && pitch_mm > 0.0 {
+                    let points = ((bbox.x_max_mm - bbox.x_min_mm) / pitch_mm + 1.0)
+                        * ((bbox.y_max_mm - bbox.y_min_mm) / pitch_mm + 1.0);
+                    crate::budget::check_f64s(
+                        "--raster-pitch-mm",
+                        &format!(
+                            "a raster of pitch {pitch_mm} mm over the map plus the TIF radius \
+                             ({points:.3e} dwell points, at least {DWELL_POINT_VALUES} values each)"
+                        ),
+                        points,
+                        DWELL_POINT_VALUES,
+                    )
+                    .at(SetupInput::None)?;
+                }
+                raster::serpentine(&bbox, pitch_mm, along).at(SetupInput::Job)?
+            }
+        };
+        let ds_mm = path.ds_mm();
+        let bounds = DwellBounds::from_feeds(&ds_mm, &choices.feed).at(SetupInput::Job)?;
+        if let Some(w) = &warm_start_s {
+            if w.len() != path.len() {
+                return Err(Error::invalid(
+                    "warm start",
+                    format!(
+                        "has {} dwell times but the job has {} dwell points",
+                        w.len(),
+                        path.len()
+                    ),
+                ))
+                .at(SetupInput::WarmStart);
+            }
+        }
+        Ok(Self {
+            map,
+            tif,
+            tif_model: choices.tif_model,
+            path,
+            ds_mm,
+            surface,
+            tif_frame: choices.tif_frame,
+            feed: choices.feed,
+            bounds,
+            accel,
+            corner_angle_deg,
+            rho: choices.rho,
+            lambda: choices.lambda,
+            settings: choices.settings,
+            edge: choices.edge,
+            warm_start_s,
+        })
+    }
+
+    /// The problem's rows: the measured map, then the edge extension into the dwell area.
+    fn rows(&self) -> SetupResult<(HeightMap, usize)> {
+        let map = &self.map;
+        let extension = edge::extend(
+            &self.edge,
+            map.x_mm(),
+            map.y_mm(),
+            map.z_nm(),
+            self.path.x_mm(),
+            self.path.y_mm(),
+            self.tif.nominal_radius_mm(),
+            self.tif.support_radius_mm(),
+        )
+        .at(SetupInput::Map)?;
+        let edge_points = extension.len();
+        if extension.is_empty() {
+            return Ok((map.clone(), 0));
+        }
+        let cat = |a: &[f64], b: &[f64]| [a, b].concat();
+        let rows = HeightMap::new(
+            cat(map.x_mm(), &extension.x_mm),
+            cat(map.y_mm(), &extension.y_mm),
+            cat(map.z_nm(), &extension.z_nm),
+        )
+        .at(SetupInput::Map)?;
+        Ok((rows, edge_points))
+    }
+
+    /// What keeps the FFT operator from serving this set-up, if anything.
+    fn fft_blocker(&self) -> Option<&'static str> {
+        if self.surface.is_some() {
+            Some("a [surface] file (the TIF acts in each point's tangent frame)")
+        } else if self.accel.is_some() {
+            Some("an acceleration limit (its sequential QP needs R)")
+        } else if self.settings.min_time {
+            Some("the minimum-time mode (it runs the QP)")
+        } else if self.settings.solver == SolverChoice::Qp {
+            Some("solver = \"qp\" (the QP needs R)")
+        } else {
+            None
+        }
+    }
+
+    /// How `R` is held for the problem rows `rows` (`operator` of the settings): `fft` with
+    /// inputs it cannot serve is an error naming why; `auto` takes the FFT operator when `R`
+    /// would hold at least [`AUTO_FFT_MIN_NNZ`] non-zeros, the map fills its lattice and
+    /// nothing blocks it (a warning says so), the assembled matrix otherwise.
+    pub fn operator_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<OperatorPlan> {
+        let choice = self.settings.operator;
+        if choice == OperatorChoice::Sparse {
+            return Ok(OperatorPlan::Assembled);
+        }
+        let blocker = self.fft_blocker();
+        // The map must fill a fair share of its lattice (a gridded map, perhaps with a round
+        // aperture), or the FFT buffers would dwarf the map.
+        let pitch = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()).filter(|&p| {
+            rows.bounding_box_mm().is_some_and(|b| {
+                let cells =
+                    ((b.x_max_mm - b.x_min_mm) / p + 1.0) * ((b.y_max_mm - b.y_min_mm) / p + 1.0);
+                cells <= MAX_LATTICE_CELLS_PER_MAP_POINT * rows.len() as f64
+            })
+        });
+        match (choice, blocker, pitch) {
+            (OperatorChoice::Fft, Some(why), _) => Err(Error::invalid(
+                "operator",
+                format!("operator = \"fft\" cannot be used with {why}"),
+            ))
+            .at(SetupInput::Job),
+            (OperatorChoice::Fft, None, None) => Err(Error::invalid(
+                "operator",
+                "operator = \"fft\" needs map points on a regular lattice that they fill at \
+                 least a quarter of",
+            ))
+            .at(SetupInput::Job),
+            (OperatorChoice::Fft, None, Some(p)) => Ok(OperatorPlan::Fft { pitch_mm: p }),
+            (_, Some(_), _) | (_, None, None) => Ok(OperatorPlan::Assembled),
+            (_, None, Some(p)) => {
+                // Map points inside one TIF disc, at most all of them, per dwell point.
+                let r = self.tif.support_radius_mm();
+                let per_column = (std::f64::consts::PI * r * r / (p * p)).min(rows.len() as f64);
+                let estimate = per_column * self.path.len() as f64;
+                if estimate >= AUTO_FFT_MIN_NNZ as f64 {
+                    warnings.push(format!(
+                        "operator auto: about {estimate:.2e} non-zeros in R, so products use the \
+                         matrix-free FFT operator (operator = \"sparse\" assembles R)"
+                    ));
+                    Ok(OperatorPlan::Fft { pitch_mm: p })
+                } else {
+                    Ok(OperatorPlan::Assembled)
+                }
+            }
+        }
+    }
+
+    /// Assembles `R` over `rows`: in the plane, in each dwell point's tangent frame on the design
+    /// surface, or with a curvature-dependent TIF per dwell point.
+    fn assemble(&self, rows: &HeightMap, observer: &dyn Observer) -> SetupResult<InfluenceMatrix> {
+        let (mx, my, px, py) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        match (&self.surface, &self.tif_model) {
+            (None, _) => {
+                InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer).at(SetupInput::None)
+            }
+            (Some(s), TifModel::ShiftInvariant) => {
+                assemble_on_surface(s, mx, my, px, py, &self.tif, self.tif_frame, observer)
+                    .at(SetupInput::Surface)
+            }
+            (Some(s), TifModel::CurvatureDependent(params)) => {
+                assemble_curvature_dependent(s, mx, my, px, py, params, self.tif_frame, observer)
+                    .at(SetupInput::Surface)
+            }
+        }
+    }
+
+    /// Builds the problem: the edge extension, the operator (assembled or FFT) and the
+    /// validated [`Problem`].
+    pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Built> {
+        observer.setup_step(SetupStep::BuildProblem);
+        let (rows, edge_points) = self.rows()?;
+        let mut warnings = Vec::new();
+        let fft = match self.operator_plan(&rows, &mut warnings)? {
+            OperatorPlan::Assembled => None,
+            OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
+                rows.x_mm(),
+                rows.y_mm(),
+                self.path.x_mm(),
+                self.path.y_mm(),
+                pitch_mm,
+                &self.tif,
+            ) {
+                Ok(op) => Some(op),
+                Err(e) if self.settings.operator == OperatorChoice::Fft => {
+                    return Err(e).at(SetupInput::Map);
+                }
+                Err(e) => {
+                    warnings.push(format!(
+                        "operator auto: the FFT operator does not apply ({e}); assembling R"
+                    ));
+                    None
+                }
+            },
+        };
+        let z_nm = rows.z_nm().to_vec();
+        let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
+        let problem = match fft {
+            Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
+            None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+        }
+        .at(SetupInput::Job)?;
+        Ok(Built {
+            problem,
+            edge_points,
+            warnings,
+        })
+    }
+
+    /// Solves `problem` (built by [`Setup::problem`]): the acceleration-limited SCP when the
+    /// set-up has a limit, the dwell solver the settings choose otherwise (from the warm start
+    /// if there is one). Computes the removal `R t` and the feed schedule once.
+    pub fn solve(&self, problem: &Problem, observer: &dyn Observer) -> Result<Outcome> {
+        observer.setup_step(SetupStep::Solve);
+        let m = self.map.len();
+        let edge_rows = problem.m() > m;
+        let (solution, removal_all, accel) = match &self.accel {
+            Some(limits) => {
+                let a =
+                    accel::solve_validated(problem, &self.path, limits, &self.settings, observer)?;
+                let mut report = a.report;
+                observer.setup_step(SetupStep::Removal);
+                let removal = problem.removal_nm(&a.solution.dwell_s)?;
+                if edge_rows {
+                    // The SCP's RMS figures are over every row; give them on the measured map.
+                    let on_map = |h: &[f64]| {
+                        HeightStats::of(&centred_residual_nm(self.map.z_nm(), &h[..m])).rms_nm
+                    };
+                    report.rms_after_nm = on_map(&removal);
+                    report.rms_after_reference_nm =
+                        on_map(&problem.removal_nm(&a.reference.dwell_s)?);
+                }
+                (a.solution, removal, Some(report))
+            }
+            None => {
+                let s = dwell::solve_validated(
+                    problem,
+                    &self.settings,
+                    observer,
+                    self.warm_start_s.as_deref(),
+                )?;
+                observer.setup_step(SetupStep::Removal);
+                let removal = problem.removal_nm(&s.dwell_s)?;
+                (s, removal, None)
+            }
+        };
+        let mut removal_nm = removal_all;
+        removal_nm.truncate(m);
+        observer.setup_step(SetupStep::FeedSchedule);
+        let feeds = feeds_mm_per_min(&self.ds_mm, &solution.dwell_s);
+        let schedule = FeedSchedule::new(
+            &self.path,
+            &solution.dwell_s,
+            self.accel.as_ref().map(|l| l.a_max_mm_per_s2),
+            self.corner_angle_deg,
+        )?;
+        let executed = match (&self.accel, &self.surface) {
+            (Some(l), None) => {
+                Some(self.executed_at_limit(&solution.dwell_s, l.a_max_mm_per_s2, observer))
+            }
+            _ => None,
+        };
+        Ok(Outcome {
+            solution,
+            removal_nm,
+            feeds_mm_per_min: feeds,
+            schedule,
+            accel,
+            executed,
+        })
+    }
+
+    /// The default program for `dwell_s` (ISO, G94, flat part, the feed limit) executed at
+    /// `a_max` with look-ahead, and the removal integrated along the executed motion
+    /// ([`crate::machine::gcode::motion`]), on the measured map.
+    fn executed_at_limit(
+        &self,
+        dwell_s: &[f64],
+        a_max_mm_per_s2: f64,
+        observer: &dyn Observer,
+    ) -> Result<Executed> {
+        let settings = NcSettings {
+            a_max_mm_per_s2: Some(a_max_mm_per_s2),
+            corner_angle_deg: self.corner_angle_deg,
+            v_max_mm_per_min: Some(self.feed.v_max_mm_per_min),
+            ..NcSettings::default()
+        };
+        let nc = NcProgram::plan(&self.path, dwell_s, &Flat, &settings)?;
+        let check = write_and_check(&nc, &[])?;
+        let kinematics = Kinematics::Trapezoidal {
+            a_max_mm_per_s2,
+            corner_angle_deg: settings.corner_angle_deg,
+        };
+        let m = &self.map;
+        let run = run_on_map(
+            &check.program,
+            kinematics,
+            self.tif.support_radius_mm() / 64.0,
+            None,
+            m.x_mm(),
+            m.y_mm(),
+            &self.tif,
+            observer,
+        )?;
+        let after = HeightStats::of(&centred_residual_nm(m.z_nm(), &run.removal_nm));
+        Ok(Executed {
+            a_max_mm_per_s2,
+            after,
+            run,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::observer::Silent;
+    use crate::tif::GaussianTif;
+
+    fn choices() -> Choices {
+        Choices {
+            feed: FeedLimits {
+                v_max_mm_per_min: 3000.0,
+                v_min_mm_per_min: 0.0,
+            },
+            a_max_mm_per_s2: None,
+            corner_angle_deg: None,
+            rho: 0.0,
+            lambda: 0.0,
+            settings: Settings::default(),
+            edge: EdgeSettings {
+                method: crate::edge::EdgeMethod::None,
+                ..EdgeSettings::default()
+            },
+            tif_model: TifModel::ShiftInvariant,
+            tif_frame: TifFrame::default(),
+            warm_start: false,
+        }
+    }
+
+    fn data() -> SetupData {
+        let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
+        for j in 0..21 {
+            for i in 0..21 {
+                let (px, py) = (i as f64 * 0.5, j as f64 * 0.5);
+                x.push(px);
+                y.push(py);
+                z.push(10.0 + (0.3 * px).sin() * (0.2 * py).cos());
+            }
+        }
+        SetupData {
+            map: HeightMap::new(x, y, z).unwrap(),
+            tif: Tif::Gaussian(GaussianTif::new(1.0, 10.0, 3.0).unwrap()),
+            dwell: DwellPoints::Raster {
+                pitch_mm: 1.0,
+                along: RasterAxis::X,
+            },
+            surface: None,
+            warm_start_s: None,
+        }
+    }
+
+    #[test]
+    fn a_warm_start_with_an_acceleration_limit_is_refused_not_dropped() {
+        let c = Choices {
+            a_max_mm_per_s2: Some(500.0),
+            warm_start: true,
+            ..choices()
+        };
+        let e = c.check(&Silent).unwrap_err();
+        assert_eq!(e.input, SetupInput::Job);
+        assert!(e.to_string().contains("warm_start"), "{e}");
+        // The same refusal when only the data carry the warm start.
+        let checked = Choices {
+            a_max_mm_per_s2: Some(500.0),
+            ..choices()
+        }
+        .check(&Silent)
+        .unwrap();
+        let mut d = data();
+        d.warm_start_s = Some(vec![0.0; 3]);
+        assert!(Setup::resolve(checked, d, &Silent).is_err());
+    }
+
+    #[test]
+    fn the_raster_and_bounds_are_resolved_once_and_the_warm_start_length_checked() {
+        let checked = choices().check(&Silent).unwrap();
+        let setup = Setup::resolve(checked.clone(), data(), &Silent).unwrap();
+        assert_eq!(setup.ds_mm.len(), setup.path.len());
+        assert_eq!(setup.bounds.len(), setup.path.len());
+        let mut d = data();
+        d.warm_start_s = Some(vec![0.0; setup.path.len() + 1]);
+        let e = Setup::resolve(checked, d, &Silent).unwrap_err();
+        assert_eq!(e.input, SetupInput::WarmStart);
+    }
+
+    #[test]
+    fn the_operator_plan_follows_the_choice_and_what_blocks_the_fft() {
+        let fft = |settings: Settings| {
+            let checked = Choices {
+                settings,
+                ..choices()
+            }
+            .check(&Silent)
+            .unwrap();
+            let setup = Setup::resolve(checked, data(), &Silent).unwrap();
+            let mut w = Vec::new();
+            setup.operator_plan(&setup.map.clone(), &mut w)
+        };
+        let with = |operator, solver| Settings {
+            operator,
+            solver,
+            ..Settings::default()
+        };
+        // A small problem: auto assembles R.
+        assert_eq!(
+            fft(with(OperatorChoice::Auto, SolverChoice::Auto)).unwrap(),
+            OperatorPlan::Assembled
+        );
+        match fft(with(OperatorChoice::Fft, SolverChoice::FirstOrder)).unwrap() {
+            OperatorPlan::Fft { pitch_mm } => assert!((pitch_mm - 0.5).abs() < 1e-12),
+            p => panic!("{p:?}"),
+        }
+        let e = fft(with(OperatorChoice::Fft, SolverChoice::Qp)).unwrap_err();
+        assert!(e.to_string().contains("qp"), "{e}");
+    }
+
+    #[test]
+    fn the_outcome_carries_the_removal_and_feeds_of_its_solution() {
+        let setup = Setup::resolve(choices().check(&Silent).unwrap(), data(), &Silent).unwrap();
+        let built = setup.problem(&Silent).unwrap();
+        let o = setup.solve(&built.problem, &Silent).unwrap();
+        assert_eq!(
+            o.removal_nm,
+            built.problem.removal_nm(&o.solution.dwell_s).unwrap()
+        );
+        assert_eq!(
+            o.feeds_mm_per_min,
+            feeds_mm_per_min(&setup.ds_mm, &o.solution.dwell_s)
+        );
+        assert!(o.solution.status.is_converged());
+    }
+}
