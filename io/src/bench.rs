@@ -290,7 +290,7 @@ pub fn run_job(job_path: &Path, solver: SolverChoice) -> Result<BenchRow> {
     let r = &solved.report;
     Ok(BenchRow {
         problem: "sample-job".into(),
-        solver: r.solver.clone(),
+        solver: r.solver.to_string(),
         m: r.m,
         n: r.n,
         nnz: r.nnz,
@@ -301,7 +301,7 @@ pub fn run_job(job_path: &Path, solver: SolverChoice) -> Result<BenchRow> {
         build_seconds: r.build_seconds,
         solve_seconds: r.solve_seconds,
         iterations: r.iterations,
-        status: r.status.clone(),
+        status: r.status.to_string(),
         peak_memory_mib: peak_memory_mib(),
     })
 }

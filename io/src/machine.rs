@@ -24,32 +24,11 @@ pub struct DwellTimes {
 /// only `x_mm`, `y_mm` and `dwell_s` are used, `ds_mm` and the feed are recomputed from the
 /// points). `dwell_s` is required and must be non-negative; at least one row.
 pub fn read_dwell_times(path: &Path) -> Result<DwellTimes> {
-    let mut t = read_table(
-        path,
-        &[
-            ColumnSpec::required("x_mm"),
-            ColumnSpec::required("y_mm"),
-            ColumnSpec::required("dwell_s"),
-        ],
-    )?;
-    if t.is_empty() {
-        return Err(Error::Empty {
-            file: path.to_path_buf(),
-            why: "no dwell points".into(),
-        });
-    }
-    let dwell_s = t.take(2).unwrap_or_default();
-    if let Some((k, v)) = dwell_s.iter().enumerate().find(|(_, v)| **v < 0.0) {
-        return Err(Error::Cell {
-            file: path.to_path_buf(),
-            line: t.lines.get(k).copied().unwrap_or(0),
-            column: "dwell_s".into(),
-            why: format!("negative dwell time {v}"),
-        });
-    }
-    let dp = DwellPath::new(t.take(0).unwrap_or_default(), t.take(1).unwrap_or_default())
-        .map_err(|e| Error::engine(path, e))?;
-    Ok(DwellTimes { path: dp, dwell_s })
+    let d = crate::readers::read_dwell_columns(path, ColumnSpec::required("dwell_s"))?;
+    Ok(DwellTimes {
+        path: d.path,
+        dwell_s: d.dwell_s.unwrap_or_default(),
+    })
 }
 
 /// Reads a measured radial profile error `x_mm,error_nm` (at least two rows, distinct `x_mm`).

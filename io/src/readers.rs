@@ -82,12 +82,18 @@ pub struct DwellFile {
 
 /// Reads dwell points (`x_mm,y_mm`, optional `dwell_s`) in path order.
 pub fn read_dwell(path: &Path) -> Result<DwellFile> {
+    read_dwell_columns(path, ColumnSpec::optional("dwell_s"))
+}
+
+/// The one dwell-file reader: `x_mm,y_mm` and the `dwell_s` column as `dwell` asks (optional,
+/// or required for a solved dwell file); no repeated consecutive point, no negative dwell.
+pub(crate) fn read_dwell_columns(path: &Path, dwell: ColumnSpec) -> Result<DwellFile> {
     let mut t = read_table(
         path,
         &[
             ColumnSpec::required("x_mm"),
             ColumnSpec::required("y_mm"),
-            ColumnSpec::optional("dwell_s"),
+            dwell,
         ],
     )?;
     if t.is_empty() {

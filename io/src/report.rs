@@ -2,7 +2,7 @@
 
 use preston_solver::dwell::accel::AccelReport;
 use preston_solver::dwell::certificate::ConvergenceCriterion;
-use preston_solver::dwell::{MinTimeReport, Problem, Solution, SolverKind, Status};
+use preston_solver::dwell::{MinTimeReport, OperatorKind, Problem, Solution, SolverKind, Status};
 use preston_solver::edge::EdgeMethod;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
@@ -30,7 +30,7 @@ pub struct Report {
     pub nnz: usize,
     /// How `R` was applied: `sparse` (assembled) or `fft` (matrix-free convolution).
     #[serde(default)]
-    pub operator: String,
+    pub operator: OperatorKind,
     /// Map rows skipped for an empty or NaN height.
     pub skipped_rows: usize,
     /// RMS of the error map about its mean, nm.
@@ -58,11 +58,11 @@ pub struct Report {
     /// Time in the solver, s.
     pub solve_seconds: f64,
     /// Solver that produced the dwell times (`qp`, `first-order`, `simulate`, ...).
-    pub solver: String,
+    pub solver: SolverLabel,
     /// Solver iterations.
     pub iterations: usize,
-    /// How the solve ended (`converged`, `max_iterations`, ...).
-    pub status: String,
+    /// How the solve ended (`converged`, `max_iterations`, ...; `simulated` when no solver ran).
+    pub status: ReportStatus,
     /// Projected-gradient (KKT) residual, when the solver computes one.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub kkt_residual: Option<f64>,
@@ -152,6 +152,139 @@ pub struct ExecutedReport {
 
 pub use preston_solver::setup::{centred_residual_nm, feeds_mm_per_min};
 
+/// What produced the dwell times of a report; serialised as the names reports have always
+/// carried (`qp`, `first-order`, `simulate`, `simulate-continuous-N`, `simulate-program`,
+/// `simulate-program-aA`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SolverLabel {
+    /// A dwell solver.
+    Solver(SolverKind),
+    /// A simulation of given dwell times, removal `R t` at the dwell points.
+    Simulate,
+    /// A simulation of the continuous sweep with this many samples per dwell point.
+    SimulateContinuous {
+        /// Midpoint-rule samples per dwell point.
+        samples_per_point: usize,
+    },
+    /// A program executed at its programmed feeds.
+    SimulateProgram,
+    /// A program executed at an acceleration limit, mm/s^2.
+    SimulateProgramAtLimit {
+        /// The path acceleration, mm/s^2.
+        a_max_mm_per_s2: f64,
+    },
+}
+
+impl std::fmt::Display for SolverLabel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SolverLabel::Solver(k) => f.write_str(&solver_name(*k)),
+            SolverLabel::Simulate => f.write_str("simulate"),
+            SolverLabel::SimulateContinuous { samples_per_point } => {
+                write!(f, "simulate-continuous-{samples_per_point}")
+            }
+            SolverLabel::SimulateProgram => f.write_str("simulate-program"),
+            SolverLabel::SimulateProgramAtLimit { a_max_mm_per_s2 } => {
+                write!(f, "simulate-program-a{a_max_mm_per_s2}")
+            }
+        }
+    }
+}
+
+impl std::str::FromStr for SolverLabel {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let bad = || format!("unknown solver `{s}`");
+        match s {
+            "qp" => Ok(SolverLabel::Solver(SolverKind::Qp)),
+            "first-order" => Ok(SolverLabel::Solver(SolverKind::FirstOrder)),
+            "simulate" => Ok(SolverLabel::Simulate),
+            "simulate-program" => Ok(SolverLabel::SimulateProgram),
+            _ => {
+                if let Some(n) = s.strip_prefix("simulate-continuous-") {
+                    n.parse()
+                        .map(|samples_per_point| SolverLabel::SimulateContinuous {
+                            samples_per_point,
+                        })
+                        .map_err(|_| bad())
+                } else if let Some(a) = s.strip_prefix("simulate-program-a") {
+                    a.parse()
+                        .map(|a_max_mm_per_s2| SolverLabel::SimulateProgramAtLimit {
+                            a_max_mm_per_s2,
+                        })
+                        .map_err(|_| bad())
+                } else {
+                    Err(bad())
+                }
+            }
+        }
+    }
+}
+
+impl Serialize for SolverLabel {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> Deserialize<'de> for SolverLabel {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        text.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+/// How the step that produced a report's dwell times ended: a solver's [`Status`], or
+/// `simulated` when the dwell times were given and no solver ran.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReportStatus {
+    /// A solver ran and ended so.
+    Solved(Status),
+    /// No solver ran: the dwell times were given (`preston simulate`).
+    Simulated,
+}
+
+impl ReportStatus {
+    /// True when a solver ran and converged, or nothing was solved.
+    pub fn is_converged(self) -> bool {
+        match self {
+            ReportStatus::Solved(s) => s.is_converged(),
+            ReportStatus::Simulated => true,
+        }
+    }
+}
+
+impl std::fmt::Display for ReportStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ReportStatus::Solved(s) => s.fmt(f),
+            ReportStatus::Simulated => f.write_str("simulated"),
+        }
+    }
+}
+
+impl Serialize for ReportStatus {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            ReportStatus::Solved(status) => status.serialize(s),
+            ReportStatus::Simulated => s.serialize_str("simulated"),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for ReportStatus {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        if text == "simulated" {
+            return Ok(ReportStatus::Simulated);
+        }
+        serde_json::from_value(serde_json::Value::String(text))
+            .map(ReportStatus::Solved)
+            .map_err(serde::de::Error::custom)
+    }
+}
+
 /// Name of a solver in reports.
 pub fn solver_name(kind: SolverKind) -> String {
     serde_json::to_value(kind)
@@ -200,9 +333,51 @@ impl Report {
         skipped_rows: usize,
         build_seconds: f64,
     ) -> Self {
+        let mut r = Self::of_dwell(
+            problem,
+            &solution.dwell_s,
+            removal_nm,
+            feeds,
+            skipped_rows,
+            build_seconds,
+        );
+        r.piston_nm = solution.piston_nm;
+        r.objective = solution.objective;
+        r.solve_seconds = solution.solve_seconds;
+        r.solver = SolverLabel::Solver(solution.solver);
+        r.iterations = solution.iterations;
+        r.status = ReportStatus::Solved(solution.status);
+        r.kkt_residual = solution.kkt_residual;
+        r.objective_gap_bound = solution.objective_gap_bound;
+        r.gap_bound_reason = solution.gap_bound_reason.map(|r| r.to_string());
+        r.converged_by = solution.converged_by;
+        r.min_time = solution.min_time;
+        r
+    }
+
+    /// The report of dwell times that no solver produced (a simulation): the piston and
+    /// objective are those of `removal_nm` on the map (`c = mean(R t - z)`,
+    /// `0.5 ||R t - z - c||^2`), the solver [`SolverLabel::Simulate`] and the status
+    /// [`ReportStatus::Simulated`], no iterations.
+    pub fn of_dwell(
+        problem: &Problem,
+        dwell_s: &[f64],
+        removal_nm: &[f64],
+        feeds: &[f64],
+        skipped_rows: usize,
+        build_seconds: f64,
+    ) -> Self {
         let z = &problem.z_nm()[..removal_nm.len().min(problem.m())];
         let before = HeightStats::of(z);
         let after = HeightStats::of(&centred_residual_nm(z, removal_nm));
+        let piston_nm = removal_nm.iter().zip(z).map(|(h, z)| h - z).sum::<f64>()
+            / removal_nm.len().max(1) as f64;
+        let objective = 0.5
+            * removal_nm
+                .iter()
+                .zip(z)
+                .map(|(h, z)| (h - z - piston_nm).powi(2))
+                .sum::<f64>();
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();
         Self {
@@ -211,20 +386,16 @@ impl Report {
             edge: EdgeMethod::None,
             n: problem.n(),
             nnz: problem.nnz(),
-            operator: if problem.fft_operator().is_some() {
-                "fft".into()
-            } else {
-                "sparse".into()
-            },
+            operator: problem.operator_kind(),
             skipped_rows,
             rms_before_nm: before.rms_nm,
             pv_before_nm: before.pv_nm,
             rms_after_nm: after.rms_nm,
             pv_after_nm: after.pv_nm,
-            total_dwell_s: solution.dwell_s.iter().sum(),
-            piston_nm: solution.piston_nm,
-            objective: solution.objective,
-            max_bound_violation_s: problem.bounds().max_violation_s(&solution.dwell_s),
+            total_dwell_s: dwell_s.iter().sum(),
+            piston_nm,
+            objective,
+            max_bound_violation_s: problem.bounds().max_violation_s(dwell_s),
             min_feed_mm_per_min: moving
                 .iter()
                 .copied()
@@ -232,15 +403,15 @@ impl Report {
                 .min(f64::MAX),
             max_feed_mm_per_min: moving.iter().copied().fold(0.0, f64::max),
             build_seconds,
-            solve_seconds: solution.solve_seconds,
-            solver: solver_name(solution.solver),
-            iterations: solution.iterations,
-            status: status_name(solution.status),
-            kkt_residual: solution.kkt_residual,
-            objective_gap_bound: solution.objective_gap_bound,
-            gap_bound_reason: solution.gap_bound_reason.map(|r| r.to_string()),
-            converged_by: solution.converged_by,
-            min_time: solution.min_time,
+            solve_seconds: 0.0,
+            solver: SolverLabel::Simulate,
+            iterations: 0,
+            status: ReportStatus::Simulated,
+            kkt_residual: None,
+            objective_gap_bound: None,
+            gap_bound_reason: None,
+            converged_by: None,
+            min_time: None,
             unreachable_dwell_points: empty.len(),
             unreachable_dwell_indices: empty,
             map_input: None,

@@ -6,10 +6,10 @@ use crate::error::{Error, Result};
 use crate::machine::{read_dwell_times, DwellTimes};
 use crate::metrology::MapSource;
 use crate::plots::{stage_convergence_plot, stage_map_plot, stage_path_plot};
-use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
+use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
-use preston_solver::dwell::{DwellBounds, FeedLimits, Problem, Solution, SolverKind, Status};
+use preston_solver::dwell::{DwellBounds, FeedLimits, Problem};
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
@@ -72,9 +72,9 @@ pub fn simulate(
         }
     };
     let label = match motion {
-        Motion::Discrete => "simulate".to_string(),
+        Motion::Discrete => SolverLabel::Simulate,
         Motion::Continuous { samples_per_point } => {
-            format!("simulate-continuous-{samples_per_point}")
+            SolverLabel::SimulateContinuous { samples_per_point }
         }
     };
     assemble(
@@ -101,7 +101,7 @@ struct Sweep {
     dwell_s: Vec<f64>,
     removal_nm: Vec<f64>,
     r: InfluenceMatrix,
-    label: String,
+    label: SolverLabel,
 }
 
 /// The report of a simulated sweep (same keys as `preston solve`).
@@ -130,40 +130,16 @@ fn assemble(
     .map_err(|e| Error::engine(dwell_file, e))?;
     let problem = Problem::new(r, m.z_nm().to_vec(), bounds, 0.0, 0.0)
         .map_err(|e| Error::engine(map_file, e))?;
-    let mean_gap = removal
-        .iter()
-        .zip(m.z_nm())
-        .map(|(h, z)| h - z)
-        .sum::<f64>()
-        / removal.len().max(1) as f64;
-    let objective = 0.5
-        * removal
-            .iter()
-            .zip(m.z_nm())
-            .map(|(h, z)| (h - z - mean_gap).powi(2))
-            .sum::<f64>();
-    let solution = Solution {
-        status: Status::Converged,
-        solver: SolverKind::Qp,
-        dwell_s: dwell_s.clone(),
-        piston_nm: mean_gap,
-        objective,
-        iterations: 0,
-        solve_seconds: sim_start.elapsed().as_secs_f64(),
-        kkt_residual: None,
-        objective_gap_bound: None,
-        gap_bound_reason: None,
-        converged_by: None,
-        min_time: None,
-    };
-    let mut report = Report::new(
+    let feeds = feeds_mm_per_min(&ds_mm, &dwell_s);
+    let mut report = Report::of_dwell(
         &problem,
-        &solution,
+        &dwell_s,
         &removal,
-        &ds_mm,
+        &feeds,
         map.input.invalid_points,
         build_seconds,
     );
+    report.solve_seconds = sim_start.elapsed().as_secs_f64();
     report.map_input = Some(map.input.clone());
     report.solver = label;
     report.set_map_coverage(&map.map, &path, &dwell_s);
@@ -316,10 +292,10 @@ pub fn simulate_program(
     let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
     let build_seconds = start.elapsed().as_secs_f64();
     let label = match options.kinematics {
-        Kinematics::ProgrammedFeed => "simulate-program".to_string(),
+        Kinematics::ProgrammedFeed => SolverLabel::SimulateProgram,
         Kinematics::Trapezoidal {
             a_max_mm_per_s2, ..
-        } => format!("simulate-program-a{a_max_mm_per_s2}"),
+        } => SolverLabel::SimulateProgramAtLimit { a_max_mm_per_s2 },
     };
     let sim = assemble(
         map,

@@ -1,12 +1,13 @@
 //! Files of the geometry commands: surface JSON, point clouds (`x_mm,y_mm,z_mm`), the fit
 //! summary, `transform.json` and surface evaluations. Key and column names are a contract.
 
-use crate::atomic::{stage, Staged};
+use crate::atomic::Staged;
 use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use crate::writers::stage_json;
 use preston_solver::fit::FitResult;
 use preston_solver::registration::{LockedMotion, Registration};
+use preston_solver::status::Status;
 use preston_solver::surface::{Surface, XyTerm};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -86,6 +87,8 @@ pub struct FitSummary {
     pub points: usize,
     /// Levenberg-Marquardt iterations (0 when the conic was fixed).
     pub iterations: usize,
+    /// How the Levenberg-Marquardt iteration ended (`converged`, `max_iterations`).
+    pub status: Status,
     /// Vertex curvature of the conic base, 1/mm.
     pub curvature_per_mm: f64,
     /// Conic constant of the base.
@@ -105,6 +108,7 @@ impl FitSummary {
             condition_number: fit.condition_number,
             points: fit.points,
             iterations: fit.iterations,
+            status: fit.status,
             curvature_per_mm: fit.surface.curvature_per_mm,
             conic: fit.surface.conic,
             norm_radius_mm: fit.surface.norm_radius_mm,
@@ -128,6 +132,8 @@ pub struct TransformFile {
     pub iterations: usize,
     /// Whether a stopping test was met.
     pub converged: bool,
+    /// How the iteration ended (`converged`, `max_iterations`).
+    pub status: Status,
     /// Number of points registered.
     pub points: usize,
     /// Probe radius compensated, mm.
@@ -152,7 +158,8 @@ impl TransformFile {
             translation_um: reg.translation_um(),
             rms_nm: reg.rms_nm,
             iterations: reg.iterations,
-            converged: reg.converged,
+            converged: reg.status.is_converged(),
+            status: reg.status,
             points: reg.form_error_nm.len(),
             probe_radius_mm,
             information_eigenvalues: reg.information_eigenvalues,
@@ -163,25 +170,7 @@ impl TransformFile {
     }
 }
 
-/// Stages a CSV file with the given header names and equally long columns.
-pub fn stage_columns_csv(path: &Path, headers: &[&str], columns: &[&[f64]]) -> Result<Staged> {
-    let rows = columns.iter().map(|c| c.len()).min().unwrap_or(0);
-    stage(path, |w| {
-        writeln!(w, "{}", headers.join(","))?;
-        let mut line = String::new();
-        for r in 0..rows {
-            line.clear();
-            for (k, c) in columns.iter().enumerate() {
-                if k > 0 {
-                    line.push(',');
-                }
-                line.push_str(&format!("{}", c[r]));
-            }
-            writeln!(w, "{line}")?;
-        }
-        Ok(())
-    })
-}
+pub use crate::writers::stage_columns_csv;
 
 #[cfg(test)]
 mod tests {

@@ -284,7 +284,7 @@ impl SolveResult {
     /// Solver status (`converged`, `almost_converged`, ...), as in the report.
     #[getter]
     fn status(&self) -> String {
-        self.solved.report.status.clone()
+        self.solved.report.status.to_string()
     }
     /// Whether the solver converged (to the requested or a reduced tolerance).
     #[getter]

@@ -9,6 +9,7 @@
 
 use crate::error::{Error, Result};
 use crate::lstsq::{tsqr, Reduced};
+use crate::status::Status;
 use crate::surface::conic::{sag_parameter_derivs, sag_rho};
 use crate::surface::xyp::{monomials, powers, XyPolynomial, XyTerm, MAX_ORDER};
 use rayon::prelude::*;
@@ -120,6 +121,11 @@ pub struct FitResult {
     pub condition_number: f64,
     /// Levenberg-Marquardt iterations (0 for a fixed base).
     pub iterations: usize,
+    /// How the Levenberg-Marquardt iteration ended: [`Status::Converged`] when the cost stopped
+    /// decreasing (relative change at most 1e-15, or no damped step decreases it: a stationary
+    /// point to machine precision), [`Status::MaxIterations`] at the iteration limit; always
+    /// converged for a fixed base (a linear least-squares solve).
+    pub status: Status,
     /// Number of points fitted.
     pub points: usize,
     /// Residual `z - z_fit` of every point, nm.
@@ -186,7 +192,7 @@ pub fn fit_xy_polynomial(
         mono: &mono,
         norm,
     };
-    let (c, k, coefs, condition, iterations) = match settings.base {
+    let (c, k, coefs, condition, iterations, status) = match settings.base {
         ConicBase::Fixed {
             curvature_per_mm,
             conic,
@@ -199,7 +205,7 @@ pub fn fit_xy_polynomial(
                     settings.order
                 )));
             }
-            (curvature_per_mm, conic, coefs, cond, 0)
+            (curvature_per_mm, conic, coefs, cond, 0, Status::Converged)
         }
         ConicBase::Fitted => pts.nonlinear_fit(settings.max_iterations)?,
     };
@@ -227,6 +233,7 @@ pub fn fit_xy_polynomial(
         pv_nm: hi - lo,
         condition_number: condition,
         iterations,
+        status,
         points: n,
         residual_nm,
     })
@@ -337,8 +344,12 @@ impl Points<'_> {
         Ok((c0, k0))
     }
 
-    /// Levenberg-Marquardt on `[coefs, c, k]`; returns `(c, k, coefs, condition, iterations)`.
-    fn nonlinear_fit(&self, max_iterations: usize) -> Result<(f64, f64, Vec<f64>, f64, usize)> {
+    /// Levenberg-Marquardt on `[coefs, c, k]`; returns `(c, k, coefs, condition, iterations,
+    /// status)`.
+    fn nonlinear_fit(
+        &self,
+        max_iterations: usize,
+    ) -> Result<(f64, f64, Vec<f64>, f64, usize, Status)> {
         let p = self.mono.len();
         let (mut c, mut k) = self.initial_conic()?;
         let mut coefs = if p > 0 {
@@ -350,6 +361,7 @@ impl Points<'_> {
         let mut lambda = 0.0;
         let mut condition = f64::INFINITY;
         let mut iterations = 0;
+        let mut status = Status::MaxIterations;
         while iterations < max_iterations {
             iterations += 1;
             let r = tsqr(self.x.len(), p + 3, |i, row| {
@@ -385,10 +397,11 @@ impl Points<'_> {
                 lambda = if lambda == 0.0 { 1e-9 } else { lambda * 10.0 };
             }
             if !accepted || converged {
+                status = Status::Converged;
                 break;
             }
         }
-        Ok((c, k, coefs, condition, iterations))
+        Ok((c, k, coefs, condition, iterations, status))
     }
 }
 

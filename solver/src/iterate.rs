@@ -491,6 +491,7 @@ pub fn plan_measured(
         vec![InnerFailure {
             iteration: k,
             step: InnerStep::DwellSolve,
+            status: plan.status,
             detail: format!("{:?}", plan.status),
         }]
     };
@@ -530,6 +531,8 @@ pub struct InnerFailure {
     pub iteration: usize,
     /// Which step.
     pub step: InnerStep,
+    /// How it ended.
+    pub status: Status,
     /// What it reported (the solver status, or the registration's iteration count).
     pub detail: String,
 }
@@ -585,7 +588,7 @@ fn measure(
     error_nm: &[f64],
     rng: &mut SplitMix64,
     settings: &RegisterSettings,
-) -> Result<(HeightMap, Option<usize>)> {
+) -> Result<(HeightMap, Option<(usize, Status)>)> {
     let points: Vec<[f64; 3]> = design
         .iter()
         .zip(normals)
@@ -600,14 +603,15 @@ fn measure(
         .collect();
     let reg = register(&part.surface, &points, settings)?;
     let (x, y): (Vec<f64>, Vec<f64>) = reg.design_xy_mm.iter().map(|p| (p[0], p[1])).unzip();
-    let failed = (!reg.converged).then_some(reg.iterations);
+    let failed = (!reg.status.is_converged()).then_some((reg.iterations, reg.status));
     Ok((HeightMap::new(x, y, reg.form_error_nm)?, failed))
 }
 
-fn registration_failure(iteration: usize, failed: Option<usize>) -> Option<InnerFailure> {
-    failed.map(|its| InnerFailure {
+fn registration_failure(iteration: usize, failed: Option<(usize, Status)>) -> Option<InnerFailure> {
+    failed.map(|(its, status)| InnerFailure {
         iteration,
         step: InnerStep::Registration,
+        status,
         detail: format!("stopped at the iteration limit ({its}) before converging"),
     })
 }
@@ -701,6 +705,7 @@ pub fn run_virtual(
             not_converged.push(InnerFailure {
                 iteration: k,
                 step: InnerStep::DwellSolve,
+                status: plan.status,
                 detail: format!("{:?}", plan.status),
             });
         }

@@ -29,6 +29,7 @@ pub mod registration;
 pub mod rng;
 pub mod setup;
 pub mod simulate;
+pub mod status;
 pub mod surface;
 pub mod tif;
 

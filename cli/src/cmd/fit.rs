@@ -8,6 +8,9 @@ use preston_solver::surface::Surface;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+/// Exit code when the fit's iteration did not converge (outputs are written).
+pub const EXIT_NOT_CONVERGED: u8 = 3;
+
 /// Arguments of `preston fit`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -85,5 +88,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "preston fit: {} points, order {}, RMS {:.3} nm, PV {:.3} nm, condition {:.3e}",
         fit.points, args.order, fit.rms_nm, fit.pv_nm, fit.condition_number
     );
+    if !fit.status.is_converged() {
+        eprintln!(
+            "  warning: the conic fit stopped before converging (status {}, {} iterations); \
+             outputs hold the last iterate",
+            fit.status, fit.iterations
+        );
+        return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -205,10 +205,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             LockSource::Bound => eprintln!("  {} held at its prior bound", l.label),
         }
     }
-    if !reg.converged {
+    if !reg.status.is_converged() {
         eprintln!(
-            "  warning: stopped at the iteration limit ({}) before converging",
-            reg.iterations
+            "  warning: stopped before converging (status {}, {} iterations)",
+            reg.status, reg.iterations
         );
         return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
     }

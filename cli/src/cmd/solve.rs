@@ -8,7 +8,7 @@ use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
 use preston_io::surface::read_surface;
-use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
+use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, OperatorKind, SolverChoice};
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::gcode::write_and_check;
@@ -353,7 +353,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         },
         r.n,
         r.nnz,
-        if r.operator == "fft" {
+        if r.operator == OperatorKind::Fft {
             "matrix-free FFT operator"
         } else {
             "assembled"

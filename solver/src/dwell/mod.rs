@@ -177,6 +177,14 @@ impl Problem {
         }
     }
 
+    /// How `R` is held: assembled or matrix-free.
+    pub fn operator_kind(&self) -> OperatorKind {
+        match &self.influence {
+            Influence::Matrix(_) => OperatorKind::Sparse,
+            Influence::MatrixFree(_) => OperatorKind::Fft,
+        }
+    }
+
     /// Non-zero entries of `R` (stored, or implicit in the FFT operator).
     pub fn nnz(&self) -> usize {
         match &self.influence {
@@ -368,6 +376,17 @@ pub struct Evaluation {
     pub removal_nm: Vec<f64>,
 }
 
+/// How `R` was held and applied in a solve (the resolved [`OperatorChoice`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum OperatorKind {
+    /// The assembled sparse matrix.
+    #[default]
+    Sparse,
+    /// The matrix-free FFT convolution.
+    Fft,
+}
+
 /// Which solver to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
@@ -419,30 +438,7 @@ pub enum SolverKind {
     FirstOrder,
 }
 
-/// How a solve ended. Not converging is a status, not an error.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Status {
-    /// Converged to the requested tolerance.
-    Converged,
-    /// Converged to a reduced tolerance.
-    AlmostConverged,
-    /// Stopped at the iteration limit.
-    MaxIterations,
-    /// Stopped at the time limit.
-    TimeLimit,
-    /// The problem has no feasible point.
-    Infeasible,
-    /// The solver hit a numerical difficulty and stopped.
-    NumericalError,
-}
-
-impl Status {
-    /// True for the statuses whose dwell times can be trusted as optimal.
-    pub fn is_converged(self) -> bool {
-        matches!(self, Status::Converged | Status::AlmostConverged)
-    }
-}
+pub use crate::status::Status;
 
 /// Solver settings. Every field has a default; job files may set any of them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -22,6 +22,7 @@ use super::{
     Dof, LockSource, LockedMotion, RegisterSettings, Registration, Robust, ARCSEC_PER_RAD,
 };
 use crate::error::{Error, Result};
+use crate::status::Status;
 use crate::surface::Surface;
 use nalgebra::{DMatrix, DVector, Isometry3, Matrix6, Point3, SymmetricEigen, Vector3, Vector6};
 use rayon::prelude::*;
@@ -93,7 +94,11 @@ pub fn register(
     Ok(Registration {
         transform: m,
         iterations,
-        converged,
+        status: if converged {
+            Status::Converged
+        } else {
+            Status::MaxIterations
+        },
         rms_nm: (ss / corr.len() as f64).sqrt(),
         design_xy_mm: corr.iter().map(|c| [c.foot[0], c.foot[1]]).collect(),
         surface_points_mm: corr

@@ -218,8 +218,9 @@ pub struct Registration {
     pub transform: Isometry3<f64>,
     /// Gauss-Newton steps taken.
     pub iterations: usize,
-    /// Whether a stopping test (step size or cost change) was met within the iteration limit.
-    pub converged: bool,
+    /// How the Gauss-Newton iteration ended: [`Status::Converged`] when a stopping test (step
+    /// size or cost change) was met, [`Status::MaxIterations`] otherwise.
+    pub status: crate::status::Status,
     /// Root mean square of the form error, nm.
     pub rms_nm: f64,
     /// Signed normal deviation of every point from the design surface, nm (probe radius removed).
