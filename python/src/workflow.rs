@@ -6,6 +6,7 @@
 use crate::{array, columns, engine_to_py, to_py, Array, InputError, PyProgress};
 use numpy::PyReadonlyArray2;
 use preston_io::metrology::MapSource;
+use preston_io::report::centred_residual_nm;
 use preston_io::simulation::{simulate_program as run_program, ProgramOptions};
 use preston_io::surface::TransformFile;
 use preston_solver::machine::gcode::motion::Kinematics;
@@ -419,7 +420,7 @@ pub(crate) fn register<'py>(
 /// (JSON) or grid samples, the program file, and the controller: `a_max_mm_per_s2` (None: the
 /// programmed feed in every block) with `corner_angle_deg`, `dialect`, `sample_step_mm`, the part
 /// surface (JSON) with the tool radius. Returns `(map_x_mm, map_y_mm, z_nm, removal_nm,
-/// report_json, check_json)`.
+/// residual_nm, report_json, check_json)`, the residual `z - removal` with its mean removed.
 #[pyfunction]
 #[pyo3(signature = (map_json, program, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=60.0, dialect=None, sample_step_mm=None, surface_json=None, tool_radius_mm=0.0, progress=None))]
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
@@ -437,6 +438,7 @@ pub(crate) fn simulate_program<'py>(
     tool_radius_mm: f64,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<(
+    Array<'py>,
     Array<'py>,
     Array<'py>,
     Array<'py>,
@@ -504,6 +506,7 @@ pub(crate) fn simulate_program<'py>(
         array(py, m.y_mm()),
         array(py, m.z_nm()),
         array(py, &sim.sim.removal_nm),
+        array(py, &centred_residual_nm(m.z_nm(), &sim.sim.removal_nm)),
         report,
         check.to_string(),
     ))
