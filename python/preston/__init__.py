@@ -13,7 +13,8 @@ mm/min.
   :func:`tif_spot` -- TIFs from process models, measured grids and removal spots.
 * :func:`raster`, :func:`path_spiral`, :func:`path_random`, :func:`path_edge_offset` -- paths.
 * :func:`register` -- installation and form error of measured points (ICP);
-  :func:`simulate_program` -- the removal a G-code program produces on the machine.
+  :func:`simulate_program` -- the removal a G-code program produces on the machine;
+  :func:`iterate` -- the measure-register-solve-polish loop.
 * :func:`batch` / :func:`grid` -- many solves (job dicts, job files, a parameter grid over one
   job) on a ``dask.distributed`` cluster, outputs written atomically per job.
 
@@ -53,6 +54,7 @@ __all__ = [
     "path_edge_offset",
     "register",
     "simulate_program",
+    "iterate",
     "SolveResult",
     "PrestonError",
     "InputError",
@@ -492,6 +494,7 @@ def nc(
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)
 from ._workflow import (  # noqa: E402
+    iterate,
     path_edge_offset,
     path_random,
     path_spiral,

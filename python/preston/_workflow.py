@@ -404,3 +404,109 @@ def simulate_program(
         "report": json.loads(report),
         "check": json.loads(check),
     }
+
+
+def iterate(
+    *,
+    tif: Optional[PathLike] = None,
+    tif_xyr: Optional[ArrayLike] = None,
+    gaussian: Optional[Mapping[str, float]] = None,
+    surface: Optional[Union[PathLike, Mapping[str, Any]]] = None,
+    map_xyz: Optional[ArrayLike] = None,
+    iteration: int = 0,
+    aperture_x_mm: Tuple[float, float] = (-25.0, 25.0),
+    aperture_y_mm: Tuple[float, float] = (-25.0, 25.0),
+    grid: Tuple[int, int] = (51, 51),
+    pitch_mm: float = 1.0,
+    margin_mm: Optional[float] = None,
+    v_max: float = 3000.0,
+    v_min: float = 0.0,
+    rho: float = 0.01,
+    lambda_: float = 0.0,
+    tolerance: float = 1e-4,
+    solver: str = "auto",
+    iterations: int = 5,
+    spec_rms_nm: float = 0.0,
+    spec_pv_nm: float = 0.0,
+    form_error_rms_nm: float = 100.0,
+    form_error_cycles: float = 2.0,
+    form_error_seed: int = 1,
+    rotation_arcsec: Sequence[float] = (0.0, 0.0, 0.0),
+    translation_um: Sequence[float] = (0.0, 0.0, 0.0),
+    noise_nm: float = 0.0,
+    tif_rate_error: float = 0.0,
+    positioning_noise_mm: float = 0.0,
+    seed: int = 7,
+    weak_eigenvalue: float = 1e-5,
+    progress: Optional[Callable[[dict], Any]] = None,
+    threads: Optional[int] = None,
+) -> dict:
+    """The measure-register-solve-polish loop (``preston iterate``; the same defaults).
+
+    A virtual part: the design ``surface`` (file or dict; default the plane z = 0) with a generated
+    smooth form error (``form_error_rms_nm`` nm RMS, at most ``form_error_cycles`` cycles across the
+    aperture), installed with an error (``rotation_arcsec``, ``translation_um``), measured on a
+    ``grid`` over the aperture (mm) with ``noise_nm`` of noise, registered (ICP), solved for dwell
+    on an intersection raster of ``pitch_mm`` (feeds ``v_min``..``v_max`` mm/min, weights ``rho``
+    nm^2/s and ``lambda_`` nm^2/s^2, ``solver`` at ``tolerance``) and polished with a TIF rate
+    error up to ``tif_rate_error`` (relative) and ``positioning_noise_mm``; ``iterations`` runs at
+    most, stopping at ``spec_rms_nm`` / ``spec_pv_nm``. With ``map_xyz`` (a real part's measured
+    error, ``(N, 3)`` mm, mm, nm): one planned run ``iteration`` on it.
+
+    Returns a dict: ``records`` (one dict per measurement, the columns of convergence.csv:
+    ``iteration``, ``pv_nm``, ``rms_nm``, ``max_abs_nm``, ``mean_abs_nm``, ``time_s``,
+    ``predicted_rms_nm``, ``tif_rate_error``), ``met_spec``, ``not_converged`` (inner steps that
+    stopped early: the CLI's exit 3), ``final_measured`` (``(x_mm, y_mm, z_nm)``) and
+    ``last_run`` (``None`` or a dict ``dwell_x_mm``, ``dwell_y_mm``, ``dwell_s``, ``measured``)."""
+    from . import _abs
+
+    if sum(x is not None for x in (tif, tif_xyr, gaussian)) != 1:
+        raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    if solver not in ("auto", "qp", "first-order"):
+        raise InputError(f"iterate: solver must be 'auto', 'qp' or 'first-order', got {solver!r}")
+    (x0, x1), (y0, y1) = aperture_x_mm, aperture_y_mm
+    settings = {
+        "aperture": {"x_min_mm": x0, "x_max_mm": x1, "y_min_mm": y0, "y_max_mm": y1},
+        "grid": [int(grid[0]), int(grid[1])],
+        "path_pitch_mm": pitch_mm,
+        "path_margin_mm": margin_mm,
+        "feed": {"v_max_mm_per_min": v_max, "v_min_mm_per_min": v_min},
+        "max_iterations": int(iterations),
+        "spec_rms_nm": spec_rms_nm,
+        "spec_pv_nm": spec_pv_nm,
+        "rho": rho,
+        "lambda": lambda_,
+        "disturbances": {"tif_rate_error": tif_rate_error, "positioning_noise_mm": positioning_noise_mm},
+        "seed": int(seed),
+        "register": {"weak_eigenvalue_rel": weak_eigenvalue},
+        "solver": {"tolerance": tolerance, "first_order_tolerance": tolerance, "solver": solver},
+    }
+    if len(rotation_arcsec) != 3 or len(translation_um) != 3:
+        raise InputError("iterate: rotation_arcsec and translation_um take three values (x, y, z)")
+    part = {
+        "form_error": {"rms_nm": form_error_rms_nm, "max_cycles": form_error_cycles, "seed": int(form_error_seed)},
+        "rotation_arcsec": [float(v) for v in rotation_arcsec],
+        "translation_um": [float(v) for v in translation_um],
+        "measurement_noise_nm": noise_nm,
+    }
+    tif_json = _dumps({"file": _abs(tif) if tif is not None else None, "gaussian": gaussian})
+    xyr = _columns(tif_xyr, 3, "tif_xyr") if tif_xyr is not None else None
+    text, fx, fy, fz, last = _preston.iterate(
+        _dumps(settings),
+        _surface_json(surface) if surface is not None else None,
+        tif_json,
+        xyr,
+        _dumps(part),
+        _columns(map_xyz, 3, "map_xyz") if map_xyz is not None else None,
+        int(iteration),
+        progress,
+        threads,
+    )
+    out = json.loads(text)
+    out["final_measured"] = (fx, fy, fz)
+    out["last_run"] = (
+        None
+        if last is None
+        else {"dwell_x_mm": last[0], "dwell_y_mm": last[1], "dwell_s": last[2], "measured": last[3:]}
+    )
+    return out

@@ -86,7 +86,7 @@ pub(crate) fn engine_to_py(what: &str, e: preston_solver::Error) -> PyErr {
 /// factorisations then use that many), or on the global pool (`RAYON_NUM_THREADS`, else one
 /// thread per core) when `None`. Results do not depend on the thread count: every parallel
 /// reduction of the engine has a fixed order.
-fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> T + Send) -> PyResult<T> {
+pub(crate) fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> T + Send) -> PyResult<T> {
     match threads {
         None => Ok(f()),
         Some(0) => Err(InputError::new_err("threads: at least 1 (None: every core)")),
@@ -702,6 +702,7 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(workflow::path_edge_offset, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::register, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::simulate_program, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::iterate, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }

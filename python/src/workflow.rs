@@ -511,3 +511,116 @@ pub(crate) fn simulate_program<'py>(
         check.to_string(),
     ))
 }
+
+/// The last run of a loop: `(dwell_x_mm, dwell_y_mm, dwell_s, measured_x_mm, measured_y_mm,
+/// measured_z_nm)`.
+type LastRun<'py> = (
+    Array<'py>,
+    Array<'py>,
+    Array<'py>,
+    Array<'py>,
+    Array<'py>,
+    Array<'py>,
+);
+
+/// The measure-register-solve-polish loop (`preston iterate`) with the settings of
+/// `LoopSettings` (JSON) and the TIF of a `[tif]` table (JSON) or grid samples, on a virtual part
+/// (`part_json`, the fields of `VirtualPart` without its surface) or, with `map_xyz` (`(N, 3)`,
+/// mm and nm), one planned run `iteration` on a real part's measured error. Returns
+/// `(outcome_json, final_x_mm, final_y_mm, final_z_nm, last_run)`; the outcome holds `records`
+/// (the rows of convergence.csv), `met_spec` and `not_converged`.
+#[pyfunction]
+#[pyo3(signature = (settings_json, surface_json=None, tif_json="{}", tif_xyr=None, part_json="{}", map_xyz=None, iteration=0, progress=None, threads=None))]
+#[allow(clippy::type_complexity, clippy::too_many_arguments)]
+pub(crate) fn iterate<'py>(
+    py: Python<'py>,
+    settings_json: &str,
+    surface_json: Option<&str>,
+    tif_json: &str,
+    tif_xyr: Option<PyReadonlyArray2<'py, f64>>,
+    part_json: &str,
+    map_xyz: Option<PyReadonlyArray2<'py, f64>>,
+    iteration: usize,
+    progress: Option<Py<PyAny>>,
+    threads: Option<usize>,
+) -> PyResult<(
+    String,
+    Array<'py>,
+    Array<'py>,
+    Array<'py>,
+    Option<LastRun<'py>>,
+)> {
+    use preston_solver::iterate::{plan_measured, run_virtual, LoopSettings, VirtualPart};
+    let loop_settings: LoopSettings = settings(settings_json, "loop settings")?;
+    loop_settings
+        .validate()
+        .map_err(|e| engine_to_py("loop settings", e))?;
+    let surface = match surface_json {
+        Some(s) => surface_of(s)?,
+        None => Surface::Plane(preston_solver::surface::Plane {}),
+    };
+    let tif: Tif = crate::tif_of(
+        tif_json,
+        tif_xyr.map(|a| columns(&a, "tif_xyr", 3)).transpose()?,
+    )?;
+    let measured = match map_xyz {
+        Some(a) => {
+            let [x, y, z]: [Vec<f64>; 3] = columns(&a, "map_xyz", 3)?
+                .try_into()
+                .map_err(|_| InputError::new_err("map_xyz: needs three columns"))?;
+            Some(HeightMap::new(x, y, z).map_err(|e| engine_to_py("map_xyz", e))?)
+        }
+        None => None,
+    };
+    // The part's fields with the surface added (the surface is given on its own).
+    let mut part: Value = settings::<Value>(part_json, "virtual part")?;
+    if let Value::Object(m) = &mut part {
+        m.insert(
+            "surface".into(),
+            serde_json::to_value(&surface).map_err(|e| InputError::new_err(e.to_string()))?,
+        );
+    }
+    let part: VirtualPart = serde_json::from_value(part)
+        .map_err(|e| InputError::new_err(format!("virtual part: {e}")))?;
+    let observer = progress.map(PyProgress::new);
+    let outcome = py.detach(|| {
+        crate::with_threads(threads, || {
+            let obs: &dyn Observer = match &observer {
+                Some(o) => o,
+                None => &Silent,
+            };
+            match &measured {
+                Some(m) => plan_measured(&surface, m, &tif, &loop_settings, iteration, obs),
+                None => run_virtual(&part, &tif, &loop_settings, obs),
+            }
+        })
+    })?;
+    if let Some(e) = observer.as_ref().and_then(PyProgress::take_error) {
+        return Err(e);
+    }
+    let outcome = outcome.map_err(|e| engine_to_py("iterate", e))?;
+    let text = serde_json::to_string(&json!({
+        "records": outcome.records,
+        "met_spec": outcome.met_spec,
+        "not_converged": outcome.not_converged,
+    }))
+    .map_err(|e| InputError::new_err(e.to_string()))?;
+    let f = &outcome.final_measured;
+    let last = outcome.last_run.as_ref().map(|r| {
+        (
+            array(py, r.path.x_mm()),
+            array(py, r.path.y_mm()),
+            array(py, &r.dwell_s),
+            array(py, r.measured.x_mm()),
+            array(py, r.measured.y_mm()),
+            array(py, r.measured.z_nm()),
+        )
+    });
+    Ok((
+        text,
+        array(py, f.x_mm()),
+        array(py, f.y_mm()),
+        array(py, f.z_nm()),
+        last,
+    ))
+}

@@ -249,3 +249,42 @@ def test_simulate_program_equals_cli(preston_bin, small_job, tmp_path):
         preston.simulate_program(small_job["map"]["file"], tmp_path / "missing.nc", gaussian=g)
     with pytest.raises(preston.InputError, match="one of"):
         preston.simulate_program(small_job["map"]["file"], program)
+
+
+def test_iterate_equals_cli(preston_bin, tmp_path):
+    """Two runs of the virtual loop (tilted installation, measurement noise, TIF rate error):
+    convergence.csv, final_measured.csv and the last run's dwell.csv as the CLI writes them;
+    the error falls run by run. A real part's map plans one run; bad settings are named."""
+    args = dict(gaussian={"sigma_mm": 2.0, "peak_rate_nm_per_s": 20.0, "truncation_radius_mm": 6.0},
+                grid=(21, 21), aperture_x_mm=(-10, 10), aperture_y_mm=(-10, 10), iterations=2,
+                rotation_arcsec=(5, 0, 0), noise_nm=1.0, tif_rate_error=0.03)
+    out = tmp_path / "it"
+    cli(preston_bin, "iterate", "--gaussian-sigma-mm", 2, "--gaussian-peak-nm-per-s", 20, "--gaussian-truncation-mm", 6,
+        "--grid", "21,21", "--aperture-x-mm=-10,10", "--aperture-y-mm=-10,10", "--iterations", 2,
+        "--rotation-arcsec", "5,0,0", "--noise-nm", 1, "--tif-rate-error", 0.03, "--out", out)
+    r = preston.iterate(**args)
+    conv = np.genfromtxt(out / "convergence.csv", delimiter=",", names=True)
+    assert len(r["records"]) == len(conv) == 3
+    for rec, row in zip(r["records"], conv):
+        for k in ("iteration", "pv_nm", "rms_nm", "max_abs_nm", "mean_abs_nm", "time_s"):
+            assert rec[k] == pytest.approx(row[k], rel=REL, abs=0.0), k
+    assert r["records"][2]["rms_nm"] < r["records"][1]["rms_nm"] < r["records"][0]["rms_nm"]
+    np.testing.assert_array_equal(np.column_stack(r["final_measured"]), csv(out / "final_measured.csv"))
+    d = csv(out / "dwell.csv")
+    last = r["last_run"]
+    np.testing.assert_array_equal(np.column_stack([last["dwell_x_mm"], last["dwell_y_mm"]]), d[:, :2])
+    np.testing.assert_array_equal(last["dwell_s"], d[:, 3])
+    assert not r["not_converged"] and not r["met_spec"]
+
+    # One run on a measured map (here the loop's own last measurement).
+    events = []
+    plan = preston.iterate(gaussian=args["gaussian"], map_xyz=r["final_measured"], iteration=2, threads=1,
+                           progress=events.append)
+    assert plan["last_run"] is not None and len(plan["last_run"]["dwell_s"]) > 0
+    assert plan["records"][0]["predicted_rms_nm"] < plan["records"][0]["rms_nm"]
+    assert events
+
+    with pytest.raises(preston.InputError, match="grid"):
+        preston.iterate(gaussian=args["gaussian"], grid=(1, 21))
+    with pytest.raises(preston.InputError, match="one of"):
+        preston.iterate()
