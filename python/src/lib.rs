@@ -86,10 +86,15 @@ pub(crate) fn engine_to_py(what: &str, e: preston_solver::Error) -> PyErr {
 /// factorisations then use that many), or on the global pool (`RAYON_NUM_THREADS`, else one
 /// thread per core) when `None`. Results do not depend on the thread count: every parallel
 /// reduction of the engine has a fixed order.
-pub(crate) fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> T + Send) -> PyResult<T> {
+pub(crate) fn with_threads<T: Send>(
+    threads: Option<usize>,
+    f: impl FnOnce() -> T + Send,
+) -> PyResult<T> {
     match threads {
         None => Ok(f()),
-        Some(0) => Err(InputError::new_err("threads: at least 1 (None: every core)")),
+        Some(0) => Err(InputError::new_err(
+            "threads: at least 1 (None: every core)",
+        )),
         Some(n) => {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
@@ -101,7 +106,11 @@ pub(crate) fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> 
 }
 
 /// Columns of an `(N, k)` float64 array, checked for its width.
-pub(crate) fn columns(a: &PyReadonlyArray2<'_, f64>, name: &str, k: usize) -> PyResult<Vec<Vec<f64>>> {
+pub(crate) fn columns(
+    a: &PyReadonlyArray2<'_, f64>,
+    name: &str,
+    k: usize,
+) -> PyResult<Vec<Vec<f64>>> {
     let v = a.as_array();
     if v.ncols() != k {
         return Err(InputError::new_err(format!(

@@ -9,8 +9,8 @@ use preston_io::metrology::MapSource;
 use preston_io::report::centred_residual_nm;
 use preston_io::simulation::{simulate_program as run_program, ProgramOptions};
 use preston_io::surface::TransformFile;
-use preston_solver::machine::gcode::motion::Kinematics;
 use preston_solver::machine::gcode::dialect::Dialect;
+use preston_solver::machine::gcode::motion::Kinematics;
 use preston_solver::machine::PartGeometry;
 use preston_solver::map::{BoundingBox, HeightMap};
 use preston_solver::observer::{Observer, Silent};
@@ -95,78 +95,80 @@ pub(crate) fn tif_model<'py>(
     at_mm: Option<(f64, f64)>,
 ) -> PyResult<(Array<'py>, Array<'py>, Array<'py>, String)> {
     let e = |e| engine_to_py(model, e);
-    let (grid, summary) = match model {
-        "hertz" => {
-            let p: HertzParams = settings(params_json, "hertz parameters")?;
-            let t = match (part_radius_mm, surface_json, at_mm) {
-                (Some(r), None, None) => HertzTif::with_part_radius(&p, r).map_err(e)?,
-                (None, Some(s), Some((x, y))) => {
-                    let (k1, k2) = surface_of(s)?
-                        .principal_curvatures_per_mm(x, y)
-                        .map_err(|er| engine_to_py(&format!("surface curvature at ({x}, {y}) mm"), er))?;
-                    HertzTif::with_curvatures(&p, k1, k2).map_err(e)?
-                }
-                (None, None, None) => HertzTif::flat(&p).map_err(e)?,
-                _ => {
-                    return Err(InputError::new_err(
-                        "hertz: give part_radius_mm, or surface with at_mm, or neither (flat)",
-                    ))
-                }
-            };
-            let grid = py.detach(|| t.to_grid(pitch_mm)).map_err(e)?;
-            let s = json!({
-                "model": "hertz",
-                "contact_radius_mm": t.contact_radius_mm(),
-                "peak_pressure_mpa": t.peak_pressure_mpa(),
-                "volume_rate_mm3_per_min": t.volume_rate_mm3_per_s() * 60.0,
-                "centre_speed_mm_per_s": t.sliding_speed_mm_per_s(0.0, 0.0),
-                "effective_radius_mm": t.effective_radius_mm(),
-            });
-            (grid, s)
-        }
-        "bonnet" | "gaussian" if part_radius_mm.is_some() || surface_json.is_some() => {
-            return Err(InputError::new_err(format!(
-                "{model}: part_radius_mm and surface apply to the hertz model"
-            )))
-        }
-        "bonnet" => {
-            let p: BonnetParams = settings(params_json, "bonnet parameters")?;
-            let t = BonnetTif::new(&p).map_err(e)?;
-            // The model volume by a fine grid (the pressure vanishes linearly at the edge, so the
-            // trapezoid rule converges as pitch^2), as `preston tif bonnet` reports it.
-            let (grid, fine) = py
-                .detach(|| Ok((t.to_grid(pitch_mm)?, t.to_grid(t.spot_radius_mm() / 400.0)?)))
-                .map_err(e)?;
-            let s = json!({
-                "model": "bonnet",
-                "contact_radius_mm": t.spot_radius_mm(),
-                "peak_pressure_mpa": t.peak_pressure_mpa(),
-                "volume_rate_mm3_per_min": fine.volume_rate_mm3_per_s() * 60.0,
-                "centre_speed_mm_per_s": t.sliding_speed_mm_per_s(0.0, 0.0),
-                "effective_radius_mm": null,
-            });
-            (grid, s)
-        }
-        "gaussian" => {
-            let g: GaussianTif = settings(params_json, "gaussian parameters")?;
-            g.validate().map_err(e)?;
-            let grid = sample_on_grid(&g, g.truncation_radius_mm, pitch_mm).map_err(e)?;
-            let s = json!({
-                "model": "gaussian",
-                "contact_radius_mm": g.truncation_radius_mm,
-                "peak_pressure_mpa": null,
-                "volume_rate_mm3_per_min": g.volume_rate_mm3_per_s() * 60.0,
-                "centre_speed_mm_per_s": null,
-                "effective_radius_mm": null,
-            });
-            (grid, s)
-        }
-        other => {
-            return Err(InputError::new_err(format!(
-                "tif model `{other}`: expected hertz, bonnet or gaussian"
-            )))
-        }
-    };
+    let (grid, summary) =
+        match model {
+            "hertz" => {
+                let p: HertzParams = settings(params_json, "hertz parameters")?;
+                let t =
+                    match (part_radius_mm, surface_json, at_mm) {
+                        (Some(r), None, None) => HertzTif::with_part_radius(&p, r).map_err(e)?,
+                        (None, Some(s), Some((x, y))) => {
+                            let (k1, k2) = surface_of(s)?
+                                .principal_curvatures_per_mm(x, y)
+                                .map_err(|er| {
+                                    engine_to_py(&format!("surface curvature at ({x}, {y}) mm"), er)
+                                })?;
+                            HertzTif::with_curvatures(&p, k1, k2).map_err(e)?
+                        }
+                        (None, None, None) => HertzTif::flat(&p).map_err(e)?,
+                        _ => return Err(InputError::new_err(
+                            "hertz: give part_radius_mm, or surface with at_mm, or neither (flat)",
+                        )),
+                    };
+                let grid = py.detach(|| t.to_grid(pitch_mm)).map_err(e)?;
+                let s = json!({
+                    "model": "hertz",
+                    "contact_radius_mm": t.contact_radius_mm(),
+                    "peak_pressure_mpa": t.peak_pressure_mpa(),
+                    "volume_rate_mm3_per_min": t.volume_rate_mm3_per_s() * 60.0,
+                    "centre_speed_mm_per_s": t.sliding_speed_mm_per_s(0.0, 0.0),
+                    "effective_radius_mm": t.effective_radius_mm(),
+                });
+                (grid, s)
+            }
+            "bonnet" | "gaussian" if part_radius_mm.is_some() || surface_json.is_some() => {
+                return Err(InputError::new_err(format!(
+                    "{model}: part_radius_mm and surface apply to the hertz model"
+                )))
+            }
+            "bonnet" => {
+                let p: BonnetParams = settings(params_json, "bonnet parameters")?;
+                let t = BonnetTif::new(&p).map_err(e)?;
+                // The model volume by a fine grid (the pressure vanishes linearly at the edge, so the
+                // trapezoid rule converges as pitch^2), as `preston tif bonnet` reports it.
+                let (grid, fine) = py
+                    .detach(|| Ok((t.to_grid(pitch_mm)?, t.to_grid(t.spot_radius_mm() / 400.0)?)))
+                    .map_err(e)?;
+                let s = json!({
+                    "model": "bonnet",
+                    "contact_radius_mm": t.spot_radius_mm(),
+                    "peak_pressure_mpa": t.peak_pressure_mpa(),
+                    "volume_rate_mm3_per_min": fine.volume_rate_mm3_per_s() * 60.0,
+                    "centre_speed_mm_per_s": t.sliding_speed_mm_per_s(0.0, 0.0),
+                    "effective_radius_mm": null,
+                });
+                (grid, s)
+            }
+            "gaussian" => {
+                let g: GaussianTif = settings(params_json, "gaussian parameters")?;
+                g.validate().map_err(e)?;
+                let grid = sample_on_grid(&g, g.truncation_radius_mm, pitch_mm).map_err(e)?;
+                let s = json!({
+                    "model": "gaussian",
+                    "contact_radius_mm": g.truncation_radius_mm,
+                    "peak_pressure_mpa": null,
+                    "volume_rate_mm3_per_min": g.volume_rate_mm3_per_s() * 60.0,
+                    "centre_speed_mm_per_s": null,
+                    "effective_radius_mm": null,
+                });
+                (grid, s)
+            }
+            other => {
+                return Err(InputError::new_err(format!(
+                    "tif model `{other}`: expected hertz, bonnet or gaussian"
+                )))
+            }
+        };
     let summary = grid_summary(summary, &grid)?;
     let (x, y, r) = grid_arrays(py, &grid);
     Ok((x, y, r, summary))
@@ -329,7 +331,11 @@ pub(crate) fn path_random<'py>(
         "region_nodes": r.region_nodes, "longest_run": r.longest_run,
         "tree_exchanges": r.swaps, "seed": set.seed, "jitter": set.jitter,
     });
-    Ok((array(py, r.path.x_mm()), array(py, r.path.y_mm()), s.to_string()))
+    Ok((
+        array(py, r.path.x_mm()),
+        array(py, r.path.y_mm()),
+        s.to_string(),
+    ))
 }
 
 /// The lifting-bonnet edge-offset trajectory inside the closed edge `edge_xy` (`(N, 2)`, mm)
@@ -361,7 +367,11 @@ pub(crate) fn path_edge_offset<'py>(
         "bezier_max_error_mm": t.fit_error_mm, "corners": t.corners, "lines": lines,
         "line_starts": t.line_starts,
     });
-    Ok((array(py, t.path.x_mm()), array(py, t.path.y_mm()), s.to_string()))
+    Ok((
+        array(py, t.path.x_mm()),
+        array(py, t.path.y_mm()),
+        s.to_string(),
+    ))
 }
 
 /// Registers measured points `(N, 3)` (x, y, z in mm; probe tip centres with a probe radius) on
@@ -386,7 +396,9 @@ pub(crate) fn register<'py>(
     let surface = surface_of(surface_json)?;
     let set: RegisterSettings = settings(settings_json, "register settings")?;
     let c = columns(&points_xyz, "points_xyz", 3)?;
-    let pts: Vec<[f64; 3]> = (0..c[0].len()).map(|i| [c[0][i], c[1][i], c[2][i]]).collect();
+    let pts: Vec<[f64; 3]> = (0..c[0].len())
+        .map(|i| [c[0][i], c[1][i], c[2][i]])
+        .collect();
     let reg = py
         .detach(|| icp(&surface, &pts, &set))
         .map_err(|e| engine_to_py("points_xyz", e))?;
