@@ -9,6 +9,12 @@ mm/min.
   of ``preston solve``.
 * :func:`read_map` -- any map format the CLI reads (CSV, XYZ text, NumPy ``.npy``, Zygo ``.dat``
   / ``.datx``, 4D ``.h5``) with its options (units, columns, pitch, aperture, form removal).
+* :func:`tif_gaussian`, :func:`tif_hertz`, :func:`tif_bonnet`, :func:`tif_grid`,
+  :func:`tif_spot` -- TIFs from process models, measured grids and removal spots.
+* :func:`raster`, :func:`path_spiral`, :func:`path_random`, :func:`path_edge_offset` -- paths.
+* :func:`register` -- installation and form error of measured points (ICP);
+  :func:`simulate_program` -- the removal a G-code program produces on the machine;
+  :func:`iterate` -- the measure-register-solve-polish loop.
 * :func:`batch` / :func:`grid` -- many solves (job dicts, job files, a parameter grid over one
   job) on a ``dask.distributed`` cluster, outputs written atomically per job.
 
@@ -38,6 +44,17 @@ __all__ = [
     "raster",
     "fit",
     "nc",
+    "tif_gaussian",
+    "tif_hertz",
+    "tif_bonnet",
+    "tif_grid",
+    "tif_spot",
+    "path_spiral",
+    "path_random",
+    "path_edge_offset",
+    "register",
+    "simulate_program",
+    "iterate",
     "SolveResult",
     "PrestonError",
     "InputError",
@@ -195,6 +212,7 @@ def solve(
     edge_width_mm: Optional[float] = None,
     progress: Optional[Callable[[dict], Any]] = None,
     require_converged: bool = False,
+    threads: Optional[int] = None,
 ) -> SolveResult:
     """Dwell times and feeds: the engine of ``preston solve``, arrays in and out.
 
@@ -229,6 +247,10 @@ def solve(
     ``"iteration"``), ``done`` and ``total`` (units of the stage), and for iterations
     ``iteration``, ``objective`` (nm^2) and ``kkt_residual``. An exception raised by the callback
     is raised by :func:`solve` once the engine returns.
+
+    ``threads`` bounds the threads the engine uses for this call (default: the process's pool,
+    ``RAYON_NUM_THREADS`` or one per core); the results are the same for every thread count.
+    Give ``threads=1`` when several solves run at once on one machine (threads or processes).
 
     The interpreter is released while the engine runs. A solver that stops before converging is
     a status (``result.converged`` is False), not an error, unless ``require_converged=True``
@@ -323,7 +345,7 @@ def solve(
             e["width_mm"] = edge_width_mm
         j["edge"] = e
 
-    native = _preston.solve(_dumps(j), name, progress=progress, **arrays)
+    native = _preston.solve(_dumps(j), name, progress=progress, threads=threads, **arrays)
     result = SolveResult(native)
     if require_converged and not result.converged:
         raise NotConvergedError(
@@ -471,3 +493,16 @@ def nc(
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)
+from ._workflow import (  # noqa: E402
+    iterate,
+    path_edge_offset,
+    path_random,
+    path_spiral,
+    register,
+    simulate_program,
+    tif_bonnet,
+    tif_gaussian,
+    tif_grid,
+    tif_hertz,
+    tif_spot,
+)

@@ -127,8 +127,9 @@ def _normalise(jobs: Union[JobSpec, Iterable[JobSpec]]) -> List[Tuple[str, Optio
     return out
 
 
-def run_job(name: str, job: dict, out_dir: str) -> Dict[str, Any]:
-    """Solves one job and writes its outputs atomically into ``out_dir/name``; returns its row.
+def run_job(name: str, job: dict, out_dir: str, threads: Optional[int] = None) -> Dict[str, Any]:
+    """Solves one job (on ``threads`` engine threads, None: the process's pool) and writes its
+    outputs atomically into ``out_dir/name``; returns its row.
 
     The task each Dask worker runs. Never raises for a failing job: the row holds ``ok=False``,
     ``error_type`` and ``error`` (Preston's message)."""
@@ -137,9 +138,9 @@ def run_job(name: str, job: dict, out_dir: str) -> Dict[str, Any]:
     row: Dict[str, Any] = {"job": name, "ok": False, "error_type": None, "error": None}
     final = os.path.join(out_dir, name)
     tmp = os.path.join(out_dir, f".{name}.tmp-{uuid.uuid4().hex}")
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     try:
-        r = solve(job)
+        r = solve(job, threads=threads)
         r.write(tmp)
         _replace_dir(tmp, final)
         row.update(r.report)
@@ -158,6 +159,7 @@ def run_job(name: str, job: dict, out_dir: str) -> Dict[str, Any]:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     row["wall_s"] = time.perf_counter() - start
+    row["cpu_s"] = time.process_time() - cpu
     return row
 
 
@@ -181,12 +183,35 @@ def worker_env(n_workers: int) -> Dict[str, str]:
     return {"RAYON_NUM_THREADS": os.environ.get("RAYON_NUM_THREADS", str(share))}
 
 
+def _host_cores() -> Tuple[str, int]:
+    import socket
+
+    return socket.gethostname(), os.cpu_count() or 1
+
+
+def threads_per_task(client: Any) -> int:
+    """Engine threads for each task so that the cluster's task slots on one host share its cores
+    without oversubscription: the smallest, over the hosts, of ``cores // task slots`` (at least
+    1). Each worker reports its host and core count (``client.run``)."""
+    hosts = client.run(_host_cores)
+    slots: Dict[str, int] = {}
+    cores: Dict[str, int] = {}
+    for addr, n in client.nthreads().items():
+        host, c = hosts.get(addr, (addr, 1))
+        slots[host] = slots.get(host, 0) + n
+        cores[host] = c
+    if not slots:
+        return 1
+    return max(1, min(cores[h] // max(1, slots[h]) for h in slots))
+
+
 def batch(
     jobs: Union[JobSpec, Iterable[JobSpec]],
     client: Any = None,
     out_dir: PathLike = "preston-batch",
     grid: Optional[Mapping[str, Sequence[Any]]] = None,
     n_workers: int = 2,
+    threads_per_job: Optional[int] = None,
 ) -> Any:
     """Runs many solves on a ``dask.distributed`` cluster, one task per job.
 
@@ -198,6 +223,10 @@ def batch(
     ``LocalCluster`` of ``n_workers`` single-threaded worker processes for the call, each
     engine's thread pool limited to its share of the cores (:func:`worker_env`).
 
+    ``threads_per_job``: engine threads of each solve. Default: the cores of each host divided
+    by the task slots (worker threads) the cluster runs there (:func:`threads_per_task`), so that
+    concurrent solves do not oversubscribe a machine. The results do not depend on it.
+
     Each job's ``dwell.csv``, ``residual.csv`` and ``report.json`` go to ``out_dir/<name>/``,
     written into a temporary directory that is renamed into place once complete. A failing job
     does not stop the others.
@@ -206,7 +235,7 @@ def batch(
     else a list of dicts: ``job``, ``job_file``, the job's inputs (dotted keys such as
     ``machine.v_max_mm_per_min``), ``ok``, ``error_type``/``error`` (Preston's message) for a
     failure, every key of ``report.json``, ``converged``, ``out_dir`` and the three output paths,
-    and ``wall_s`` (the task's time, s).
+    ``wall_s`` (the task's wall time, s) and ``cpu_s`` (its worker process's CPU time, s).
     """
     from . import InputError
 
@@ -240,8 +269,13 @@ def batch(
     elif isinstance(client, str):
         client = own_client = Client(client)
     try:
+        threads = threads_per_job if threads_per_job is not None else threads_per_task(client)
+        if threads < 1:
+            raise InputError(f"batch: threads_per_job must be at least 1, got {threads}")
         futures = [
-            client.submit(run_job, name, job, out, key=f"preston-{name}-{uuid.uuid4().hex}", pure=False)
+            client.submit(
+                run_job, name, job, out, threads, key=f"preston-{name}-{uuid.uuid4().hex}", pure=False
+            )
             for name, _, job in items
         ]
         results = []

@@ -74,8 +74,10 @@ def solve(
     tif_xyr: Optional[F64] = None,
     dwell_xy: Optional[F64] = None,
     progress: Optional[Callable[[dict], Any]] = None,
+    threads: Optional[int] = None,
 ) -> SolveResult:
-    """Solves a job (JSON) with optional ``(N, 3)`` map / TIF and ``(N, 2)`` dwell arrays."""
+    """Solves a job (JSON) with optional ``(N, 3)`` map / TIF and ``(N, 2)`` dwell arrays, on
+    ``threads`` engine threads (None: the global pool)."""
 
 def _raise_numerical() -> None: ...
 
@@ -114,3 +116,82 @@ def nc(
     notes: list = ...,
 ) -> Tuple[str, int]:
     """G-code for a dwell plan: ``(program_text, feed_blocks)``."""
+
+def tif_model(
+    model: str,
+    params_json: str,
+    pitch_mm: float,
+    part_radius_mm: Optional[float] = None,
+    surface_json: Optional[str] = None,
+    at_mm: Optional[Tuple[float, float]] = None,
+) -> Tuple[F64, F64, F64, str]:
+    """A ``"hertz"``, ``"bonnet"`` or ``"gaussian"`` TIF sampled at ``pitch_mm`` (mm):
+    ``(x_mm, y_mm, rate_nm_per_s, summary_json)``."""
+
+def tif_grid(
+    tif_xyr: F64,
+    pitch_mm: Optional[float] = None,
+    recentre: bool = False,
+    peak_nm_per_s: Optional[float] = None,
+    volume_mm3_per_min: Optional[float] = None,
+) -> Tuple[F64, F64, F64, str]:
+    """A measured TIF grid resampled, recentred and scaled: ``(x_mm, y_mm, rate_nm_per_s, summary_json)``."""
+
+def tif_spot(
+    before_xyz: F64,
+    after_xyz: F64,
+    dwell_s: float,
+    crop_radius_mm: Optional[float] = None,
+    remove_tilt: bool = False,
+    recentre: bool = False,
+    fit_gaussian_model: bool = False,
+) -> Tuple[F64, F64, F64, str]:
+    """The TIF of a removal spot (maps in nm, dwell in s): ``(x_mm, y_mm, rate_nm_per_s, summary_json)``."""
+
+def path_spiral(
+    centre_mm: Tuple[float, float], radius_mm: float, pitch_mm: float, step_mm: float
+) -> Tuple[F64, F64]:
+    """An Archimedes spiral, ``(x_mm, y_mm)`` in path order."""
+
+def path_random(
+    x_range_mm: Tuple[float, float], y_range_mm: Tuple[float, float], settings_json: str
+) -> Tuple[F64, F64, str]:
+    """A pseudo-random unicursal path: ``(x_mm, y_mm, summary_json)``."""
+
+def path_edge_offset(edge_xy: F64, settings_json: str) -> Tuple[F64, F64, str]:
+    """The edge-offset trajectory inside a closed edge (mm): ``(x_mm, y_mm, summary_json)``."""
+
+def register(
+    surface_json: str, points_xyz: F64, settings_json: str
+) -> Tuple[str, F64, F64, F64, F64, F64]:
+    """ICP registration: ``(transform_json, design_x_mm, design_y_mm, form_error_nm,
+    points_xyz_mm (flat), weights)``."""
+
+def simulate_program(
+    map_json: str,
+    program: str,
+    tif_json: str = "{}",
+    tif_xyr: Optional[F64] = None,
+    a_max_mm_per_s2: Optional[float] = None,
+    corner_angle_deg: float = 60.0,
+    dialect: Optional[str] = None,
+    sample_step_mm: Optional[float] = None,
+    surface_json: Optional[str] = None,
+    tool_radius_mm: float = 0.0,
+    progress: Optional[Callable[[dict], Any]] = None,
+) -> Tuple[F64, F64, F64, F64, F64, str, str]:
+    """A G-code program run on the machine: ``(map_x_mm, map_y_mm, z_nm, removal_nm, residual_nm,
+    report_json, check_json)``."""
+
+def iterate(
+    settings_json: str,
+    surface_json: Optional[str] = None,
+    tif_json: str = "{}",
+    tif_xyr: Optional[F64] = None,
+    part_json: str = "{}",
+    map_xyz: Optional[F64] = None,
+    iteration: int = 0,
+    progress: Optional[Callable[[dict], Any]] = None,
+    threads: Optional[int] = None,
+) -> Tuple[str, F64, F64, F64, Optional[Tuple[F64, F64, F64, F64, F64, F64]]]:
+    """The polishing loop: ``(outcome_json, final_x_mm, final_y_mm, final_z_nm, last_run)``."""

@@ -7,6 +7,8 @@
 //! the functions here with the job as JSON (the job file's structure, see `preston_io::job`).
 #![warn(missing_docs)]
 
+mod workflow;
+
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2};
 use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
@@ -60,7 +62,7 @@ create_exception!(
 );
 
 /// Preston's I/O error as the matching Python exception.
-fn to_py(e: preston_io::Error) -> PyErr {
+pub(crate) fn to_py(e: preston_io::Error) -> PyErr {
     let numerical = matches!(
         &e,
         preston_io::Error::Engine {
@@ -76,12 +78,39 @@ fn to_py(e: preston_io::Error) -> PyErr {
 }
 
 /// An engine error on data named `what` (an array argument) as a Python exception.
-fn engine_to_py(what: &str, e: preston_solver::Error) -> PyErr {
+pub(crate) fn engine_to_py(what: &str, e: preston_solver::Error) -> PyErr {
     to_py(preston_io::Error::engine(what, e))
 }
 
+/// Runs `f` on a rayon pool of `threads` threads (the engine's parallel loops and faer's
+/// factorisations then use that many), or on the global pool (`RAYON_NUM_THREADS`, else one
+/// thread per core) when `None`. Results do not depend on the thread count: every parallel
+/// reduction of the engine has a fixed order.
+pub(crate) fn with_threads<T: Send>(
+    threads: Option<usize>,
+    f: impl FnOnce() -> T + Send,
+) -> PyResult<T> {
+    match threads {
+        None => Ok(f()),
+        Some(0) => Err(InputError::new_err(
+            "threads: at least 1 (None: every core)",
+        )),
+        Some(n) => {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .map_err(|e| InputError::new_err(format!("threads: {e}")))?;
+            Ok(pool.install(f))
+        }
+    }
+}
+
 /// Columns of an `(N, k)` float64 array, checked for its width.
-fn columns(a: &PyReadonlyArray2<'_, f64>, name: &str, k: usize) -> PyResult<Vec<Vec<f64>>> {
+pub(crate) fn columns(
+    a: &PyReadonlyArray2<'_, f64>,
+    name: &str,
+    k: usize,
+) -> PyResult<Vec<Vec<f64>>> {
     let v = a.as_array();
     if v.ncols() != k {
         return Err(InputError::new_err(format!(
@@ -105,7 +134,7 @@ fn parse_job(job_json: &str, job_name: &str) -> PyResult<Job> {
 /// Forwards the engine's progress to a Python callable, at most about once per percent of a
 /// stage and once per solver iteration. An exception raised by the callable is kept (the first
 /// one) and raised when the work returns; later calls are skipped.
-struct PyProgress {
+pub(crate) struct PyProgress {
     callback: Py<PyAny>,
     error: Mutex<Option<PyErr>>,
     total: [AtomicU64; 3],
@@ -130,7 +159,7 @@ fn stage_name(s: Stage) -> &'static str {
 }
 
 impl PyProgress {
-    fn new(callback: Py<PyAny>) -> Self {
+    pub(crate) fn new(callback: Py<PyAny>) -> Self {
         Self {
             callback,
             error: Mutex::new(None),
@@ -170,7 +199,7 @@ impl PyProgress {
         }
     }
 
-    fn take_error(&self) -> Option<PyErr> {
+    pub(crate) fn take_error(&self) -> Option<PyErr> {
         self.error.lock().ok().and_then(|mut e| e.take())
     }
 }
@@ -217,9 +246,9 @@ pub struct SolveResult {
 }
 
 /// A numpy float64 vector.
-type Array<'py> = Bound<'py, PyArray1<f64>>;
+pub(crate) type Array<'py> = Bound<'py, PyArray1<f64>>;
 
-fn array<'py>(py: Python<'py>, v: &[f64]) -> Array<'py> {
+pub(crate) fn array<'py>(py: Python<'py>, v: &[f64]) -> Array<'py> {
     v.to_vec().into_pyarray(py)
 }
 
@@ -434,9 +463,11 @@ fn run_solve(
 /// Solves a job (JSON, the job file's structure) with optional arrays in place of its map
 /// (`(N, 3)`: x_mm, y_mm, z_nm), TIF (`(N, 3)`: x_mm, y_mm, rate_nm_per_s on a regular grid) and
 /// dwell points (`(N, 2)`: x_mm, y_mm in path order). `progress(event: dict)` is called with the
-/// engine's progress. The interpreter is released while the solve runs.
+/// engine's progress; `threads` bounds the engine's threads (None: the global pool). The
+/// interpreter is released while the solve runs.
 #[pyfunction]
-#[pyo3(signature = (job_json, job_name="<python>", map_xyz=None, tif_xyr=None, dwell_xy=None, progress=None))]
+#[pyo3(signature = (job_json, job_name="<python>", map_xyz=None, tif_xyr=None, dwell_xy=None, progress=None, threads=None))]
+#[allow(clippy::too_many_arguments)]
 fn solve(
     py: Python<'_>,
     job_json: &str,
@@ -445,6 +476,7 @@ fn solve(
     tif_xyr: Option<PyReadonlyArray2<'_, f64>>,
     dwell_xy: Option<PyReadonlyArray2<'_, f64>>,
     progress: Option<Py<PyAny>>,
+    threads: Option<usize>,
 ) -> PyResult<SolveResult> {
     let job = parse_job(job_json, job_name)?;
     let arrays = ArrayInputs {
@@ -455,12 +487,14 @@ fn solve(
     let job_path = PathBuf::from(job_name);
     let observer = progress.map(PyProgress::new);
     let solved = py.detach(|| {
-        let obs: &dyn Observer = match &observer {
-            Some(o) => o,
-            None => &Silent,
-        };
-        run_solve(&job, &job_path, arrays, obs)
-    });
+        with_threads(threads, || {
+            let obs: &dyn Observer = match &observer {
+                Some(o) => o,
+                None => &Silent,
+            };
+            run_solve(&job, &job_path, arrays, obs)
+        })
+    })?;
     if let Some(e) = observer.as_ref().and_then(PyProgress::take_error) {
         return Err(e);
     }
@@ -476,7 +510,7 @@ fn solve(
 }
 
 /// The TIF of a `[tif]` table (JSON: `file` or `gaussian`), or the `(N, 3)` grid samples.
-fn tif_of(tif_json: &str, tif_xyr: Option<Vec<Vec<f64>>>) -> PyResult<Tif> {
+pub(crate) fn tif_of(tif_json: &str, tif_xyr: Option<Vec<Vec<f64>>>) -> PyResult<Tif> {
     if let Some(c) = tif_xyr {
         return GridTif::from_samples(&c[0], &c[1], &c[2])
             .map(Tif::Grid)
@@ -669,6 +703,15 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(raster, m)?)?;
     m.add_function(wrap_pyfunction!(fit, m)?)?;
     m.add_function(wrap_pyfunction!(nc, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::tif_model, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::tif_grid, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::tif_spot, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::path_spiral, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::path_random, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::path_edge_offset, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::register, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::simulate_program, m)?)?;
+    m.add_function(wrap_pyfunction!(workflow::iterate, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }

@@ -83,6 +83,13 @@ def test_job_files_default_cluster(small_job, tmp_path):
         np.testing.assert_array_equal(got[:, 3], one.dwell_s)
 
 
+def test_threads_per_task(client):
+    """Two single-thread workers on one host share its cores."""
+    from preston._batch import threads_per_task
+
+    assert threads_per_task(client) == max(1, (os.cpu_count() or 1) // 2)
+
+
 def test_grid_needs_one_job(small_job):
     with pytest.raises(preston.InputError, match="one job"):
         preston.batch([small_job, small_job], grid={"machine.v_max_mm_per_min": [1000.0]})

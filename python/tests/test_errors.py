@@ -98,3 +98,40 @@ def test_numerical_failure_maps_to_solver_error():
     reliably breaks the factorisations)."""
     with pytest.raises(preston.SolverError, match="numerical failure in test"):
         _preston._raise_numerical()
+
+
+def test_other_functions_raise_prestons_message(small_job):
+    with pytest.raises(preston.InputError, match="3 points cannot determine 65 parameters"):
+        preston.fit(np.zeros((3, 3)), order=10)
+    line = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    with pytest.raises(preston.InputError, match="klingon"):
+        preston.nc(line, np.ones(3), dialect="klingon")
+    with pytest.raises(preston.InputError, match="v_max_mm_per_min"):
+        preston.nc(line, np.ones(3), v_max_mm_per_min=-5.0)
+    with pytest.raises(preston.InputError, match="dwell_s has 2 entries, expected 3"):
+        preston.nc(line, np.ones(2))
+    g = small_job["tif"]["gaussian"]
+    with pytest.raises(preston.InputError, match="dwell_s has 3 entries, expected 2"):
+        preston.simulate(np.zeros((3, 3)), line[:2], np.ones(3), gaussian=g)
+    with pytest.raises(preston.InputError, match="one of"):
+        preston.simulate(np.zeros((3, 3)), line[:2], np.ones(2))
+    with pytest.raises(preston.InputError, match="pitch_mm"):
+        preston.raster((0, 10), (0, 10), -1.0)
+    with pytest.raises(preston.InputError, match="got int"):
+        preston.load_job(42)
+    with pytest.raises(preston.InputError, match="threads"):
+        preston.solve(small_job, threads=0)
+
+
+def test_simulate_callback_exception_is_raised(small_job):
+    x = np.arange(50.0) * 0.1
+    events = []
+
+    def stop(e):
+        events.append(e)
+        raise RuntimeError("stop here")
+
+    with pytest.raises(RuntimeError, match="stop here"):
+        preston.simulate(np.column_stack([x, 0 * x, 1 + 0 * x]), np.array([[0.0, 0.0], [1.0, 0.0]]), np.ones(2),
+                         gaussian=small_job["tif"]["gaussian"], samples_per_point=4, progress=stop)
+    assert len(events) == 1  # no call after the first exception

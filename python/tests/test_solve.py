@@ -165,3 +165,14 @@ def test_interpreter_released_during_solve(sample_job):
     elapsed = time.perf_counter() - start
     # At 10 ms a tick the thread would tick ~100 times a second; demand a quarter of that.
     assert len(ticks) >= 25 * elapsed, (len(ticks), elapsed)
+
+
+def test_threads_do_not_change_the_result(small_job):
+    """threads= installs a pool of that size for the call; every reduction has a fixed order, so
+    the dwell is bit-identical on 1 thread and on the default pool."""
+    one = preston.solve(small_job, threads=1)
+    default = preston.solve(small_job)
+    three = preston.solve(small_job, threads=3)
+    np.testing.assert_array_equal(one.dwell_s, default.dwell_s)
+    np.testing.assert_array_equal(three.dwell_s, default.dwell_s)
+    np.testing.assert_array_equal(one.residual_nm, default.residual_nm)

@@ -5,7 +5,7 @@ use preston_io::atomic::commit_all;
 use preston_io::surface::{read_points, read_surface, stage_columns_csv, TransformFile};
 use preston_io::writers::{stage_json, stage_map_csv};
 use preston_solver::registration::{
-    register, Dof, LockSource, RegisterSettings, Robust, WEAK_EIGENVALUE_REL,
+    register, Dof, LockSource, RegisterSettings, Robust, UNDETERMINED_REL, WEAK_EIGENVALUE_REL,
 };
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -91,10 +91,6 @@ pub struct Args {
     pub out: PathBuf,
 }
 
-/// Relative eigenvalue of the information matrix below which a motion counts as undetermined
-/// (rank deficiency up to rounding), not merely weak.
-const UNDETERMINED_REL: f64 = 1e-10;
-
 /// Runs `preston register`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let surface = read_surface(&args.surface)?;
@@ -121,15 +117,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     // Motions the points and the surface leave exactly undetermined (a rank-deficient
     // information matrix: coplanar points on a plane design leave rz, tx, ty free) are refused
     // unless the user holds them; merely weak ones are locked with a warning, as documented.
-    let undetermined: Vec<&str> = reg
-        .locked
-        .iter()
-        .filter(|m| {
-            m.source == preston_solver::registration::LockSource::Weak
-                && m.relative_eigenvalue < UNDETERMINED_REL
-        })
-        .map(|m| m.label.as_str())
-        .collect();
+    let undetermined = reg.undetermined();
     if !undetermined.is_empty() {
         anyhow::bail!(
             "{}: the points and the design surface do not determine these motions \

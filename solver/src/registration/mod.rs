@@ -31,6 +31,11 @@ pub const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
 /// `tx`, `rz + 0.4 ty`) have relative eigenvalues of 4e-7 to 1.5e-6, the others 0.5 and 1.
 pub const WEAK_EIGENVALUE_REL: f64 = 1e-5;
 
+/// Relative eigenvalue of the information matrix below which a locked weak motion counts as
+/// undetermined by the points and the surface (rank deficiency up to rounding), not merely weak:
+/// see [`Registration::undetermined`].
+pub const UNDETERMINED_REL: f64 = 1e-10;
+
 /// A rigid-body degree of freedom of the transform `M`, in the design frame (rotations about the
 /// design origin's axes, translations along them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -278,5 +283,16 @@ impl Registration {
     /// Translation of `M`, um.
     pub fn translation_um(&self) -> [f64; 3] {
         self.translation_mm().map(|t| t * 1e3)
+    }
+
+    /// Labels of the motions the points and the surface leave exactly undetermined: weak locks
+    /// whose relative eigenvalue is below [`UNDETERMINED_REL`] (coplanar points on a plane
+    /// design leave rz, tx, ty free). A caller should refuse these unless the user holds them.
+    pub fn undetermined(&self) -> Vec<&str> {
+        self.locked
+            .iter()
+            .filter(|m| m.source == LockSource::Weak && m.relative_eigenvalue < UNDETERMINED_REL)
+            .map(|m| m.label.as_str())
+            .collect()
     }
 }
