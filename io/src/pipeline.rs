@@ -10,9 +10,11 @@ use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Repor
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{
-    self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice, AUTO_FFT_MIN_NNZ,
+    self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice,
 };
 use preston_solver::edge;
+use preston_solver::dwell::precond::DwellLattice;
+use preston_solver::dwell::{policy, SolverKind};
 use preston_solver::influence::fft::FftOperator;
 use preston_solver::influence::surface::assemble_on_surface;
 use preston_solver::influence::InfluenceMatrix;
@@ -276,6 +278,7 @@ pub fn prepare_inputs(
             lambda,
         ),
     }
+    .and_then(|p| p.with_dwell_lattice(DwellLattice::detect(path.x_mm(), path.y_mm())))
     .map_err(|e| Error::engine(job_path, e))?;
     Ok(Prepared {
         map,
@@ -389,10 +392,22 @@ fn fft_pitch(
             let r = tif.support_radius_mm();
             let per_column = (std::f64::consts::PI * r * r / (p * p)).min(map.len() as f64);
             let estimate = per_column * path.len() as f64;
-            if estimate >= AUTO_FFT_MIN_NNZ as f64 {
+            let choice = policy::choose(&policy::PolicyInputs {
+                nnz: estimate,
+                fft_cells: Some(fft_lattice_cells(map, path, r, p)),
+                needs_qp: false,
+                solver: match job.solver.solver {
+                    SolverChoice::FirstOrder => Some(SolverKind::FirstOrder),
+                    SolverChoice::Qp => Some(SolverKind::Qp),
+                    SolverChoice::Auto => None,
+                },
+            });
+            if choice.operator == policy::OperatorKind::Fft {
                 warnings.push(format!(
-                    "operator auto: about {estimate:.2e} non-zeros in R, so products use the \
-                     matrix-free FFT operator (operator = \"sparse\" assembles R)"
+                    "operator auto: about {estimate:.2e} non-zeros in R; the FFT operator is \
+                     predicted faster ({:.2} s against {:.2} s first-order with R, {:.2} s QP), \
+                     so products use it (operator = \"sparse\" assembles R)",
+                    choice.first_order_fft_s, choice.first_order_sparse_s, choice.qp_s
                 ));
                 Ok(Some(p))
             } else {
@@ -400,6 +415,20 @@ fn fft_pitch(
             }
         }
     }
+}
+
+/// Cells of the FFT operator's lattice (pitch `pitch` mm) for `map` and `path`, padded by the
+/// TIF's support radius `radius` mm on every side: the cost model's size.
+fn fft_lattice_cells(map: &HeightMap, path: &DwellPath, radius: f64, pitch: f64) -> f64 {
+    let xs = map.x_mm().iter().chain(path.x_mm());
+    let ys = map.y_mm().iter().chain(path.y_mm());
+    let span = |v: &mut dyn Iterator<Item = &f64>| {
+        let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+        ((hi - lo).max(0.0) + 2.0 * radius) / pitch + 1.0
+    };
+    span(&mut xs.into_iter()) * span(&mut ys.into_iter())
 }
 
 /// A warning when the TIF's footprint (twice its support radius) is wider than the map in both
