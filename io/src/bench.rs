@@ -10,10 +10,10 @@
 use crate::error::Result;
 use crate::job::Job;
 use crate::pipeline;
+use preston_solver::dwell::precond::DwellLattice;
 use preston_solver::dwell::{
     self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
 };
-use preston_solver::dwell::precond::DwellLattice;
 use preston_solver::dwell::{policy, SolverKind};
 use preston_solver::influence::fft::FftOperator;
 use preston_solver::influence::InfluenceMatrix;
@@ -115,7 +115,9 @@ pub fn generated_problem_with(
             &g.tif,
         )?;
         let lattice = DwellLattice::detect(g.path.x_mm(), g.path.y_mm());
-        return Ok(Problem::matrix_free(op, g.z_nm, g.bounds, 0.0, 0.0)?.with_dwell_lattice(lattice)?);
+        return Ok(
+            Problem::matrix_free(op, g.z_nm, g.bounds, 0.0, 0.0)?.with_dwell_lattice(lattice)?
+        );
     }
     let r = InfluenceMatrix::assemble(
         &g.x_mm,

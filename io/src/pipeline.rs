@@ -9,12 +9,10 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::dwell::{
-    self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice,
-};
-use preston_solver::edge;
 use preston_solver::dwell::precond::DwellLattice;
+use preston_solver::dwell::{self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice};
 use preston_solver::dwell::{policy, SolverKind};
+use preston_solver::edge;
 use preston_solver::influence::fft::FftOperator;
 use preston_solver::influence::surface::assemble_on_surface;
 use preston_solver::influence::InfluenceMatrix;

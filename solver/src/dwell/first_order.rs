@@ -59,8 +59,8 @@
 //! happens inside the iteration loop.
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
-use super::with_operator;
 use super::precond::{CirculantPreconditioner, DwellLattice};
+use super::with_operator;
 use super::{
     DwellBounds, FirstOrderMethod, Preconditioner, Problem, Settings, Solution, SolverKind, Status,
 };

@@ -149,7 +149,10 @@ mod tests {
             needs_qp: true,
             ..inputs(9.0e6, Some(1.2e5))
         });
-        assert_eq!((q.operator, q.solver), (OperatorKind::Sparse, SolverKind::Qp));
+        assert_eq!(
+            (q.operator, q.solver),
+            (OperatorKind::Sparse, SolverKind::Qp)
+        );
     }
 
     #[test]

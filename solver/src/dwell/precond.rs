@@ -266,7 +266,8 @@ impl CirculantPreconditioner {
     /// `buf` (row-major) -> its 2-D DFT in `buf_t` (transposed, `kx fy + ky`).
     fn forward(&mut self) {
         let (fx, fy) = (self.fx, self.fy);
-        self.fft_x.process_with_scratch(&mut self.buf, &mut self.scratch);
+        self.fft_x
+            .process_with_scratch(&mut self.buf, &mut self.scratch);
         transpose(&self.buf, &mut self.buf_t, fx, fy);
         self.fft_y
             .process_with_scratch(&mut self.buf_t, &mut self.scratch);
