@@ -1,8 +1,10 @@
 //! The first-order dwell solver against the QP, its certificate, and its determinism.
 
 use preston::solver::dwell::certificate::{ConvergenceCriterion, GapBoundReason};
+use preston::solver::dwell::precond::DwellLattice;
 use preston::solver::dwell::{
-    self, DwellBounds, FeedLimits, FirstOrderMethod, Problem, Settings, SolverChoice, Status,
+    self, DwellBounds, FeedLimits, FirstOrderMethod, Preconditioner, Problem, Settings,
+    SolverChoice, Status,
 };
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::observer::Silent;
@@ -68,6 +70,73 @@ fn sized_problem(nx: usize, ny: usize, seed: u64, v_min: f64, rho: f64, lambda: 
     };
     let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
     Problem::new(r, z, bounds, rho, lambda).unwrap()
+}
+
+/// As [`sized_problem`], telling the problem its dwell points' lattice.
+fn lattice_problem(nx: usize, ny: usize, seed: u64, v_min: f64) -> Problem {
+    let (_, _, _, path, _) = case(nx, ny, seed);
+    let lattice = DwellLattice::detect(path.x_mm(), path.y_mm());
+    assert!(lattice.is_some(), "the raster is a lattice");
+    sized_problem(nx, ny, seed, v_min, 0.0, 0.0)
+        .with_dwell_lattice(lattice)
+        .unwrap()
+}
+
+fn circulant_newton_cg() -> Settings {
+    Settings {
+        preconditioner: Preconditioner::Circulant,
+        ..first_order(FirstOrderMethod::NewtonCg)
+    }
+}
+
+#[test]
+fn circulant_preconditioned_newton_cg_reaches_the_qp_optimum() {
+    for v_min in [0.0, 300.0] {
+        let p = lattice_problem(25, 15, 5, v_min);
+        let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
+        let fo = dwell::solve(&p, &circulant_newton_cg(), &Silent).unwrap();
+        assert!(
+            fo.status.is_converged(),
+            "{:?} after {}",
+            fo.status,
+            fo.iterations
+        );
+        assert!(p.bounds().max_violation_s(&fo.dwell_s) == 0.0);
+        let (fq, ff) = (
+            full_objective(&p, &qp.dwell_s),
+            full_objective(&p, &fo.dwell_s),
+        );
+        let rel = (ff - fq).abs() / fq.abs().max(1e-300);
+        assert!(
+            rel < AGREE_REL_TOL,
+            "v_min {v_min}: {ff} vs QP {fq}: rel {rel:e}"
+        );
+    }
+}
+
+#[test]
+fn circulant_preconditioned_newton_cg_is_independent_of_the_thread_count() {
+    let p = lattice_problem(150, 120, 17, 300.0);
+    assert!(p.m() + p.n() > 20_000);
+    let s = Settings {
+        first_order_max_iterations: 20,
+        ..circulant_newton_cg()
+    };
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| dwell::solve(&p, &s, &Silent).unwrap())
+    };
+    let one = run(1);
+    let two = run(2);
+    assert!(one
+        .dwell_s
+        .iter()
+        .zip(&two.dwell_s)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+    assert_eq!(one.iterations, two.iterations);
 }
 
 fn settings(choice: SolverChoice) -> Settings {

@@ -243,7 +243,7 @@ fn operator_fft_refuses_what_it_cannot_serve() {
 fn operator_auto_picks_fft_when_r_would_be_large() {
     // A 20 x 20 mm map at 0.1 mm (40,401 points) and a 0.4 mm raster (6,561 dwell points) with a
     // 6 mm Gaussian: auto estimates 7.4e7 non-zeros (a full disc per dwell point; the border ones
-    // see less), above the 5e7 at which it turns to FFT.
+    // see less) on a lattice of about 1e5 cells: the cost models predict FFT products far cheaper.
     let dir = tempfile::tempdir().unwrap();
     let mut text = String::from("x_mm,y_mm,z_nm\n");
     for iy in 0..201 {

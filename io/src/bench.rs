@@ -10,9 +10,11 @@
 use crate::error::Result;
 use crate::job::Job;
 use crate::pipeline;
+use preston_solver::dwell::precond::DwellLattice;
 use preston_solver::dwell::{
     DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
 };
+use preston_solver::dwell::{policy, SolverKind};
 use preston_solver::edge::{EdgeMethod, EdgeSettings};
 use preston_solver::influence::fft::FftOperator;
 use preston_solver::influence::surface::TifFrame;
@@ -115,7 +117,10 @@ pub fn generated_problem_with(
             MAP_PITCH_MM,
             &g.tif,
         )?;
-        return Ok(Problem::matrix_free(op, g.z_nm, g.bounds, 0.0, 0.0)?);
+        let lattice = DwellLattice::detect(g.path.x_mm(), g.path.y_mm());
+        return Ok(
+            Problem::matrix_free(op, g.z_nm, g.bounds, 0.0, 0.0)?.with_dwell_lattice(lattice)?
+        );
     }
     let r = InfluenceMatrix::assemble(
         &g.x_mm,
@@ -125,7 +130,8 @@ pub fn generated_problem_with(
         &g.tif,
         &Silent,
     )?;
-    Ok(Problem::new(r, g.z_nm, g.bounds, 0.0, 0.0)?)
+    let lattice = DwellLattice::detect(g.path.x_mm(), g.path.y_mm());
+    Ok(Problem::new(r, g.z_nm, g.bounds, 0.0, 0.0)?.with_dwell_lattice(lattice)?)
 }
 
 /// The generated inputs with about `n_target` dwell points (see the module documentation).
@@ -212,8 +218,8 @@ pub fn run_generated(
 ) -> Result<BenchRow> {
     let start = Instant::now();
     let g = generated_inputs(n_target, 1)?;
-    // The generated problem through the set-up stage: no edge model, the assembled `R` unless the
-    // FFT operator is asked for.
+    // The generated problem through the set-up stage: no edge model, the operator `auto` gives
+    // this problem's size (or the one asked for).
     let choices = Choices {
         feed: FeedLimits {
             v_max_mm_per_min: V_MAX_MM_PER_MIN,
@@ -226,8 +232,8 @@ pub fn run_generated(
         settings: Settings {
             solver,
             operator: match settings.operator {
-                OperatorChoice::Fft => OperatorChoice::Fft,
-                OperatorChoice::Auto | OperatorChoice::Sparse => OperatorChoice::Sparse,
+                OperatorChoice::Auto => auto_operator(n_target, solver, settings.min_time),
+                o => o,
             },
             ..settings.clone()
         },
@@ -279,6 +285,32 @@ pub fn run_generated(
         status: crate::report::status_name(sol.status),
         peak_memory_mib: peak_memory_mib(),
     })
+}
+
+/// The operator `operator = "auto"` gives the generated problem with about `n_target` dwell
+/// points under `solver` ([`policy::choose`], as the pipeline decides it for a job).
+pub fn auto_operator(n_target: usize, solver: SolverChoice, min_time: bool) -> OperatorChoice {
+    let radius = 3.0 * TIF_SIGMA_MM;
+    let dwell_side = (n_target as f64).sqrt() * DWELL_PITCH_MM;
+    let map_side = (dwell_side - 2.0 * radius).max(4.0 * MAP_PITCH_MM);
+    let map_points = (map_side / MAP_PITCH_MM + 1.0).powi(2);
+    let per_column =
+        (std::f64::consts::PI * radius * radius / (MAP_PITCH_MM * MAP_PITCH_MM)).min(map_points);
+    let cells = ((dwell_side + 2.0 * radius) / MAP_PITCH_MM + 1.0).powi(2);
+    let choice = policy::choose(&policy::PolicyInputs {
+        nnz: per_column * n_target as f64,
+        fft_cells: Some(cells),
+        needs_qp: min_time,
+        solver: match solver {
+            SolverChoice::Qp => Some(SolverKind::Qp),
+            SolverChoice::FirstOrder => Some(SolverKind::FirstOrder),
+            SolverChoice::Auto => None,
+        },
+    });
+    match choice.operator {
+        policy::OperatorKind::Fft => OperatorChoice::Fft,
+        policy::OperatorKind::Sparse => OperatorChoice::Sparse,
+    }
 }
 
 /// Runs a job file (the sample job) through the whole pipeline with `solver`.

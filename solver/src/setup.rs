@@ -18,8 +18,10 @@
 use crate::dwell::accel::{self, AccelLimits, AccelReport};
 use crate::dwell::{
     self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution, SolverChoice,
-    Status, AUTO_FFT_MIN_NNZ,
+    Status,
 };
+use crate::dwell::precond::DwellLattice;
+use crate::dwell::{policy, SolverKind};
 use crate::edge::{self, EdgeSettings};
 use crate::error::{Error, Result};
 use crate::influence::curvature::assemble_curvature_dependent;
@@ -525,9 +527,9 @@ impl Setup {
     }
 
     /// How `R` is held for the problem rows `rows` (`operator` of the settings): `fft` with
-    /// inputs it cannot serve is an error naming why; `auto` takes the FFT operator when `R`
-    /// would hold at least [`AUTO_FFT_MIN_NNZ`] non-zeros, the map fills its lattice and
-    /// nothing blocks it (a warning says so), the assembled matrix otherwise.
+    /// inputs it cannot serve is an error naming why; `auto` takes the FFT operator when the
+    /// cost models of [`policy::choose`] predict it faster than the assembled `R`, the map fills
+    /// its lattice and nothing blocks it (a warning says so), the assembled matrix otherwise.
     pub fn operator_plan(
         &self,
         rows: &HeightMap,
@@ -566,10 +568,22 @@ impl Setup {
                 let r = self.tif.support_radius_mm();
                 let per_column = (std::f64::consts::PI * r * r / (p * p)).min(rows.len() as f64);
                 let estimate = per_column * self.path.len() as f64;
-                if estimate >= AUTO_FFT_MIN_NNZ as f64 {
+                let choice = policy::choose(&policy::PolicyInputs {
+                    nnz: estimate,
+                    fft_cells: Some(fft_lattice_cells(rows, &self.path, r, p)),
+                    needs_qp: false,
+                    solver: match self.settings.solver {
+                        SolverChoice::FirstOrder => Some(SolverKind::FirstOrder),
+                        SolverChoice::Qp => Some(SolverKind::Qp),
+                        SolverChoice::Auto => None,
+                    },
+                });
+                if choice.operator == policy::OperatorKind::Fft {
                     warnings.push(format!(
-                        "operator auto: about {estimate:.2e} non-zeros in R, so products use the \
-                         matrix-free FFT operator (operator = \"sparse\" assembles R)"
+                        "operator auto: about {estimate:.2e} non-zeros in R; the FFT operator is \
+                         predicted faster ({:.2} s against {:.2} s first-order with R, {:.2} s QP), \
+                         so products use it (operator = \"sparse\" assembles R)",
+                        choice.first_order_fft_s, choice.first_order_sparse_s, choice.qp_s
                     ));
                     Ok(OperatorPlan::Fft { pitch_mm: p })
                 } else {
@@ -632,6 +646,9 @@ impl Setup {
             Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
             None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
         }
+        .and_then(|p| {
+            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+        })
         .at(SetupInput::Job)?;
         Ok(Built {
             problem,
@@ -742,6 +759,20 @@ impl Setup {
             run,
         })
     }
+}
+
+
+/// Cells of the FFT operator's lattice (pitch `pitch` mm) for `map` and `path`, padded by the
+/// TIF's support radius `radius` mm on every side: the cost model's size.
+fn fft_lattice_cells(map: &HeightMap, path: &DwellPath, radius: f64, pitch: f64) -> f64 {
+    let span = |v: &mut dyn Iterator<Item = &f64>| {
+        let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+        ((hi - lo).max(0.0) + 2.0 * radius) / pitch + 1.0
+    };
+    span(&mut map.x_mm().iter().chain(path.x_mm()))
+        * span(&mut map.y_mm().iter().chain(path.y_mm()))
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 
 use super::solve::FirstOrderMethodArg;
 use preston_io::bench::{self, BenchRow};
-use preston_solver::dwell::{Settings, SolverChoice};
+use preston_solver::dwell::{OperatorChoice, Settings, SolverChoice};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,6 +17,8 @@ pub enum BenchSolvers {
     FirstOrder,
     /// Only the first-order solver on the matrix-free FFT operator (nnz shown as 0).
     FirstOrderFft,
+    /// The default: `solver = "auto"`, `operator = "auto"` (the cost-model policy).
+    Auto,
 }
 
 /// Arguments of `preston bench`.
@@ -61,11 +63,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(m) = args.first_order_method {
         settings.first_order_method = m.into();
     }
+    // The named solvers run on the assembled R (FFT: first-order-fft); `auto` leaves the
+    // operator to the policy as `preston solve` does.
+    settings.operator = if args.solvers == BenchSolvers::Auto {
+        OperatorChoice::Auto
+    } else {
+        OperatorChoice::Sparse
+    };
     settings.validate()?;
     let solvers: Vec<SolverChoice> = match args.solvers {
         BenchSolvers::Both => vec![SolverChoice::Qp, SolverChoice::FirstOrder],
         BenchSolvers::Qp => vec![SolverChoice::Qp],
         BenchSolvers::FirstOrder | BenchSolvers::FirstOrderFft => vec![SolverChoice::FirstOrder],
+        BenchSolvers::Auto => vec![SolverChoice::Auto],
     };
     let fft = args.solvers == BenchSolvers::FirstOrderFft;
     let mut rows: Vec<BenchRow> = Vec::new();

@@ -59,8 +59,11 @@
 //! happens inside the iteration loop.
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
+use super::precond::{CirculantPreconditioner, DwellLattice};
 use super::with_operator;
-use super::{DwellBounds, FirstOrderMethod, Problem, Settings, Solution, SolverKind, Status};
+use super::{
+    DwellBounds, FirstOrderMethod, Preconditioner, Problem, Settings, Solution, SolverKind, Status,
+};
 use crate::error::{Error, Result};
 use crate::influence::operator::{fill_and_sum, fixed_sum, LinearOperator};
 use crate::observer::{IterationInfo, Observer, Stage};
@@ -116,7 +119,7 @@ pub fn solve(
     }
     let t0 = Instant::now();
     let res = with_operator(problem, |op| {
-        minimise(
+        minimise_with(
             op,
             problem.z_nm(),
             problem.bounds(),
@@ -125,6 +128,7 @@ pub fn solve(
             settings,
             start,
             observer,
+            problem.dwell_lattice(),
         )
     })?;
     let mut dwell_s = res.dwell_s;
@@ -308,6 +312,26 @@ pub fn minimise(
     start: Option<&[f64]>,
     observer: &dyn Observer,
 ) -> Result<FirstOrderResult> {
+    minimise_with(
+        op, z_nm, bounds, rho, lambda, settings, start, observer, None,
+    )
+}
+
+/// As [`minimise`], with the dwell points' lattice when they lie on one: Newton-CG then
+/// preconditions its conjugate gradients with the circulant model of `R^T R`
+/// ([`super::precond`]) unless the settings ask for Jacobi scaling only.
+#[allow(clippy::too_many_arguments)]
+pub fn minimise_with(
+    op: &dyn LinearOperator,
+    z_nm: &[f64],
+    bounds: &DwellBounds,
+    rho: f64,
+    lambda: f64,
+    settings: &Settings,
+    start: Option<&[f64]>,
+    observer: &dyn Observer,
+    lattice: Option<&DwellLattice>,
+) -> Result<FirstOrderResult> {
     if op.nrows() + op.ncols() < SMALL_PROBLEM && rayon::current_num_threads() > 1 {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
@@ -316,13 +340,20 @@ pub fn minimise(
                 stage: "first-order thread pool",
                 why: e.to_string(),
             })?;
-        return pool
-            .install(|| minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer));
+        return pool.install(|| {
+            minimise_here(
+                op, z_nm, bounds, rho, lambda, settings, start, observer, lattice,
+            )
+        });
     }
     // Run on a worker of the pool: called from outside it, every parallel loop of the iteration
     // would be injected into the pool and waited for on a futex (a few microseconds each, and
     // one thread more than there are workers competing for the cores).
-    rayon::scope(|_| minimise_here(op, z_nm, bounds, rho, lambda, settings, start, observer))
+    rayon::scope(|_| {
+        minimise_here(
+            op, z_nm, bounds, rho, lambda, settings, start, observer, lattice,
+        )
+    })
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -335,6 +366,7 @@ fn minimise_here(
     settings: &Settings,
     start: Option<&[f64]>,
     observer: &dyn Observer,
+    lattice: Option<&DwellLattice>,
 ) -> Result<FirstOrderResult> {
     settings.validate()?;
     let (m, n) = (op.nrows(), op.ncols());
@@ -455,13 +487,27 @@ fn minimise_here(
         began,
         kkt_scale,
     };
+    let lattice = lattice.filter(|l| l.len() == n);
     let (status, x, it, cert) = match settings.first_order_method {
         FirstOrderMethod::Fista => {
             fista(&data, x, &mut work, bounds, lambda_hat, &limits, observer)
         }
         FirstOrderMethod::NewtonCg => {
             let lip = lambda_hat * NEWTON_L_SAFETY;
-            newton_cg(&data, x, &mut work, bounds, lip, &limits, observer)
+            let mut precond = match (settings.preconditioner, lattice) {
+                (Preconditioner::Jacobi, _) | (_, None) => None,
+                (Preconditioner::Circulant, Some(l)) => circulant(&data, l, &mut work),
+            };
+            newton_cg(
+                &data,
+                x,
+                &mut work,
+                bounds,
+                lip,
+                &limits,
+                observer,
+                precond.as_mut(),
+            )
         }
     };
     observer.finish(Stage::Solve);
@@ -615,7 +661,24 @@ const ARMIJO: f64 = 1e-4;
 /// Halvings of the projected line search at most.
 const MAX_HALVINGS: usize = 40;
 
-/// Projected Newton-CG from the feasible point `x` (the steps are in the module documentation).
+/// The circulant preconditioner for `data`'s operator on `lattice`, from the column of `R^T R`
+/// at the lattice's central point (one product with `R` and one with `R^T`).
+fn circulant(
+    data: &Data<'_>,
+    lattice: &DwellLattice,
+    work: &mut Work,
+) -> Option<CirculantPreconditioner> {
+    let c = CirculantPreconditioner::probe_point(lattice);
+    work.t.iter_mut().for_each(|t| *t = 0.0);
+    *work.t.get_mut(c)? = 1.0;
+    data.op.apply(&work.t, &mut work.rt);
+    data.op.apply_transpose(&work.rt, &mut work.g);
+    CirculantPreconditioner::new(lattice, &work.g, data.lambda)
+}
+
+/// Projected Newton-CG from the feasible point `x` (the steps are in the module documentation),
+/// its conjugate gradients preconditioned by `precond` when given.
+#[allow(clippy::too_many_arguments)]
 fn newton_cg(
     data: &Data<'_>,
     mut x: Vec<f64>,
@@ -624,19 +687,22 @@ fn newton_cg(
     lip: f64,
     limits: &Limits,
     observer: &dyn Observer,
+    mut precond: Option<&mut CirculantPreconditioner>,
 ) -> Outcome {
     let n = x.len();
     let rho = data.rho;
+    let inv_s: Vec<f64> = data.s.iter().map(|s| 1.0 / s).collect();
     let mut grad = vec![0.0; n];
     let mut free = vec![true; n];
     let mut d = vec![0.0; n];
     let mut r = vec![0.0; n];
+    let mut zr = vec![0.0; n];
     let mut p = vec![0.0; n];
     let mut hp = vec![0.0; n];
     let mut x_new = vec![0.0; n];
     let mut status = Status::MaxIterations;
-    let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
     let mut it = 1;
+    let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
     while it < limits.max_it {
         let it_before = it;
         observer.iteration(&IterationInfo {
@@ -667,8 +733,14 @@ fn newton_cg(
         r.par_iter_mut()
             .zip(grad.par_iter().zip(free.par_iter()))
             .for_each(|(r, (g, f))| *r = if *f { -g } else { 0.0 });
-        p.copy_from_slice(&r);
+        let mut precondition = |r: &[f64], zr: &mut [f64]| match precond.as_deref_mut() {
+            Some(m) => m.apply_scaled(r, &inv_s, &free, zr),
+            None => zr.copy_from_slice(r),
+        };
+        precondition(&r, &mut zr);
+        p.copy_from_slice(&zr);
         let mut rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
+        let mut rz = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
         let target = rs.sqrt() * cert.kkt.sqrt().min(0.5);
         let mut best_decrease = 0.0_f64;
         for _ in 0..MAX_CG_STEPS {
@@ -683,13 +755,13 @@ fn newton_cg(
                 }
             });
             let php = fixed_sum(n, &mut work.partials, |j| p[j] * hp[j]);
-            if !(php > 0.0) {
+            if !(php > 0.0 && rz > 0.0) {
                 break;
             }
-            let a = rs / php;
-            // Model decrease of this step: 0.5 a rs (More & Toraldo 1991: stop CG when a step
+            let a = rz / php;
+            // Model decrease of this step: 0.5 a r'z (More & Toraldo 1991: stop CG when a step
             // gains less than a fraction of the best step).
-            let decrease = 0.5 * a * rs;
+            let decrease = 0.5 * a * rz;
             best_decrease = best_decrease.max(decrease);
             d.par_iter_mut()
                 .zip(p.par_iter())
@@ -697,16 +769,17 @@ fn newton_cg(
             r.par_iter_mut()
                 .zip(hp.par_iter())
                 .for_each(|(r, h)| *r -= a * h);
-            let rs_new = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
+            rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
             if decrease <= CG_STALL * best_decrease {
-                rs = rs_new;
                 break;
             }
-            let beta = rs_new / rs;
-            rs = rs_new;
+            precondition(&r, &mut zr);
+            let rz_new = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
+            let beta = rz_new / rz;
+            rz = rz_new;
             p.par_iter_mut()
-                .zip(r.par_iter())
-                .for_each(|(p, r)| *p = r + beta * *p);
+                .zip(zr.par_iter())
+                .for_each(|(p, z)| *p = z + beta * *p);
         }
         d.par_iter_mut()
             .zip(grad.par_iter().zip(free.par_iter()))

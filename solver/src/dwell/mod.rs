@@ -8,6 +8,8 @@ pub mod accel;
 pub mod bounds;
 pub mod certificate;
 pub mod first_order;
+pub mod policy;
+pub mod precond;
 pub mod qp;
 
 pub use bounds::{DwellBounds, FeedLimits};
@@ -28,6 +30,7 @@ pub struct Problem {
     bounds: DwellBounds,
     rho: f64,
     lambda: f64,
+    dwell_lattice: Option<Arc<precond::DwellLattice>>,
 }
 
 /// How a problem holds `R`: assembled, or as a matrix-free FFT operator (regular grids).
@@ -53,14 +56,14 @@ impl Influence {
     }
 }
 
-/// How `R` is held and applied: `auto` uses the FFT operator where the sparse matrix would be
-/// large and the inputs allow it (see the pipeline in the `preston-io` crate).
+/// How `R` is held and applied: `auto` uses the FFT operator where it is predicted faster and
+/// the inputs allow it (see the pipeline in the `preston-io` crate).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum OperatorChoice {
     /// The FFT operator when map and dwell points lie on one lattice, the TIF is applied in the
-    /// plane, the first-order solver runs and the assembled `R` would hold at least
-    /// [`AUTO_FFT_MIN_NNZ`] non-zeros; the assembled matrix otherwise.
+    /// plane, nothing needs the QP and the cost models of [`policy`] predict it faster than the
+    /// assembled matrix (and the QP); the assembled matrix otherwise.
     #[default]
     Auto,
     /// Assemble the sparse influence matrix `R`.
@@ -69,10 +72,6 @@ pub enum OperatorChoice {
     /// points on one regular lattice and the first-order solver.
     Fft,
 }
-
-/// `operator = "auto"` uses the FFT operator from this many (estimated) non-zeros of `R` on:
-/// about 1.6 GB for the matrix and the row-major copy the first-order solver keeps.
-pub const AUTO_FFT_MIN_NNZ: usize = 50_000_000;
 
 impl Problem {
     /// Builds the problem; `z_nm` has one entry per row of `R`, the bounds one per column,
@@ -147,7 +146,30 @@ impl Problem {
             bounds,
             rho,
             lambda,
+            dwell_lattice: None,
         })
+    }
+
+    /// The same problem knowing that its dwell points lie on `lattice` (one cell per dwell
+    /// point, in order; see [`precond::DwellLattice::detect`]): the first-order solver then
+    /// preconditions with the circulant model of `R^T R`. A lattice of another length is an error.
+    pub fn with_dwell_lattice(mut self, lattice: Option<precond::DwellLattice>) -> Result<Self> {
+        if let Some(l) = &lattice {
+            if l.len() != self.n() {
+                return Err(Error::LengthMismatch {
+                    what: "dwell lattice",
+                    got: l.len(),
+                    expected: self.n(),
+                });
+            }
+        }
+        self.dwell_lattice = lattice.map(Arc::new);
+        Ok(self)
+    }
+
+    /// The dwell points' lattice, when they lie on one and the caller said so.
+    pub fn dwell_lattice(&self) -> Option<&precond::DwellLattice> {
+        self.dwell_lattice.as_deref()
     }
 
     /// The assembled influence matrix `R` (m x n); `None` for a matrix-free problem.
@@ -263,13 +285,15 @@ impl Problem {
 
     /// The same problem with other weights (used by the minimum-time mode).
     pub fn with_weights(&self, rho: f64, lambda: f64) -> Result<Self> {
-        Self::build(
+        let mut p = Self::build(
             self.influence.clone(),
             self.z_nm.clone(),
             self.bounds.clone(),
             rho,
             lambda,
-        )
+        )?;
+        p.dwell_lattice.clone_from(&self.dwell_lattice);
+        Ok(p)
     }
 
     /// The problem without the listed columns (sorted, unique), and the kept column indices.
@@ -319,7 +343,8 @@ impl Problem {
             DwellBounds::new(lower, upper)?,
             self.rho,
             self.lambda,
-        )?;
+        )?
+        .with_dwell_lattice(self.dwell_lattice().and_then(|l| l.subset(&kept)))?;
         Ok((problem, kept))
     }
 
@@ -395,34 +420,31 @@ pub enum SolverChoice {
     Qp,
     /// Accelerated projected gradient ([`first_order`]).
     FirstOrder,
-    /// Choose by problem size: the first-order solver above [`AUTO_FIRST_ORDER_MIN_DWELL`] dwell
-    /// points or [`AUTO_FIRST_ORDER_MIN_NNZ`] non-zeros, the QP otherwise and always in
+    /// Choose by the cost models of [`policy`] (see [`SolverChoice::resolve`]); always the QP in
     /// minimum-time mode.
     #[default]
     Auto,
 }
 
-/// `auto` picks the first-order solver from this many dwell points on.
-pub const AUTO_FIRST_ORDER_MIN_DWELL: usize = 5_000;
-/// `auto` picks the first-order solver from this many non-zeros of `R` on.
-pub const AUTO_FIRST_ORDER_MIN_NNZ: usize = 5_000_000;
-
 impl SolverChoice {
-    /// The solver this choice runs on `problem` (resolves `auto`).
+    /// The solver this choice runs on `problem` (resolves `auto` by the cost models of
+    /// [`policy`]: the first-order solver on a matrix-free problem, the QP in minimum-time mode,
+    /// otherwise the one predicted faster, the QP where it is predicted under
+    /// [`policy::QP_CHEAP_S`]).
     pub fn resolve(self, problem: &Problem, min_time: bool) -> SolverKind {
         match self {
             SolverChoice::Qp => SolverKind::Qp,
             SolverChoice::FirstOrder => SolverKind::FirstOrder,
+            SolverChoice::Auto if min_time => SolverKind::Qp,
+            SolverChoice::Auto if problem.fft_operator().is_some() => SolverKind::FirstOrder,
             SolverChoice::Auto => {
-                if !min_time
-                    && (problem.n() >= AUTO_FIRST_ORDER_MIN_DWELL
-                        || problem.nnz() >= AUTO_FIRST_ORDER_MIN_NNZ
-                        || problem.fft_operator().is_some())
-                {
-                    SolverKind::FirstOrder
-                } else {
-                    SolverKind::Qp
-                }
+                policy::choose(&policy::PolicyInputs {
+                    nnz: problem.nnz() as f64,
+                    fft_cells: None,
+                    needs_qp: false,
+                    solver: None,
+                })
+                .solver
             }
         }
     }
@@ -469,6 +491,23 @@ pub struct Settings {
     /// How `R` is held: assembled, or the matrix-free FFT operator ([`OperatorChoice`]). Read
     /// where the problem is built; the solvers follow the problem they are given.
     pub operator: OperatorChoice,
+    /// First-order solver: the preconditioner of Newton-CG's conjugate gradients
+    /// ([`Preconditioner`]).
+    pub preconditioner: Preconditioner,
+}
+
+/// The preconditioner of the projected Newton-CG's conjugate gradients.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preconditioner {
+    /// Jacobi scaling alone (the diagonal of the Hessian): the default.
+    #[default]
+    Jacobi,
+    /// The circulant model of `R^T R` diagonalised by the FFT ([`precond`]) where the dwell
+    /// points lie on a lattice (Jacobi scaling otherwise). Measured slower than FISTA on the
+    /// generated problems (docs/preconditioning.md): the projection onto the bounds spoils the
+    /// long-range steps it produces.
+    Circulant,
 }
 
 /// The iteration of the first-order solver ([`first_order`]). Both use only products with `R`
@@ -502,6 +541,7 @@ impl Default for Settings {
             first_order_max_iterations: 20_000,
             first_order_method: FirstOrderMethod::default(),
             operator: OperatorChoice::default(),
+            preconditioner: Preconditioner::default(),
         }
     }
 }
