@@ -148,7 +148,7 @@ fn smooth_size(n: usize) -> usize {
     loop {
         let mut r = k;
         for p in [2, 3, 5] {
-            while r % p == 0 {
+            while r.is_multiple_of(p) {
                 r /= p;
             }
         }
