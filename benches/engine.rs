@@ -65,7 +65,7 @@ fn sample_job(c: &mut Criterion) {
     let job = Job::load(&job_path).unwrap();
     // Assembly alone, on the sample job's map, dwell raster and measured TIF.
     let prepared = pipeline::prepare(&job, &job_path, &Silent).unwrap();
-    let (map, path) = (&prepared.map, &prepared.path);
+    let (map, path) = (prepared.map(), prepared.path());
     group.throughput(Throughput::Elements(prepared.problem.nnz() as u64));
     group.bench_function("assembly", |b| {
         b.iter(|| {
@@ -74,7 +74,7 @@ fn sample_job(c: &mut Criterion) {
                 map.y_mm(),
                 path.x_mm(),
                 path.y_mm(),
-                &prepared.tif,
+                prepared.tif(),
                 &Silent,
             )
             .unwrap()
