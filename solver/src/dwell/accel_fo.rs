@@ -289,17 +289,6 @@ impl Loop<'_> {
         let (mut rx, mut rx_prev) = (vec![0.0; m], vec![0.0; m]);
         let (mut ry, mut rtrial) = (vec![0.0; m], vec![0.0; m]);
         let mut d = vec![0.0; n];
-        let (mut d_r, mut pen_diag, mut pen_off) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-        let mut diag = vec![0.0; n];
-        // Columns that barely reach the map would let the step grow without bound as the scale
-        // `lip` grows: their scale is floored at a small fraction of the mean.
-        let mean_cn = self.cn.iter().sum::<f64>() / n.max(1) as f64;
-        let d_floor = if mean_cn > 0.0 && mean_cn.is_finite() {
-            1e-3 * mean_cn
-        } else {
-            1.0
-        };
-        let mut tri = vec![0.0; 2 * n];
         let (mut lo, mut hi) = (vec![0.0; n], vec![0.0; n]);
         observer.start(Stage::Loop, limits.max_iterations as u64);
         while iterations < limits.max_iterations {
@@ -319,17 +308,16 @@ impl Loop<'_> {
                 } else {
                     2.0
                 };
-                d_r[j] = (self.cn[j] + self.lambda * dd).max(d_floor);
-                pen_diag[j] = 0.0;
-                pen_off[j] = 0.0;
+                d[j] = self.cn[j] + self.lambda * dd;
             }
             for row in &rows {
-                pen_diag[row.j + 1] += mu * row.p * row.p;
-                pen_diag[row.j] += mu * row.q * row.q;
-                pen_off[row.j] += mu * row.p * row.q;
+                d[row.j + 1] += mu * row.p * row.p;
+                d[row.j] += mu * row.q * row.q;
             }
-            for j in 0..n {
-                d[j] = d_r[j] + pen_diag[j];
+            for dj in d.iter_mut() {
+                if !(*dj > 0.0 && dj.is_finite()) {
+                    *dj = 1.0;
+                }
             }
             // FISTA on the subproblem, scaled metric d. `R x`, `R x_prev` and `R trial` are
             // kept, so that `R` at the extrapolated point is their combination: one product with
@@ -342,7 +330,6 @@ impl Loop<'_> {
             let mut beta = 0.0;
             let mut phi_x = f64::INFINITY;
             let mut first_pg = None;
-            let mut inner_done = false;
             lip = (0.5 * lip).max(1e-6);
             for _ in 0..MAX_INNER {
                 inner_total += 1;
@@ -364,7 +351,6 @@ impl Loop<'_> {
                     .sqrt();
                 let first = *first_pg.get_or_insert(pg);
                 if pg <= INNER_REDUCTION * first || pg == 0.0 {
-                    inner_done = true;
                     if beta != 0.0 {
                         std::mem::swap(&mut x, &mut yv);
                         std::mem::swap(&mut rx, &mut ry);
@@ -374,9 +360,8 @@ impl Loop<'_> {
                 // Backtracking step.
                 let phi_t = loop {
                     for j in 0..n {
-                        diag[j] = lip * d_r[j] + pen_diag[j];
+                        trial[j] = (yv[j] - g[j] / (lip * d[j])).clamp(lo[j], hi[j]);
                     }
-                    tridiagonal_step(&diag, &pen_off, &g, &yv, &lo, &hi, &mut tri, &mut trial);
                     self.op.apply(&trial, &mut rtrial);
                     let phi_t = self.value(&rtrial, &trial, None)
                         + Self::penalty(&rows, &y, mu, &trial, None);
@@ -384,17 +369,9 @@ impl Loop<'_> {
                     for j in 0..n {
                         let s = trial[j] - yv[j];
                         lin += g[j] * s;
-                        quad += diag[j] * s * s;
-                        if j + 1 < n {
-                            quad += 2.0 * pen_off[j] * s * (trial[j + 1] - yv[j + 1]);
-                        }
+                        quad += d[j] * s * s;
                     }
-                    // Accept when the model decreases and majorises the subproblem there.
-                    let model = lin + 0.5 * quad;
-                    if std::env::var("PRESTON_DEBUG_ACCEL2").is_ok() && iterations == 1 && inner_total < 5 {
-                        eprintln!("  lip {lip:.3e} lin {lin:.3e} quad {quad:.3e} dphi {:.3e} phi_y {phi_y:.6e}", phi_t - phi_y);
-                    }
-                    if (model <= 0.0 && phi_t <= phi_y + model + 1e-12 * phi_y.abs())
+                    if phi_t <= phi_y + lin + 0.5 * lip * quad + 1e-12 * phi_y.abs()
                         || lip > 1e12
                     {
                         break phi_t;
@@ -428,9 +405,6 @@ impl Loop<'_> {
                 mu *= 10.0;
             }
             prev_viol = viol;
-            if std::env::var("PRESTON_DEBUG_ACCEL").is_ok() {
-                eprintln!("outer {iterations}: f {f_new:.6e} viol {viol:.3e} mu {mu:.3e} lip {lip:.3e} inner_done {inner_done} tsum {:.4}", t.iter().sum::<f64>());
-            }
             observer.iteration(&IterationInfo {
                 iteration: iterations,
                 objective: f_new,
@@ -444,7 +418,7 @@ impl Loop<'_> {
             if feasible && best.as_ref().is_none_or(|(bf, _)| f_new < *bf) {
                 best = Some((f_new, t.clone()));
             }
-            if feasible && settled && inner_done {
+            if feasible && settled {
                 status = Status::Converged;
                 break;
             }
@@ -460,56 +434,6 @@ impl Loop<'_> {
             inner_iterations: inner_total,
             status,
         })
-    }
-}
-
-/// The step of the subproblem's quadratic model with the tridiagonal metric
-/// `M = diag(b) + offdiag(e)` (`e_j` couples `j` and `j + 1`): variables at a bound whose
-/// gradient pushes them out stay there; on the others `M_FF s_F = -g_F` is solved by the Thomas
-/// algorithm (couplings to fixed variables dropped); `out = clamp(y + s, lo, hi)` (Bertsekas'
-/// projected Newton step with `M` for the Hessian). `work` holds `2 n` values.
-#[allow(clippy::too_many_arguments)]
-fn tridiagonal_step(
-    b: &[f64],
-    e: &[f64],
-    g: &[f64],
-    y: &[f64],
-    lo: &[f64],
-    hi: &[f64],
-    work: &mut [f64],
-    out: &mut [f64],
-) {
-    let n = b.len();
-    let fixed = |j: usize| (y[j] <= lo[j] && g[j] > 0.0) || (y[j] >= hi[j] && g[j] < 0.0);
-    let (cp, dp) = work.split_at_mut(n);
-    let mut prev_c = 0.0;
-    let mut prev_d = 0.0;
-    for j in 0..n {
-        let fj = fixed(j);
-        let a = if j > 0 && !fj && !fixed(j - 1) {
-            e[j - 1]
-        } else {
-            0.0
-        };
-        let c = if j + 1 < n && !fj && !fixed(j + 1) {
-            e[j]
-        } else {
-            0.0
-        };
-        let rhs = if fj { 0.0 } else { -g[j] };
-        let bj = if fj { 1.0 } else { b[j] };
-        let m = bj - a * prev_c;
-        let m = if m > 0.0 { m } else { bj.max(f64::MIN_POSITIVE) };
-        cp[j] = c / m;
-        dp[j] = (rhs - a * prev_d) / m;
-        prev_c = cp[j];
-        prev_d = dp[j];
-    }
-    let mut next = 0.0;
-    for j in (0..n).rev() {
-        let s = dp[j] - cp[j] * next;
-        next = s;
-        out[j] = (y[j] + s).clamp(lo[j], hi[j]);
     }
 }
 
