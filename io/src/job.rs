@@ -19,8 +19,7 @@
 //! [machine]
 //! v_max_mm_per_min = 3000.0
 //! v_min_mm_per_min = 0.0
-//! a_max_mm_per_s2 = 500.0                # optional: acceleration limit
-//! accel_method = "first-order"           # optional: or "scp-qp" (the sequential QP reference)
+//! a_max_mm_per_s2 = 500.0                # optional: acceleration limit (SCP)
 //! corner_angle_deg = 60.0                # optional: lines split at turns sharper than this
 //!
 //! [objective]
@@ -44,7 +43,7 @@ use crate::error::{Error, Result};
 use crate::machine::NcSection;
 use crate::metrology::ApertureSpec;
 pub use crate::metrology::MapSource;
-use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
+use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::edge::EdgeSettings;
 use preston_solver::influence::surface::TifFrame;
@@ -137,17 +136,13 @@ pub struct MachineSection {
     /// Slowest feed, mm/min (0 = none).
     pub v_min_mm_per_min: Option<f64>,
     /// Acceleration limit along a line, mm/s^2: `|v_{j+1}^2 - v_j^2| <= 2 a_max s_j`, imposed by
-    /// `accel_method` ([`preston_solver::dwell::accel`]); none when absent.
+    /// sequential convex programming ([`preston_solver::dwell::accel`]); none when absent.
     #[serde(default)]
     pub a_max_mm_per_s2: Option<f64>,
     /// Turn angle, degrees, above which the path splits into lines (connecting moves carry no
     /// acceleration constraint, the machine stops there); default 60.
     #[serde(default)]
     pub corner_angle_deg: Option<f64>,
-    /// How the acceleration limit is imposed: `first-order` (default, scales to 1e5 points, any
-    /// operator) or `scp-qp` (the sequential QP reference, assembled `R` only).
-    #[serde(default)]
-    pub accel_method: Option<AccelMethod>,
 }
 
 /// Weights of the objective terms.
@@ -233,7 +228,6 @@ impl Job {
         let limits = AccelLimits {
             a_max_mm_per_s2: a,
             corner_angle_deg: self.corner_angle_deg(),
-            method: self.machine.accel_method.unwrap_or_default(),
             ..AccelLimits::default()
         };
         limits.validate()?;

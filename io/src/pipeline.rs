@@ -9,7 +9,6 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, ExecutedReport, Report};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{
     self, DwellBounds, OperatorChoice, Problem, Solution, SolverChoice, AUTO_FFT_MIN_NNZ,
 };
@@ -352,9 +351,9 @@ fn fft_pitch(
     } else if job
         .accel_limits()
         .map_err(|e| Error::engine(job_path, e))?
-        .is_some_and(|l| l.method == AccelMethod::ScpQp)
+        .is_some()
     {
-        Some("accel_method = \"scp-qp\" (its sequential QP needs R)")
+        Some("an acceleration limit (its sequential QP needs R)")
     } else if job.solver.min_time {
         Some("the minimum-time mode (it runs the QP)")
     } else if job.solver.solver == SolverChoice::Qp {
@@ -436,7 +435,7 @@ fn read_warm_start(path: &Path, n: usize) -> Result<Vec<f64>> {
 }
 
 /// Runs the solver on prepared inputs and builds the report. With `[machine] a_max_mm_per_s2`
-/// the acceleration limit is imposed by the job's `accel_method` ([`dwell::accel::solve`]);
+/// the acceleration limit is imposed by sequential convex programming ([`dwell::accel::solve`]);
 /// either way the report gets the machining time and the largest acceleration of the schedule.
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let warm = match &job.dwell.warm_start {

@@ -9,7 +9,6 @@ use preston_io::job::Job;
 use preston_io::pipeline;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
-use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::gcode::write_and_check;
@@ -55,26 +54,6 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
         match m {
             FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
             FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
-        }
-    }
-}
-
-/// Acceleration-limit method on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum AccelMethodArg {
-    /// Sequential convexification with an augmented Lagrangian and first-order subproblems
-    /// (operator products only; scales to 1e5 points; sparse or FFT operator).
-    FirstOrder,
-    /// Sequential convex programming with a Clarabel QP per iteration (the small-case reference;
-    /// needs the assembled R).
-    ScpQp,
-}
-
-impl From<AccelMethodArg> for AccelMethod {
-    fn from(m: AccelMethodArg) -> Self {
-        match m {
-            AccelMethodArg::FirstOrder => AccelMethod::FirstOrder,
-            AccelMethodArg::ScpQp => AccelMethod::ScpQp,
         }
     }
 }
@@ -182,12 +161,9 @@ pub struct Args {
     #[arg(long = "v-min", value_name = "MM_PER_MIN")]
     pub v_min_mm_per_min: Option<f64>,
     /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
-    /// the distance between consecutive dwell points.
+    /// the distance between consecutive dwell points (sequential convex programming).
     #[arg(long, value_name = "MM_PER_S2")]
     pub a_max_mm_per_s2: Option<f64>,
-    /// How the acceleration limit is imposed (default: the job's, else first-order).
-    #[arg(long, value_enum)]
-    pub accel_method: Option<AccelMethodArg>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
@@ -294,9 +270,6 @@ impl Args {
         }
         if let Some(c) = self.corner_angle_deg {
             job.machine.corner_angle_deg = Some(c);
-        }
-        if let Some(m) = self.accel_method {
-            job.machine.accel_method = Some(m.into());
         }
         if let Some(e) = self.edge {
             job.edge.method = e.into();
@@ -432,7 +405,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.rms_feed_limited_only_nm,
     ) {
         eprintln!(
-            "  acceleration limit {a} mm/s^2: {it} outer iterations, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
+            "  acceleration limit {a} mm/s^2: {it} SCP iterations, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
             r.rms_after_nm
         );
     }

@@ -47,24 +47,6 @@ pub struct AccelLimits {
     pub max_iterations: usize,
     /// Initial relative trust region `tau`: `|t_j - t_j^k| <= tau t_j^k`.
     pub trust_region: f64,
-    /// How the limit is imposed: the scalable first-order method (default) or the SCP with
-    /// Clarabel QPs (the reference).
-    pub method: AccelMethod,
-}
-
-/// The method that imposes the acceleration limit.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum AccelMethod {
-    /// Sequential convexification with an augmented Lagrangian on the linearised chain
-    /// constraints and accelerated projected-gradient subproblems that need only products with
-    /// `R` and `R^T` (assembled or FFT operator), then an exact feasibility repair
-    /// ([`super::accel_fo`]).
-    #[default]
-    FirstOrder,
-    /// Sequential convex programming with one Clarabel QP per iteration (needs the assembled
-    /// `R`; the small-case reference).
-    ScpQp,
 }
 
 impl Default for AccelLimits {
@@ -76,7 +58,6 @@ impl Default for AccelLimits {
             objective_tolerance: 1e-4,
             max_iterations: 50,
             trust_region: 0.5,
-            method: AccelMethod::default(),
         }
     }
 }
@@ -131,17 +112,13 @@ impl AccelLimits {
 /// What the acceleration-limited solve achieved, next to the feed-limited-only optimum.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AccelReport {
-    /// The method that imposed the limit.
-    #[serde(default)]
-    pub method: AccelMethod,
     /// The limit imposed, mm/s^2.
     pub a_max_mm_per_s2: f64,
     /// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` over constrained segments of the result, mm/s^2.
     pub max_accel_mm_per_s2: f64,
     /// The same for the feed-limited-only optimum, mm/s^2.
     pub max_accel_reference_mm_per_s2: f64,
-    /// Outer iterations after the reference (QP solves of the SCP, or convexified subproblems of
-    /// the first-order method).
+    /// SCP iterations (QP solves after the reference).
     pub scp_iterations: usize,
     /// Segments that carry the constraint.
     pub constrained_segments: usize,
@@ -248,14 +225,14 @@ pub fn max_acceleration_mm_per_s2(path: &DwellPath, dwell_s: &[f64], corner_angl
 
 /// The kinematic data of the constraint: per point `ds`, per segment `2 a_max s` and whether it
 /// is constrained.
-pub(super) struct Kinematics {
-    pub(super) ds: Vec<f64>,
-    pub(super) cap: Vec<f64>,
-    pub(super) constrained: Vec<bool>,
+struct Kinematics {
+    ds: Vec<f64>,
+    cap: Vec<f64>,
+    constrained: Vec<bool>,
 }
 
 impl Kinematics {
-    pub(super) fn new(path: &DwellPath, limits: &AccelLimits) -> Self {
+    fn new(path: &DwellPath, limits: &AccelLimits) -> Self {
         let seg = segment_lengths_mm(path);
         Self {
             ds: path.ds_mm(),
@@ -267,7 +244,7 @@ impl Kinematics {
         }
     }
 
-    pub(super) fn v2(&self, j: usize, t: &[f64]) -> f64 {
+    fn v2(&self, j: usize, t: &[f64]) -> f64 {
         let d = self.ds[j];
         if d == 0.0 {
             0.0
@@ -277,7 +254,7 @@ impl Kinematics {
     }
 
     /// Largest `|dv^2| / cap - 1` over constrained segments (<= 0: the limit holds).
-    pub(super) fn violation(&self, t: &[f64]) -> f64 {
+    fn violation(&self, t: &[f64]) -> f64 {
         let mut worst = f64::NEG_INFINITY;
         for j in 0..self.cap.len() {
             if !self.constrained[j] {
@@ -301,25 +278,10 @@ impl Kinematics {
     }
 }
 
-/// Solves the dwell problem with the acceleration limit by `limits.method`: the first-order
-/// method ([`super::accel_fo`]) or the SCP with Clarabel QPs ([`solve_scp_qp`]).
+/// Solves the dwell problem with the acceleration limit: first the feed-limited optimum
+/// ([`super::solve`]), then the SCP. `settings` apply to each QP; the SCP minimises the contract
+/// objective (minimum-time mode applies to the reference only).
 pub fn solve(
-    problem: &Problem,
-    path: &DwellPath,
-    limits: &AccelLimits,
-    settings: &Settings,
-    observer: &dyn Observer,
-) -> Result<AccelSolution> {
-    match limits.method {
-        AccelMethod::FirstOrder => super::accel_fo::solve(problem, path, limits, settings, observer),
-        AccelMethod::ScpQp => solve_scp_qp(problem, path, limits, settings, observer),
-    }
-}
-
-/// The reference: first the feed-limited optimum ([`super::solve`]), then the SCP. `settings`
-/// apply to each QP; the SCP minimises the contract objective (minimum-time mode applies to the
-/// reference only). Needs the assembled `R`.
-pub fn solve_scp_qp(
     problem: &Problem,
     path: &DwellPath,
     limits: &AccelLimits,
@@ -413,65 +375,12 @@ pub fn solve_scp_qp(
         observer.finish(Stage::Loop);
     }
 
-    finish(
-        problem,
-        path,
-        limits,
-        &kin,
-        Finished {
-            reference,
-            dwell_s: best_t,
-            iterations,
-            inner_iterations: qp_iterations,
-            status,
-            solver: SolverKind::Qp,
-            started: start,
-        },
-    )
-}
-
-/// What a method ends with, for [`finish`].
-pub(super) struct Finished {
-    /// The feed-limited optimum.
-    pub(super) reference: Solution,
-    /// The result's dwell times, s.
-    pub(super) dwell_s: Vec<f64>,
-    /// Outer iterations after the reference.
-    pub(super) iterations: usize,
-    /// Inner iterations, the reference's included.
-    pub(super) inner_iterations: usize,
-    /// How the method ended.
-    pub(super) status: Status,
-    /// The solver label when the method ran after the reference.
-    pub(super) solver: SolverKind,
-    /// When the solve began.
-    pub(super) started: Instant,
-}
-
-/// Builds the report and the solution of an acceleration-limited solve.
-pub(super) fn finish(
-    problem: &Problem,
-    path: &DwellPath,
-    limits: &AccelLimits,
-    kin: &Kinematics,
-    done: Finished,
-) -> Result<AccelSolution> {
-    let Finished {
-        reference,
-        dwell_s: best_t,
-        iterations,
-        inner_iterations: qp_iterations,
-        status,
-        solver,
-        started: start,
-    } = done;
     let eval = problem.evaluate(&best_t)?;
     let ref_eval_obj = reference.objective;
     let m = problem.m() as f64;
     let max_a = max_acceleration_mm_per_s2(path, &best_t, limits.corner_angle_deg);
     let accels = segment_accelerations_mm_per_s2(path, &best_t, limits.corner_angle_deg);
     let report = AccelReport {
-        method: limits.method,
         a_max_mm_per_s2: limits.a_max_mm_per_s2,
         max_accel_mm_per_s2: max_a,
         max_accel_reference_mm_per_s2: max_acceleration_mm_per_s2(
@@ -499,7 +408,7 @@ pub(super) fn finish(
         solver: if iterations == 0 {
             reference.solver
         } else {
-            solver
+            SolverKind::Qp
         },
         piston_nm: eval.piston_nm,
         objective: eval.objective,
@@ -520,7 +429,7 @@ pub(super) fn finish(
 }
 
 /// Boxes on `u_j = v_j^2` implied by the dwell bounds: `[(ds/ub)^2, (ds/lb)^2]`, mm^2/s^2.
-pub(super) fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
+fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
     let n = kin.ds.len();
     let mut lo = vec![0.0; n];
     let mut hi = vec![0.0; n];
@@ -551,7 +460,7 @@ pub(super) fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec
 }
 
 /// Forward reachable intervals of `u_j` along each line; an empty one is an error.
-pub(super) fn forward_reachable(
+fn forward_reachable(
     kin: &Kinematics,
     lo: &[f64],
     hi: &[f64],
@@ -593,7 +502,7 @@ pub(super) fn forward_reachable(
 
 /// Backward pass: `u_j` nearest to the target inside the reachable interval and within `cap` of
 /// `u_{j+1}`; returns dwell times `t_j = ds_j / sqrt(u_j)`.
-pub(super) fn feasible_start(
+fn feasible_start(
     kin: &Kinematics,
     reach: &[(f64, f64)],
     target_t: &[f64],

@@ -5,7 +5,6 @@
 //! `ds_j / v_max <= t_j <= ds_j / v_min`, where `D` differences consecutive dwell times.
 
 pub mod accel;
-pub mod accel_fo;
 pub mod bounds;
 pub mod certificate;
 pub mod first_order;
