@@ -28,7 +28,8 @@ pub struct Report {
     pub n: usize,
     /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
     pub nnz: usize,
-    /// How `R` was applied: `sparse` (assembled) or `fft` (matrix-free convolution).
+    /// How `R` was applied: `sparse` (assembled), `fft` (matrix-free convolution, map and dwell
+    /// points on one lattice) or `fft-spread` (dwell points spread onto the map lattice, then FFT).
     #[serde(default)]
     pub operator: String,
     /// Map rows skipped for an empty or NaN height.
@@ -216,11 +217,7 @@ impl Report {
             edge: EdgeMethod::None,
             n: problem.n(),
             nnz: problem.nnz(),
-            operator: if problem.fft_operator().is_some() {
-                "fft".into()
-            } else {
-                "sparse".into()
-            },
+            operator: problem.operator_name().into(),
             skipped_rows,
             rms_before_nm: before.rms_nm,
             pv_before_nm: before.pv_nm,

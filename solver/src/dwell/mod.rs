@@ -14,7 +14,7 @@ pub use bounds::{DwellBounds, FeedLimits};
 
 use crate::error::{Error, Result};
 use crate::influence::InfluenceMatrix;
-use crate::influence::{FftOperator, LinearOperator};
+use crate::influence::{FftOperator, LinearOperator, SpreadOperator};
 use crate::map::HeightStats;
 use crate::observer::Observer;
 use serde::{Deserialize, Serialize};
@@ -35,6 +35,8 @@ pub struct Problem {
 enum Influence {
     Matrix(InfluenceMatrix),
     MatrixFree(Arc<FftOperator>),
+    /// Dwell points off the map lattice: spread onto it, then FFT convolution.
+    Spread(Arc<SpreadOperator>),
 }
 
 impl Influence {
@@ -42,6 +44,7 @@ impl Influence {
         match self {
             Influence::Matrix(r) => r.nrows(),
             Influence::MatrixFree(op) => op.nrows(),
+            Influence::Spread(op) => op.nrows(),
         }
     }
 
@@ -49,6 +52,7 @@ impl Influence {
         match self {
             Influence::Matrix(r) => r.ncols(),
             Influence::MatrixFree(op) => op.ncols(),
+            Influence::Spread(op) => op.ncols(),
         }
     }
 }
@@ -105,6 +109,24 @@ impl Problem {
         )
     }
 
+    /// As [`Problem::new`] with the off-lattice spreading operator ([`SpreadOperator`]) in place
+    /// of the assembled `R`: only the first-order solver can solve it.
+    pub fn off_lattice(
+        operator: SpreadOperator,
+        z_nm: Vec<f64>,
+        bounds: DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> Result<Self> {
+        Self::build(
+            Influence::Spread(Arc::new(operator)),
+            z_nm,
+            bounds,
+            rho,
+            lambda,
+        )
+    }
+
     fn build(
         influence: Influence,
         z_nm: Vec<f64>,
@@ -154,7 +176,7 @@ impl Problem {
     pub fn influence(&self) -> Option<&InfluenceMatrix> {
         match &self.influence {
             Influence::Matrix(r) => Some(r),
-            Influence::MatrixFree(_) => None,
+            Influence::MatrixFree(_) | Influence::Spread(_) => None,
         }
     }
 
@@ -172,8 +194,30 @@ impl Problem {
     /// The matrix-free FFT operator, if the problem uses one.
     pub fn fft_operator(&self) -> Option<&FftOperator> {
         match &self.influence {
-            Influence::Matrix(_) => None,
+            Influence::Matrix(_) | Influence::Spread(_) => None,
             Influence::MatrixFree(op) => Some(op),
+        }
+    }
+
+    /// The off-lattice spreading operator, if the problem uses one.
+    pub fn spread_operator(&self) -> Option<&SpreadOperator> {
+        match &self.influence {
+            Influence::Spread(op) => Some(op),
+            _ => None,
+        }
+    }
+
+    /// Whether `R` is matrix-free (FFT or spreading operator): only the first-order solver runs.
+    pub fn is_matrix_free(&self) -> bool {
+        !matches!(self.influence, Influence::Matrix(_))
+    }
+
+    /// How `R` is held, as the report names it: `sparse`, `fft` or `fft-spread`.
+    pub fn operator_name(&self) -> &'static str {
+        match self.influence {
+            Influence::Matrix(_) => "sparse",
+            Influence::MatrixFree(_) => "fft",
+            Influence::Spread(_) => "fft-spread",
         }
     }
 
@@ -182,6 +226,7 @@ impl Problem {
         match &self.influence {
             Influence::Matrix(r) => r.nnz(),
             Influence::MatrixFree(op) => op.nnz(),
+            Influence::Spread(op) => op.nnz(),
         }
     }
 
@@ -190,6 +235,7 @@ impl Problem {
         match &self.influence {
             Influence::Matrix(r) => r.empty_columns(),
             Influence::MatrixFree(op) => op.empty_columns(),
+            Influence::Spread(op) => op.empty_columns(),
         }
     }
 
@@ -197,18 +243,8 @@ impl Problem {
     pub fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
         match &self.influence {
             Influence::Matrix(r) => r.removal_nm(dwell_s),
-            Influence::MatrixFree(op) => {
-                if dwell_s.len() != op.ncols() {
-                    return Err(Error::LengthMismatch {
-                        what: "dwell_s",
-                        got: dwell_s.len(),
-                        expected: op.ncols(),
-                    });
-                }
-                let mut h = vec![0.0; op.nrows()];
-                op.apply(dwell_s, &mut h);
-                Ok(h)
-            }
+            Influence::MatrixFree(op) => apply_free(op.as_ref(), dwell_s),
+            Influence::Spread(op) => apply_free(op.as_ref(), dwell_s),
         }
     }
 
@@ -342,6 +378,20 @@ impl Problem {
     }
 }
 
+/// `R t` by a matrix-free operator, with the length checked.
+fn apply_free(op: &dyn LinearOperator, dwell_s: &[f64]) -> Result<Vec<f64>> {
+    if dwell_s.len() != op.ncols() {
+        return Err(Error::LengthMismatch {
+            what: "dwell_s",
+            got: dwell_s.len(),
+            expected: op.ncols(),
+        });
+    }
+    let mut h = vec![0.0; op.nrows()];
+    op.apply(dwell_s, &mut h);
+    Ok(h)
+}
+
 /// What a dwell vector achieves on a problem.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Evaluation {
@@ -387,7 +437,7 @@ impl SolverChoice {
                 if !min_time
                     && (problem.n() >= AUTO_FIRST_ORDER_MIN_DWELL
                         || problem.nnz() >= AUTO_FIRST_ORDER_MIN_NNZ
-                        || problem.fft_operator().is_some())
+                        || problem.is_matrix_free())
                 {
                     SolverKind::FirstOrder
                 } else {
@@ -615,7 +665,7 @@ pub fn solve_from(
     if problem.lambda() > 0.0 || empty.is_empty() {
         return dispatch(problem, settings, observer, warm_start_s);
     }
-    if problem.fft_operator().is_some() {
+    if problem.is_matrix_free() {
         // Empty columns have zero gradient, so the first-order iteration leaves them where it
         // started; put them on their lower bound as the assembled route does.
         let mut sol = dispatch(problem, settings, observer, warm_start_s)?;
@@ -670,6 +720,9 @@ pub(crate) fn with_operator<T>(
     match (problem.influence(), problem.fft_operator()) {
         (Some(r), _) => f(&crate::influence::SparseOperator::new(r.csc())),
         (None, Some(fft)) => f(fft),
-        (None, None) => Err(Error::invalid("problem", "has no influence operator")),
+        (None, None) => match problem.spread_operator() {
+            Some(op) => f(op),
+            None => Err(Error::invalid("problem", "has no influence operator")),
+        },
     }
 }
