@@ -19,6 +19,7 @@ pub mod writers;
 pub use error::{Error, Result};
 pub mod job;
 pub mod limits;
+pub mod off_lattice;
 pub mod pipeline;
 pub mod plots;
 pub mod simulation;

@@ -261,14 +261,26 @@ pub fn prepare_inputs(
             }
         },
     };
+    let spread = match fft {
+        Some(_) => None,
+        None => crate::off_lattice::off_lattice_applicable(
+            job,
+            job_path,
+            &rows,
+            &path,
+            &tif,
+            &mut warnings,
+        )?,
+    };
     let (z_nm, rho, lambda) = (
         rows.z_nm().to_vec(),
         job.objective.rho,
         job.objective.lambda,
     );
-    let problem = match fft {
-        Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
-        None => Problem::new(
+    let problem = match (fft, spread) {
+        (Some(op), _) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
+        (None, Some(op)) => Problem::off_lattice(op, z_nm, bounds, rho, lambda),
+        (None, None) => Problem::new(
             assemble(job, &rows, &path, &tif, observer)?,
             z_nm,
             bounds,
@@ -343,7 +355,7 @@ fn fft_pitch(
     warnings: &mut Vec<String>,
 ) -> Result<Option<f64>> {
     let choice = job.solver.operator;
-    if choice == OperatorChoice::Sparse {
+    if matches!(choice, OperatorChoice::Sparse | OperatorChoice::FftSpread) {
         return Ok(None);
     }
     let blocker = if job.surface.file.is_some() {

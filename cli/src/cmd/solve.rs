@@ -95,6 +95,9 @@ pub enum OperatorArg {
     /// Never form R: products by FFT convolution (map and dwell points on one lattice,
     /// first-order solver).
     Fft,
+    /// Never form R: dwell points spread onto an oversampled map lattice, then FFT (map on a
+    /// lattice, dwell points anywhere, first-order solver; error within --spread-tolerance).
+    FftSpread,
 }
 
 impl From<OperatorArg> for OperatorChoice {
@@ -103,6 +106,7 @@ impl From<OperatorArg> for OperatorChoice {
             OperatorArg::Auto => OperatorChoice::Auto,
             OperatorArg::Sparse => OperatorChoice::Sparse,
             OperatorArg::Fft => OperatorChoice::Fft,
+            OperatorArg::FftSpread => OperatorChoice::FftSpread,
         }
     }
 }
@@ -201,6 +205,10 @@ pub struct Args {
     /// How R is held: assembled, or matrix-free by FFT (default: the job's, else auto).
     #[arg(long, value_enum)]
     pub operator: Option<OperatorArg>,
+    /// Largest estimated relative error of the off-lattice spreading operator against the
+    /// assembled R (default: the job's, else 1e-3).
+    #[arg(long)]
+    pub spread_tolerance: Option<f64>,
     /// Start the first-order solver from the `dwell_s` column of a previous dwell.csv (same dwell
     /// points, in the same order).
     #[arg(long, value_name = "dwell.csv")]
@@ -306,6 +314,9 @@ impl Args {
         if let Some(o) = self.operator {
             job.solver.operator = o.into();
         }
+        if let Some(t) = self.spread_tolerance {
+            job.solver.spread_tolerance = t;
+        }
         if let Some(w) = self.warm_start {
             job.dwell.warm_start = Some(w);
         }
@@ -353,10 +364,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         },
         r.n,
         r.nnz,
-        if r.operator == "fft" {
-            "matrix-free FFT operator"
-        } else {
-            "assembled"
+        match r.operator.as_str() {
+            "fft" => "matrix-free FFT operator",
+            "fft-spread" => "matrix-free, spread onto the map lattice + FFT",
+            _ => "assembled",
         },
         if r.skipped_rows > 0 {
             format!(", {} map rows skipped (empty or NaN z_nm)", r.skipped_rows)

@@ -72,6 +72,11 @@ pub enum OperatorChoice {
     /// Never form `R`: products by FFT convolution ([`fft::FftOperator`]). Needs map and dwell
     /// points on one regular lattice and the first-order solver.
     Fft,
+    /// Never form `R`: dwell points spread onto an oversampled map lattice, then FFT convolution
+    /// ([`crate::influence::SpreadOperator`]), with the smallest oversampling whose estimated
+    /// error is within `spread_tolerance`. Needs map points on a regular lattice (dwell points
+    /// anywhere) and the first-order solver.
+    FftSpread,
 }
 
 /// `operator = "auto"` uses the FFT operator from this many (estimated) non-zeros of `R` on:
@@ -512,6 +517,10 @@ pub struct Settings {
     /// How `R` is held: assembled, or the matrix-free FFT operator ([`OperatorChoice`]). Read
     /// where the problem is built; the solvers follow the problem they are given.
     pub operator: OperatorChoice,
+    /// Largest estimated relative operator error `||R~ - R||_F / ||R||_F` allowed for the
+    /// off-lattice spreading operator ([`crate::influence::spread`]) when `operator = "auto"`
+    /// considers it (dwell points off the map lattice).
+    pub spread_tolerance: f64,
 }
 
 /// The iteration of the first-order solver ([`first_order`]). Both use only products with `R`
@@ -545,6 +554,7 @@ impl Default for Settings {
             first_order_max_iterations: 20_000,
             first_order_method: FirstOrderMethod::default(),
             operator: OperatorChoice::default(),
+            spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
         }
     }
 }
@@ -577,6 +587,15 @@ impl Settings {
             return Err(Error::invalid(
                 "first_order_max_iterations",
                 "must be at least 1",
+            ));
+        }
+        if !(self.spread_tolerance.is_finite()
+            && self.spread_tolerance > 0.0
+            && self.spread_tolerance < 1.0)
+        {
+            return Err(Error::invalid(
+                "spread_tolerance",
+                format!("must be in (0, 1), got {}", self.spread_tolerance),
             ));
         }
         if self.max_iterations == 0 {
