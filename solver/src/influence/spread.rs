@@ -41,7 +41,7 @@ const ERROR_SAMPLE_COLUMNS: usize = 256;
 pub const MAX_OVERSAMPLING: usize = 4;
 /// Default tolerance on the estimated relative operator error (`||R~ - R||_F / ||R||_F`) below
 /// which `operator = "auto"` may use the spreading operator.
-pub const DEFAULT_SPREAD_TOLERANCE: f64 = 1e-3;
+pub const DEFAULT_SPREAD_TOLERANCE: f64 = 1e-2;
 
 /// The spreading operator (see the module documentation).
 pub struct SpreadOperator {
