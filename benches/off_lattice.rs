@@ -117,8 +117,7 @@ fn main() {
         sparse.apply(&t, &mut rt);
         let sparse_ms = 1e3 * time_normal(&sparse, &t, 5);
         for s in 1..=4 {
-            let op =
-                SpreadOperator::new(&map.0, &map.1, &dwell.0, &dwell.1, 0.36, s, tif).unwrap();
+            let op = SpreadOperator::new(&map.0, &map.1, &dwell.0, &dwell.1, 0.36, s, tif).unwrap();
             let mut approx = vec![0.0; op.nrows()];
             op.apply(&t, &mut approx);
             let diff: Vec<f64> = approx.iter().zip(&rt).map(|(a, b)| a - b).collect();

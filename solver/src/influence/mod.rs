@@ -8,6 +8,7 @@
 //! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
 //! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
 //!   onto an oversampled lattice, then FFT convolution);
+//! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
 //! - [`operator`]: the product trait ([`LinearOperator`]: `R t`, `R^T y`) every solver goes through.
 
 pub mod curvature;
@@ -15,6 +16,7 @@ pub mod fft;
 pub mod matrix;
 pub mod operator;
 pub mod spread;
+pub mod stacked;
 pub mod surface;
 
 pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};

@@ -329,9 +329,7 @@ impl SpreadOperator {
         s: usize,
         tif: &T,
     ) -> Result<f64> {
-        let layout = Layout::new(
-            map_x_mm, map_y_mm, dwell_x_mm, dwell_y_mm, pitch_mm, s, tif,
-        )?;
+        let layout = Layout::new(map_x_mm, map_y_mm, dwell_x_mm, dwell_y_mm, pitch_mm, s, tif)?;
         Ok(layout.estimated_error(dwell_x_mm, dwell_y_mm, tif))
     }
 
@@ -347,9 +345,8 @@ impl SpreadOperator {
         tolerance: f64,
     ) -> Result<Option<(usize, f64)>> {
         for s in 1..=MAX_OVERSAMPLING {
-            let e = Self::estimate_error(
-                map_x_mm, map_y_mm, dwell_x_mm, dwell_y_mm, pitch_mm, s, tif,
-            )?;
+            let e =
+                Self::estimate_error(map_x_mm, map_y_mm, dwell_x_mm, dwell_y_mm, pitch_mm, s, tif)?;
             if e <= tolerance {
                 return Ok(Some((s, e)));
             }
@@ -368,15 +365,17 @@ impl SpreadOperator {
         s: usize,
         tif: &T,
     ) -> Result<Self> {
-        let layout = Layout::new(
-            map_x_mm, map_y_mm, dwell_x_mm, dwell_y_mm, pitch_mm, s, tif,
-        )?;
+        let layout = Layout::new(map_x_mm, map_y_mm, dwell_x_mm, dwell_y_mm, pitch_mm, s, tif)?;
         let estimated_error = layout.estimated_error(dwell_x_mm, dwell_y_mm, tif);
         // The fine nodes touched, numbered in (j, i) order.
         let mut touched: Vec<(i64, i64)> = layout
             .nodes
             .iter()
-            .flat_map(|n| n.iter().filter(|(_, w)| *w != 0.0).map(|(ij, _)| (ij.1, ij.0)))
+            .flat_map(|n| {
+                n.iter()
+                    .filter(|(_, w)| *w != 0.0)
+                    .map(|(ij, _)| (ij.1, ij.0))
+            })
             .collect();
         touched.sort_unstable();
         touched.dedup();
@@ -387,7 +386,15 @@ impl SpreadOperator {
         let stencil: Vec<[(u32, f64); 4]> = layout
             .nodes
             .iter()
-            .map(|n| n.map(|((i, j), w)| if w == 0.0 { (0, 0.0) } else { (node_index(i, j), w) }))
+            .map(|n| {
+                n.map(|((i, j), w)| {
+                    if w == 0.0 {
+                        (0, 0.0)
+                    } else {
+                        (node_index(i, j), w)
+                    }
+                })
+            })
             .collect();
         let mut node_start = vec![0usize; touched.len() + 1];
         for st in &stencil {
@@ -605,15 +612,22 @@ mod tests {
     fn transpose_is_the_adjoint_and_normal_is_the_product() {
         let (mx, my, dx, dy) = case();
         let op = SpreadOperator::new(&mx, &my, &dx, &dy, 0.4, 2, &tif()).unwrap();
-        let t: Vec<f64> = (0..op.ncols()).map(|j| ((j * 7919) % 13) as f64 * 0.1).collect();
-        let y: Vec<f64> = (0..op.nrows()).map(|i| ((i * 104729) % 17) as f64 - 8.0).collect();
+        let t: Vec<f64> = (0..op.ncols())
+            .map(|j| ((j * 7919) % 13) as f64 * 0.1)
+            .collect();
+        let y: Vec<f64> = (0..op.nrows())
+            .map(|i| ((i * 104729) % 17) as f64 - 8.0)
+            .collect();
         let mut rt = vec![0.0; op.nrows()];
         let mut rty = vec![0.0; op.ncols()];
         op.apply(&t, &mut rt);
         op.apply_transpose(&y, &mut rty);
         let lhs: f64 = rt.iter().zip(&y).map(|(a, b)| a * b).sum();
         let rhs: f64 = rty.iter().zip(&t).map(|(a, b)| a * b).sum();
-        assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+        assert!(
+            (lhs - rhs).abs() <= 1e-10 * lhs.abs().max(1.0),
+            "{lhs} vs {rhs}"
+        );
         let mut normal = vec![0.0; op.ncols()];
         let mut scratch = vec![0.0; op.nrows()];
         op.apply_normal(&t, &mut scratch, &mut normal);
@@ -657,7 +671,12 @@ mod tests {
     fn dwell_points_on_the_lattice_reproduce_the_exact_matrix() {
         let (mx, my, _, _) = case();
         let (dx, dy): (Vec<f64>, Vec<f64>) = (0..60)
-            .map(|k| (-3.0 + 0.4 * (k % 10) as f64 * 2.0, 1.0 + 0.4 * (k / 10) as f64 * 3.0))
+            .map(|k| {
+                (
+                    -3.0 + 0.4 * (k % 10) as f64 * 2.0,
+                    1.0 + 0.4 * (k / 10) as f64 * 3.0,
+                )
+            })
             .unzip();
         let tif = tif();
         let exact = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &NoopObserver).unwrap();
@@ -679,7 +698,9 @@ mod tests {
             op.apply(&e, &mut col);
             e[j] = 0.0;
             let m = col.len() as f64;
-            let (s, s2) = col.iter().fold((0.0, 0.0), |(s, s2), v| (s + v, s2 + v * v));
+            let (s, s2) = col
+                .iter()
+                .fold((0.0, 0.0), |(s, s2), v| (s + v, s2 + v * v));
             let want = s2 - s * s / m;
             assert!((norms[j] - want).abs() <= 1e-9 * want.max(1e-12), "{j}");
         }
