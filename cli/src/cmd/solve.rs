@@ -88,7 +88,8 @@ impl From<EdgeArg> for EdgeMethod {
 /// How R is held, on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum OperatorArg {
-    /// The FFT operator when R would hold at least 5e7 non-zeros and the inputs allow it.
+    /// The FFT operator when R would hold at least 5e7 non-zeros and the inputs allow it; the
+    /// spreading operator (fft-spread) for dwell points off the map lattice when accurate and cheaper.
     Auto,
     /// Assemble the sparse influence matrix R.
     Sparse,
