@@ -11,10 +11,10 @@ use crate::error::Result;
 use crate::job::Job;
 use crate::pipeline;
 use preston_solver::dwell::precond::DwellLattice;
+use preston_solver::dwell::{policy, SolverKind};
 use preston_solver::dwell::{
     DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
 };
-use preston_solver::dwell::{policy, SolverKind};
 use preston_solver::edge::{EdgeMethod, EdgeSettings};
 use preston_solver::influence::fft::FftOperator;
 use preston_solver::influence::surface::TifFrame;

@@ -89,6 +89,10 @@ pub struct Job {
     /// ([`preston_solver::edge`]).
     #[serde(default)]
     pub edge: EdgeSettings,
+    /// Several tools in one solve (`[[tool]]`, [`crate::tools`]): each with its own TIF, dwell
+    /// file and feed limits; when present, `[tif]` and `[dwell]` are not used.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tool: Vec<crate::tools::ToolSpec>,
 }
 
 /// The design surface on which the TIF is applied in each dwell point's tangent plane.
@@ -244,6 +248,16 @@ impl Job {
         {
             if p.is_relative() {
                 *p = base.join(&*p);
+            }
+        }
+        for t in &mut self.tool {
+            for p in [Some(&mut t.dwell), t.tif.file.as_mut()]
+                .into_iter()
+                .flatten()
+            {
+                if p.is_relative() {
+                    *p = base.join(&*p);
+                }
             }
         }
         if let Some(ApertureSpec::PolygonFile(p)) = &mut self.map.aperture {

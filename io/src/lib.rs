@@ -14,6 +14,7 @@ pub mod readers;
 pub mod report;
 pub mod surface;
 pub mod table;
+pub mod tools;
 pub mod writers;
 
 pub use error::{Error, Result};

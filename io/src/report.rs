@@ -28,7 +28,8 @@ pub struct Report {
     pub n: usize,
     /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
     pub nnz: usize,
-    /// How `R` was applied: `sparse` (assembled) or `fft` (matrix-free convolution).
+    /// How `R` was applied: `sparse` (assembled), `fft` (matrix-free convolution, map and dwell
+    /// points on one lattice) or `fft-spread` (dwell points spread onto the map lattice, then FFT).
     #[serde(default)]
     pub operator: OperatorKind,
     /// Map rows skipped for an empty or NaN height.
@@ -91,6 +92,10 @@ pub struct Report {
     /// Warnings about the inputs (for example a TIF wider than the map), also printed on stderr.
     #[serde(default)]
     pub warnings: Vec<String>,
+    /// Each tool of a multi-tool solve (`[[tool]]` or repeated `--tif`/`--dwell`); absent for
+    /// a single tool.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tools: Vec<crate::tools::ToolReport>,
     /// Machining time of the feed schedule, s: every stretch at its point's feed (`sum t_j`),
     /// plus the acceleration ramps when `a_max` is set
     /// ([`preston_solver::machine::feeds`]). Set by [`Report::set_machine`].
@@ -416,6 +421,7 @@ impl Report {
             unreachable_dwell_indices: empty,
             map_input: None,
             warnings: Vec::new(),
+            tools: Vec::new(),
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,
             a_max_mm_per_s2: None,

@@ -88,13 +88,17 @@ impl From<EdgeArg> for EdgeMethod {
 /// How R is held, on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum OperatorArg {
-    /// The FFT operator when R would hold at least 5e7 non-zeros and the inputs allow it.
+    /// The FFT operator when R would hold at least 5e7 non-zeros and the inputs allow it; the
+    /// spreading operator (fft-spread) for dwell points off the map lattice when accurate and cheaper.
     Auto,
     /// Assemble the sparse influence matrix R.
     Sparse,
     /// Never form R: products by FFT convolution (map and dwell points on one lattice,
     /// first-order solver).
     Fft,
+    /// Never form R: dwell points spread onto an oversampled map lattice, then FFT (map on a
+    /// lattice, dwell points anywhere, first-order solver; error within --spread-tolerance).
+    FftSpread,
 }
 
 impl From<OperatorArg> for OperatorChoice {
@@ -103,6 +107,7 @@ impl From<OperatorArg> for OperatorChoice {
             OperatorArg::Auto => OperatorChoice::Auto,
             OperatorArg::Sparse => OperatorChoice::Sparse,
             OperatorArg::Fft => OperatorChoice::Fft,
+            OperatorArg::FftSpread => OperatorChoice::FftSpread,
         }
     }
 }
@@ -145,18 +150,23 @@ pub struct Args {
     /// The TIF (overrides the job's `[tif]`).
     #[command(flatten)]
     pub tif: TifArgs,
-    /// Dwell points CSV `x_mm,y_mm` in path order.
-    #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm")]
-    pub dwell: Option<PathBuf>,
+    /// Dwell points CSV `x_mm,y_mm` in path order. Repeated with --tif (the k-th --dwell goes
+    /// with the k-th --tif), several tools in one solve: dwell_tool1.csv, dwell_tool2.csv, ...
+    #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm", action = clap::ArgAction::Append)]
+    pub dwell: Vec<PathBuf>,
     /// Generate a serpentine raster at this pitch (mm) over the map extended by the TIF radius.
     #[arg(long)]
     pub raster_pitch_mm: Option<f64>,
     /// Direction of the generated raster lines.
     #[arg(long, value_enum)]
     pub raster_along: Option<Along>,
-    /// Fastest feed, mm/min.
-    #[arg(long = "v-max", value_name = "MM_PER_MIN")]
-    pub v_max_mm_per_min: Option<f64>,
+    /// Fastest feed, mm/min. With several tools: once for all, or once per tool in order.
+    #[arg(long = "v-max", value_name = "MM_PER_MIN", action = clap::ArgAction::Append)]
+    pub v_max_mm_per_min: Vec<f64>,
+    /// Several tools: weight of each tool's machining time in the rho term (once per tool, in
+    /// order; default 1).
+    #[arg(long, value_name = "W", action = clap::ArgAction::Append)]
+    pub time_weight: Vec<f64>,
     /// Slowest feed, mm/min (0 = no limit).
     #[arg(long = "v-min", value_name = "MM_PER_MIN")]
     pub v_min_mm_per_min: Option<f64>,
@@ -201,6 +211,10 @@ pub struct Args {
     /// How R is held: assembled, or matrix-free by FFT (default: the job's, else auto).
     #[arg(long, value_enum)]
     pub operator: Option<OperatorArg>,
+    /// Largest estimated relative error of the off-lattice spreading operator against the
+    /// assembled R (default: the job's, else 1e-3).
+    #[arg(long)]
+    pub spread_tolerance: Option<f64>,
     /// Start the first-order solver from the `dwell_s` column of a previous dwell.csv (same dwell
     /// points, in the same order).
     #[arg(long, value_name = "dwell.csv")]
@@ -237,16 +251,28 @@ impl Args {
         if let Some(p) = self.map_pitch.pitch_mm {
             job.map.pitch_mm = Some(p);
         }
-        if let Some(t) = self.tif.tif.clone() {
-            job.tif.file = Some(t);
+        let tools = self.tif.tif.len().max(self.dwell.len());
+        if tools > 1 {
+            apply_tools(
+                &mut job,
+                &self.tif.tif,
+                &self.dwell,
+                &self.v_max_mm_per_min,
+                &self.time_weight,
+            )?;
+        } else if !self.time_weight.is_empty() {
+            anyhow::bail!("--time-weight is for several tools (repeated --tif and --dwell)");
+        }
+        if let (1, Some(t)) = (tools, self.tif.tif.first()) {
+            job.tif.file = Some(t.clone());
             job.tif.gaussian = None;
         }
         if let Some(g) = self.tif.gaussian()? {
             job.tif.gaussian = Some(g);
             job.tif.file = None;
         }
-        if let Some(d) = self.dwell {
-            job.dwell.file = Some(d);
+        if let (1, Some(d)) = (tools, self.dwell.first()) {
+            job.dwell.file = Some(d.clone());
             job.dwell.raster_pitch_mm = None;
         }
         if let Some(p) = self.raster_pitch_mm {
@@ -259,8 +285,12 @@ impl Args {
                 Along::Y => RasterAxis::Y,
             };
         }
-        if let Some(v) = self.v_max_mm_per_min {
-            job.machine.v_max_mm_per_min = Some(v);
+        if let [v] = self.v_max_mm_per_min.as_slice() {
+            job.machine.v_max_mm_per_min = Some(*v);
+        } else if self.v_max_mm_per_min.len() > 1 && tools <= 1 {
+            anyhow::bail!(
+                "--v-max is repeated only with several tools (repeated --tif and --dwell)"
+            );
         }
         if let Some(v) = self.v_min_mm_per_min {
             job.machine.v_min_mm_per_min = Some(v);
@@ -306,6 +336,9 @@ impl Args {
         if let Some(o) = self.operator {
             job.solver.operator = o.into();
         }
+        if let Some(t) = self.spread_tolerance {
+            job.solver.spread_tolerance = t;
+        }
         if let Some(w) = self.warm_start {
             job.dwell.warm_start = Some(w);
         }
@@ -322,10 +355,107 @@ impl Args {
     }
 }
 
+/// Several tools from the command line: the k-th --tif with the k-th --dwell (and the k-th
+/// --v-max and --time-weight when those are repeated; one --v-max applies to every tool).
+fn apply_tools(
+    job: &mut Job,
+    tifs: &[PathBuf],
+    dwells: &[PathBuf],
+    v_max: &[f64],
+    weights: &[f64],
+) -> anyhow::Result<()> {
+    let k = tifs.len();
+    if dwells.len() != k {
+        anyhow::bail!(
+            "several tools: {k} --tif but {} --dwell; give one --dwell after each --tif",
+            dwells.len()
+        );
+    }
+    if v_max.len() > 1 && v_max.len() != k {
+        anyhow::bail!(
+            "several tools: {} --v-max for {k} tools; give one for all or one per tool",
+            v_max.len()
+        );
+    }
+    if !weights.is_empty() && weights.len() != k {
+        anyhow::bail!(
+            "several tools: {} --time-weight for {k} tools; give one per tool",
+            weights.len()
+        );
+    }
+    if let [v] = v_max {
+        job.machine.v_max_mm_per_min = Some(*v);
+    }
+    job.tool = tifs
+        .iter()
+        .zip(dwells)
+        .enumerate()
+        .map(|(i, (t, d))| preston_io::tools::ToolSpec {
+            tif: preston_io::job::TifSource {
+                file: Some(t.clone()),
+                gaussian: None,
+            },
+            dwell: d.clone(),
+            v_max_mm_per_min: (v_max.len() > 1).then(|| v_max[i]),
+            v_min_mm_per_min: None,
+            time_weight: weights.get(i).copied(),
+        })
+        .collect();
+    Ok(())
+}
+
+/// Runs `preston solve` with several tools (`[[tool]]` or repeated --tif/--dwell).
+fn run_tools(
+    job: &Job,
+    job_path: &std::path::Path,
+    out: &std::path::Path,
+    accept_best: bool,
+) -> anyhow::Result<ExitCode> {
+    let bars = Bars::new();
+    let solved = preston_io::tools::solve_tools(job, job_path, &bars)?;
+    preston_io::tools::write_tool_outputs(&solved, out)
+        .with_context(|| format!("writing outputs to {}", out.display()))?;
+    let r = &solved.report;
+    eprintln!(
+        "preston solve: {} map points, {} tools, {} dwell points in all, {} non-zeros (assembled, stacked)",
+        r.m,
+        r.tools.len(),
+        r.n,
+        r.nnz
+    );
+    for w in &r.warnings {
+        eprintln!("  warning: {w}");
+    }
+    for t in &r.tools {
+        eprintln!(
+            "  tool {}: {} points, dwell {:.2} s, removal RMS {:.3} nm PV {:.3} nm, feed {:.1} .. {:.1} mm/min",
+            t.tool, t.n, t.total_dwell_s, t.removal_rms_nm, t.removal_pv_nm, t.min_feed_mm_per_min, t.max_feed_mm_per_min
+        );
+    }
+    eprintln!(
+        "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm; solver {} ({} iterations, status {}), solve {:.3} s; wrote {}",
+        r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.solver, r.iterations, r.status, r.solve_seconds,
+        out.display()
+    );
+    if !solved.solution.status.is_converged() {
+        eprintln!(
+            "  warning: the solver did not converge (status {}); outputs hold the best iterate",
+            r.status
+        );
+        if !accept_best {
+            return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 /// Runs `preston solve`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let plots = args.plots;
     let (job, job_path, out, accept_best) = args.into_job()?;
+    if preston_io::tools::is_multi_tool(&job) {
+        return run_tools(&job, &job_path, &out, accept_best);
+    }
     let bars = Bars::new();
     let prepared = pipeline::prepare(&job, &job_path, &bars)?;
     let solved = pipeline::solve(prepared, &job, &bars)?;
@@ -353,10 +483,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         },
         r.n,
         r.nnz,
-        if r.operator == OperatorKind::Fft {
-            "matrix-free FFT operator"
-        } else {
-            "assembled"
+        match r.operator {
+            OperatorKind::Fft => "matrix-free FFT operator",
+            OperatorKind::FftSpread => "matrix-free, spread onto the map lattice + FFT",
+            OperatorKind::Sparse => "assembled",
         },
         if r.skipped_rows > 0 {
             format!(", {} map rows skipped (empty or NaN z_nm)", r.skipped_rows)

@@ -8,9 +8,10 @@ use std::path::PathBuf;
 /// Where the TIF comes from.
 #[derive(Debug, clap::Args)]
 pub struct TifArgs {
-    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s`.
-    #[arg(long, value_name = "T.csv", conflicts_with = "gaussian_sigma_mm")]
-    pub tif: Option<PathBuf>,
+    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s` (`preston solve`: repeat, each with its own
+    /// --dwell, for several tools in one solve).
+    #[arg(long, value_name = "T.csv", conflicts_with = "gaussian_sigma_mm", action = clap::ArgAction::Append)]
+    pub tif: Vec<PathBuf>,
     /// Gaussian TIF instead of a file: sigma, mm.
     #[arg(long, requires = "gaussian_peak_nm_per_s")]
     pub gaussian_sigma_mm: Option<f64>,
@@ -38,8 +39,10 @@ impl TifArgs {
 
     /// The TIF the flags name.
     pub fn load(&self) -> anyhow::Result<Tif> {
-        if let Some(f) = &self.tif {
-            return Ok(Tif::Grid(read_tif(f)?));
+        match self.tif.as_slice() {
+            [] => {}
+            [f] => return Ok(Tif::Grid(read_tif(f)?)),
+            _ => bail!("one --tif only here (several tools are for `preston solve`)"),
         }
         match self.gaussian()? {
             Some(g) => Ok(Tif::Gaussian(g)),

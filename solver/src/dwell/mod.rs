@@ -16,7 +16,7 @@ pub use bounds::{DwellBounds, FeedLimits};
 
 use crate::error::{Error, Result};
 use crate::influence::InfluenceMatrix;
-use crate::influence::{FftOperator, LinearOperator};
+use crate::influence::{FftOperator, LinearOperator, SpreadOperator};
 use crate::map::HeightStats;
 use crate::observer::Observer;
 use serde::{Deserialize, Serialize};
@@ -38,6 +38,8 @@ pub struct Problem {
 enum Influence {
     Matrix(InfluenceMatrix),
     MatrixFree(Arc<FftOperator>),
+    /// Dwell points off the map lattice: spread onto it, then FFT convolution.
+    Spread(Arc<SpreadOperator>),
 }
 
 impl Influence {
@@ -45,6 +47,7 @@ impl Influence {
         match self {
             Influence::Matrix(r) => r.nrows(),
             Influence::MatrixFree(op) => op.nrows(),
+            Influence::Spread(op) => op.nrows(),
         }
     }
 
@@ -52,6 +55,7 @@ impl Influence {
         match self {
             Influence::Matrix(r) => r.ncols(),
             Influence::MatrixFree(op) => op.ncols(),
+            Influence::Spread(op) => op.ncols(),
         }
     }
 }
@@ -71,6 +75,11 @@ pub enum OperatorChoice {
     /// Never form `R`: products by FFT convolution ([`fft::FftOperator`]). Needs map and dwell
     /// points on one regular lattice and the first-order solver.
     Fft,
+    /// Never form `R`: dwell points spread onto an oversampled map lattice, then FFT convolution
+    /// ([`crate::influence::SpreadOperator`]), with the smallest oversampling whose estimated
+    /// error is within `spread_tolerance`. Needs map points on a regular lattice (dwell points
+    /// anywhere) and the first-order solver.
+    FftSpread,
 }
 
 impl Problem {
@@ -97,6 +106,24 @@ impl Problem {
     ) -> Result<Self> {
         Self::build(
             Influence::MatrixFree(Arc::new(operator)),
+            z_nm,
+            bounds,
+            rho,
+            lambda,
+        )
+    }
+
+    /// As [`Problem::new`] with the off-lattice spreading operator ([`SpreadOperator`]) in place
+    /// of the assembled `R`: only the first-order solver can solve it.
+    pub fn off_lattice(
+        operator: SpreadOperator,
+        z_nm: Vec<f64>,
+        bounds: DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> Result<Self> {
+        Self::build(
+            Influence::Spread(Arc::new(operator)),
             z_nm,
             bounds,
             rho,
@@ -176,7 +203,7 @@ impl Problem {
     pub fn influence(&self) -> Option<&InfluenceMatrix> {
         match &self.influence {
             Influence::Matrix(r) => Some(r),
-            Influence::MatrixFree(_) => None,
+            Influence::MatrixFree(_) | Influence::Spread(_) => None,
         }
     }
 
@@ -194,17 +221,31 @@ impl Problem {
     /// The matrix-free FFT operator, if the problem uses one.
     pub fn fft_operator(&self) -> Option<&FftOperator> {
         match &self.influence {
-            Influence::Matrix(_) => None,
+            Influence::Matrix(_) | Influence::Spread(_) => None,
             Influence::MatrixFree(op) => Some(op),
         }
     }
 
-    /// How `R` is held: assembled or matrix-free.
+    /// How `R` is held: assembled, matrix-free on one lattice, or spread onto the map lattice.
     pub fn operator_kind(&self) -> OperatorKind {
         match &self.influence {
             Influence::Matrix(_) => OperatorKind::Sparse,
             Influence::MatrixFree(_) => OperatorKind::Fft,
+            Influence::Spread(_) => OperatorKind::FftSpread,
         }
+    }
+
+    /// The off-lattice spreading operator, if the problem uses one.
+    pub fn spread_operator(&self) -> Option<&SpreadOperator> {
+        match &self.influence {
+            Influence::Spread(op) => Some(op),
+            _ => None,
+        }
+    }
+
+    /// Whether `R` is matrix-free (FFT or spreading operator): only the first-order solver runs.
+    pub fn is_matrix_free(&self) -> bool {
+        !matches!(self.influence, Influence::Matrix(_))
     }
 
     /// Non-zero entries of `R` (stored, or implicit in the FFT operator).
@@ -212,6 +253,7 @@ impl Problem {
         match &self.influence {
             Influence::Matrix(r) => r.nnz(),
             Influence::MatrixFree(op) => op.nnz(),
+            Influence::Spread(op) => op.nnz(),
         }
     }
 
@@ -220,6 +262,7 @@ impl Problem {
         match &self.influence {
             Influence::Matrix(r) => r.empty_columns(),
             Influence::MatrixFree(op) => op.empty_columns(),
+            Influence::Spread(op) => op.empty_columns(),
         }
     }
 
@@ -227,18 +270,8 @@ impl Problem {
     pub fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
         match &self.influence {
             Influence::Matrix(r) => r.removal_nm(dwell_s),
-            Influence::MatrixFree(op) => {
-                if dwell_s.len() != op.ncols() {
-                    return Err(Error::LengthMismatch {
-                        what: "dwell_s",
-                        got: dwell_s.len(),
-                        expected: op.ncols(),
-                    });
-                }
-                let mut h = vec![0.0; op.nrows()];
-                op.apply(dwell_s, &mut h);
-                Ok(h)
-            }
+            Influence::MatrixFree(op) => apply_free(op.as_ref(), dwell_s),
+            Influence::Spread(op) => apply_free(op.as_ref(), dwell_s),
         }
     }
 
@@ -386,6 +419,20 @@ impl Problem {
     }
 }
 
+/// `R t` by a matrix-free operator, with the length checked.
+fn apply_free(op: &dyn LinearOperator, dwell_s: &[f64]) -> Result<Vec<f64>> {
+    if dwell_s.len() != op.ncols() {
+        return Err(Error::LengthMismatch {
+            what: "dwell_s",
+            got: dwell_s.len(),
+            expected: op.ncols(),
+        });
+    }
+    let mut h = vec![0.0; op.nrows()];
+    op.apply(dwell_s, &mut h);
+    Ok(h)
+}
+
 /// What a dwell vector achieves on a problem.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Evaluation {
@@ -410,6 +457,8 @@ pub enum OperatorKind {
     Sparse,
     /// The matrix-free FFT convolution.
     Fft,
+    /// Dwell points spread onto the map lattice, then FFT convolution.
+    FftSpread,
 }
 
 /// Which solver to run.
@@ -436,7 +485,7 @@ impl SolverChoice {
             SolverChoice::Qp => SolverKind::Qp,
             SolverChoice::FirstOrder => SolverKind::FirstOrder,
             SolverChoice::Auto if min_time => SolverKind::Qp,
-            SolverChoice::Auto if problem.fft_operator().is_some() => SolverKind::FirstOrder,
+            SolverChoice::Auto if problem.is_matrix_free() => SolverKind::FirstOrder,
             SolverChoice::Auto => {
                 policy::choose(&policy::PolicyInputs {
                     nnz: problem.nnz() as f64,
@@ -494,6 +543,10 @@ pub struct Settings {
     /// First-order solver: the preconditioner of Newton-CG's conjugate gradients
     /// ([`Preconditioner`]).
     pub preconditioner: Preconditioner,
+    /// Largest estimated relative operator error `||R~ - R||_F / ||R||_F` allowed for the
+    /// off-lattice spreading operator ([`crate::influence::spread`]) when `operator = "auto"`
+    /// considers it (dwell points off the map lattice).
+    pub spread_tolerance: f64,
 }
 
 /// The preconditioner of the projected Newton-CG's conjugate gradients.
@@ -542,6 +595,7 @@ impl Default for Settings {
             first_order_method: FirstOrderMethod::default(),
             operator: OperatorChoice::default(),
             preconditioner: Preconditioner::default(),
+            spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
         }
     }
 }
@@ -574,6 +628,15 @@ impl Settings {
             return Err(Error::invalid(
                 "first_order_max_iterations",
                 "must be at least 1",
+            ));
+        }
+        if !(self.spread_tolerance.is_finite()
+            && self.spread_tolerance > 0.0
+            && self.spread_tolerance < 1.0)
+        {
+            return Err(Error::invalid(
+                "spread_tolerance",
+                format!("must be in (0, 1), got {}", self.spread_tolerance),
             ));
         }
         if self.max_iterations == 0 {
@@ -672,7 +735,7 @@ pub(crate) fn solve_validated(
     if problem.lambda() > 0.0 || empty.is_empty() {
         return dispatch(problem, settings, observer, warm_start_s);
     }
-    if problem.fft_operator().is_some() {
+    if problem.is_matrix_free() {
         // Empty columns have zero gradient, so the first-order iteration leaves them where it
         // started; put them on their lower bound as the assembled route does.
         let mut sol = dispatch(problem, settings, observer, warm_start_s)?;
@@ -727,6 +790,9 @@ pub(crate) fn with_operator<T>(
     match (problem.influence(), problem.fft_operator()) {
         (Some(r), _) => f(&crate::influence::SparseOperator::new(r.csc())),
         (None, Some(fft)) => f(fft),
-        (None, None) => Err(Error::invalid("problem", "has no influence operator")),
+        (None, None) => match problem.spread_operator() {
+            Some(op) => f(op),
+            None => Err(Error::invalid("problem", "has no influence operator")),
+        },
     }
 }

@@ -6,16 +6,22 @@
 //! - [`surface`]: the same on a curved part, the TIF applied in each dwell point's tangent frame;
 //! - [`curvature`]: one Hertzian TIF per dwell point from the local principal curvatures;
 //! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
+//! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
+//!   onto an oversampled lattice, then FFT convolution);
+//! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
 //! - [`operator`]: the product trait ([`LinearOperator`]: `R t`, `R^T y`) every solver goes through.
 
 pub mod curvature;
 pub mod fft;
 pub mod matrix;
 pub mod operator;
+pub mod spread;
+pub mod stacked;
 pub mod surface;
 
 pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
 pub use fft::FftOperator;
 pub use matrix::{InfluenceMatrix, NNZ_BYTES};
 pub use operator::{LinearOperator, SparseOperator};
+pub use spread::SpreadOperator;
 pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};

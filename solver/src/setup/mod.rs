@@ -15,12 +15,14 @@
 //! is imposed by sequential convex programming ([`crate::dwell::accel`]). The removal `R t` and
 //! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
 
+mod off_lattice;
+
 use crate::dwell::accel::{self, AccelLimits, AccelReport};
+use crate::dwell::precond::DwellLattice;
 use crate::dwell::{
     self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution, SolverChoice,
     Status,
 };
-use crate::dwell::precond::DwellLattice;
 use crate::dwell::{policy, SolverKind};
 use crate::edge::{self, EdgeSettings};
 use crate::error::{Error, Result};
@@ -536,7 +538,8 @@ impl Setup {
         warnings: &mut Vec<String>,
     ) -> SetupResult<OperatorPlan> {
         let choice = self.settings.operator;
-        if choice == OperatorChoice::Sparse {
+        // The spreading operator is planned by `spread_plan` where the lattice one is not.
+        if matches!(choice, OperatorChoice::Sparse | OperatorChoice::FftSpread) {
             return Ok(OperatorPlan::Assembled);
         }
         let blocker = self.fft_blocker();
@@ -642,9 +645,16 @@ impl Setup {
         };
         let z_nm = rows.z_nm().to_vec();
         let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
-        let problem = match fft {
-            Some(op) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
-            None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+        let spread = match fft {
+            Some(_) => None,
+            None => self.spread_plan(&rows, &mut warnings)?,
+        };
+        let problem = match (fft, spread) {
+            (Some(op), _) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
+            (None, Some(op)) => Problem::off_lattice(op, z_nm, bounds, rho, lambda),
+            (None, None) => {
+                Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
+            }
         }
         .and_then(|p| {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
@@ -760,7 +770,6 @@ impl Setup {
         })
     }
 }
-
 
 /// Cells of the FFT operator's lattice (pitch `pitch` mm) for `map` and `path`, padded by the
 /// TIF's support radius `radius` mm on every side: the cost model's size.
