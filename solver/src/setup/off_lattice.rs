@@ -11,7 +11,7 @@
 //! non-zero on top, which the comparison leaves out (in the spreading operator's favour).
 
 use super::{At, Setup, SetupInput, SetupResult};
-use crate::dwell::OperatorChoice;
+use crate::dwell::{policy, OperatorChoice, SolverChoice, SolverKind};
 use crate::error::Error;
 use crate::influence::fft::FftOperator;
 use crate::influence::spread::MAX_OVERSAMPLING;
@@ -80,6 +80,25 @@ impl Setup {
             SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2()
         };
         if !forced {
+            // Only where the first-order solver would run anyway: below the policy's crossover
+            // the QP on the assembled `R` is the faster, certified route.
+            let first_order = match self.settings.solver {
+                SolverChoice::FirstOrder => true,
+                SolverChoice::Qp => false,
+                SolverChoice::Auto => {
+                    policy::choose(&policy::PolicyInputs {
+                        nnz,
+                        fft_cells: None,
+                        needs_qp: false,
+                        solver: None,
+                    })
+                    .solver
+                        == SolverKind::FirstOrder
+                }
+            };
+            if !first_order {
+                return Ok(None);
+            }
             // Dwell points on the map lattice are the FFT operator's (exact) case.
             let on = |v: f64, o: f64| ((v - o) / pitch - ((v - o) / pitch).round()).abs() <= 1e-6;
             let all_on = dx
