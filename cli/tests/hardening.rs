@@ -532,7 +532,7 @@ fn values_beyond_the_physical_ranges_are_refused_at_their_line() {
             "--out",
             &format!("{o}/p.nc"),
         ]),
-        &["repd.csv", "dwell point 2", "zero length"],
+        &["repd.csv", "line 4", "line 3", "length zero"],
     );
     assert_eq!(snapshot(&out), before);
 }

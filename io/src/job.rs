@@ -92,7 +92,7 @@ pub struct Job {
     /// Several tools in one solve (`[[tool]]`, [`crate::tools`]): each with its own TIF, dwell
     /// file and feed limits; when present, `[tif]` and `[dwell]` are not used.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub tool: Vec<crate::tools::ToolSpec>,
+    pub tool: Vec<ToolSpec>,
 }
 
 /// The design surface on which the TIF is applied in each dwell point's tangent plane.
@@ -432,4 +432,24 @@ mod tests {
             .to_string();
         assert!(e.contains("force"), "{e}");
     }
+}
+
+/// One tool of a multi-tool job (`[[tool]]` in the job file).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolSpec {
+    /// The tool's TIF: `file` or `gaussian`, as in `[tif]`.
+    #[serde(default)]
+    pub tif: TifSource,
+    /// The tool's dwell points, CSV `x_mm,y_mm` in path order.
+    pub dwell: PathBuf,
+    /// Fastest feed of this tool, mm/min (default: `[machine] v_max_mm_per_min`).
+    #[serde(default)]
+    pub v_max_mm_per_min: Option<f64>,
+    /// Slowest feed of this tool, mm/min (default: `[machine] v_min_mm_per_min`, else 0).
+    #[serde(default)]
+    pub v_min_mm_per_min: Option<f64>,
+    /// Weight of this tool's machining time in the `rho` term (default 1; > 0).
+    #[serde(default)]
+    pub time_weight: Option<f64>,
 }

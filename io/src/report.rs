@@ -95,7 +95,7 @@ pub struct Report {
     /// Each tool of a multi-tool solve (`[[tool]]` or repeated `--tif`/`--dwell`); absent for
     /// a single tool.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub tools: Vec<crate::tools::ToolReport>,
+    pub tools: Vec<ToolReport>,
     /// Machining time of the feed schedule, s: every stretch at its point's feed (`sum t_j`),
     /// plus the acceleration ramps when `a_max` is set
     /// ([`preston_solver::machine::feeds`]). Set by [`Report::set_machine`].
@@ -455,4 +455,30 @@ impl Report {
         self.rms_feed_limited_only_nm = accel.map(|a| a.rms_after_reference_nm);
         self.accel = accel.cloned();
     }
+}
+
+/// What one tool does in a multi-tool plan (`report.json` `tools`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToolReport {
+    /// 1-based tool number (`dwell_tool{k}.csv`).
+    pub tool: usize,
+    /// Dwell points of the tool.
+    pub n: usize,
+    /// Total dwell of the tool, s.
+    pub total_dwell_s: f64,
+    /// Machining time of the tool along its path at the planned feeds, s (equal to the total
+    /// dwell: the dwell of each point is the time spent on its path length).
+    pub machining_time_s: f64,
+    /// The tool's machining-time weight.
+    pub time_weight: f64,
+    /// RMS of the tool's removal over the map, nm.
+    pub removal_rms_nm: f64,
+    /// Peak-to-valley of the tool's removal over the map, nm.
+    pub removal_pv_nm: f64,
+    /// Mean removal of the tool over the map, nm.
+    pub removal_mean_nm: f64,
+    /// Slowest and fastest feed of the tool while moving, mm/min.
+    pub min_feed_mm_per_min: f64,
+    /// Fastest feed of the tool, mm/min.
+    pub max_feed_mm_per_min: f64,
 }

@@ -16,6 +16,7 @@ use crate::atomic::commit_all;
 use crate::error::{Error, Result};
 use crate::job::{Job, TifSource};
 use crate::readers::{read_dwell, read_tif};
+pub use crate::report::ToolReport;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{self, DwellBounds, FeedLimits, OperatorChoice, Problem, Solution};
@@ -25,55 +26,8 @@ use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
 use preston_solver::tif::Tif;
-use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
-
-/// One tool of a multi-tool job (`[[tool]]` in the job file).
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ToolSpec {
-    /// The tool's TIF: `file` or `gaussian`, as in `[tif]`.
-    #[serde(default)]
-    pub tif: TifSource,
-    /// The tool's dwell points, CSV `x_mm,y_mm` in path order.
-    pub dwell: PathBuf,
-    /// Fastest feed of this tool, mm/min (default: `[machine] v_max_mm_per_min`).
-    #[serde(default)]
-    pub v_max_mm_per_min: Option<f64>,
-    /// Slowest feed of this tool, mm/min (default: `[machine] v_min_mm_per_min`, else 0).
-    #[serde(default)]
-    pub v_min_mm_per_min: Option<f64>,
-    /// Weight of this tool's machining time in the `rho` term (default 1; > 0).
-    #[serde(default)]
-    pub time_weight: Option<f64>,
-}
-
-/// What one tool does in a multi-tool plan (`report.json` `tools`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ToolReport {
-    /// 1-based tool number (`dwell_tool{k}.csv`).
-    pub tool: usize,
-    /// Dwell points of the tool.
-    pub n: usize,
-    /// Total dwell of the tool, s.
-    pub total_dwell_s: f64,
-    /// Machining time of the tool along its path at the planned feeds, s (equal to the total
-    /// dwell: the dwell of each point is the time spent on its path length).
-    pub machining_time_s: f64,
-    /// The tool's machining-time weight.
-    pub time_weight: f64,
-    /// RMS of the tool's removal over the map, nm.
-    pub removal_rms_nm: f64,
-    /// Peak-to-valley of the tool's removal over the map, nm.
-    pub removal_pv_nm: f64,
-    /// Mean removal of the tool over the map, nm.
-    pub removal_mean_nm: f64,
-    /// Slowest and fastest feed of the tool while moving, mm/min.
-    pub min_feed_mm_per_min: f64,
-    /// Fastest feed of the tool, mm/min.
-    pub max_feed_mm_per_min: f64,
-}
 
 /// One tool, read: its TIF, path, path lengths and bounds (unscaled).
 #[derive(Debug, Clone)]

@@ -390,7 +390,7 @@ fn apply_tools(
         .iter()
         .zip(dwells)
         .enumerate()
-        .map(|(i, (t, d))| preston_io::tools::ToolSpec {
+        .map(|(i, (t, d))| preston_io::job::ToolSpec {
             tif: preston_io::job::TifSource {
                 file: Some(t.clone()),
                 gaussian: None,
