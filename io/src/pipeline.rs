@@ -192,7 +192,12 @@ fn prepare_checked(
         tif,
         dwell,
     } = inputs;
-    let dwell = match (dwell, job.dwell.resolve(job_path)?) {
+    // Points handed over already read (the Python package's arrays) need no `[dwell]` section.
+    let resolved = match (&dwell, &job.dwell.file, job.dwell.raster_pitch_mm) {
+        (Some(_), None, None) => DwellInput::File(job_path.to_path_buf()),
+        _ => job.dwell.resolve(job_path)?,
+    };
+    let dwell = match (dwell, resolved) {
         (Some(d), DwellInput::File(f)) => {
             if d.path.len() < 2 {
                 return Err(Error::Empty {
