@@ -255,15 +255,12 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         .zip(&dwell_s)
         .enumerate()
         .map(|(i, (tool, t))| {
-            let h = InfluenceMatrix::assemble(
-                map.x_mm(),
-                map.y_mm(),
-                tool.path.x_mm(),
-                tool.path.y_mm(),
-                &tool.tif,
-                observer,
-            )?
-            .removal_nm(t)?;
+            // Tool i's removal `R_i t_i` through the stacked problem: its block of the scaled
+            // variable `u = w t`, every other tool's zero (no second assembly of `R_i`).
+            let start: usize = tools[..i].iter().map(|t| t.path.len()).sum();
+            let mut u_i = vec![0.0; solution.dwell_s.len()];
+            u_i[start..start + t.len()].copy_from_slice(&solution.dwell_s[start..start + t.len()]);
+            let h = problem.removal_nm(&u_i)?;
             let stats = HeightStats::of(&h);
             let feeds = feeds_mm_per_min(&tool.ds_mm, t);
             let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
