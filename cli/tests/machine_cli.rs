@@ -101,6 +101,106 @@ fn max_accel(rows: &[[f64; 4]]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// A serpentine raster of 26 x 11 dwell points (pitch 1 mm, 286 points) over a 30 x 16 mm map
+/// with a bump and a trench: the feed-limited optimum changes speed sharply along the lines.
+fn raster_case(dir: &Path) -> Vec<String> {
+    let mut map = String::from("x_mm,y_mm,z_nm\n");
+    for j in 0..33 {
+        for i in 0..61 {
+            let (x, y) = (-15.0 + 0.5 * i as f64, -8.0 + 0.5 * j as f64);
+            let z = 60.0 * (-((x - 4.0).powi(2) + (y - 1.0).powi(2)) / 8.0).exp()
+                - 40.0 * (-((x + 6.0).powi(2)) / 2.0).exp()
+                + 10.0 * (x / 15.0).powi(2);
+            map.push_str(&format!("{x},{y},{z}\n"));
+        }
+    }
+    let mut path = String::from("x_mm,y_mm\n");
+    for j in 0..11 {
+        for k in 0..26 {
+            let i = if j % 2 == 0 { k } else { 25 - k };
+            path.push_str(&format!("{},{}\n", -12.5 + i as f64, -5.0 + j as f64));
+        }
+    }
+    let m = write(dir, "map.csv", &map);
+    let d = write(dir, "path.csv", &path);
+    [
+        "solve",
+        "--map",
+        m.to_str().unwrap(),
+        "--dwell",
+        d.to_str().unwrap(),
+        "--gaussian-sigma-mm",
+        "1.5",
+        "--gaussian-peak-nm-per-s",
+        "50",
+        "--v-max",
+        "2000",
+        "--edge",
+        "none",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect()
+}
+
+/// The squared-speed method's objective may exceed the SCP reference's by this fraction on cases
+/// of at most 500 points.
+const OBJECTIVE_TO_SCP: f64 = 0.01;
+
+#[test]
+fn squared_speed_meets_the_limit_on_a_raster_and_matches_the_scp_reference() {
+    let d = tempfile::tempdir().unwrap();
+    let base = raster_case(d.path());
+    let free_dir = d.path().join("free");
+    run_ok(preston().args(&base).arg("--out").arg(&free_dir));
+    let a_free = max_accel(&dwell_rows(&free_dir));
+    let a_max = 0.1 * a_free;
+    let run = |method: &str| {
+        let dir = d.path().join(method);
+        run_ok(
+            preston()
+                .args(&base)
+                .args(["--a-max-mm-per-s2", &a_max.to_string()])
+                .args(["--accel-method", method])
+                .arg("--out")
+                .arg(&dir),
+        );
+        (read_json(&dir.join("report.json")), dwell_rows(&dir))
+    };
+    let (fast, rows) = run("squared-speed");
+    let (scp, _) = run("scp-qp");
+    assert_eq!(fast["accel"]["method"], "squared-speed");
+    assert_eq!(scp["accel"]["method"], "scp-qp");
+    // Every segment of each line, recomputed from the written file; the steps between lines
+    // (turns of 90 degrees at both ends) carry no constraint.
+    let mut constrained = 0;
+    for (k, w) in rows.windows(2).enumerate() {
+        let same_line = (w[1][1] - w[0][1]).abs() < 1e-9;
+        if !same_line {
+            continue;
+        }
+        constrained += 1;
+        let (v0, v1) = (w[0][2] / w[0][3], w[1][2] / w[1][3]);
+        let s = (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]);
+        assert!(
+            (v1 * v1 - v0 * v0).abs() <= ACCEL_TOL * 2.0 * a_max * s,
+            "segment {k}: |dv^2| = {} > 2 a s = {}",
+            (v1 * v1 - v0 * v0).abs(),
+            2.0 * a_max * s
+        );
+    }
+    assert_eq!(constrained, 11 * 25);
+    assert!(fast["accel"]["binding_segments"].as_u64().unwrap() > 0);
+    let (f, f_ref) = (
+        fast["objective"].as_f64().unwrap(),
+        scp["objective"].as_f64().unwrap(),
+    );
+    assert!(
+        f <= f_ref * (1.0 + OBJECTIVE_TO_SCP),
+        "squared speed {f} against the SCP's {f_ref}"
+    );
+}
+
 #[test]
 fn acceleration_limit_binds_and_holds() {
     let d = tempfile::tempdir().unwrap();

@@ -43,7 +43,7 @@ use crate::error::{Error, Result};
 use crate::machine::NcSection;
 use crate::metrology::ApertureSpec;
 pub use crate::metrology::MapSource;
-use preston_solver::dwell::accel::AccelLimits;
+use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::edge::EdgeSettings;
 use preston_solver::influence::surface::TifFrame;
@@ -212,6 +212,10 @@ pub struct MachineSection {
     /// acceleration constraint, the machine stops there); default 60.
     #[serde(default)]
     pub corner_angle_deg: Option<f64>,
+    /// How the acceleration limit is imposed: `"squared-speed"` (default; projected gradient in
+    /// squared speed, any size and operator) or `"scp-qp"` (the sequential QP reference).
+    #[serde(default)]
+    pub accel_method: Option<AccelMethod>,
 }
 
 /// Weights of the objective terms.
@@ -307,6 +311,7 @@ impl Job {
             },
             a_max_mm_per_s2: self.machine.a_max_mm_per_s2,
             corner_angle_deg: self.machine.corner_angle_deg,
+            accel_method: self.machine.accel_method.unwrap_or_default(),
             rho: self.objective.rho,
             lambda: self.objective.lambda,
             settings: self.solver.clone(),
@@ -333,6 +338,7 @@ impl Job {
         let limits = AccelLimits {
             a_max_mm_per_s2: a,
             corner_angle_deg: self.corner_angle_deg(),
+            method: self.machine.accel_method.unwrap_or_default(),
             ..AccelLimits::default()
         };
         limits.validate()?;

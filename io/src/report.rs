@@ -108,8 +108,9 @@ pub struct Report {
     /// The acceleration limit imposed, mm/s^2 (absent without one).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub a_max_mm_per_s2: Option<f64>,
-    /// Sequential-convex-programming iterations (QP solves after the feed-limited optimum; 0 when
-    /// that optimum already met the limit). Absent without a limit.
+    /// Iterations of the acceleration-limited method after the feed-limited optimum: gradient
+    /// steps (squared speed) or QP solves (SCP); 0 when that optimum already met the limit.
+    /// Absent without a limit.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub accel_iterations: Option<usize>,
     /// RMS of the residual of the feed-limited-only optimum (no acceleration limit), nm: the
@@ -451,7 +452,7 @@ impl Report {
         self.machining_time_s = schedule.machining_time_s;
         self.max_accel_mm_per_s2 = schedule.max_accel_mm_per_s2;
         self.a_max_mm_per_s2 = accel.map(|a| a.a_max_mm_per_s2);
-        self.accel_iterations = accel.map(|a| a.scp_iterations);
+        self.accel_iterations = accel.map(|a| a.scp_iterations + a.gradient_steps);
         self.rms_feed_limited_only_nm = accel.map(|a| a.rms_after_reference_nm);
         self.accel = accel.cloned();
     }

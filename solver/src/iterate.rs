@@ -397,6 +397,7 @@ pub fn plan_run(
         feed: settings.feed,
         a_max_mm_per_s2: None,
         corner_angle_deg: None,
+        accel_method: Default::default(),
         rho: settings.rho,
         lambda: settings.lambda,
         settings: Settings {

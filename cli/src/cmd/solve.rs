@@ -8,6 +8,7 @@ use anyhow::Context;
 use preston_io::job::Job;
 use preston_io::pipeline;
 use preston_io::surface::read_surface;
+use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, OperatorKind, SolverChoice};
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::surface::TifFrame;
@@ -54,6 +55,24 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
         match m {
             FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
             FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+        }
+    }
+}
+
+/// Acceleration-limit method on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum AccelMethodArg {
+    /// Projected gradient in squared speed (default).
+    SquaredSpeed,
+    /// Sequential convex programming around the QP (reference for small cases).
+    ScpQp,
+}
+
+impl From<AccelMethodArg> for AccelMethod {
+    fn from(m: AccelMethodArg) -> Self {
+        match m {
+            AccelMethodArg::SquaredSpeed => AccelMethod::SquaredSpeed,
+            AccelMethodArg::ScpQp => AccelMethod::ScpQp,
         }
     }
 }
@@ -171,9 +190,13 @@ pub struct Args {
     #[arg(long = "v-min", value_name = "MM_PER_MIN")]
     pub v_min_mm_per_min: Option<f64>,
     /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
-    /// the distance between consecutive dwell points (sequential convex programming).
+    /// the distance between consecutive dwell points.
     #[arg(long, value_name = "MM_PER_S2")]
     pub a_max_mm_per_s2: Option<f64>,
+    /// How the acceleration limit is imposed: squared-speed (default; projected gradient in
+    /// squared speed, any size and operator) or scp-qp (sequential QP, the small-case reference).
+    #[arg(long, value_enum)]
+    pub accel_method: Option<AccelMethodArg>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
@@ -300,6 +323,9 @@ impl Args {
         }
         if let Some(c) = self.corner_angle_deg {
             job.machine.corner_angle_deg = Some(c);
+        }
+        if let Some(m) = self.accel_method {
+            job.machine.accel_method = Some(m.into());
         }
         if let Some(e) = self.edge {
             job.edge.method = e.into();
@@ -535,7 +561,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.rms_feed_limited_only_nm,
     ) {
         eprintln!(
-            "  acceleration limit {a} mm/s^2: {it} SCP iterations, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
+            "  acceleration limit {a} mm/s^2: {it} {}, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
+            match r.accel.as_ref().map(|x| x.method) {
+                Some(AccelMethod::ScpQp) => "SCP iterations",
+                _ => "gradient steps in squared speed",
+            },
             r.rms_after_nm
         );
     }

@@ -151,36 +151,36 @@ pub fn solve(
 }
 
 /// Work vectors, allocated once.
-struct Work {
-    t: Vec<f64>,
-    rt: Vec<f64>,
-    g: Vec<f64>,
-    partials: Vec<f64>,
+pub(crate) struct Work {
+    pub(crate) t: Vec<f64>,
+    pub(crate) rt: Vec<f64>,
+    pub(crate) g: Vec<f64>,
+    pub(crate) partials: Vec<f64>,
 }
 
 /// The problem data the iteration needs.
-struct Data<'a> {
-    op: &'a dyn LinearOperator,
-    z: &'a [f64],
-    rho: f64,
-    lambda: f64,
+pub(crate) struct Data<'a> {
+    pub(crate) op: &'a dyn LinearOperator,
+    pub(crate) z: &'a [f64],
+    pub(crate) rho: f64,
+    pub(crate) lambda: f64,
     /// `1'z`.
-    sum_z: f64,
+    pub(crate) sum_z: f64,
     /// `R^T z`.
-    rtz: Vec<f64>,
+    pub(crate) rtz: Vec<f64>,
     /// `c = R^T 1` (column sums).
-    column_sums: Vec<f64>,
+    pub(crate) column_sums: Vec<f64>,
     /// Jacobi scale `S`.
-    s: Vec<f64>,
-    lo_w: Vec<f64>,
-    hi_w: Vec<f64>,
+    pub(crate) s: Vec<f64>,
+    pub(crate) lo_w: Vec<f64>,
+    pub(crate) hi_w: Vec<f64>,
 }
 
 impl Data<'_> {
     /// Gradient in the scaled variables at `w`: fills `work.t = S w`, `work.rt = P(R t - z)`,
     /// `work.g = grad_t f - rho` (i.e. `R^T r + lambda D^T D t`) and returns `(0.5||r||^2,
     /// 0.5 lambda ||D t||^2)`. The scaled gradient is `S (g + rho)`.
-    fn gradient(&self, w: &[f64], work: &mut Work) -> (f64, f64) {
+    pub(crate) fn gradient(&self, w: &[f64], work: &mut Work) -> (f64, f64) {
         let half_r2 = self.residual(w, work);
         let half_d2 = self.backward(work);
         (half_r2, half_d2)
@@ -190,7 +190,7 @@ impl Data<'_> {
     /// leaves it) from the normal equations, with one pass over the lattice where the operator
     /// has one (`work.rt` is scratch): `R^T P (R t - z) = R^T R t - R^T z - mean c`,
     /// `c = R^T 1`, `mean = (c't - 1'z) / m`. `with_z = false` drops `z` (Hessian products).
-    fn normal_gradient(&self, w: &[f64], with_z: bool, work: &mut Work) {
+    pub(crate) fn normal_gradient(&self, w: &[f64], with_z: bool, work: &mut Work) {
         let (c, s) = (&self.column_sums, &self.s);
         let ct = fill_and_sum(&mut work.t, &mut work.partials, |j| {
             let t = w[j] * s[j];
@@ -217,7 +217,7 @@ impl Data<'_> {
     }
 
     /// `work.t = S w`, `work.rt = P(R t - z)`; returns `0.5 ||rt||^2`.
-    fn residual(&self, w: &[f64], work: &mut Work) -> f64 {
+    pub(crate) fn residual(&self, w: &[f64], work: &mut Work) -> f64 {
         let (m, z) = (self.z.len(), self.z);
         work.t
             .par_iter_mut()
@@ -261,7 +261,7 @@ impl Data<'_> {
     }
 
     /// The full objective `f` at `w` (one product with `R`).
-    fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
+    pub(crate) fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
         let half_r2 = self.residual(w, work);
         let half_d2 = self.half_smoothing(work);
         let t = &work.t;
@@ -277,10 +277,97 @@ impl Data<'_> {
             .for_each(|(o, (g, s))| *o = s * g);
     }
 
-    fn project(&self, w: &mut [f64]) {
+    pub(crate) fn project(&self, w: &mut [f64]) {
         w.par_iter_mut()
             .zip(self.lo_w.par_iter().zip(self.hi_w.par_iter()))
             .for_each(|(w, (lo, hi))| *w = w.max(*lo).min(*hi));
+    }
+}
+
+impl<'a> Data<'a> {
+    /// The scaled problem for `op` with its work vectors and the KKT normalisation
+    /// `||S (R^T P z)|| + rho ||S 1||` (floored; see [`KKT_FLOOR_NM`]). `z_nm` has `op`'s rows and
+    /// `bounds` its columns (checked by the callers).
+    pub(crate) fn prepare(
+        op: &'a dyn LinearOperator,
+        z_nm: &'a [f64],
+        bounds: &DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> (Self, Work, f64) {
+        let (m, n) = (op.nrows(), op.ncols());
+        // Jacobi scaling from the Hessian diagonal.
+        let cn = op.centred_column_norms_sq();
+        let s: Vec<f64> = cn
+            .iter()
+            .enumerate()
+            .map(|(j, &c)| {
+                let dd = if n == 1 {
+                    0.0
+                } else if j == 0 || j + 1 == n {
+                    1.0
+                } else {
+                    2.0
+                };
+                let d = c + lambda * dd;
+                if d > 0.0 && d.is_finite() {
+                    1.0 / d.sqrt()
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        let lo_w: Vec<f64> = bounds
+            .lower_s()
+            .iter()
+            .zip(&s)
+            .map(|(l, s)| l / s)
+            .collect();
+        let hi_w: Vec<f64> = (0..n).map(|j| bounds.upper(j) / s[j]).collect();
+        let mut work = Work {
+            t: vec![0.0; n],
+            rt: vec![0.0; m],
+            g: vec![0.0; n],
+            partials: Vec::with_capacity(m.max(n).div_ceil(4096) + 1),
+        };
+        // R^T z and R^T 1 for the gradient from the normal equations (`work.rt` holds the ones).
+        let (mut rtz, mut column_sums) = (vec![0.0; n], vec![0.0; n]);
+        op.apply_transpose(z_nm, &mut rtz);
+        work.rt.iter_mut().for_each(|r| *r = 1.0);
+        op.apply_transpose(&work.rt, &mut column_sums);
+        let data = Data {
+            op,
+            z: z_nm,
+            sum_z: z_nm.iter().sum(),
+            rtz,
+            column_sums,
+            rho,
+            lambda,
+            s,
+            lo_w,
+            hi_w,
+        };
+
+        // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1||, with
+        // R^T P z = R^T z - (1'z / m) R^T 1.
+        let kkt_scale = {
+            let mean = data.sum_z / m as f64;
+            let a: f64 = (0..n)
+                .map(|j| ((data.rtz[j] - mean * data.column_sums[j]) * data.s[j]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let b: f64 = data.s.iter().map(|s| s * s).sum::<f64>().sqrt();
+            // Floor: the scale of an error of KKT_FLOOR_NM over the map, so that a flat map (a and
+            // rho both zero) gives a residual relative to a height far below any measurement
+            // instead of rounding noise divided by the smallest float.
+            let c: f64 = (0..n)
+                .map(|j| (data.column_sums[j] * data.s[j]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            (a + rho * b).max(KKT_FLOOR_NM * c).max(f64::MIN_POSITIVE)
+        };
+
+        (data, work, kkt_scale)
     }
 }
 
@@ -397,76 +484,7 @@ fn minimise_here(
         return Err(Error::invalid("problem", "has no map or no dwell points"));
     }
     let began = Instant::now();
-    // Jacobi scaling from the Hessian diagonal.
-    let cn = op.centred_column_norms_sq();
-    let s: Vec<f64> = cn
-        .iter()
-        .enumerate()
-        .map(|(j, &c)| {
-            let dd = if n == 1 {
-                0.0
-            } else if j == 0 || j + 1 == n {
-                1.0
-            } else {
-                2.0
-            };
-            let d = c + lambda * dd;
-            if d > 0.0 && d.is_finite() {
-                1.0 / d.sqrt()
-            } else {
-                1.0
-            }
-        })
-        .collect();
-    let lo_w: Vec<f64> = bounds
-        .lower_s()
-        .iter()
-        .zip(&s)
-        .map(|(l, s)| l / s)
-        .collect();
-    let hi_w: Vec<f64> = (0..n).map(|j| bounds.upper(j) / s[j]).collect();
-    let mut work = Work {
-        t: vec![0.0; n],
-        rt: vec![0.0; m],
-        g: vec![0.0; n],
-        partials: Vec::with_capacity(m.max(n).div_ceil(4096) + 1),
-    };
-    // R^T z and R^T 1 for the gradient from the normal equations (`work.rt` holds the ones).
-    let (mut rtz, mut column_sums) = (vec![0.0; n], vec![0.0; n]);
-    op.apply_transpose(z_nm, &mut rtz);
-    work.rt.iter_mut().for_each(|r| *r = 1.0);
-    op.apply_transpose(&work.rt, &mut column_sums);
-    let data = Data {
-        op,
-        z: z_nm,
-        sum_z: z_nm.iter().sum(),
-        rtz,
-        column_sums,
-        rho,
-        lambda,
-        s,
-        lo_w,
-        hi_w,
-    };
-
-    // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1||, with
-    // R^T P z = R^T z - (1'z / m) R^T 1.
-    let kkt_scale = {
-        let mean = data.sum_z / m as f64;
-        let a: f64 = (0..n)
-            .map(|j| ((data.rtz[j] - mean * data.column_sums[j]) * data.s[j]).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        let b: f64 = data.s.iter().map(|s| s * s).sum::<f64>().sqrt();
-        // Floor: the scale of an error of KKT_FLOOR_NM over the map, so that a flat map (a and
-        // rho both zero) gives a residual relative to a height far below any measurement
-        // instead of rounding noise divided by the smallest float.
-        let c: f64 = (0..n)
-            .map(|j| (data.column_sums[j] * data.s[j]).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        (a + rho * b).max(KKT_FLOOR_NM * c).max(f64::MIN_POSITIVE)
-    };
+    let (data, mut work, kkt_scale) = Data::prepare(op, z_nm, bounds, rho, lambda);
 
     let mut lambda_hat = power_iteration(&data, &mut work);
     if !(lambda_hat.is_finite() && lambda_hat > 0.0) {
@@ -855,7 +873,7 @@ fn trial(data: &Data<'_>, x: &[f64], d: &[f64], alpha: f64, out: &mut [f64]) {
 
 /// Largest eigenvalue of the scaled Hessian `S (R^T P R + lambda D^T D) S` by power iteration
 /// (the `rho` term and `z` do not enter: the gradient is affine, so differences are taken).
-fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
+pub(crate) fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
     let n = data.s.len();
     // A deterministic start with every component present.
     let mut v: Vec<f64> = (0..n)

@@ -17,7 +17,7 @@
 
 mod off_lattice;
 
-use crate::dwell::accel::{self, AccelLimits, AccelReport};
+use crate::dwell::accel::{self, AccelLimits, AccelMethod, AccelReport};
 use crate::dwell::precond::DwellLattice;
 use crate::dwell::{
     self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution, SolverChoice,
@@ -149,6 +149,8 @@ pub struct Choices {
     pub a_max_mm_per_s2: Option<f64>,
     /// Turn angle above which the path splits into lines, degrees (`None`: 60).
     pub corner_angle_deg: Option<f64>,
+    /// How the acceleration limit is imposed.
+    pub accel_method: AccelMethod,
     /// Weight of the total dwell (nm^2 per s).
     pub rho: f64,
     /// Weight of dwell differences along the path (nm^2/s^2).
@@ -213,6 +215,7 @@ impl Choices {
                 let limits = AccelLimits {
                     a_max_mm_per_s2: a,
                     corner_angle_deg,
+                    method: self.accel_method,
                     ..AccelLimits::default()
                 };
                 limits.validate().at(SetupInput::Job)?;
@@ -517,8 +520,12 @@ impl Setup {
     fn fft_blocker(&self) -> Option<&'static str> {
         if self.surface.is_some() {
             Some("a [surface] file (the TIF acts in each point's tangent frame)")
-        } else if self.accel.is_some() {
-            Some("an acceleration limit (its sequential QP needs R)")
+        } else if self
+            .accel
+            .as_ref()
+            .is_some_and(|a| a.method == AccelMethod::ScpQp)
+        {
+            Some("accel_method = \"scp-qp\" (its sequential QP needs R)")
         } else if self.settings.min_time {
             Some("the minimum-time mode (it runs the QP)")
         } else if self.settings.solver == SolverChoice::Qp {
@@ -798,6 +805,7 @@ mod tests {
             },
             a_max_mm_per_s2: None,
             corner_angle_deg: None,
+            accel_method: Default::default(),
             rho: 0.0,
             lambda: 0.0,
             settings: Settings::default(),

@@ -1,4 +1,10 @@
-//! Acceleration limits inside the dwell optimisation, by sequential convex programming (SCP).
+//! Acceleration limits inside the dwell optimisation.
+//!
+//! Two methods ([`AccelMethod`]): the default, [`speed`], an accelerated projected gradient in
+//! squared speed with an exact linear-time projection onto each line's chain of constraints
+//! ([`chain`]), which needs only products with `R` and scales to 10^5 dwell points and more; and
+//! the reference, sequential convex programming around the Clarabel QP (below), exact on small
+//! cases and kept to check the other.
 //!
 //! The feed at dwell point `j` is `v_j = ds_j / t_j` (mm/s, `ds_j` from
 //! [`DwellPath::ds_mm`]). With constant acceleration between consecutive dwell points `j` and
@@ -22,6 +28,10 @@
 //! feed-limited optimum). An empty reachable set proves that no feed schedule meets the limits
 //! inside the dwell bounds; that is an [`Error::InvalidInput`] naming the point.
 
+pub mod chain;
+mod speed;
+
+use super::first_order::Data;
 use super::qp::{self, ExtraRows};
 use super::{DwellBounds, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
@@ -30,7 +40,20 @@ use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-/// Acceleration limit and SCP settings. Job files may set any field.
+/// How the acceleration-limited problem is solved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AccelMethod {
+    /// Accelerated projected gradient in squared speed ([`speed`]): products with `R` only, any
+    /// operator, 10^5 points and more. The default.
+    #[default]
+    SquaredSpeed,
+    /// Sequential convex programming with one Clarabel QP per iteration: the reference for small
+    /// cases (it needs the assembled `R`).
+    ScpQp,
+}
+
+/// Acceleration limit and solver settings. Job files may set any field.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AccelLimits {
@@ -47,6 +70,12 @@ pub struct AccelLimits {
     pub max_iterations: usize,
     /// Initial relative trust region `tau`: `|t_j - t_j^k| <= tau t_j^k`.
     pub trust_region: f64,
+    /// The method.
+    pub method: AccelMethod,
+    /// Squared-speed method: relative KKT residual at which it stops.
+    pub kkt_tolerance: f64,
+    /// Squared-speed method: gradient steps at most.
+    pub max_gradient_steps: usize,
 }
 
 impl Default for AccelLimits {
@@ -58,6 +87,9 @@ impl Default for AccelLimits {
             objective_tolerance: 1e-4,
             max_iterations: 50,
             trust_region: 0.5,
+            method: AccelMethod::SquaredSpeed,
+            kkt_tolerance: 1e-4,
+            max_gradient_steps: 20_000,
         }
     }
 }
@@ -105,6 +137,16 @@ impl AccelLimits {
         if self.max_iterations == 0 {
             return Err(Error::invalid("max_iterations", "must be at least 1"));
         }
+        if !(self.kkt_tolerance.is_finite() && self.kkt_tolerance > 0.0 && self.kkt_tolerance < 1.0)
+        {
+            return Err(Error::invalid(
+                "kkt_tolerance",
+                format!("must be in (0, 1), got {}", self.kkt_tolerance),
+            ));
+        }
+        if self.max_gradient_steps == 0 {
+            return Err(Error::invalid("max_gradient_steps", "must be at least 1"));
+        }
         Ok(())
     }
 }
@@ -118,8 +160,14 @@ pub struct AccelReport {
     pub max_accel_mm_per_s2: f64,
     /// The same for the feed-limited-only optimum, mm/s^2.
     pub max_accel_reference_mm_per_s2: f64,
-    /// SCP iterations (QP solves after the reference).
+    /// The method that ran.
+    pub method: AccelMethod,
+    /// SCP iterations (QP solves after the reference; 0 for the squared-speed method).
     pub scp_iterations: usize,
+    /// Squared-speed method: gradient steps after the reference (0 for the SCP).
+    pub gradient_steps: usize,
+    /// Squared-speed method: the last relative KKT residual.
+    pub kkt_residual: Option<f64>,
     /// Segments that carry the constraint.
     pub constrained_segments: usize,
     /// Segments whose acceleration is within 1% of the limit (binding).
@@ -316,76 +364,64 @@ pub(crate) fn solve_validated(
     let (lo_u, hi_u) = speed_boxes(&kin, bounds)?;
     let reachable = forward_reachable(&kin, &lo_u, &hi_u, limits)?;
 
-    let reference = super::solve_validated(problem, settings, observer, None)?;
-    let settle_scale = 1e-12 * 0.5 * problem.z_nm().iter().map(|z| z * z).sum::<f64>();
-    let tol = limits.constraint_tolerance;
-
-    let mut t = feasible_start(&kin, &reachable, &reference.dwell_s, bounds);
-    let mut best_t = t.clone();
-    let mut best_f = problem.evaluate(&t)?.full_objective;
-    let mut prev_f = best_f;
-    let mut tau = limits.trust_region;
-    let mut status = Status::MaxIterations;
-    let mut iterations = 0;
+    // The feed-limited optimum is the start and the price-of-the-limit reference; for the
+    // squared-speed method a first-order reference is solved to that method's own tolerance.
+    let reference_settings = match limits.method {
+        AccelMethod::SquaredSpeed => Settings {
+            first_order_tolerance: settings.first_order_tolerance.max(limits.kkt_tolerance),
+            ..settings.clone()
+        },
+        AccelMethod::ScpQp => settings.clone(),
+    };
+    let reference = super::solve_validated(problem, &reference_settings, observer, None)?;
+    let mut scp_iterations = 0;
+    let mut gradient_steps = 0;
+    let mut kkt_residual = None;
     let mut qp_iterations = reference.iterations;
-
-    if kin.violation(&reference.dwell_s) <= tol {
+    let (best_t, status, solver) = if kin.violation(&reference.dwell_s)
+        <= limits.constraint_tolerance
+    {
         // The feed-limited optimum already meets the limit.
-        best_t = reference.dwell_s.clone();
-        status = reference.status;
+        (
+            reference.dwell_s.clone(),
+            reference.status,
+            reference.solver,
+        )
     } else {
-        observer.start(Stage::Loop, limits.max_iterations as u64);
-        while iterations < limits.max_iterations {
-            iterations += 1;
-            let (trust, rows) = linearise(&kin, &t, bounds, tau)?;
-            let (st, t_new, it) = qp::solve_with_rows(problem, &trust, &rows, settings, observer)?;
-            qp_iterations += it;
-            observer.advance(Stage::Loop, 1);
-            if !st.is_converged() {
-                // Restart from the best point with a smaller region.
-                t = best_t.clone();
-                prev_f = best_f;
-                tau *= 0.5;
-                if tau < 1e-6 {
-                    break;
-                }
-                continue;
+        match limits.method {
+            AccelMethod::ScpQp => {
+                let start = feasible_start(&kin, &reachable, &reference.dwell_s, bounds);
+                let r = scp(problem, &kin, start, limits, settings, observer)?;
+                scp_iterations = r.iterations;
+                qp_iterations += r.qp_iterations;
+                (r.dwell_s, r.status, SolverKind::Qp)
             }
-            let mut t_new = t_new;
-            bounds.project(&mut t_new);
-            let f = problem.evaluate(&t_new)?.full_objective;
-            let viol = kin.violation(&t_new);
-            observer.iteration(&IterationInfo {
-                iteration: iterations,
-                objective: f,
-                kkt_residual: None,
-            });
-            let feasible = viol <= tol;
-            let settled =
-                (f - prev_f).abs() <= limits.objective_tolerance * f.abs().max(settle_scale);
-            if feasible && f <= best_f {
-                best_f = f;
-                best_t = t_new.clone();
+            AccelMethod::SquaredSpeed => {
+                let speed_limits = speed::SpeedLimits {
+                    tolerance: limits.kkt_tolerance,
+                    max_steps: limits.max_gradient_steps,
+                    time_limit_s: settings.time_limit_s,
+                };
+                let r = super::with_operator(problem, |op| {
+                    let (data, mut work, kkt_scale) =
+                        Data::prepare(op, problem.z_nm(), bounds, problem.rho(), problem.lambda());
+                    Ok(speed::minimise(
+                        &data,
+                        &mut work,
+                        kkt_scale,
+                        &kin,
+                        &reference.dwell_s,
+                        &speed_limits,
+                        observer,
+                    ))
+                })?;
+                gradient_steps = r.iterations;
+                qp_iterations += r.iterations;
+                kkt_residual = Some(r.kkt_residual);
+                (r.dwell_s, r.status, SolverKind::FirstOrder)
             }
-            if feasible && settled {
-                status = Status::Converged;
-                if f > best_f {
-                    // Settled at a point no better than the best: return the best.
-                } else {
-                    best_t = t_new;
-                }
-                break;
-            }
-            if !feasible || f > prev_f {
-                tau = (tau * 0.5).max(1e-6);
-            } else {
-                tau = (tau * 1.5).min(limits.trust_region);
-            }
-            prev_f = f;
-            t = t_new;
         }
-        observer.finish(Stage::Loop);
-    }
+    };
 
     let eval = problem.evaluate(&best_t)?;
     let ref_eval_obj = reference.objective;
@@ -400,7 +436,10 @@ pub(crate) fn solve_validated(
             &reference.dwell_s,
             limits.corner_angle_deg,
         ),
-        scp_iterations: iterations,
+        method: limits.method,
+        scp_iterations,
+        gradient_steps,
+        kkt_residual,
         constrained_segments: kin.constrained.iter().filter(|&&c| c).count(),
         binding_segments: accels
             .iter()
@@ -416,12 +455,7 @@ pub(crate) fn solve_validated(
     };
     let solution = Solution {
         status,
-        // The reference's solver when it already met the limit (no QP ran after it).
-        solver: if iterations == 0 {
-            reference.solver
-        } else {
-            SolverKind::Qp
-        },
+        solver,
         piston_nm: eval.piston_nm,
         objective: eval.objective,
         dwell_s: best_t,
@@ -437,6 +471,90 @@ pub(crate) fn solve_validated(
         solution,
         report,
         reference,
+    })
+}
+
+/// What the SCP returns.
+struct ScpResult {
+    dwell_s: Vec<f64>,
+    status: Status,
+    iterations: usize,
+    qp_iterations: usize,
+}
+
+/// Sequential convex programming from the feasible `start` (see the module documentation).
+fn scp(
+    problem: &Problem,
+    kin: &Kinematics,
+    start: Vec<f64>,
+    limits: &AccelLimits,
+    settings: &Settings,
+    observer: &dyn Observer,
+) -> Result<ScpResult> {
+    let bounds = problem.bounds();
+    let settle_scale = 1e-12 * 0.5 * problem.z_nm().iter().map(|z| z * z).sum::<f64>();
+    let tol = limits.constraint_tolerance;
+    let mut t = start;
+    let mut best_t = t.clone();
+    let mut best_f = problem.evaluate(&t)?.full_objective;
+    let mut prev_f = best_f;
+    let mut tau = limits.trust_region;
+    let mut status = Status::MaxIterations;
+    let mut iterations = 0;
+    let mut qp_iterations = 0;
+    observer.start(Stage::Loop, limits.max_iterations as u64);
+    while iterations < limits.max_iterations {
+        iterations += 1;
+        let (trust, rows) = linearise(kin, &t, bounds, tau)?;
+        let (st, t_new, it) = qp::solve_with_rows(problem, &trust, &rows, settings, observer)?;
+        qp_iterations += it;
+        observer.advance(Stage::Loop, 1);
+        if !st.is_converged() {
+            // Restart from the best point with a smaller region.
+            t = best_t.clone();
+            prev_f = best_f;
+            tau *= 0.5;
+            if tau < 1e-6 {
+                break;
+            }
+            continue;
+        }
+        let mut t_new = t_new;
+        bounds.project(&mut t_new);
+        let f = problem.evaluate(&t_new)?.full_objective;
+        let viol = kin.violation(&t_new);
+        observer.iteration(&IterationInfo {
+            iteration: iterations,
+            objective: f,
+            kkt_residual: None,
+        });
+        let feasible = viol <= tol;
+        let settled = (f - prev_f).abs() <= limits.objective_tolerance * f.abs().max(settle_scale);
+        if feasible && f <= best_f {
+            best_f = f;
+            best_t = t_new.clone();
+        }
+        if feasible && settled {
+            status = Status::Converged;
+            if f <= best_f {
+                best_t = t_new;
+            }
+            break;
+        }
+        if !feasible || f > prev_f {
+            tau = (tau * 0.5).max(1e-6);
+        } else {
+            tau = (tau * 1.5).min(limits.trust_region);
+        }
+        prev_f = f;
+        t = t_new;
+    }
+    observer.finish(Stage::Loop);
+    Ok(ScpResult {
+        dwell_s: best_t,
+        status,
+        iterations,
+        qp_iterations,
     })
 }
 
@@ -687,6 +805,58 @@ mod tests {
         assert!(out.solution.objective >= free.objective * (1.0 - 1e-6));
         assert_eq!(out.solution.status, Status::Converged, "{:?}", out.report);
         assert!(problem.bounds().max_violation_s(&out.solution.dwell_s) < 1e-12);
+    }
+
+    /// The squared-speed method's objective may exceed the SCP reference's by this fraction (the
+    /// target for cases of at most 500 points).
+    const OBJECTIVE_TO_REFERENCE: f64 = 0.01;
+
+    fn with_method(a_max: f64, method: AccelMethod) -> AccelLimits {
+        AccelLimits {
+            method,
+            ..AccelLimits::new(a_max)
+        }
+    }
+
+    #[test]
+    fn squared_speed_meets_the_limit_and_matches_the_scp_reference() {
+        let (problem, path) = trench_problem(false);
+        let settings = Settings::default();
+        let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
+        let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
+        for frac in [0.5, 0.2, 0.05] {
+            let a_max = frac * a_free;
+            let reference = solve(
+                &problem,
+                &path,
+                &with_method(a_max, AccelMethod::ScpQp),
+                &settings,
+                &Silent,
+            )
+            .unwrap();
+            let fast = solve(
+                &problem,
+                &path,
+                &with_method(a_max, AccelMethod::SquaredSpeed),
+                &settings,
+                &Silent,
+            )
+            .unwrap();
+            let t = &fast.solution.dwell_s;
+            // Exactly on the constraint set (up to rounding), inside the dwell bounds.
+            let a = max_acceleration_mm_per_s2(&path, t, 60.0);
+            assert!(a <= a_max * (1.0 + 1e-9), "fraction {frac}: {a} > {a_max}");
+            assert!(problem.bounds().max_violation_s(t) < 1e-12);
+            assert!(fast.report.binding_segments > 0, "{:?}", fast.report);
+            assert_eq!(fast.report.method, AccelMethod::SquaredSpeed);
+            let (f, f_ref) = (fast.solution.objective, reference.solution.objective);
+            assert!(
+                f <= f_ref * (1.0 + OBJECTIVE_TO_REFERENCE),
+                "fraction {frac}: objective {f} against the SCP's {f_ref} ({:?})",
+                fast.report
+            );
+            assert!(f >= free.objective * (1.0 - 1e-6));
+        }
     }
 
     #[test]

@@ -1,0 +1,500 @@
+//! Acceleration limits at scale: accelerated projected gradient in squared speed.
+//!
+//! In the squared speed `u_j = v_j^2 = (ds_j / t_j)^2` the limit along a line is a bounded
+//! difference, `|u_{j+1} - u_j| <= 2 a_max s_j`, and the feed limits are a box: the feasible set
+//! `C` is a polyhedron made of one chain per line, onto which [`super::chain`] projects exactly in
+//! linear time. The objective is the contract's quadratic in the dwell times `t`, so the method
+//! works in `t` (Jacobi-scaled, `t = S w`, as [`crate::dwell::first_order`]) and maps each step
+//! into squared speed to project:
+//!
+//! ```text
+//! w_hat = y - grad_w f(y) / L                            gradient step from the extrapolated y
+//! z_hat = u(y) + J (w_hat - y),   J = du/dw = -2 u S / t  squared speed, linearised at y
+//! z     = argmin_{z in C_y} sum_j (z_j - z_hat_j)^2 / J_j^2   exact chain projection
+//! w_new = y + (z - u(y)) / J
+//! ```
+//!
+//! `C_y` is `C` with the feed box replaced by its image under the linearisation (so `w_new` stays
+//! inside the dwell bounds). This is the projection of `w_hat`, in the scaled Euclidean metric,
+//! onto the constraint set linearised at `y`: the projected gradient method of sequential
+//! linearisation (the gradient-projection form of SQP, Bertsekas, *Nonlinear Programming*, 3rd ed.,
+//! §2.3 and §4.3); its fixed points are exactly the KKT points of the limited problem, and the
+//! violation of the true constraint is second order in the step. Momentum is FISTA's (Beck &
+//! Teboulle 2009), monotone: a step that raises `f` is refused, the momentum restarts, and if the
+//! step had no momentum `L` doubles. The iteration stops when the relative KKT residual
+//! `||w - P_{C_w}(w - grad_w f)|| / ||S R^T P z||` is below the tolerance. The result is then
+//! moved onto the true `C` by the exact projection of `u(t)` in the same metric (a change of the
+//! order of the remaining violation), so the written dwell times meet the limit exactly.
+//!
+//! Each iteration costs one product with `R` and one with `R^T` (the removal of the new iterate
+//! is kept, and the extrapolated point's removal is the same combination of removals) and one
+//! chain projection (`O(n)`, parallel over lines); it needs only the operator's products, so the
+//! assembled, FFT and spreading operators and curved parts all serve.
+
+use super::chain::{project_chain, Chain, ChainScratch};
+use super::Kinematics;
+use crate::dwell::first_order::{power_iteration, Data, Work};
+use crate::dwell::Status;
+use crate::influence::operator::{fill_and_sum, fixed_sum};
+use crate::observer::{IterationInfo, Observer, Stage};
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// Iterations between KKT checks.
+const CHECK_EVERY: usize = 10;
+
+/// Stopping rule of the iteration.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SpeedLimits {
+    /// Relative KKT residual to reach.
+    pub tolerance: f64,
+    /// Gradient steps at most.
+    pub max_steps: usize,
+    /// Wall-clock limit, s.
+    pub time_limit_s: f64,
+}
+
+/// What the iteration returns.
+#[derive(Debug, Clone)]
+pub(crate) struct SpeedResult {
+    /// How it ended.
+    pub status: Status,
+    /// Dwell times, s, meeting the limit.
+    pub dwell_s: Vec<f64>,
+    /// Gradient steps taken.
+    pub iterations: usize,
+    /// The last relative KKT residual.
+    pub kkt_residual: f64,
+}
+
+/// Points of a line weighing more than this times its lightest point are fixed at their target
+/// in the projection: the exact projection would move them by at most about `1 / PIN_RATIO` of
+/// the lightest point's move, and keeping them in would cost the chain projection its precision
+/// ([`super::chain`]). They are the slow points, whose squared speed is tiny.
+const PIN_RATIO: f64 = 1e10;
+
+/// One line's chain projection: its index range and scratch (kept between iterations).
+struct Line {
+    start: usize,
+    end: usize,
+    scratch: ChainScratch,
+    out: Vec<f64>,
+    weight: Vec<f64>,
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+    cuts: usize,
+}
+
+/// The chain data of every point, refilled at each projection.
+struct Projection {
+    lines: Vec<Line>,
+    target: Vec<f64>,
+    weight: Vec<f64>,
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+    z: Vec<f64>,
+    cap: Vec<f64>,
+    linked: Vec<bool>,
+}
+
+impl Projection {
+    fn new(kin: &Kinematics) -> Self {
+        let n = kin.ds.len();
+        let mut lines = Vec::new();
+        let mut start = 0;
+        for j in 0..n {
+            let last = j + 1 == n || !kin.constrained[j];
+            if last {
+                lines.push(Line {
+                    start,
+                    end: j + 1,
+                    scratch: ChainScratch::default(),
+                    out: vec![0.0; j + 1 - start],
+                    weight: vec![0.0; j + 1 - start],
+                    lower: vec![0.0; j + 1 - start],
+                    upper: vec![0.0; j + 1 - start],
+                    cuts: 0,
+                });
+                start = j + 1;
+            }
+        }
+        Self {
+            lines,
+            target: vec![0.0; n],
+            weight: vec![0.0; n],
+            lower: vec![0.0; n],
+            upper: vec![0.0; n],
+            z: vec![0.0; n],
+            cap: kin.cap.clone(),
+            linked: kin.constrained.clone(),
+        }
+    }
+
+    /// Projects `target` (weights, boxes filled) onto the chains into `self.z`; returns cuts.
+    fn run(&mut self) -> usize {
+        let (target, weight, lower, upper, cap, linked) = (
+            &self.target,
+            &self.weight,
+            &self.lower,
+            &self.upper,
+            &self.cap,
+            &self.linked,
+        );
+        self.lines.par_iter_mut().for_each(|line| {
+            let (a, b) = (line.start, line.end);
+            let lightest = weight[a..b].iter().copied().fold(f64::INFINITY, f64::min);
+            for k in 0..b - a {
+                let (w, l, h) = (weight[a + k], lower[a + k], upper[a + k]);
+                if w > PIN_RATIO * lightest {
+                    let fixed = target[a + k].max(l).min(h);
+                    line.weight[k] = lightest;
+                    line.lower[k] = fixed;
+                    line.upper[k] = fixed;
+                } else {
+                    line.weight[k] = w;
+                    line.lower[k] = l;
+                    line.upper[k] = h;
+                }
+            }
+            let chain = Chain {
+                target: &target[a..b],
+                weight: &line.weight,
+                lower: &line.lower,
+                upper: &line.upper,
+                cap: &cap[a..b.saturating_sub(1).max(a)],
+                linked: &linked[a..b.saturating_sub(1).max(a)],
+            };
+            line.cuts = project_chain(&chain, &mut line.scratch, &mut line.out);
+        });
+        let mut cuts = 0;
+        for line in &self.lines {
+            self.z[line.start..line.end].copy_from_slice(&line.out);
+            cuts += line.cuts;
+        }
+        cuts
+    }
+}
+
+/// Squared speed `u = (ds / t)^2` and its derivative with respect to the scaled variable,
+/// `du/dw = -2 u s / t`, at `t = s w`.
+fn speed_and_slope(ds: f64, s: f64, w: f64) -> (f64, f64) {
+    let t = s * w;
+    let u = (ds / t) * (ds / t);
+    (u, -2.0 * u * s / t)
+}
+
+/// State of the iteration beyond [`Data`].
+struct Iteration<'a> {
+    data: &'a Data<'a>,
+    kin: &'a Kinematics,
+    proj: Projection,
+}
+
+impl Iteration<'_> {
+    /// Projects `w_hat` onto the constraint set linearised at `y` (scaled variables), into `out`.
+    fn project_linearised(&mut self, y: &[f64], w_hat: &[f64], out: &mut [f64]) -> usize {
+        let (ds, s, lo, hi) = (&self.kin.ds, &self.data.s, &self.data.lo_w, &self.data.hi_w);
+        let p = &mut self.proj;
+        p.target
+            .par_iter_mut()
+            .zip(p.weight.par_iter_mut())
+            .zip(p.lower.par_iter_mut().zip(p.upper.par_iter_mut()))
+            .enumerate()
+            .for_each(|(j, ((tg, wt), (l, h)))| {
+                if ds[j] == 0.0 {
+                    // No speed at a zero-length stretch: it enters the chain as u = 0.
+                    *tg = 0.0;
+                    *wt = 1.0;
+                    *l = 0.0;
+                    *h = 0.0;
+                    return;
+                }
+                let (u, d) = speed_and_slope(ds[j], s[j], y[j]);
+                *tg = u + d * (w_hat[j] - y[j]);
+                *wt = (1.0 / (d * d)).min(1e300);
+                // d < 0: the upper dwell bound gives the lower squared speed.
+                *l = u + d * (hi[j] - y[j]);
+                *h = u + d * (lo[j] - y[j]);
+            });
+        let cuts = p.run();
+        let z = &p.z;
+        out.par_iter_mut().enumerate().for_each(|(j, o)| {
+            *o = if ds[j] == 0.0 {
+                w_hat[j]
+            } else {
+                let (u, d) = speed_and_slope(ds[j], s[j], y[j]);
+                y[j] + (z[j] - u) / d
+            }
+            .max(lo[j])
+            .min(hi[j]);
+        });
+        cuts
+    }
+
+    /// Moves `w` onto the true constraint set: the exact projection of `u(t)` onto `C` in the
+    /// metric of the linearisation at `w` (boxes `[(ds / t_max)^2, (ds / t_min)^2]`).
+    fn retract(&mut self, w: &mut [f64]) -> usize {
+        let (ds, s, lo, hi) = (&self.kin.ds, &self.data.s, &self.data.lo_w, &self.data.hi_w);
+        let p = &mut self.proj;
+        p.target
+            .par_iter_mut()
+            .zip(p.weight.par_iter_mut())
+            .zip(p.lower.par_iter_mut().zip(p.upper.par_iter_mut()))
+            .enumerate()
+            .for_each(|(j, ((tg, wt), (l, h)))| {
+                if ds[j] == 0.0 {
+                    *tg = 0.0;
+                    *wt = 1.0;
+                    *l = 0.0;
+                    *h = 0.0;
+                    return;
+                }
+                let (u, d) = speed_and_slope(ds[j], s[j], w[j]);
+                *tg = u;
+                *wt = (1.0 / (d * d)).min(1e300);
+                let t_max = s[j] * hi[j];
+                *l = if t_max.is_finite() {
+                    (ds[j] / t_max).powi(2)
+                } else {
+                    0.0
+                };
+                *h = (ds[j] / (s[j] * lo[j])).powi(2);
+            });
+        let cuts = p.run();
+        let z = &p.z;
+        w.par_iter_mut().enumerate().for_each(|(j, wj)| {
+            if ds[j] > 0.0 {
+                let floor = (ds[j] / (s[j] * *wj) * 1e-3).powi(2);
+                let t = ds[j] / z[j].max(floor).sqrt();
+                *wj = (t / s[j]).max(lo[j]).min(hi[j]);
+            }
+        });
+        cuts
+    }
+}
+
+/// The contract's value and gradient from a removal `rt = R t` (overwritten by the centred
+/// residual `P (R t - z)`): `grad = R^T P (R t - z) + lambda D^T D t + rho` (into `work.g`,
+/// unscaled). Returns `f`.
+fn value_and_gradient(data: &Data<'_>, t: &[f64], rt: &mut [f64], work: &mut Work) -> f64 {
+    let (z, m) = (data.z, data.z.len());
+    let mean = {
+        let r = &*rt;
+        fixed_sum(m, &mut work.partials, |i| r[i] - z[i]) / m as f64
+    };
+    rt.par_iter_mut()
+        .zip(z.par_iter())
+        .for_each(|(r, z)| *r = *r - z - mean);
+    let half_r2 = {
+        let r = &*rt;
+        0.5 * fixed_sum(m, &mut work.partials, |i| r[i] * r[i])
+    };
+    data.op.apply_transpose(rt, &mut work.g);
+    let (rho, lam) = (data.rho, data.lambda);
+    work.g.par_iter_mut().enumerate().for_each(|(j, g)| {
+        if lam > 0.0 {
+            *g += lam * crate::dwell::first_order::dtd(t, j);
+        }
+        *g += rho;
+    });
+    let n = t.len();
+    let half_d2 = if lam > 0.0 {
+        0.5 * lam
+            * fixed_sum(n.saturating_sub(1), &mut work.partials, |k| {
+                (t[k + 1] - t[k]).powi(2)
+            })
+    } else {
+        0.0
+    };
+    let sum_t = fixed_sum(n, &mut work.partials, |j| t[j]);
+    half_r2 + half_d2 + rho * sum_t
+}
+
+/// The contract's value at `t` from its removal `rt = R t` (not modified).
+fn value(data: &Data<'_>, t: &[f64], rt: &[f64], work: &mut Work) -> f64 {
+    let (z, m) = (data.z, data.z.len());
+    let mean = fixed_sum(m, &mut work.partials, |i| rt[i] - z[i]) / m as f64;
+    let half_r2 = 0.5 * fixed_sum(m, &mut work.partials, |i| (rt[i] - z[i] - mean).powi(2));
+    let n = t.len();
+    let lam = data.lambda;
+    let half_d2 = if lam > 0.0 {
+        0.5 * lam
+            * fixed_sum(n.saturating_sub(1), &mut work.partials, |k| {
+                (t[k + 1] - t[k]).powi(2)
+            })
+    } else {
+        0.0
+    };
+    half_r2 + half_d2 + data.rho * fixed_sum(n, &mut work.partials, |j| t[j])
+}
+
+/// Minimises the contract under the acceleration limit from `start` (dwell times, s, inside the
+/// bounds); see the module documentation.
+pub(crate) fn minimise(
+    data: &Data<'_>,
+    work: &mut Work,
+    kkt_scale: f64,
+    kin: &Kinematics,
+    start: &[f64],
+    limits: &SpeedLimits,
+    observer: &dyn Observer,
+) -> SpeedResult {
+    let began = Instant::now();
+    let (m, n) = (data.z.len(), start.len());
+    let mut it_state = Iteration {
+        data,
+        kin,
+        proj: Projection::new(kin),
+    };
+    let mut lip = power_iteration(data, work);
+    if !(lip.is_finite() && lip > 0.0) {
+        lip = 1.0;
+    }
+    let s = &data.s;
+    // Scaled start on the true set.
+    let mut x: Vec<f64> = start.iter().zip(s).map(|(t, s)| t / s).collect();
+    data.project(&mut x);
+    it_state.retract(&mut x);
+    let to_t = |w: &[f64], t: &mut [f64]| {
+        t.par_iter_mut()
+            .zip(w.par_iter().zip(s.par_iter()))
+            .for_each(|(t, (w, s))| *t = w * s);
+    };
+    let mut t = vec![0.0; n];
+    let mut ty = vec![0.0; n];
+    to_t(&x, &mut t);
+    let mut rx = vec![0.0; m];
+    data.op.apply(&t, &mut rx);
+    let mut fx = value(data, &t, &rx, work);
+    let mut x_prev = x.clone();
+    let mut rx_prev = rx.clone();
+    let mut y = x.clone();
+    let mut ry = vec![0.0; m];
+    let mut w_hat = vec![0.0; n];
+    let mut x_new = vec![0.0; n];
+    let mut r_new = vec![0.0; m];
+    let mut theta = 1.0_f64;
+    let mut beta = 0.0_f64;
+    let mut kkt = f64::INFINITY;
+    let mut status = Status::MaxIterations;
+    let mut it = 0;
+    observer.start(Stage::Loop, limits.max_steps as u64);
+    while it < limits.max_steps {
+        it += 1;
+        // Extrapolated point, clipped to the bounds, and its removal (R is linear).
+        let clipped = {
+            let (x, xp, lo, hi) = (&x, &x_prev, &data.lo_w, &data.hi_w);
+            fill_and_sum(&mut y, &mut work.partials, |j| {
+                let raw = x[j] + beta * (x[j] - xp[j]);
+                let v = raw.max(lo[j]).min(hi[j]);
+                (v, (v - raw).abs())
+            }) > 0.0
+        };
+        to_t(&y, &mut ty);
+        if beta == 0.0 {
+            ry.copy_from_slice(&rx);
+        } else if clipped {
+            data.op.apply(&ty, &mut ry);
+        } else {
+            ry.par_iter_mut()
+                .zip(rx.par_iter().zip(rx_prev.par_iter()))
+                .for_each(|(r, (a, b))| *r = a + beta * (a - b));
+        }
+        value_and_gradient(data, &ty, &mut ry, work);
+        let step = 1.0 / lip;
+        w_hat
+            .par_iter_mut()
+            .zip(y.par_iter().zip(work.g.par_iter().zip(s.par_iter())))
+            .for_each(|(wh, (y, (g, s)))| *wh = y - step * s * g);
+        it_state.project_linearised(&y, &w_hat, &mut x_new);
+        to_t(&x_new, &mut t);
+        data.op.apply(&t, &mut r_new);
+        let f_new = value(data, &t, &r_new, work);
+        if f_new <= fx {
+            std::mem::swap(&mut x_prev, &mut x);
+            std::mem::swap(&mut x, &mut x_new);
+            std::mem::swap(&mut rx_prev, &mut rx);
+            std::mem::swap(&mut rx, &mut r_new);
+            fx = f_new;
+            let theta_next = 0.5 * (1.0 + (1.0 + 4.0 * theta * theta).sqrt());
+            beta = (theta - 1.0) / theta_next;
+            theta = theta_next;
+        } else {
+            // Refused: restart the momentum; without momentum the step was too long.
+            if beta == 0.0 {
+                lip *= 2.0;
+            }
+            beta = 0.0;
+            theta = 1.0;
+            x_prev.copy_from_slice(&x);
+            rx_prev.copy_from_slice(&rx);
+        }
+        if it % CHECK_EVERY == 0 || it == limits.max_steps {
+            kkt = kkt_residual(
+                &mut it_state,
+                &x,
+                &rx,
+                work,
+                kkt_scale,
+                &mut w_hat,
+                &mut x_new,
+                &mut ry,
+                &mut ty,
+            );
+            observer.advance(Stage::Loop, CHECK_EVERY as u64);
+            observer.iteration(&IterationInfo {
+                iteration: it,
+                objective: fx,
+                kkt_residual: Some(kkt),
+            });
+            if kkt <= limits.tolerance {
+                status = Status::Converged;
+                break;
+            }
+            if began.elapsed().as_secs_f64() > limits.time_limit_s {
+                status = Status::TimeLimit;
+                break;
+            }
+        }
+    }
+    observer.finish(Stage::Loop);
+    it_state.retract(&mut x);
+    let dwell_s: Vec<f64> = x.iter().zip(s).map(|(w, s)| w * s).collect();
+    SpeedResult {
+        status,
+        dwell_s,
+        iterations: it,
+        kkt_residual: kkt,
+    }
+}
+
+/// Relative KKT residual at `x` (removal `rx`): `||x - P_x(x - grad_w f(x))|| / kkt_scale`, with
+/// `P_x` the projection onto the constraint set linearised at `x`.
+#[allow(clippy::too_many_arguments)]
+fn kkt_residual(
+    state: &mut Iteration<'_>,
+    x: &[f64],
+    rx: &[f64],
+    work: &mut Work,
+    kkt_scale: f64,
+    w_hat: &mut [f64],
+    out: &mut [f64],
+    scratch_r: &mut [f64],
+    scratch_t: &mut [f64],
+) -> f64 {
+    let s = &state.data.s;
+    scratch_t
+        .par_iter_mut()
+        .zip(x.par_iter().zip(s.par_iter()))
+        .for_each(|(t, (w, s))| *t = w * s);
+    scratch_r.copy_from_slice(rx);
+    value_and_gradient(state.data, scratch_t, scratch_r, work);
+    w_hat
+        .par_iter_mut()
+        .zip(x.par_iter().zip(work.g.par_iter().zip(s.par_iter())))
+        .for_each(|(wh, (x, (g, s)))| *wh = x - s * g);
+    state.project_linearised(x, w_hat, out);
+    let n = x.len();
+    let r2 = fixed_sum(n, &mut work.partials, |j| (x[j] - out[j]).powi(2));
+    r2.sqrt() / kkt_scale
+}
