@@ -5,6 +5,7 @@ projection of any path onto a surface. Lengths mm, chord heights um; numpy float
 from __future__ import annotations
 
 import json
+import os
 from typing import Any, Mapping, Optional, Tuple, Union
 
 import numpy as np

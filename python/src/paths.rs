@@ -188,7 +188,7 @@ pub(crate) fn path_lines<'py>(
 /// 3-D chord length (mm) and chord height (mm).
 #[pyfunction]
 #[pyo3(signature = (surface_json, line_x_mm, y_range_mm, tool_radius_mm, eps_um, grow_mm=0.10, shrink_mm=0.02))]
-#[allow(clippy::type_complexity)]
+#[allow(clippy::type_complexity, clippy::too_many_arguments)]
 pub(crate) fn path_chord_height<'py>(
     py: Python<'py>,
     surface_json: &str,

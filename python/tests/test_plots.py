@@ -140,7 +140,7 @@ def test_psd_arrays_equal_psd_csv(solved):
     assert psd["segments"] >= 1
 
 
-def test_psd_parseval_and_direction(small_job):
+def test_psd_peaks_at_the_error_frequencies(small_job):
     """A pure cosine of 6 cycles along x over 24 mm puts its power at 0.25 /mm, along x only."""
     r = preston.solve(small_job)
     x = r.psd("x")
