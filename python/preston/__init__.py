@@ -11,7 +11,12 @@ mm/min.
   / ``.datx``, 4D ``.h5``) with its options (units, columns, pitch, aperture, form removal).
 * :func:`tif_gaussian`, :func:`tif_hertz`, :func:`tif_bonnet`, :func:`tif_grid`,
   :func:`tif_spot` -- TIFs from process models, measured grids and removal spots.
-* :func:`raster`, :func:`path_spiral`, :func:`path_random`, :func:`path_edge_offset` -- paths.
+* :func:`raster`, :func:`path_spiral`, :func:`path_random`, :func:`path_edge_offset` -- paths
+  (x_mm, y_mm); :func:`path_raster`, :func:`path_intersection` (crossed rasters, arc turns,
+  clear-aperture clipping), :func:`path_chord_height` and :func:`path_project` -- paths with
+  every option of ``preston path``, projected onto a design surface (:class:`ToolPath`).
+* :meth:`SolveResult.write_plots` / :meth:`SolveResult.psd` -- the figures of
+  ``preston solve --plots`` and the PSDs of ``psd.csv``.
 * :func:`register` -- installation and form error of measured points (ICP);
   :func:`simulate_program` -- the removal a G-code program produces on the machine;
   :func:`iterate` -- the measure-register-solve-polish loop.
@@ -27,7 +32,8 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Callable, Mapping, Optional, Sequence, Tuple, Union
+from pathlib import Path
+from typing import Any, Callable, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -52,6 +58,11 @@ __all__ = [
     "path_spiral",
     "path_random",
     "path_edge_offset",
+    "path_raster",
+    "path_intersection",
+    "path_chord_height",
+    "path_project",
+    "ToolPath",
     "register",
     "simulate_program",
     "iterate",
@@ -119,10 +130,42 @@ class SolveResult:
         self.status = native.status
         self.converged = native.converged
 
-    def write(self, out_dir: PathLike) -> None:
+    def write(self, out_dir: PathLike, *, plots: bool = False) -> List[str]:
         """Writes ``dwell.csv``, ``residual.csv`` and ``report.json`` (the CLI's files) into
-        ``out_dir``, created if needed; each file appears whole or not at all."""
-        self._native.write(os.fspath(out_dir))
+        ``out_dir``, created if needed, and with ``plots=True`` the figures and ``psd.csv`` of
+        ``preston solve --plots`` (see :meth:`write_plots`). Everything is staged first and
+        committed together: all the files appear, whole, or none. Returns the notes on figures
+        left out (a PSD needs the map on a lattice)."""
+        return list(self._native.write(os.fspath(out_dir), plots))
+
+    def write_plots(
+        self, out_dir: PathLike, *, along: Optional[str] = None
+    ) -> Tuple[List[Path], List[str]]:
+        """Writes the figures of ``preston solve --plots`` into ``out_dir`` (created if needed),
+        committed together: ``error_before.png``, ``removal.png``, ``residual.png`` (nm),
+        ``dwell.png`` (s), ``feed.png`` (mm/min) and ``path.png`` at equal mm per pixel (1000 px
+        wide), ``tif.png`` (nm/s), and ``psd.png`` (900 x 700 px) with ``psd.csv``: the 1-D PSDs
+        of error and residual along ``along`` (``"x"``/``"y"``; default: the job's raster
+        direction), the raster pitch marked.
+
+        Returns ``(files, notes)``: the paths written and why a figure was left out (no PSD for a
+        map off a lattice)."""
+        files, notes = self._native.write_plots(os.fspath(out_dir), along)
+        return [Path(f) for f in files], list(notes)
+
+    def psd(self, along: Optional[str] = None) -> dict:
+        """The 1-D power spectral densities behind ``psd.png`` / ``psd.csv``: Welch averages of
+        the one-sided PSD along the lattice lines of the map in ``along`` (``"x"``/``"y"``;
+        default: the job's raster direction), of the error and of the residual.
+
+        Returns a dict: ``frequency_per_mm`` (1/mm), ``error_psd_nm2_mm`` and
+        ``residual_psd_nm2_mm`` (nm^2 mm), float64 arrays (the columns of ``psd.csv``), and
+        ``along``, ``segments`` (segments averaged), ``segment_points`` (points per segment) and
+        ``pitch_mm`` (the map's lattice pitch). A map off a lattice raises :class:`InputError`."""
+        f, before, after, info = self._native.psd(along)
+        out = {"frequency_per_mm": f, "error_psd_nm2_mm": before, "residual_psd_nm2_mm": after}
+        out.update(json.loads(info))
+        return out
 
     def __repr__(self) -> str:
         r = self.report
@@ -493,6 +536,13 @@ def nc(
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)
+from ._paths import (  # noqa: E402
+    ToolPath,
+    path_chord_height,
+    path_intersection,
+    path_project,
+    path_raster,
+)
 from ._workflow import (  # noqa: E402
     iterate,
     path_edge_offset,

@@ -1,6 +1,6 @@
 """Type stubs of the native module ``preston._preston`` (units: mm, nm, s, nm/s, mm/min)."""
 
-from typing import Any, Callable, Optional, Tuple
+from typing import Any, Callable, List, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
@@ -55,8 +55,15 @@ class SolveResult:
     def status(self) -> str: ...
     @property
     def converged(self) -> bool: ...
-    def write(self, out_dir: str) -> None:
-        """Writes dwell.csv, residual.csv, report.json into ``out_dir`` (each whole or not at all)."""
+    def write(self, out_dir: str, plots: bool = False) -> List[str]:
+        """Writes dwell.csv, residual.csv, report.json (and with ``plots`` the figures and psd.csv)
+        into ``out_dir``, all committed together; returns the notes on figures left out."""
+    def write_plots(self, out_dir: str, along: Optional[str] = None) -> Tuple[List[str], List[str]]:
+        """Writes the figures of ``preston solve --plots`` (PNG) and psd.csv into ``out_dir``:
+        ``(files, notes)``."""
+    def psd(self, along: Optional[str] = None) -> Tuple[F64, F64, F64, str]:
+        """1-D PSDs along ``along`` (``"x"``/``"y"``; default the job's raster direction):
+        ``(frequency_per_mm, error_psd_nm2_mm, residual_psd_nm2_mm, info_json)``."""
 
 def load_job(path: str) -> str:
     """A job file (TOML) as JSON text, relative paths resolved against its directory."""
@@ -160,6 +167,40 @@ def path_random(
 
 def path_edge_offset(edge_xy: F64, settings_json: str) -> Tuple[F64, F64, str]:
     """The edge-offset trajectory inside a closed edge (mm): ``(x_mm, y_mm, summary_json)``."""
+
+#: The seven columns of ``preston path``'s CSV: x_mm, y_mm, z_mm, tx, ty, tz, ds_mm.
+PathColumns = Tuple[F64, F64, F64, F64, F64, F64, F64]
+
+def path_lines(
+    x_range_mm: Tuple[float, float],
+    y_range_mm: Tuple[float, float],
+    pitch_mm: float,
+    along: str = "x",
+    iteration: Optional[int] = None,
+    step_mm: Optional[float] = None,
+    margin_mm: float = 0.0,
+    arc_radius_mm: Optional[float] = None,
+    arc_tolerance_um: float = 1.0,
+    aperture_xy: Optional[F64] = None,
+    surface_json: Optional[str] = None,
+) -> Tuple[PathColumns, str]:
+    """A raster (``iteration`` None) or intersection raster (mm; arc tolerance um), clipped to an
+    ``(N, 2)`` aperture and projected onto a surface: ``(columns, summary_json)``."""
+
+def path_chord_height(
+    surface_json: str,
+    line_x_mm: float,
+    y_range_mm: Tuple[float, float],
+    tool_radius_mm: float,
+    eps_um: Tuple[float, float],
+    grow_mm: float = 0.10,
+    shrink_mm: float = 0.02,
+) -> Tuple[PathColumns, str, F64, F64]:
+    """Equal chord-height points along x = line_x_mm on a surface: ``(columns, summary_json,
+    steps_mm, chord_heights_mm)``."""
+
+def path_project(points_xy: F64, surface_json: Optional[str] = None) -> PathColumns:
+    """``(N, 2)`` path points (mm) projected onto a surface (flat without one)."""
 
 def register(
     surface_json: str, points_xyz: F64, settings_json: str

@@ -7,6 +7,8 @@
 //! the functions here with the job as JSON (the job file's structure, see `preston_io::job`).
 #![warn(missing_docs)]
 
+mod figures;
+mod paths;
 mod workflow;
 
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2};
@@ -243,6 +245,10 @@ pub struct SolveResult {
     solved: Solved,
     feeds: Vec<f64>,
     residual: Vec<f64>,
+    /// The job's raster direction (`[dwell] raster_along`): the PSD's line direction.
+    raster_along: RasterAxis,
+    /// The job's raster pitch, mm, marked on the PSD plot.
+    raster_pitch_mm: Option<f64>,
 }
 
 /// A numpy float64 vector.
@@ -320,11 +326,47 @@ impl SolveResult {
     fn converged(&self) -> bool {
         self.solved.solution().status.is_converged()
     }
-    /// Writes dwell.csv, residual.csv and report.json into `out_dir` (created if needed), each
-    /// file whole or not at all.
-    fn write(&self, py: Python<'_>, out_dir: PathBuf) -> PyResult<()> {
-        py.detach(|| pipeline::write_outputs(&self.solved, &out_dir))
+    /// Writes dwell.csv, residual.csv and report.json into `out_dir` (created if needed) and,
+    /// with `plots`, the figures and psd.csv of `preston solve --plots`; everything is staged
+    /// first and committed together (all files or none). Returns the notes on figures left out.
+    #[pyo3(signature = (out_dir, plots=false))]
+    fn write(&self, py: Python<'_>, out_dir: PathBuf, plots: bool) -> PyResult<Vec<String>> {
+        let figures = plots.then(|| {
+            (
+                figures::line_axis_of(self.raster_along),
+                self.raster_pitch_mm,
+            )
+        });
+        py.detach(|| pipeline::write_outputs_with_figures(&self.solved, &out_dir, figures))
             .map_err(to_py)
+    }
+    /// Writes the figures of `preston solve --plots` into `out_dir` (created if needed): maps of
+    /// the error, removal, residual (nm), dwell (s) and feed (mm/min), the path, the TIF (nm/s)
+    /// and the PSDs of error and residual along `along` (`"x"`/`"y"`; default: the job's raster
+    /// direction) with `psd.csv`, all committed together. Returns `(files, notes)`: the paths
+    /// written and why a figure was left out (no PSD for a map off a lattice).
+    #[pyo3(signature = (out_dir, along=None))]
+    fn write_plots(
+        &self,
+        py: Python<'_>,
+        out_dir: PathBuf,
+        along: Option<&str>,
+    ) -> PyResult<(Vec<PathBuf>, Vec<String>)> {
+        let axis = figures::line_axis(along, self.raster_along)?;
+        py.detach(|| figures::write_figures(&self.solved, &out_dir, axis, self.raster_pitch_mm))
+            .map_err(to_py)
+    }
+    /// The 1-D PSDs (nm^2 mm) of the map error and the residual along lattice lines in `along`
+    /// (default: the job's raster direction) against frequency (1/mm), the columns of psd.csv:
+    /// `(frequency_per_mm, error_psd_nm2_mm, residual_psd_nm2_mm, info_json)`.
+    #[pyo3(signature = (along=None))]
+    fn psd<'py>(
+        &self,
+        py: Python<'py>,
+        along: Option<&str>,
+    ) -> PyResult<(Array<'py>, Array<'py>, Array<'py>, String)> {
+        let axis = figures::line_axis(along, self.raster_along)?;
+        figures::psd(py, &self.solved, axis)
     }
 }
 
@@ -506,6 +548,8 @@ fn solve(
         solved,
         feeds,
         residual,
+        raster_along: job.dwell.raster_along,
+        raster_pitch_mm: job.dwell.raster_pitch_mm,
     })
 }
 
@@ -709,6 +753,9 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(workflow::path_spiral, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::path_random, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::path_edge_offset, m)?)?;
+    m.add_function(wrap_pyfunction!(paths::path_lines, m)?)?;
+    m.add_function(wrap_pyfunction!(paths::path_chord_height, m)?)?;
+    m.add_function(wrap_pyfunction!(paths::path_project, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::register, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::simulate_program, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::iterate, m)?)?;

@@ -33,7 +33,7 @@ fn settings<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> PyResult<
 }
 
 /// A design surface from its JSON (what `preston fit --out` writes), validated.
-fn surface_of(text: &str) -> PyResult<Surface> {
+pub(crate) fn surface_of(text: &str) -> PyResult<Surface> {
     let s: Surface = settings(text, "surface")?;
     s.validate().map_err(|e| engine_to_py("surface", e))?;
     Ok(s)
