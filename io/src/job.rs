@@ -336,6 +336,7 @@ impl Job {
 
     /// Parses job text; `path` names it in messages.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        preston_solver::counts::record(preston_solver::counts::Counted::JobParsed);
         toml::from_str(text).map_err(|e| Error::Job {
             file: path.to_path_buf(),
             why: crate::limits::quote_message(e.to_string().trim_end()),
@@ -454,6 +455,59 @@ mod tests {
         assert!(j.solver.min_time);
         assert_eq!(j.feed_limits().unwrap().v_max_mm_per_min, 3000.0);
         assert_eq!(j.accel_limits().unwrap(), None);
+    }
+
+    #[test]
+    fn hertz_tif_sections_resolve_to_one_model_or_are_refused() {
+        let job = |tif: &str| {
+            Job::parse(
+                &format!(
+                    "[machine]\nv_max_mm_per_min=3000\n[surface]\nfile='s.json'\n[tif]\n{tif}"
+                ),
+                Path::new("j.toml"),
+            )
+            .unwrap()
+        };
+        let j = job("hertz={force_n=20.0}\npitch_mm=0.1\ncurvature_dependent=true\n");
+        let params = HertzParams {
+            force_n: 20.0,
+            ..HertzParams::default()
+        };
+        assert_eq!(
+            j.tif.resolve(Path::new("j.toml")).unwrap(),
+            TifInput::Hertz {
+                params: params.clone(),
+                pitch_mm: 0.1,
+                curvature_dependent: true
+            }
+        );
+        assert_eq!(
+            j.choices().unwrap().tif_model,
+            TifModel::CurvatureDependent(params)
+        );
+        let flat = job("hertz={}\npitch_mm=0.1\n");
+        assert_eq!(flat.choices().unwrap().tif_model, TifModel::ShiftInvariant);
+        // Without a surface, without the model, without the grid, with two models.
+        let mut no_surface = j.clone();
+        no_surface.surface.file = None;
+        let e = no_surface.choices().unwrap_err().to_string();
+        assert!(e.contains("design surface"), "{e}");
+        for (tif, needle) in [
+            (
+                "file='t.csv'\ncurvature_dependent=true\n",
+                "curvature_dependent",
+            ),
+            ("hertz={}\n", "pitch_mm"),
+            ("file='t.csv'\npitch_mm=0.1\n", "pitch_mm"),
+            ("file='t.csv'\nhertz={}\npitch_mm=0.1\n", "more than one"),
+        ] {
+            let e = job(tif)
+                .tif
+                .resolve(Path::new("j.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{tif}: {e}");
+        }
     }
 
     #[test]

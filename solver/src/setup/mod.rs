@@ -196,6 +196,7 @@ impl Choices {
     /// sequential convex programme starts from its own feed-limited optimum and would not use it.
     pub fn check(self, observer: &dyn Observer) -> SetupResult<Checked> {
         observer.setup_step(SetupStep::CheckChoices);
+        crate::counts::record(crate::counts::Counted::ChoicesChecked);
         self.settings.validate().at(SetupInput::Job)?;
         self.feed.validate().at(SetupInput::Job)?;
         for (name, v) in [("rho", self.rho), ("lambda", self.lambda)] {
