@@ -377,10 +377,10 @@ impl Job {
             ));
         }
         Ok(Choices {
-            feed: FeedLimits {
+            feed: Some(FeedLimits {
                 v_max_mm_per_min: v_max,
                 v_min_mm_per_min: self.machine.v_min_mm_per_min.unwrap_or(0.0),
-            },
+            }),
             a_max_mm_per_s2: self.machine.a_max_mm_per_s2,
             corner_angle_deg: self.machine.corner_angle_deg,
             rho: self.objective.rho,
