@@ -945,17 +945,17 @@ mod tests {
         let removal = setup.removal_of(&built.problem, &dwell_s, &Silent).unwrap();
         // R t by hand: the TIF at each map point's offset from each dwell point.
         let m = &setup.map;
-        for i in 0..m.len() {
+        assert_eq!(removal.len(), m.len());
+        for ((&h, &x), &y) in removal.iter().zip(m.x_mm()).zip(m.y_mm()) {
             let want: f64 = (0..2)
                 .map(|j| {
                     dwell_s[j]
-                        * setup.tif.rate_nm_per_s(
-                            m.x_mm()[i] - path.x_mm()[j],
-                            m.y_mm()[i] - path.y_mm()[j],
-                        )
+                        * setup
+                            .tif
+                            .rate_nm_per_s(x - path.x_mm()[j], y - path.y_mm()[j])
                 })
                 .sum();
-            assert!((removal[i] - want).abs() <= 1e-12 * want.abs().max(1.0));
+            assert!((h - want).abs() <= 1e-12 * want.abs().max(1.0));
         }
         // One point: a spot without limits, refused with them.
         let spot = DwellPath::new(vec![2.0], vec![3.0]).unwrap();
