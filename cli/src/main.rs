@@ -126,6 +126,7 @@ fn main() -> ExitCode {
         Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
     };
+    print_debug_counts();
     match result {
         Ok(code) => code,
         Err(e) => {
@@ -150,6 +151,19 @@ fn message(e: &anyhow::Error) -> String {
         }
     }
     text
+}
+
+/// With `PRESTON_DEBUG_COUNTS` set: how often this run read a job file and validated its
+/// settings (`preston_solver::counts`), one line on stderr.
+fn print_debug_counts() {
+    if std::env::var_os("PRESTON_DEBUG_COUNTS").is_none() {
+        return;
+    }
+    let counts: Vec<String> = preston_solver::counts::counts()
+        .iter()
+        .map(|(c, n)| format!("{}={n}", c.name()))
+        .collect();
+    eprintln!("debug counts: {}", counts.join(" "));
 }
 
 /// A closed pipe (for example `preston ... | head`) is not an error.

@@ -2,9 +2,11 @@
 //! answers: coefficients that generated the points, a rigid transform that displaced them, and
 //! the closed-form sag of a sphere.
 
+mod common;
+
+use common::{ok, preston, s};
 use std::fmt::Write as _;
 use std::path::Path;
-use std::process::{Command, Output};
 
 /// Coefficients recovered from noise-free points, relative to the largest coefficient.
 const FIT_COEF_TOL: f64 = 1e-9;
@@ -14,26 +16,6 @@ const TRANSLATION_TOL_UM: f64 = 1e-3;
 const ROTATION_TOL_ARCSEC: f64 = 2e-3;
 /// Sag written by `preston surface` against the closed form, mm.
 const SAG_TOL_MM: f64 = 1e-12;
-
-fn preston(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn ok(out: &Output) {
-    assert!(
-        out.status.success(),
-        "exit {:?}\nstderr: {}",
-        out.status.code(),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// Sag of the test freeform: a conic (c, k) plus `sum coef (x/R)^m (y/R)^n`.
 const C: f64 = 1.0 / 800.0;

@@ -6,6 +6,9 @@
 //! ([`ADDRESS_SPACE_KIB`], `ulimit -v`), so an allocation of the size the input implies would
 //! abort the process (exit 134) instead of passing; the test then fails on the exit code.
 
+mod common;
+
+use common::{exe, preston, s, snapshot, write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -14,10 +17,6 @@ use std::process::{Command, Output};
 const ADDRESS_SPACE_KIB: u64 = 1 << 20;
 /// Largest stderr accepted for a refusal, bytes.
 const MAX_STDERR: usize = 64 * 1024;
-
-fn exe() -> &'static str {
-    env!("CARGO_BIN_EXE_preston")
-}
 
 /// Runs preston with `args`, under the address-space cap on Linux.
 fn capped(args: &[&str]) -> Output {
@@ -43,10 +42,6 @@ fn capped_env(args: &[&str], env: &[(&str, &str)]) -> Output {
     c.output().unwrap()
 }
 
-fn preston(args: &[&str]) -> Output {
-    Command::new(exe()).args(args).output().unwrap()
-}
-
 /// Asserts a refusal: exit 2 (not an abort), a short stderr holding every needle, no panic.
 fn refused(o: &Output, needles: &[&str]) -> String {
     let err = String::from_utf8_lossy(&o.stderr).to_string();
@@ -57,16 +52,6 @@ fn refused(o: &Output, needles: &[&str]) -> String {
         assert!(err.contains(n), "stderr lacks `{n}`: {err}");
     }
     err
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
 }
 
 /// A smooth 21 x 21 map over 20 x 20 mm (1 mm pitch).
@@ -97,22 +82,6 @@ fn solve_args<'a>(map: &'a str, extra: &[&'a str], out: &'a str) -> Vec<&'a str>
     a.extend(extra);
     a.extend(["--out", out]);
     a
-}
-
-/// Outputs of a previous run, byte for byte, to compare after a refused one.
-fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
-        .unwrap()
-        .flatten()
-        .map(|e| {
-            (
-                e.file_name().to_string_lossy().to_string(),
-                std::fs::read(e.path()).unwrap_or_default(),
-            )
-        })
-        .collect();
-    v.sort();
-    v
 }
 
 /// Sizes implied by arguments are checked against the memory budget before anything is

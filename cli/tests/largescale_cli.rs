@@ -1,28 +1,16 @@
 //! `preston solve --solver first-order`, `--warm-start`, and `preston bench` end to end.
 
+mod common;
+
+use common::{data, preston_cmd, report};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 /// The first-order solve of the sample job at its default tolerance is within this fraction of
 /// the QP objective (measured 2.3e-4; the target is 0.1%).
 const SAMPLE_REL_TOL: f64 = 1e-3;
 
-fn preston() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-}
-
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../data")
-        .join(name)
-}
-
-fn report(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap()
-}
-
 fn solve(extra: &[&str], out: &Path) -> std::process::Output {
-    preston()
+    preston_cmd()
         .args(["solve", "--job"])
         .arg(data("job.toml"))
         .args(extra)
@@ -135,7 +123,7 @@ fn grid_dwell(dir: &Path) -> PathBuf {
 
 /// `preston solve` of `map` with a Gaussian TIF (sigma 2 mm, 10 nm/s), `v_max` 2000 mm/min and `args`.
 fn solve_gaussian(map: &Path, args: &[&str], out: &Path) -> std::process::Output {
-    preston()
+    preston_cmd()
         .args(["solve", "--map"])
         .arg(map)
         .args([

@@ -1,44 +1,10 @@
 //! Machine commands end to end: `preston solve --a-max-mm-per-s2`, `preston nc` and
 //! `preston asphere`, checked against independent recomputations and hand calculations.
 
+mod common;
+
+use common::{csv_rows, preston_cmd, read_json, run_ok, write};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn preston() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
-fn run_ok(cmd: &mut Command) -> Output {
-    let o = cmd.output().unwrap();
-    assert!(
-        o.status.success(),
-        "{:?} failed: {}",
-        cmd,
-        String::from_utf8_lossy(&o.stderr)
-    );
-    o
-}
-
-fn read_json(p: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
-}
-
-/// Numeric CSV rows (header checked by the caller).
-fn csv_rows(p: &Path) -> (String, Vec<Vec<f64>>) {
-    let text = std::fs::read_to_string(p).unwrap();
-    let mut lines = text.lines();
-    let header = lines.next().unwrap().to_string();
-    let rows = lines
-        .map(|l| l.split(',').map(|c| c.parse().unwrap()).collect())
-        .collect();
-    (header, rows)
-}
 
 // ---------------------------------------------------------------------------------------------
 // Acceleration limit in `preston solve`.
@@ -206,7 +172,7 @@ fn acceleration_limit_binds_and_holds() {
     let d = tempfile::tempdir().unwrap();
     let base = trench_case(d.path());
     let free_dir = d.path().join("free");
-    run_ok(preston().args(&base).arg("--out").arg(&free_dir));
+    run_ok(preston_cmd().args(&base).arg("--out").arg(&free_dir));
     let free = read_json(&free_dir.join("report.json"));
     let free_rows = dwell_rows(&free_dir);
     let a_free = max_accel(&free_rows);
@@ -222,7 +188,7 @@ fn acceleration_limit_binds_and_holds() {
     let a_max = 0.2 * a_free;
     let lim_dir = d.path().join("limited");
     run_ok(
-        preston()
+        preston_cmd()
             .args(&base)
             .args(["--a-max-mm-per-s2", &a_max.to_string()])
             .arg("--out")
@@ -285,7 +251,7 @@ fn acceleration_limit_binds_and_holds() {
     assert_eq!(e["a_max_mm_per_s2"].as_f64().unwrap(), a_max);
     let prog = d.path().join("limited.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args(["nc", "--dwell"])
             .arg(lim_dir.join("dwell.csv"))
             .args(["--v-max", "600", "--out"])
@@ -293,7 +259,7 @@ fn acceleration_limit_binds_and_holds() {
     );
     let sim_dir = d.path().join("executed");
     let map = d.path().join("map.csv");
-    run_ok(preston().args([
+    run_ok(preston_cmd().args([
         "simulate",
         "--map",
         map.to_str().unwrap(),
@@ -330,7 +296,7 @@ fn acceleration_limit_from_job_file_and_bad_values() {
     // A non-positive limit is bad input: exit 2, nothing written.
     for bad in ["0", "-5", "nan"] {
         let out = d.path().join(format!("bad{bad}"));
-        let o = preston()
+        let o = preston_cmd()
             .args(&base)
             .arg(format!("--a-max-mm-per-s2={bad}"))
             .arg("--out")
@@ -356,7 +322,7 @@ fn acceleration_limit_from_job_file_and_bad_values() {
     args.retain(|a| a != "--v-max" && a != "600" && a != "--v-min" && a != "6");
     let out = d.path().join("job");
     run_ok(
-        preston()
+        preston_cmd()
             .args(&args)
             .arg("--job")
             .arg(&job)
@@ -454,7 +420,7 @@ fn nc_tool_centre_on_sphere_matches_hand_normals() {
     let out = d.path().join("program.nc");
     let r_tool = 5.0;
     run_ok(
-        preston()
+        preston_cmd()
             .args(["nc", "--dwell"])
             .arg(&dwell)
             .arg("--surface")
@@ -510,7 +476,7 @@ fn nc_gcode_golden_file() {
     let surface = sphere_json(d.path());
     let out = d.path().join("golden.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args(["nc", "--dwell"])
             .arg(&dwell)
             .arg("--surface")
@@ -573,7 +539,7 @@ fn nc_normal_displacement_against_hand_calculation() {
     );
     let out = d.path().join("flat.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args(["nc", "--dwell"])
             .arg(&dwell)
             .arg("--job")
@@ -594,7 +560,7 @@ fn nc_normal_displacement_against_hand_calculation() {
     let job = write(d.path(), "sphere.toml", &format!("{head}{table}"));
     let out = d.path().join("sphere.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args(["nc", "--dwell"])
             .arg(&dwell)
             .arg("--surface")
@@ -664,7 +630,7 @@ fn asphere_reproduces_published_program() {
     let xs = "0,0.0149,0.0298,0.0449,0.06,0.0753";
     let out = d.path().join("a.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args(["asphere", "--aperture-mm", "15", "--n-max-rpm", "1000"])
             .args([
                 "--n-min-rpm",
@@ -699,7 +665,7 @@ fn asphere_reproduces_published_program() {
     // Choosing n_min through --match-x-mm/--match-rpm gives the same program.
     let out2 = d.path().join("b.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args(["asphere", "--aperture-mm", "15", "--n-max-rpm", "1000"])
             .args([
                 "--match-x-mm",
@@ -725,7 +691,7 @@ fn asphere_closed_loop_and_edge_correction() {
     let err = write(d.path(), "e.csv", "x_mm,error_nm\n0,10\n1,30\n2,20\n");
     let out = d.path().join("c.nc");
     run_ok(
-        preston()
+        preston_cmd()
             .args([
                 "asphere",
                 "--aperture-mm",
@@ -774,7 +740,12 @@ fn asphere_closed_loop_and_edge_correction() {
 // Bad input: exit 2, a message naming the problem, and no output file.
 
 fn expect_exit_2(args: &[&str], out: &Path, needles: &[&str]) {
-    let o = preston().args(args).arg("--out").arg(out).output().unwrap();
+    let o = preston_cmd()
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
     for n in needles {

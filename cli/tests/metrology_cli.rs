@@ -3,13 +3,15 @@
 //! least-squares solution; Zernike fits against the coefficients that built the map; broken
 //! binary files exit 2 naming file, place and cause.
 
+mod common;
+
+use common::{ok, preston, s, stdout_json};
 use preston_io::metrology::{
     write_4d_h5, write_npy, write_zygo_dat, write_zygo_datx, DatHeader, DatxUnit, DAT_NO_DATA,
 };
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
-use std::process::{Command, Output};
 
 /// Heights and statistics that every reader must agree on, relative.
 const READER_REL_TOL: f64 = 1e-9;
@@ -19,30 +21,6 @@ const POSITION_TOL_MM: f64 = 1e-9;
 const DETREND_TOL_NM: f64 = 1e-9;
 /// Recovered Zernike coefficient, relative.
 const ZERNIKE_REL_TOL: f64 = 1e-9;
-
-fn preston(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn ok(out: &Output) {
-    assert!(
-        out.status.success(),
-        "exit {:?}\nstderr: {}",
-        out.status.code(),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn json(out: &Output) -> serde_json::Value {
-    serde_json::from_slice(&out.stdout).unwrap()
-}
 
 /// `x_mm,y_mm,z_nm` rows of a CSV written by Preston, keyed by position (1e-6 mm bins).
 fn read_points(path: &Path) -> BTreeMap<(i64, i64), (f64, f64, f64)> {
@@ -174,7 +152,7 @@ fn every_reader_gives_the_same_points_and_rms() {
         args.extend(extra);
         let out = preston(&args);
         ok(&out);
-        let j = json(&out);
+        let j = stdout_json(&out);
         let name = file.display().to_string();
         assert_eq!(j["format"], format, "{name}");
         assert_eq!(j["points"], valid.len(), "{name}");
@@ -457,7 +435,7 @@ fn detrend_and_zernike_fit_on_a_holed_disk() {
         "50",
     ]);
     ok(&out);
-    let j = json(&out);
+    let j = stdout_json(&out);
     let c = j["coefficients_nm"].as_array().unwrap();
     assert_eq!(c.len(), 37);
     let z11c = c[10].as_f64().unwrap();
@@ -486,7 +464,7 @@ fn detrend_and_zernike_fit_on_a_holed_disk() {
         "50",
     ]);
     ok(&out);
-    let z9 = json(&out)["coefficients_nm"][8].as_f64().unwrap();
+    let z9 = stdout_json(&out)["coefficients_nm"][8].as_f64().unwrap();
     assert!(
         (z9 - 20.0).abs() <= ZERNIKE_REL_TOL * 20.0,
         "Fringe Z9 = {z9}"
@@ -628,7 +606,7 @@ fn tif_from_a_measured_spot_meets_the_targets_and_solves_the_sample_job() {
         s(&tif),
     ]);
     ok(&out);
-    let j = json(&out);
+    let j = stdout_json(&out);
     eprintln!("tif spot summary: {j}");
     let peak = j["peak_rate_nm_per_s"].as_f64().unwrap();
     let fwhm = j["fwhm_mm"].as_f64().unwrap();

@@ -1,9 +1,11 @@
 //! `preston solve` with two tools (repeated --tif/--dwell/--v-max): dwell_tool1.csv and
 //! dwell_tool2.csv read back and the removal recomputed here from the TIF grids.
 
+mod common;
+
+use common::preston_cmd;
 use std::fmt::Write as _;
 use std::path::Path;
-use std::process::Command;
 
 /// Relative agreement of the recomputed residual RMS with report.json.
 const RMS_TOL: f64 = 1e-6;
@@ -119,7 +121,7 @@ fn two_tools_on_the_command_line() {
     std::fs::write(d.join("d2.csv"), raster(0.0, 1.0, 21)).unwrap();
     let out = d.join("out");
     let v_max = [2000.0, 6000.0];
-    let run = Command::new(env!("CARGO_BIN_EXE_preston"))
+    let run = preston_cmd()
         .arg("solve")
         .arg("--map")
         .arg(d.join("map.csv"))
@@ -202,7 +204,7 @@ fn two_tools_on_the_command_line() {
 
 #[test]
 fn mismatched_tool_flags_are_refused() {
-    let run = Command::new(env!("CARGO_BIN_EXE_preston"))
+    let run = preston_cmd()
         .args([
             "solve", "--map", "m.csv", "--tif", "a.csv", "--tif", "b.csv", "--dwell", "d.csv",
             "--v-max", "100", "--out", "x",

@@ -1,13 +1,8 @@
 //! `preston solve --plots`: the figure set, committed with the other outputs.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../data")
-        .join(name)
-}
+use common::{data, preston_cmd};
 
 /// Relative tolerance on the residual map's data-area aspect against the mirror's 118 x 8 mm.
 const ASPECT_REL_TOL: f64 = 0.05;
@@ -15,7 +10,7 @@ const ASPECT_REL_TOL: f64 = 0.05;
 #[test]
 fn solve_plots_write_every_figure_and_the_psd() {
     let out = tempfile::tempdir().unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_preston"))
+    let o = preston_cmd()
         .args(["solve", "--job"])
         .arg(data("job.toml"))
         .arg("--plots")

@@ -1,50 +1,10 @@
 //! The program the machine runs delivers the plan: `preston nc` timed from the G-code text alone,
 //! `preston simulate --program` against the swept plan, dialects, feed modes and output files.
 
+mod common;
+
+use common::{csv_rows, data, ok, preston, read_json, s};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn preston(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn ok(o: &Output) -> String {
-    assert!(
-        o.status.success(),
-        "exit {:?}: {}",
-        o.status.code(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stderr).to_string()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn json(p: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
-}
-
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../data")
-        .join(name)
-}
-
-/// Numeric CSV rows after the header.
-fn rows(p: &Path) -> (String, Vec<Vec<f64>>) {
-    let text = std::fs::read_to_string(p).unwrap();
-    let mut lines = text.lines();
-    let header = lines.next().unwrap().to_string();
-    let r = lines
-        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
-        .collect();
-    (header, r)
-}
 
 /// An independent reading of an ISO per-minute program: for every `(DWELL j ...)` marker, the
 /// time of the `G01` blocks up to the next marker, as block length / F (absolute XYZ words).
@@ -102,12 +62,12 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
         s(&out),
     ]));
     let dwell = out.join("dwell.csv");
-    let report = json(&out.join("report.json"));
+    let report = read_json(&out.join("report.json"));
     assert!(
         report["machining_time_s"].as_f64().unwrap() >= report["total_dwell_s"].as_f64().unwrap()
     );
     // Machinability keys, recomputed independently from dwell.csv and the map.
-    let (_, plan_rows) = rows(&dwell);
+    let (_, plan_rows) = csv_rows(&dwell);
     let ratio = plan_rows
         .windows(2)
         .filter(|w| w[0][4] > 0.0 && w[1][4] > 0.0)
@@ -115,7 +75,7 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
         .fold(1.0, f64::max);
     let got = report["max_neighbour_feed_ratio"].as_f64().unwrap();
     assert!((got - ratio).abs() <= 1e-9 * ratio, "{got} vs {ratio}");
-    let (_, map_rows) = rows(&data("mirror_error_118x8mm.csv"));
+    let (_, map_rows) = csv_rows(&data("mirror_error_118x8mm.csv"));
     // The map is a 0.32 mm grid: a dwell point is off the map when no map point is within 0.32 mm.
     let outside: f64 = plan_rows
         .iter()
@@ -136,7 +96,7 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
     let msg = ok(&preston(&["nc", "--dwell", s(&dwell), "--out", s(&prog)]));
     assert!(msg.contains("program as written"), "{msg}");
     let text = std::fs::read_to_string(&prog).unwrap();
-    let (_, plan) = rows(&dwell);
+    let (_, plan) = csv_rows(&dwell);
     let got = stretch_times_from_text(&text);
     assert_eq!(got.len(), plan.len());
     let mut total = (0.0, 0.0);
@@ -173,7 +133,10 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
     };
     let p = sim(&["--program", s(&prog)], "simprog");
     let c = sim(&["--dwell", s(&dwell), "--motion", "continuous"], "simcont");
-    let (rp, rc) = (json(&p.join("report.json")), json(&c.join("report.json")));
+    let (rp, rc) = (
+        read_json(&p.join("report.json")),
+        read_json(&c.join("report.json")),
+    );
     let (a, b) = (
         rp["rms_after_nm"].as_f64().unwrap(),
         rc["rms_after_nm"].as_f64().unwrap(),
@@ -185,7 +148,7 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
     for key in ["rms_before_nm", "pv_after_nm", "total_dwell_s", "m", "n"] {
         assert!(rp.get(key).is_some(), "report.json lacks {key}");
     }
-    let (header, ex) = rows(&p.join("executed_dwell.csv"));
+    let (header, ex) = csv_rows(&p.join("executed_dwell.csv"));
     assert_eq!(header, "x_mm,y_mm,planned_dwell_s,executed_dwell_s");
     assert_eq!(ex.len(), plan.len());
     for (e, row) in ex.iter().zip(&plan) {
@@ -238,7 +201,7 @@ fn simulated_constant_feed_program_equals_the_continuous_sweep() {
         a.extend_from_slice(&GAUSSIAN);
         a.extend_from_slice(extra);
         ok(&preston(&a));
-        rows(&o.join("residual.csv")).1
+        csv_rows(&o.join("residual.csv")).1
     };
     let p = run(&["--program", s(&prog), "--sample-step-mm", "0.02"], "p");
     let c = run(
@@ -281,7 +244,7 @@ fn simulated_constant_feed_program_equals_the_continuous_sweep() {
     ];
     a.extend_from_slice(&GAUSSIAN);
     ok(&preston(&a));
-    let (_, ex) = rows(&o.join("executed_dwell.csv"));
+    let (_, ex) = csv_rows(&o.join("executed_dwell.csv"));
     assert!(ex.iter().all(|r| r[3] >= r[2] * (1.0 - 1e-9)));
     // A start from rest to 2 mm/s at 5 mm/s^2 over the first stretch: 0.4 mm of ramp take 0.4 s
     // instead of 0.2 s.
@@ -355,7 +318,7 @@ fn dialects_feed_modes_and_program_checks() {
         ];
         a.extend_from_slice(&GAUSSIAN);
         ok(&preston(&a));
-        let (_, ex) = rows(&o.join("executed_dwell.csv"));
+        let (_, ex) = csv_rows(&o.join("executed_dwell.csv"));
         assert_eq!(ex.len(), 105);
         assert!(ex.iter().all(|r| (r[3] - r[2]).abs() <= 2e-4 * r[2]));
     }

@@ -3,40 +3,21 @@
 //! unreachable dwell points are reported; results do not depend on the thread count; a killed run
 //! leaves no partial file.
 
+mod common;
+
+use common::{data_arg, expect_failure, preston_cmd, report, write_arg};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Output, Stdio};
 use std::time::{Duration, Instant};
 
-fn preston() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-}
-
-fn data(name: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../data")
-        .join(name)
-        .to_string_lossy()
-        .to_string()
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p.to_string_lossy().to_string()
-}
-
 fn solve(args: &[&str], out: &Path) -> Output {
-    preston()
+    preston_cmd()
         .arg("solve")
         .args(args)
         .arg("--out")
         .arg(out)
         .output()
         .unwrap()
-}
-
-fn report(out: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
 }
 
 /// A smooth 21 x 21 map over 20 x 20 mm (1 mm pitch), as CSV text with the given line end.
@@ -61,22 +42,6 @@ const GAUSSIAN: [&str; 6] = [
     "2000",
 ];
 
-/// Expects failure, every needle in stderr, and no file at all in the output directory.
-fn expect_failure(args: &[&str], needles: &[&str]) {
-    let d = tempfile::tempdir().unwrap();
-    let out = d.path().join("result");
-    let o = solve(args, &out);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
-    for n in needles {
-        assert!(stderr.contains(n), "stderr lacks `{n}`: {stderr}");
-    }
-    assert!(
-        !out.exists() || std::fs::read_dir(&out).unwrap().next().is_none(),
-        "output written despite the error"
-    );
-}
-
 #[test]
 fn csv_errors_name_file_line_and_column() {
     let d = tempfile::tempdir().unwrap();
@@ -96,28 +61,28 @@ fn csv_errors_name_file_line_and_column() {
     // Misspelt header, unknown unit, infinity, duplicate point, empty file (a map in um or m is
     // converted: `cli/tests/metrology_cli.rs`).
     run(
-        &write(p, "misspelt.csv", "x_mm,y_nm,z_nm\n0,0,1\n"),
+        &write_arg(p, "misspelt.csv", "x_mm,y_nm,z_nm\n0,0,1\n"),
         &["misspelt.csv", "line 1", "missing column `y_mm`"],
     );
     run(
-        &write(p, "units.csv", "x_mm,y_mm,z_pm\n0,0,1\n"),
+        &write_arg(p, "units.csv", "x_mm,y_mm,z_pm\n0,0,1\n"),
         &["units.csv", "missing column `z_nm`", "found `z_pm`"],
     );
     run(
-        &write(p, "inf.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,inf\n"),
+        &write_arg(p, "inf.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,inf\n"),
         &["inf.csv", "line 3", "z_nm"],
     );
     run(
-        &write(p, "dup.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,2\n0,0,3\n"),
+        &write_arg(p, "dup.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,2\n0,0,3\n"),
         &["dup.csv", "line 4", "line 2"],
     );
-    run(&write(p, "blank.csv", ""), &["blank.csv", "empty"]);
+    run(&write_arg(p, "blank.csv", ""), &["blank.csv", "empty"]);
     run(
-        &write(p, "ragged.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0\n"),
+        &write_arg(p, "ragged.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0\n"),
         &["ragged.csv", "line 3"],
     );
     // TIF: negative rate and all-zero rates.
-    let map = write(p, "map.csv", &smooth_map("\n"));
+    let map = write_arg(p, "map.csv", &smooth_map("\n"));
     for (name, text, needle) in [
         (
             "neg_tif.csv",
@@ -130,7 +95,7 @@ fn csv_errors_name_file_line_and_column() {
             "all rates are zero",
         ),
     ] {
-        let tif = write(p, name, text);
+        let tif = write_arg(p, name, text);
         expect_failure(
             &[
                 "--map",
@@ -150,8 +115,8 @@ fn csv_errors_name_file_line_and_column() {
 #[test]
 fn bom_and_crlf_give_the_same_answer() {
     let d = tempfile::tempdir().unwrap();
-    let unix = write(d.path(), "unix.csv", &smooth_map("\n"));
-    let windows = write(
+    let unix = write_arg(d.path(), "unix.csv", &smooth_map("\n"));
+    let windows = write_arg(
         d.path(),
         "windows.csv",
         &format!("\u{feff}{}", smooth_map("\r\n")),
@@ -177,7 +142,7 @@ fn bom_and_crlf_give_the_same_answer() {
 #[test]
 fn unreachable_dwell_points_are_reported_at_their_lower_bound() {
     let d = tempfile::tempdir().unwrap();
-    let map = write(d.path(), "map.csv", &smooth_map("\n"));
+    let map = write_arg(d.path(), "map.csv", &smooth_map("\n"));
     // A raster over the map at 2 mm pitch, then two points 500 mm away (out of the 6 mm reach).
     let mut text = String::from("x_mm,y_mm\n");
     let mut n = 0;
@@ -189,7 +154,7 @@ fn unreachable_dwell_points_are_reported_at_their_lower_bound() {
         }
     }
     text.push_str("520,20\n540,20\n");
-    let dwell = write(d.path(), "dwell.csv", &text);
+    let dwell = write_arg(d.path(), "dwell.csv", &text);
     let out = d.path().join("out");
     let mut args = vec!["--map", map.as_str(), "--dwell", dwell.as_str()];
     args.extend(GAUSSIAN);
@@ -222,7 +187,7 @@ fn unreachable_dwell_points_are_reported_at_their_lower_bound() {
 #[test]
 fn tif_wider_than_map_is_a_warning() {
     let d = tempfile::tempdir().unwrap();
-    let map = write(d.path(), "map.csv", &smooth_map("\n"));
+    let map = write_arg(d.path(), "map.csv", &smooth_map("\n"));
     let out = d.path().join("out");
     // Truncation radius 15 mm: a 30 mm footprint on a 20 mm map.
     let o = solve(
@@ -259,7 +224,7 @@ fn tif_wider_than_map_is_a_warning() {
 #[test]
 fn not_converging_is_a_status_and_an_exit_code() {
     let d = tempfile::tempdir().unwrap();
-    let map = write(d.path(), "map.csv", &smooth_map("\n"));
+    let map = write_arg(d.path(), "map.csv", &smooth_map("\n"));
     let mut args = vec![
         "--map",
         map.as_str(),
@@ -289,9 +254,9 @@ fn results_do_not_depend_on_the_thread_count() {
     let mut outs: Vec<PathBuf> = Vec::new();
     for threads in ["1", "2"] {
         let out = d.path().join(format!("t{threads}"));
-        let o = preston()
+        let o = preston_cmd()
             .env("RAYON_NUM_THREADS", threads)
-            .args(["solve", "--job", &data("job.toml"), "--out"])
+            .args(["solve", "--job", &data_arg("job.toml"), "--out"])
             .arg(&out)
             .output()
             .unwrap();
@@ -339,7 +304,7 @@ fn assert_complete(out: &Path) {
 fn a_killed_solve_leaves_no_partial_output() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("out");
-    let job = data("job.toml");
+    let job = data_arg("job.toml");
     // A complete first run, and its duration.
     let start = Instant::now();
     let o = solve(&["--job", &job], &out);
@@ -349,7 +314,7 @@ fn a_killed_solve_leaves_no_partial_output() {
     // Runs with another pitch, killed at fractions of the full duration (the last ones during
     // or just before writing): each output is the old file or a whole new one, never a part.
     for fraction in [0.3, 0.8, 0.95, 1.0] {
-        let mut child = preston()
+        let mut child = preston_cmd()
             .args(["solve", "--job", &job, "--raster-pitch-mm", "1.3", "--out"])
             .arg(&out)
             .stdout(Stdio::null())

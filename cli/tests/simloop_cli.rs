@@ -2,32 +2,10 @@
 //! the solver's residual, continuous simulation converges as the sampling is refined, the virtual
 //! loop converges and writes its table and plots, a real part's map plans one run.
 
+mod common;
+
+use common::{ok, png_size, preston, report, s};
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn preston(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "exit {:?}: {}",
-        o.status.code(),
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn report(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap()
-}
 
 /// A smooth 26 x 26 map over 25 x 25 mm.
 fn write_map(path: &Path) {
@@ -45,19 +23,6 @@ fn write_map(path: &Path) {
 }
 
 const GAUSSIAN: [&str; 4] = ["--gaussian-sigma-mm", "2", "--gaussian-peak-nm-per-s", "10"];
-
-/// Width and height of a PNG from its IHDR chunk.
-fn png_size(path: &Path) -> (u32, u32) {
-    let b = std::fs::read(path).unwrap();
-    assert_eq!(
-        &b[..8],
-        b"\x89PNG\r\n\x1a\n",
-        "{} is not a PNG",
-        path.display()
-    );
-    let be = |k: usize| u32::from_be_bytes([b[k], b[k + 1], b[k + 2], b[k + 3]]);
-    (be(16), be(20))
-}
 
 #[test]
 fn simulate_reproduces_the_solver_and_converges_in_continuous_mode() {

@@ -1,22 +1,13 @@
 //! `preston solve` end to end: the sample job, and bad input that must fail cleanly.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-fn preston() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-}
-
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../data")
-        .join(name)
-}
+use common::{data, expect_failure, preston_cmd, write_arg};
 
 #[test]
 fn sample_job_end_to_end() {
     let out = tempfile::tempdir().unwrap();
-    let status = preston()
+    let status = preston_cmd()
         .args(["solve", "--job"])
         .arg(data("job.toml"))
         .arg("--out")
@@ -87,47 +78,18 @@ fn sample_job_end_to_end() {
     assert!((rms - after).abs() < 1e-9 * after);
 }
 
-/// Runs `preston solve` with flags and expects failure, a message containing every `needle`
-/// and no file in the output directory.
-fn expect_failure(args: &[&str], needles: &[&str]) {
-    let out = tempfile::tempdir().unwrap();
-    let target = out.path().join("result");
-    let o = preston()
-        .arg("solve")
-        .args(args)
-        .arg("--out")
-        .arg(&target)
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success(), "expected failure for {args:?}");
-    for n in needles {
-        assert!(stderr.contains(n), "stderr lacks `{n}`: {stderr}");
-    }
-    assert!(
-        !target.exists() || std::fs::read_dir(&target).unwrap().next().is_none(),
-        "output written despite the error"
-    );
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p.to_string_lossy().to_string()
-}
-
 #[test]
 fn bad_input_fails_cleanly() {
     let d = tempfile::tempdir().unwrap();
     let tif = data("tif_fluid_jet_10mm.csv").to_string_lossy().to_string();
-    let good_map = write(
+    let good_map = write_arg(
         d.path(),
         "map.csv",
         "x_mm,y_mm,z_nm\n0,0,1\n1,0,2\n0,1,3\n1,1,4\n",
     );
     let common = ["--raster-pitch-mm", "1"];
 
-    let missing = write(d.path(), "missing.csv", "x_mm,z_nm\n0,1\n");
+    let missing = write_arg(d.path(), "missing.csv", "x_mm,z_nm\n0,1\n");
     expect_failure(
         &[
             &["--map", &missing, "--tif", &tif, "--v-max", "3000"][..],
@@ -136,7 +98,7 @@ fn bad_input_fails_cleanly() {
         .concat(),
         &["missing.csv", "missing column `y_mm`"],
     );
-    let nonnum = write(d.path(), "nonnum.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,abc\n");
+    let nonnum = write_arg(d.path(), "nonnum.csv", "x_mm,y_mm,z_nm\n0,0,1\n1,0,abc\n");
     expect_failure(
         &[
             &["--map", &nonnum, "--tif", &tif, "--v-max", "3000"][..],
@@ -145,7 +107,7 @@ fn bad_input_fails_cleanly() {
         .concat(),
         &["nonnum.csv", "line 3", "z_nm", "not a number"],
     );
-    let irregular = write(
+    let irregular = write_arg(
         d.path(),
         "tif.csv",
         "x_mm,y_mm,rate_nm_per_s\n0,0,1\n1,0,1\n3,0,1\n0,1,1\n1,1,1\n3,1,1\n",
@@ -158,7 +120,7 @@ fn bad_input_fails_cleanly() {
         .concat(),
         &["tif.csv", "regular grid"],
     );
-    let empty = write(d.path(), "empty.csv", "x_mm,y_mm,z_nm\n");
+    let empty = write_arg(d.path(), "empty.csv", "x_mm,y_mm,z_nm\n");
     expect_failure(
         &[
             &["--map", &empty, "--tif", &tif, "--v-max", "3000"][..],
@@ -193,7 +155,7 @@ fn bad_input_fails_cleanly() {
         .concat(),
         &["v_min_mm_per_min", "exceeds"],
     );
-    let job = write(
+    let job = write_arg(
         d.path(),
         "job.toml",
         "[machine]\nv_max_mm_per_min = 1\nspeed = 2\n",
@@ -209,7 +171,7 @@ fn bad_input_fails_cleanly() {
 fn sample_job_edge_and_machinability_targets() {
     let run = |extra: &[&str]| {
         let out = tempfile::tempdir().unwrap();
-        let o = preston()
+        let o = preston_cmd()
             .args(["solve", "--job"])
             .arg(data("job.toml"))
             .args(extra)
@@ -277,4 +239,47 @@ fn sample_job_edge_and_machinability_targets() {
     assert_eq!(r["edge_points"], 0);
     let ratio = spike_ratio(&rows);
     assert!(ratio > 2.0, "without edge handling the ratio is {ratio}");
+}
+
+/// `preston solve --job data/job.toml` reads and parses the job file once, checks the job's
+/// choices once and validates the solver settings once (the binary's debug counts, printed
+/// with `PRESTON_DEBUG_COUNTS` set).
+#[test]
+fn the_sample_job_is_read_once_and_its_settings_validated_once() {
+    let out = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .env("PRESTON_DEBUG_COUNTS", "1")
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let line = stderr
+        .lines()
+        .find_map(|l| l.strip_prefix("debug counts: "))
+        .unwrap_or_else(|| panic!("no debug counts: {stderr}"));
+    let counts: Vec<(&str, &str)> = line
+        .split(' ')
+        .map(|kv| kv.split_once('=').unwrap())
+        .collect();
+    assert_eq!(
+        counts,
+        vec![
+            ("job_parsed", "1"),
+            ("settings_validated", "1"),
+            ("choices_checked", "1"),
+        ]
+    );
+    // Without the variable nothing is printed.
+    let quiet = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .arg("--out")
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(!String::from_utf8_lossy(&quiet.stderr).contains("debug counts"));
 }

@@ -2,52 +2,16 @@
 //! written grid's volume, intersection pattern, spiral pitch, chord-height window, and that the
 //! outputs feed `preston solve`.
 
+mod common;
+
+use common::{ok_json, preston, read_csv, s};
 use std::path::Path;
-use std::process::{Command, Output};
 
 /// Closed-form contact quantities printed by the CLI (JSON round trip of f64 is exact; the
 /// formula is evaluated in another order here).
 const CLOSED_FORM_REL_TOL: f64 = 1e-12;
 /// Model volume (polar quadrature) against the written grid's trapezoid volume at pitch a/100.
 const VOLUME_REL_TOL: f64 = 5e-3;
-
-fn preston(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_preston"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn ok(out: &Output) -> serde_json::Value {
-    assert!(
-        out.status.success(),
-        "exit {:?}\nstderr: {}",
-        out.status.code(),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let text = String::from_utf8_lossy(&out.stdout);
-    serde_json::from_str(&text).unwrap_or(serde_json::Value::Null)
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-/// Reads a CSV of numbers: (header, rows).
-fn read_csv(p: &Path) -> (Vec<String>, Vec<Vec<f64>>) {
-    let text = std::fs::read_to_string(p).unwrap();
-    let mut lines = text.lines();
-    let header = lines
-        .next()
-        .unwrap()
-        .split(',')
-        .map(str::to_string)
-        .collect();
-    let rows = lines
-        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
-        .collect();
-    (header, rows)
-}
 
 const HERTZ: [&str; 20] = [
     "--force-n",
@@ -79,7 +43,7 @@ fn hertz_tif_closed_form_volume_and_solve() {
     let mut args = vec!["tif", "hertz"];
     args.extend_from_slice(&HERTZ);
     args.extend_from_slice(&["--out", s(&tif)]);
-    let j = ok(&preston(&args));
+    let j = ok_json(&preston(&args));
     let e_star = 1.0 / ((1.0 - 0.4f64 * 0.4) / 5.0 + (1.0 - 0.2f64 * 0.2) / 72_000.0);
     let a = (3.0 * 10.0 * 16.0 / (4.0 * e_star)).cbrt();
     let p0 = 3.0 * 10.0 / (2.0 * std::f64::consts::PI * a * a);
@@ -117,7 +81,7 @@ fn hertz_tif_closed_form_volume_and_solve() {
     }
     std::fs::write(&map, text).unwrap();
     let path = dir.path().join("path.csv");
-    ok(&preston(&[
+    ok_json(&preston(&[
         "path",
         "raster",
         "--x-mm",
@@ -152,7 +116,7 @@ fn hertz_tif_closed_form_volume_and_solve() {
     let mut args = vec!["tif", "hertz"];
     args.extend_from_slice(&HERTZ);
     args.extend_from_slice(&["--part-radius-mm", "50", "--out", s(&tif2)]);
-    let j2 = ok(&preston(&args));
+    let j2 = ok_json(&preston(&args));
     assert!(j2["contact_radius_mm"].as_f64().unwrap() < a);
     // The same convex sphere as a surface JSON (curvature -1/50 in the surface convention):
     // at any point both principal curvatures are -1/50, so the contact is the same.
@@ -173,7 +137,7 @@ fn hertz_tif_closed_form_volume_and_solve() {
         "--out",
         s(&tif3),
     ]);
-    let j3 = ok(&preston(&args));
+    let j3 = ok_json(&preston(&args));
     let (c2, c3) = (
         j2["contact_radius_mm"].as_f64().unwrap(),
         j3["contact_radius_mm"].as_f64().unwrap(),
@@ -192,7 +156,7 @@ fn hertz_tif_closed_form_volume_and_solve() {
 fn gaussian_bonnet_and_grid_tifs() {
     let dir = tempfile::tempdir().unwrap();
     let g = dir.path().join("g.csv");
-    let j = ok(&preston(&[
+    let j = ok_json(&preston(&[
         "tif",
         "gaussian",
         "--sigma-mm",
@@ -208,7 +172,7 @@ fn gaussian_bonnet_and_grid_tifs() {
     assert!((j["fwhm_mm"].as_f64().unwrap() - fwhm).abs() < 0.1);
     assert_eq!(j["peak_rate_nm_per_s"].as_f64().unwrap(), 10.0);
     let b = dir.path().join("b.csv");
-    let j = ok(&preston(&[
+    let j = ok_json(&preston(&[
         "tif",
         "bonnet",
         "--bonnet-radius-mm",
@@ -232,7 +196,7 @@ fn gaussian_bonnet_and_grid_tifs() {
     assert!((j["contact_radius_mm"].as_f64().unwrap() - a).abs() < 1e-12);
     // Measured grid: recentre and scale to a volume.
     let r = dir.path().join("r.csv");
-    let j = ok(&preston(&[
+    let j = ok_json(&preston(&[
         "tif",
         "grid",
         "--in",
@@ -261,7 +225,7 @@ fn paths_intersection_spiral_chord_height_edge() {
     let mut ys0 = Vec::new();
     for k in 0..4 {
         let out = dir.path().join(format!("i{k}.csv"));
-        let j = ok(&preston(&[
+        let j = ok_json(&preston(&[
             "path",
             "intersection",
             "--x-mm",
@@ -294,7 +258,7 @@ fn paths_intersection_spiral_chord_height_edge() {
     assert!(!ys0.is_empty());
     // Spiral: every point on r = P theta / (2 pi) modulo turns; last point on the radius.
     let sp = dir.path().join("s.csv");
-    ok(&preston(&[
+    ok_json(&preston(&[
         "path",
         "spiral",
         "--radius-mm",
@@ -315,7 +279,7 @@ fn paths_intersection_spiral_chord_height_edge() {
     )
     .unwrap();
     let ch = dir.path().join("c.csv");
-    let j = ok(&preston(&[
+    let j = ok_json(&preston(&[
         "path",
         "chord-height",
         "--surface",
@@ -347,7 +311,7 @@ fn paths_intersection_spiral_chord_height_edge() {
     }
     // Edge offset on a round part, projected onto the ellipsoid.
     let eo = dir.path().join("e.csv");
-    let j = ok(&preston(&[
+    let j = ok_json(&preston(&[
         "path",
         "edge-offset",
         "--edge-radius-mm",
@@ -376,7 +340,7 @@ fn paths_intersection_spiral_chord_height_edge() {
     let sq = dir.path().join("square.csv");
     std::fs::write(&sq, "x_mm,y_mm\n-30,-30\n30,-30\n30,30\n-30,30\n").unwrap();
     let so = dir.path().join("sq_path.csv");
-    let j = ok(&preston(&[
+    let j = ok_json(&preston(&[
         "path",
         "edge-offset",
         "--edge",
@@ -434,7 +398,7 @@ fn paths_intersection_spiral_chord_height_edge() {
 fn random_path_is_unicursal_and_reproducible() {
     let dir = tempfile::tempdir().unwrap();
     let run = |seed: &str, out: &Path| {
-        ok(&preston(&[
+        ok_json(&preston(&[
             "path",
             "random",
             "--x-mm=-10,10",
@@ -507,7 +471,7 @@ fn random_path_is_unicursal_and_reproducible() {
 fn arc_turns_meet_the_chord_tolerance_with_a_long_step() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("arcs.csv");
-    ok(&preston(&[
+    ok_json(&preston(&[
         "path",
         "raster",
         "--x-mm=0,20",

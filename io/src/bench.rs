@@ -221,10 +221,10 @@ pub fn run_generated(
     // The generated problem through the set-up stage: no edge model, the operator `auto` gives
     // this problem's size (or the one asked for).
     let choices = Choices {
-        feed: FeedLimits {
+        feed: Some(FeedLimits {
             v_max_mm_per_min: V_MAX_MM_PER_MIN,
             v_min_mm_per_min: 0.0,
-        },
+        }),
         a_max_mm_per_s2: None,
         corner_angle_deg: None,
         accel_method: Default::default(),

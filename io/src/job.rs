@@ -11,6 +11,11 @@
 //! [tif]
 //! file = "tif_fluid_jet_10mm.csv"        # x_mm,y_mm,rate_nm_per_s; or instead:
 //! # gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 10.0, truncation_radius_mm = 6.0 }
+//! # or a spherical tool in Hertzian contact, sampled on a grid of pitch_mm:
+//! # hertz = { force_n = 10.0, tool_radius_mm = 16.0, tool_e_gpa = 0.005, tool_nu = 0.4,
+//! #           part_e_gpa = 72.0, part_nu = 0.2, preston_k_mm2_per_n = 1e-7 }
+//! # pitch_mm = 0.1
+//! # curvature_dependent = true          # one Hertz TIF per dwell point from [surface]'s curvature
 //!
 //! [dwell]
 //! raster_pitch_mm = 1.0                  # or: file = "path.csv" (x_mm,y_mm in path order)
@@ -50,7 +55,7 @@ use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::compensation::NormalDisplacement;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::setup::{Choices, TifModel};
-use preston_solver::tif::GaussianTif;
+use preston_solver::tif::{GaussianTif, HertzParams};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -105,7 +110,8 @@ pub struct SurfaceSource {
     pub tif_frame: TifFrame,
 }
 
-/// Where the TIF comes from: a grid file or a Gaussian model (exactly one).
+/// Where the TIF comes from: a grid file, a Gaussian model or a Hertzian spherical tool (exactly
+/// one).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TifSource {
@@ -113,6 +119,18 @@ pub struct TifSource {
     pub file: Option<PathBuf>,
     /// A truncated Gaussian model.
     pub gaussian: Option<GaussianTif>,
+    /// A spherical tool in Hertzian contact ([`preston_solver::tif::hertz`]): contact radius
+    /// `a = (3 F R_eff / (4 E*))^(1/3)`, Preston rate `K p v`.
+    pub hertz: Option<HertzParams>,
+    /// Pitch, mm, of the grid on which the `hertz` model on a flat part is sampled (the TIF of a
+    /// shift-invariant solve; with `curvature_dependent` it sets the raster margin, the edge band
+    /// and the TIF figure).
+    pub pitch_mm: Option<f64>,
+    /// With `hertz`: one Hertz TIF per dwell point, its effective radius from the `[surface]`'s
+    /// principal curvatures there (`1/R' = 1/R_tool - k1`, `1/R'' = 1/R_tool - k2`,
+    /// `R_eff = sqrt(R' R'')`); needs a design surface.
+    #[serde(default)]
+    pub curvature_dependent: bool,
 }
 
 /// The one TIF source a job names ([`TifSource::resolve`]).
@@ -122,22 +140,71 @@ pub enum TifInput {
     File(PathBuf),
     /// A truncated Gaussian model.
     Gaussian(GaussianTif),
+    /// A Hertzian spherical tool.
+    Hertz {
+        /// The contact and process parameters.
+        params: HertzParams,
+        /// Pitch of the grid the flat-part model is sampled on, mm.
+        pitch_mm: f64,
+        /// One TIF per dwell point from the design surface's local curvatures.
+        curvature_dependent: bool,
+    },
 }
 
 impl TifSource {
-    /// The one source this section names: exactly one of `file` and `gaussian` must be set.
+    /// The one source this section names: exactly one of `file`, `gaussian` and `hertz` must be
+    /// set; `pitch_mm` goes with (and is required by) `hertz`, as does `curvature_dependent`.
     pub fn resolve(&self, job_path: &Path) -> Result<TifInput> {
-        match (&self.file, &self.gaussian) {
-            (Some(f), None) => Ok(TifInput::File(f.clone())),
-            (None, Some(g)) => Ok(TifInput::Gaussian(g.clone())),
-            (Some(_), Some(_)) => Err(Error::Job {
+        let refuse = |why: &str| {
+            Err(Error::Job {
                 file: job_path.to_path_buf(),
-                why: "[tif] gives both `file` and `gaussian`; choose one".into(),
-            }),
-            (None, None) => Err(Error::Job {
-                file: job_path.to_path_buf(),
-                why: "no TIF: set [tif] file or gaussian (or --tif / --gaussian-sigma-mm)".into(),
-            }),
+                why: why.into(),
+            })
+        };
+        if self.hertz.is_none() {
+            if self.pitch_mm.is_some() {
+                return refuse(
+                    "[tif] pitch_mm is the grid of the `hertz` model; set hertz or drop it",
+                );
+            }
+            if self.curvature_dependent {
+                return refuse(
+                    "[tif] curvature_dependent needs the `hertz` model (or --tif-model hertz)",
+                );
+            }
+        }
+        match (&self.file, &self.gaussian, &self.hertz) {
+            (Some(f), None, None) => Ok(TifInput::File(f.clone())),
+            (None, Some(g), None) => Ok(TifInput::Gaussian(g.clone())),
+            (None, None, Some(h)) => match self.pitch_mm {
+                Some(pitch_mm) => Ok(TifInput::Hertz {
+                    params: h.clone(),
+                    pitch_mm,
+                    curvature_dependent: self.curvature_dependent,
+                }),
+                None => refuse(
+                    "[tif] hertz needs pitch_mm, the pitch of the grid it is sampled on (or \
+                     --tif-pitch-mm)",
+                ),
+            },
+            (None, None, None) => refuse(
+                "no TIF: set [tif] file, gaussian or hertz (or --tif / --gaussian-sigma-mm / \
+                 --tif-model hertz)",
+            ),
+            _ => refuse("[tif] names more than one of `file`, `gaussian` and `hertz`; choose one"),
+        }
+    }
+
+    /// How the TIF acts on the part: per dwell point from the local curvature when the section
+    /// asks for it (`hertz` with `curvature_dependent`), one TIF for every point otherwise.
+    pub fn model(&self) -> std::result::Result<TifModel, preston_solver::Error> {
+        match (&self.hertz, self.curvature_dependent) {
+            (Some(h), true) => Ok(TifModel::CurvatureDependent(h.clone())),
+            (None, true) => Err(preston_solver::Error::invalid(
+                "[tif] curvature_dependent",
+                "needs the `hertz` model (or --tif-model hertz)",
+            )),
+            (_, false) => Ok(TifModel::ShiftInvariant),
         }
     }
 }
@@ -273,6 +340,7 @@ impl Job {
 
     /// Parses job text; `path` names it in messages.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        preston_solver::counts::record(preston_solver::counts::Counted::JobParsed);
         toml::from_str(text).map_err(|e| Error::Job {
             file: path.to_path_buf(),
             why: crate::limits::quote_message(e.to_string().trim_end()),
@@ -304,11 +372,19 @@ impl Job {
                 "is required (job [machine] or --v-max)",
             )
         })?;
+        let tif_model = self.tif.model()?;
+        if matches!(tif_model, TifModel::CurvatureDependent(_)) && self.surface.file.is_none() {
+            return Err(preston_solver::Error::invalid(
+                "[tif] curvature_dependent",
+                "needs a design surface ([surface] file or --surface): the TIF of each dwell \
+                 point follows the surface's curvature there",
+            ));
+        }
         Ok(Choices {
-            feed: FeedLimits {
+            feed: Some(FeedLimits {
                 v_max_mm_per_min: v_max,
                 v_min_mm_per_min: self.machine.v_min_mm_per_min.unwrap_or(0.0),
-            },
+            }),
             a_max_mm_per_s2: self.machine.a_max_mm_per_s2,
             corner_angle_deg: self.machine.corner_angle_deg,
             accel_method: self.machine.accel_method.unwrap_or_default(),
@@ -316,7 +392,7 @@ impl Job {
             lambda: self.objective.lambda,
             settings: self.solver.clone(),
             edge: self.edge.clone(),
-            tif_model: TifModel::ShiftInvariant,
+            tif_model,
             tif_frame: self.surface.tif_frame,
             warm_start: self.dwell.warm_start.is_some(),
         })
@@ -385,6 +461,59 @@ mod tests {
         assert!(j.solver.min_time);
         assert_eq!(j.feed_limits().unwrap().v_max_mm_per_min, 3000.0);
         assert_eq!(j.accel_limits().unwrap(), None);
+    }
+
+    #[test]
+    fn hertz_tif_sections_resolve_to_one_model_or_are_refused() {
+        let job = |tif: &str| {
+            Job::parse(
+                &format!(
+                    "[machine]\nv_max_mm_per_min=3000\n[surface]\nfile='s.json'\n[tif]\n{tif}"
+                ),
+                Path::new("j.toml"),
+            )
+            .unwrap()
+        };
+        let j = job("hertz={force_n=20.0}\npitch_mm=0.1\ncurvature_dependent=true\n");
+        let params = HertzParams {
+            force_n: 20.0,
+            ..HertzParams::default()
+        };
+        assert_eq!(
+            j.tif.resolve(Path::new("j.toml")).unwrap(),
+            TifInput::Hertz {
+                params: params.clone(),
+                pitch_mm: 0.1,
+                curvature_dependent: true
+            }
+        );
+        assert_eq!(
+            j.choices().unwrap().tif_model,
+            TifModel::CurvatureDependent(params)
+        );
+        let flat = job("hertz={}\npitch_mm=0.1\n");
+        assert_eq!(flat.choices().unwrap().tif_model, TifModel::ShiftInvariant);
+        // Without a surface, without the model, without the grid, with two models.
+        let mut no_surface = j.clone();
+        no_surface.surface.file = None;
+        let e = no_surface.choices().unwrap_err().to_string();
+        assert!(e.contains("design surface"), "{e}");
+        for (tif, needle) in [
+            (
+                "file='t.csv'\ncurvature_dependent=true\n",
+                "curvature_dependent",
+            ),
+            ("hertz={}\n", "pitch_mm"),
+            ("file='t.csv'\npitch_mm=0.1\n", "pitch_mm"),
+            ("file='t.csv'\nhertz={}\npitch_mm=0.1\n", "more than one"),
+        ] {
+            let e = job(tif)
+                .tif
+                .resolve(Path::new("j.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{tif}: {e}");
+        }
     }
 
     #[test]

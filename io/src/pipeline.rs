@@ -17,7 +17,7 @@ use preston_solver::psd::LineAxis;
 use preston_solver::setup::{
     Checked, DwellPoints, Outcome, Setup, SetupData, SetupError, SetupInput,
 };
-use preston_solver::tif::{InfluenceFunction, Tif};
+use preston_solver::tif::{HertzTif, InfluenceFunction, Tif};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -85,13 +85,31 @@ impl Solved {
     }
 }
 
-/// Loads the TIF a job names (exactly one of a file or a Gaussian model).
+/// Loads the TIF a job names (exactly one of a file, a Gaussian model or a Hertzian tool).
 pub fn load_tif(job: &Job, job_path: &Path) -> Result<Tif> {
-    match job.tif.resolve(job_path)? {
+    load_tif_input(job.tif.resolve(job_path)?, job_path)
+}
+
+/// The TIF of one resolved source; `job_path` names the job in messages. A Hertzian tool is its
+/// model on a flat part ([`HertzTif::flat`]) sampled on the grid of `pitch_mm`, as
+/// `preston tif hertz` writes it; with `curvature_dependent` the set-up stage replaces it per
+/// dwell point ([`preston_solver::setup::TifModel::CurvatureDependent`]) and this one sets the
+/// raster margin, the edge band and the TIF figure.
+pub fn load_tif_input(input: TifInput, job_path: &Path) -> Result<Tif> {
+    let engine = |e| Error::engine(job_path, e);
+    match input {
         TifInput::File(f) => Ok(Tif::Grid(read_tif(&f)?)),
         TifInput::Gaussian(g) => {
-            g.validate().map_err(|e| Error::engine(job_path, e))?;
+            g.validate().map_err(engine)?;
             Ok(Tif::Gaussian(g))
+        }
+        TifInput::Hertz {
+            params, pitch_mm, ..
+        } => {
+            let grid = HertzTif::flat(&params)
+                .and_then(|t| t.to_grid(pitch_mm))
+                .map_err(engine)?;
+            Ok(Tif::Grid(grid))
         }
     }
 }

@@ -4,12 +4,14 @@
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
 use crate::machine::{read_dwell_times, DwellTimes};
-use crate::metrology::MapSource;
+use crate::metrology::{MapRead, MapSource};
 use crate::plots::{stage_convergence_plot, stage_map_plot, stage_path_plot};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
-use preston_solver::dwell::{DwellBounds, FeedLimits, Problem};
+use preston_solver::dwell::{DwellBounds, FeedLimits, OperatorChoice, Problem, Settings};
+use preston_solver::edge::{EdgeMethod, EdgeSettings};
+use preston_solver::influence::surface::TifFrame;
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
@@ -21,6 +23,9 @@ use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
+use preston_solver::setup::{
+    Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput, TifModel,
+};
 use preston_solver::simulate::{removal_nm, Motion};
 use preston_solver::tif::InfluenceFunction;
 use preston_solver::tif::Tif;
@@ -57,19 +62,63 @@ pub fn simulate(
     observer: &dyn Observer,
 ) -> Result<Simulated> {
     let start = Instant::now();
-    let map = map_source.read()?;
+    let MapRead { map, input } = map_source.read()?;
     let map_file = map_source.file.as_deref().unwrap_or(Path::new("map"));
     let DwellTimes { path, dwell_s } = read_dwell_times(dwell_file)?;
-    let m = &map.map;
-    let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
+    // The plan through the set-up stage, evaluated as given: the feed limits (if any) for the
+    // bounds the report checks, the assembled `R` over the map alone, no solve.
+    let at_fault = |e: SetupError| match e.input {
+        SetupInput::Map => Error::engine(map_file, e.source),
+        SetupInput::None => Error::Solver(e.source),
+        _ => Error::engine(dwell_file, e.source),
+    };
+    let checked = Choices {
+        feed: limits.copied(),
+        a_max_mm_per_s2: None,
+        corner_angle_deg: None,
+        rho: 0.0,
+        lambda: 0.0,
+        settings: Settings {
+            operator: OperatorChoice::Sparse,
+            ..Settings::default()
+        },
+        edge: EdgeSettings {
+            method: EdgeMethod::None,
+            ..EdgeSettings::default()
+        },
+        tif_model: TifModel::ShiftInvariant,
+        tif_frame: TifFrame::default(),
+        warm_start: false,
+    }
+    .check(observer)
+    .map_err(at_fault)?;
+    let setup = Setup::resolve(
+        checked,
+        SetupData {
+            map,
+            tif: tif.clone(),
+            dwell: DwellPoints::Given(path),
+            surface: None,
+            warm_start_s: None,
+        },
+        observer,
+    )
+    .map_err(at_fault)?;
+    let problem = setup.problem(observer).map_err(at_fault)?.problem;
     let build_seconds = start.elapsed().as_secs_f64();
     let sim_start = Instant::now();
     let removal = match motion {
-        Motion::Discrete => r.removal_nm(&dwell_s)?,
-        Motion::Continuous { .. } => {
-            removal_nm(m.x_mm(), m.y_mm(), &path, &dwell_s, tif, motion, observer)
-                .map_err(|e| Error::engine(dwell_file, e))?
-        }
+        Motion::Discrete => setup.removal_of(&problem, &dwell_s, observer)?,
+        Motion::Continuous { .. } => removal_nm(
+            setup.map.x_mm(),
+            setup.map.y_mm(),
+            &setup.path,
+            &dwell_s,
+            tif,
+            motion,
+            observer,
+        )
+        .map_err(|e| Error::engine(dwell_file, e))?,
     };
     let label = match motion {
         Motion::Discrete => SolverLabel::Simulate,
@@ -78,17 +127,18 @@ pub fn simulate(
         }
     };
     assemble(
-        map,
-        map_file,
+        MapRead {
+            map: setup.map,
+            input,
+        },
         dwell_file,
         Sweep {
-            path,
+            path: setup.path,
             dwell_s,
             removal_nm: removal,
-            r,
+            problem,
             label,
         },
-        limits,
         build_seconds,
         sim_start,
     )
@@ -100,17 +150,16 @@ struct Sweep {
     path: DwellPath,
     dwell_s: Vec<f64>,
     removal_nm: Vec<f64>,
-    r: InfluenceMatrix,
+    /// The points' problem (`R`, the map's heights, the bounds), for the report.
+    problem: Problem,
     label: SolverLabel,
 }
 
 /// The report of a simulated sweep (same keys as `preston solve`).
 fn assemble(
-    map: crate::metrology::MapRead,
-    map_file: &Path,
+    map: MapRead,
     dwell_file: &Path,
     sweep: Sweep,
-    limits: Option<&FeedLimits>,
     build_seconds: f64,
     sim_start: Instant,
 ) -> Result<Simulated> {
@@ -118,18 +167,10 @@ fn assemble(
         path,
         dwell_s,
         removal_nm: removal,
-        r,
+        problem,
         label,
     } = sweep;
     let ds_mm = path.ds_mm();
-    let m = &map.map;
-    let bounds = match limits {
-        Some(l) => DwellBounds::from_feeds(&ds_mm, l),
-        None => DwellBounds::new(vec![0.0; path.len()], None),
-    }
-    .map_err(|e| Error::engine(dwell_file, e))?;
-    let problem = Problem::new(r, m.z_nm().to_vec(), bounds, 0.0, 0.0)
-        .map_err(|e| Error::engine(map_file, e))?;
     let feeds = feeds_mm_per_min(&ds_mm, &dwell_s);
     let mut report = Report::of_dwell(
         &problem,
@@ -290,6 +331,10 @@ pub fn simulate_program(
     let py: Vec<f64> = program.stretches.iter().map(|s| s.y_mm).collect();
     let path = DwellPath::new(px, py).map_err(|e| Error::engine(program_file, e))?;
     let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
+    let bounds = DwellBounds::new(vec![0.0; path.len()], None)
+        .map_err(|e| Error::engine(program_file, e))?;
+    let problem = Problem::new(r, m.z_nm().to_vec(), bounds, 0.0, 0.0)
+        .map_err(|e| Error::engine(map_file, e))?;
     let build_seconds = start.elapsed().as_secs_f64();
     let label = match options.kinematics {
         Kinematics::ProgrammedFeed => SolverLabel::SimulateProgram,
@@ -299,16 +344,14 @@ pub fn simulate_program(
     };
     let sim = assemble(
         map,
-        map_file,
         program_file,
         Sweep {
             path,
             dwell_s: executed.stretch_time_s.clone(),
             removal_nm: removal,
-            r,
+            problem,
             label,
         },
-        None,
         build_seconds,
         Instant::now(),
     )?;

@@ -15,7 +15,7 @@
 use crate::atomic::commit_all;
 use crate::error::{Error, Result};
 use crate::job::{Job, TifSource};
-use crate::readers::{read_dwell, read_tif};
+use crate::readers::read_dwell;
 pub use crate::report::ToolReport;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
@@ -67,17 +67,22 @@ pub fn is_multi_tool(job: &Job) -> bool {
 }
 
 fn load_tool_tif(src: &TifSource, job_path: &Path, k: usize) -> Result<Tif> {
-    match (&src.file, &src.gaussian) {
-        (Some(f), None) => Ok(Tif::Grid(read_tif(f)?)),
-        (None, Some(g)) => {
-            g.validate().map_err(|e| Error::engine(job_path, e))?;
-            Ok(Tif::Gaussian(g.clone()))
-        }
-        _ => Err(Error::Job {
+    let input = src.resolve(job_path).map_err(|e| match e {
+        Error::Job { file, why } => Error::Job {
+            file,
+            why: format!("tool {k}: {why}"),
+        },
+        e => e,
+    })?;
+    if src.curvature_dependent {
+        return Err(Error::Job {
             file: job_path.to_path_buf(),
-            why: format!("tool {k}: give exactly one of tif.file or tif.gaussian"),
-        }),
+            why: format!(
+                "tool {k}: several tools cannot be combined with a curvature-dependent TIF"
+            ),
+        });
     }
+    crate::pipeline::load_tif_input(input, job_path)
 }
 
 /// Reads each `[[tool]]`'s TIF and path and checks what multi-tool solves support.

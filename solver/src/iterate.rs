@@ -394,7 +394,7 @@ pub fn plan_run(
     // The run through the set-up stage: the assembled R in each dwell point's tangent frame of
     // the design surface, no edge model.
     let choices = Choices {
-        feed: settings.feed,
+        feed: Some(settings.feed),
         a_max_mm_per_s2: None,
         corner_angle_deg: None,
         accel_method: Default::default(),

@@ -1,6 +1,7 @@
 pub mod asphere;
 pub mod bench;
 pub mod fit;
+pub mod hertz_args;
 pub mod iterate;
 pub mod map;
 pub mod map_input;

@@ -1,11 +1,12 @@
 //! `preston solve`: dwell times and feeds for a map, a TIF and a dwell path.
 
+use super::hertz_args::HertzArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::print_program_check;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::Context;
-use preston_io::job::Job;
+use preston_io::job::{Job, TifSource};
 use preston_io::pipeline;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::accel::AccelMethod;
@@ -153,6 +154,13 @@ impl From<SolverArg> for SolverChoice {
     }
 }
 
+/// A TIF process model on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum TifModelArg {
+    /// A spherical tool in Hertzian contact (the flags of `preston tif hertz`, --tif-pitch-mm).
+    Hertz,
+}
+
 /// Arguments of `preston solve`. Flags override the job file.
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -169,6 +177,21 @@ pub struct Args {
     /// The TIF (overrides the job's `[tif]`).
     #[command(flatten)]
     pub tif: TifArgs,
+    /// The TIF from a process model instead of --tif or --gaussian-*: `hertz`, a spherical tool
+    /// in Hertzian contact with --force-n, --tool-radius-mm, --spindle-rad-s, --tilt-deg,
+    /// --tool-e-gpa, --tool-nu, --part-e-gpa, --part-nu and --preston-k (as `preston tif hertz`),
+    /// sampled on a flat part at --tif-pitch-mm.
+    #[arg(long, value_enum, conflicts_with_all = ["tif", "gaussian_sigma_mm"])]
+    pub tif_model: Option<TifModelArg>,
+    #[command(flatten)]
+    pub hertz: HertzArgs,
+    /// Pitch of the grid on which the Hertz model on a flat part is sampled, mm.
+    #[arg(long, value_name = "MM")]
+    pub tif_pitch_mm: Option<f64>,
+    /// With the Hertz model: one TIF per dwell point, its effective radius from the design
+    /// surface's principal curvatures there (needs --surface or the job's [surface]).
+    #[arg(long)]
+    pub curvature_dependent: bool,
     /// Dwell points CSV `x_mm,y_mm` in path order. Repeated with --tif (the k-th --dwell goes
     /// with the k-th --tif), several tools in one solve: dwell_tool1.csv, dwell_tool2.csv, ...
     #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm", action = clap::ArgAction::Append)]
@@ -286,13 +309,38 @@ impl Args {
         } else if !self.time_weight.is_empty() {
             anyhow::bail!("--time-weight is for several tools (repeated --tif and --dwell)");
         }
+        // A TIF on the command line replaces the job's whole [tif] section.
         if let (1, Some(t)) = (tools, self.tif.tif.first()) {
-            job.tif.file = Some(t.clone());
-            job.tif.gaussian = None;
+            job.tif = TifSource {
+                file: Some(t.clone()),
+                ..TifSource::default()
+            };
         }
         if let Some(g) = self.tif.gaussian()? {
-            job.tif.gaussian = Some(g);
-            job.tif.file = None;
+            job.tif = TifSource {
+                gaussian: Some(g),
+                ..TifSource::default()
+            };
+        }
+        match self.tif_model {
+            Some(TifModelArg::Hertz) => {
+                job.tif = TifSource {
+                    hertz: Some(self.hertz.params().context("--tif-model hertz")?),
+                    pitch_mm: job.tif.pitch_mm,
+                    curvature_dependent: job.tif.curvature_dependent,
+                    ..TifSource::default()
+                };
+            }
+            None if self.hertz.is_given() => anyhow::bail!(
+                "the Hertz tool's flags (--force-n, --tool-e-gpa, ...) go with --tif-model hertz"
+            ),
+            None => {}
+        }
+        if let Some(p) = self.tif_pitch_mm {
+            job.tif.pitch_mm = Some(p);
+        }
+        if self.curvature_dependent {
+            job.tif.curvature_dependent = true;
         }
         if let (1, Some(d)) = (tools, self.dwell.first()) {
             job.dwell.file = Some(d.clone());
@@ -417,9 +465,9 @@ fn apply_tools(
         .zip(dwells)
         .enumerate()
         .map(|(i, (t, d))| preston_io::job::ToolSpec {
-            tif: preston_io::job::TifSource {
+            tif: TifSource {
                 file: Some(t.clone()),
-                gaussian: None,
+                ..TifSource::default()
             },
             dwell: d.clone(),
             v_max_mm_per_min: (v_max.len() > 1).then(|| v_max[i]),

@@ -6,7 +6,7 @@ use anyhow::{bail, Context};
 use preston_io::readers::read_tif;
 use preston_io::surface::{read_surface, stage_columns_csv};
 use preston_solver::tif::bonnet::{BonnetParams, BonnetTif};
-use preston_solver::tif::hertz::{sample_on_grid, HertzParams, HertzTif};
+use preston_solver::tif::hertz::{sample_on_grid, HertzTif};
 use preston_solver::tif::{GaussianTif, GridTif};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -36,30 +36,8 @@ enum Kind {
 /// `preston tif hertz`.
 #[derive(Debug, clap::Args)]
 struct HertzArgs {
-    /// Normal force, N.
-    #[arg(long, default_value_t = 10.0)]
-    force_n: f64,
-    /// Tool (sphere) radius, mm.
-    #[arg(long, default_value_t = 16.0)]
-    tool_radius_mm: f64,
-    /// Spindle speed, rad/s.
-    #[arg(long, default_value_t = 104.72)]
-    spindle_rad_s: f64,
-    /// Tilt of the spindle axis from the part normal, degrees.
-    #[arg(long, default_value_t = 15.0)]
-    tilt_deg: f64,
-    /// Tool Young's modulus, GPa.
-    #[arg(long)]
-    tool_e_gpa: f64,
-    /// Tool Poisson ratio.
-    #[arg(long)]
-    tool_nu: f64,
-    /// Part Young's modulus, GPa.
-    #[arg(long)]
-    part_e_gpa: f64,
-    /// Part Poisson ratio.
-    #[arg(long)]
-    part_nu: f64,
+    #[command(flatten)]
+    model: super::hertz_args::HertzArgs,
     /// Part radius of curvature, mm: positive convex, negative concave; omitted: flat.
     #[arg(long, allow_negative_numbers = true)]
     part_radius_mm: Option<f64>,
@@ -74,9 +52,6 @@ struct HertzArgs {
     /// Where on `--surface` the tool sits, X,Y mm.
     #[arg(long, value_parser = crate::cmd::path::parse_pair, allow_hyphen_values = true, requires = "surface", value_name = "X,Y")]
     at_mm: Option<(f64, f64)>,
-    /// Preston coefficient K, mm^2/N (rate mm/s = K * p MPa * v mm/s).
-    #[arg(long)]
-    preston_k: f64,
     /// Grid pitch, mm.
     #[arg(long)]
     pitch_mm: f64,
@@ -193,17 +168,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let (grid, out, mut summary) = match args.kind {
         Kind::Spot(a) => return super::tif_spot::run(a),
         Kind::Hertz(a) => {
-            let p = HertzParams {
-                force_n: a.force_n,
-                tool_radius_mm: a.tool_radius_mm,
-                spindle_rad_s: a.spindle_rad_s,
-                tilt_deg: a.tilt_deg,
-                tool_e_gpa: a.tool_e_gpa,
-                tool_nu: a.tool_nu,
-                part_e_gpa: a.part_e_gpa,
-                part_nu: a.part_nu,
-                preston_k_mm2_per_n: a.preston_k,
-            };
+            let p = a.model.params()?;
             let t = match (a.part_radius_mm, &a.surface, a.at_mm) {
                 (Some(r), _, _) => HertzTif::with_part_radius(&p, r)?,
                 (None, Some(f), Some((x, y))) => {

@@ -111,6 +111,18 @@ pub fn solve(
     observer: &dyn Observer,
     start: Option<&[f64]>,
 ) -> Result<Solution> {
+    settings.validate()?;
+    solve_validated(problem, settings, observer, start)
+}
+
+/// As [`solve`], with `settings` already validated (by [`crate::setup::Choices::check`] or
+/// [`super::solve_from`]).
+pub(crate) fn solve_validated(
+    problem: &Problem,
+    settings: &Settings,
+    observer: &dyn Observer,
+    start: Option<&[f64]>,
+) -> Result<Solution> {
     if settings.min_time {
         return Err(Error::invalid(
             "solver",
@@ -119,7 +131,7 @@ pub fn solve(
     }
     let t0 = Instant::now();
     let res = with_operator(problem, |op| {
-        minimise_with(
+        minimise_validated(
             op,
             problem.z_nm(),
             problem.bounds(),
@@ -419,6 +431,25 @@ pub fn minimise_with(
     observer: &dyn Observer,
     lattice: Option<&DwellLattice>,
 ) -> Result<FirstOrderResult> {
+    settings.validate()?;
+    minimise_validated(
+        op, z_nm, bounds, rho, lambda, settings, start, observer, lattice,
+    )
+}
+
+/// As [`minimise_with`], with `settings` already validated.
+#[allow(clippy::too_many_arguments)]
+fn minimise_validated(
+    op: &dyn LinearOperator,
+    z_nm: &[f64],
+    bounds: &DwellBounds,
+    rho: f64,
+    lambda: f64,
+    settings: &Settings,
+    start: Option<&[f64]>,
+    observer: &dyn Observer,
+    lattice: Option<&DwellLattice>,
+) -> Result<FirstOrderResult> {
     if op.nrows() + op.ncols() < SMALL_PROBLEM && rayon::current_num_threads() > 1 {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
@@ -455,7 +486,6 @@ fn minimise_here(
     observer: &dyn Observer,
     lattice: Option<&DwellLattice>,
 ) -> Result<FirstOrderResult> {
-    settings.validate()?;
     let (m, n) = (op.nrows(), op.ncols());
     if z_nm.len() != m {
         return Err(Error::LengthMismatch {

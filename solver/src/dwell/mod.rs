@@ -603,6 +603,7 @@ impl Default for Settings {
 impl Settings {
     /// Checks every field's range.
     pub fn validate(&self) -> Result<()> {
+        crate::counts::record(crate::counts::Counted::SettingsValidated);
         if !(self.min_time_tolerance.is_finite() && self.min_time_tolerance > 0.0) {
             return Err(Error::invalid(
                 "min_time_tolerance",
@@ -777,7 +778,7 @@ fn dispatch(
             }
             Ok(sol)
         }
-        SolverKind::FirstOrder => first_order::solve(problem, settings, observer, start),
+        SolverKind::FirstOrder => first_order::solve_validated(problem, settings, observer, start),
     }
 }
 

@@ -7,7 +7,8 @@
 //! --Setup::solve--> Outcome { solution, removal R t, feeds, feed schedule, statuses }
 //! ```
 //!
-//! Every consumer (the `solve` pipeline, the loop's runs, the benchmarks, the Python package)
+//! Every consumer (the `solve` pipeline, the loop's runs, the benchmarks, the Python package;
+//! `simulate` up to the problem, then [`Setup::removal_of`] for the given dwell times)
 //! goes through these three steps, so the decisions they hold are written once: how the dwell
 //! points are made (a given path or a serpentine raster), how the dwell area beyond the map is
 //! modelled ([`crate::edge`]), how `R` is held (assembled, in the tangent frame of a design
@@ -143,8 +144,8 @@ impl<T> At<T> for Result<T> {
 /// is read: [`Choices::check`] validates them once, before the inputs are read.
 #[derive(Debug, Clone)]
 pub struct Choices {
-    /// Feed limits.
-    pub feed: FeedLimits,
+    /// Feed limits (`None`: none, the dwell bounds are `t >= 0`; a plan evaluated as given).
+    pub feed: Option<FeedLimits>,
     /// Acceleration limit along a line, mm/s^2 (`None`: none).
     pub a_max_mm_per_s2: Option<f64>,
     /// Turn angle above which the path splits into lines, degrees (`None`: 60).
@@ -198,8 +199,11 @@ impl Choices {
     /// sequential convex programme starts from its own feed-limited optimum and would not use it.
     pub fn check(self, observer: &dyn Observer) -> SetupResult<Checked> {
         observer.setup_step(SetupStep::CheckChoices);
+        crate::counts::record(crate::counts::Counted::ChoicesChecked);
         self.settings.validate().at(SetupInput::Job)?;
-        self.feed.validate().at(SetupInput::Job)?;
+        if let Some(feed) = &self.feed {
+            feed.validate().at(SetupInput::Job)?;
+        }
         for (name, v) in [("rho", self.rho), ("lambda", self.lambda)] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(Error::invalid(name, format!("must be >= 0, got {v}")))
@@ -278,9 +282,9 @@ pub struct Setup {
     pub surface: Option<Surface>,
     /// TIF orientation on the surface.
     pub tif_frame: TifFrame,
-    /// Feed limits.
-    pub feed: FeedLimits,
-    /// The dwell bounds the feed limits give.
+    /// Feed limits (`None`: none).
+    pub feed: Option<FeedLimits>,
+    /// The dwell bounds the feed limits give (`t >= 0` without limits).
     pub bounds: DwellBounds,
     /// The acceleration limit, validated (`None`: only feed limits).
     pub accel: Option<AccelLimits>,
@@ -386,7 +390,9 @@ pub fn centred_residual_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
 
 impl Setup {
     /// Resolves the data under the checked choices: the dwell points (generating the raster),
-    /// the dwell bounds and the warm start's length.
+    /// the dwell bounds and the warm start's length. Given points with feed limits are at least
+    /// two (a path of length zero has no feed); without limits (a plan evaluated as given,
+    /// [`Setup::removal_of`]) one point is a spot.
     pub fn resolve(
         checked: Checked,
         data: SetupData,
@@ -420,7 +426,9 @@ impl Setup {
         }
         let path = match dwell {
             DwellPoints::Given(p) => {
-                if p.len() < 2 {
+                // A plan to solve for needs feeds; one evaluated as given (no limits) may be a
+                // single spot.
+                if p.len() < 2 && choices.feed.is_some() {
                     return Err(Error::invalid(
                         "dwell points",
                         "one dwell point: a path of length zero has no feed; give at least two \
@@ -454,7 +462,11 @@ impl Setup {
             }
         };
         let ds_mm = path.ds_mm();
-        let bounds = DwellBounds::from_feeds(&ds_mm, &choices.feed).at(SetupInput::Job)?;
+        let bounds = match &choices.feed {
+            Some(feed) => DwellBounds::from_feeds(&ds_mm, feed),
+            None => DwellBounds::new(vec![0.0; path.len()], None),
+        }
+        .at(SetupInput::Job)?;
         if let Some(w) = &warm_start_s {
             if w.len() != path.len() {
                 return Err(Error::invalid(
@@ -737,6 +749,20 @@ impl Setup {
         })
     }
 
+    /// The removal `R t` of given dwell times `dwell_s` at the measured map points, nm (edge
+    /// rows dropped), with `problem` built by [`Setup::problem`]: a plan evaluated, no solve.
+    pub fn removal_of(
+        &self,
+        problem: &Problem,
+        dwell_s: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<Vec<f64>> {
+        observer.setup_step(SetupStep::Removal);
+        let mut removal = problem.removal_nm(dwell_s)?;
+        removal.truncate(self.map.len());
+        Ok(removal)
+    }
+
     /// The default program for `dwell_s` (ISO, G94, flat part, the feed limit) executed at
     /// `a_max` with look-ahead, and the removal integrated along the executed motion
     /// ([`crate::machine::gcode::motion`]), on the measured map.
@@ -749,7 +775,7 @@ impl Setup {
         let settings = NcSettings {
             a_max_mm_per_s2: Some(a_max_mm_per_s2),
             corner_angle_deg: self.corner_angle_deg,
-            v_max_mm_per_min: Some(self.feed.v_max_mm_per_min),
+            v_max_mm_per_min: self.feed.map(|f| f.v_max_mm_per_min),
             ..NcSettings::default()
         };
         let nc = NcProgram::plan(&self.path, dwell_s, &Flat, &settings)?;
@@ -799,10 +825,10 @@ mod tests {
 
     fn choices() -> Choices {
         Choices {
-            feed: FeedLimits {
+            feed: Some(FeedLimits {
                 v_max_mm_per_min: 3000.0,
                 v_min_mm_per_min: 0.0,
-            },
+            }),
             a_max_mm_per_s2: None,
             corner_angle_deg: None,
             accel_method: Default::default(),
@@ -904,6 +930,57 @@ mod tests {
         }
         let e = fft(with(OperatorChoice::Fft, SolverChoice::Qp)).unwrap_err();
         assert!(e.to_string().contains("qp"), "{e}");
+    }
+
+    #[test]
+    fn a_plan_without_feed_limits_is_evaluated_as_given() {
+        let checked = Choices {
+            feed: None,
+            ..choices()
+        }
+        .check(&Silent)
+        .unwrap();
+        let path = DwellPath::new(vec![2.0, 6.5], vec![3.0, 4.5]).unwrap();
+        let d = SetupData {
+            dwell: DwellPoints::Given(path.clone()),
+            ..data()
+        };
+        let setup = Setup::resolve(checked.clone(), d, &Silent).unwrap();
+        // No limits: every bound is t >= 0.
+        assert!(setup.bounds.lower_s().iter().all(|&l| l == 0.0));
+        let built = setup.problem(&Silent).unwrap();
+        let dwell_s = [1.5, 0.25];
+        let removal = setup.removal_of(&built.problem, &dwell_s, &Silent).unwrap();
+        // R t by hand: the TIF at each map point's offset from each dwell point.
+        let m = &setup.map;
+        assert_eq!(removal.len(), m.len());
+        for ((&h, &x), &y) in removal.iter().zip(m.x_mm()).zip(m.y_mm()) {
+            let want: f64 = (0..2)
+                .map(|j| {
+                    dwell_s[j]
+                        * setup
+                            .tif
+                            .rate_nm_per_s(x - path.x_mm()[j], y - path.y_mm()[j])
+                })
+                .sum();
+            assert!((h - want).abs() <= 1e-12 * want.abs().max(1.0));
+        }
+        // One point: a spot without limits, refused with them.
+        let spot = DwellPath::new(vec![2.0], vec![3.0]).unwrap();
+        let d = SetupData {
+            dwell: DwellPoints::Given(spot.clone()),
+            ..data()
+        };
+        assert!(Setup::resolve(checked, d, &Silent).is_ok());
+        let d = SetupData {
+            dwell: DwellPoints::Given(spot),
+            ..data()
+        };
+        let limited = choices().check(&Silent).unwrap();
+        assert_eq!(
+            Setup::resolve(limited, d, &Silent).unwrap_err().input,
+            SetupInput::Dwell
+        );
     }
 
     #[test]
