@@ -60,7 +60,7 @@
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
 use super::precond::{CirculantPreconditioner, DwellLattice};
-use super::with_operator;
+use super::with_solver_operator;
 use super::{
     DwellBounds, FirstOrderMethod, Preconditioner, Problem, Settings, Solution, SolverKind, Status,
 };
@@ -118,7 +118,7 @@ pub fn solve(
         ));
     }
     let t0 = Instant::now();
-    let res = with_operator(problem, |op| {
+    let res = with_solver_operator(problem, POWER_STEPS, |op| {
         minimise_with(
             op,
             problem.z_nm(),

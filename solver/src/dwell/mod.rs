@@ -781,6 +781,27 @@ fn dispatch(
     }
 }
 
+/// As [`with_operator`], for an iterative solver that takes at least `products` normal products
+/// `R^T R t`: the assembled `R` comes with its Gram matrix when forming it pays
+/// ([`crate::influence::GramMatrix::worthwhile`]).
+pub(crate) fn with_solver_operator<T>(
+    problem: &Problem,
+    products: usize,
+    f: impl FnOnce(&dyn LinearOperator) -> Result<T>,
+) -> Result<T> {
+    match problem.influence() {
+        Some(r) => {
+            let op = crate::influence::SparseOperator::new(r.csc());
+            if crate::influence::GramMatrix::worthwhile(&op, products) {
+                f(&crate::influence::GramOperator::new(op))
+            } else {
+                f(&op)
+            }
+        }
+        None => with_operator(problem, f),
+    }
+}
+
 /// Runs `f` with `problem`'s operator: the assembled `R` (wrapped for products) or the
 /// matrix-free FFT operator.
 pub(crate) fn with_operator<T>(

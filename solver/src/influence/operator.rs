@@ -43,6 +43,16 @@ impl<'a> SparseOperator<'a> {
             csr: CsrMatrix::from(csc),
         }
     }
+
+    /// The matrix by columns.
+    pub fn csc(&self) -> &CscMatrix<f64> {
+        self.csc
+    }
+
+    /// The matrix by rows.
+    pub fn csr(&self) -> &CsrMatrix<f64> {
+        &self.csr
+    }
 }
 
 /// Minimum number of output entries handed to one rayon task.
