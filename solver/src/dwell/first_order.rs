@@ -53,6 +53,13 @@
 //!   this is the Frank-Wolfe gap; with `rho = 0` and no upper bound no finite bound exists unless
 //!   every gradient entry is non-negative, and none is reported.
 //!
+//! **Through the normal product.** Where the operator's `R^T R t` is much cheaper than `R t`
+//! and `R^T y` (a formed Gram matrix, [`crate::influence::GramMatrix`]), the power iteration,
+//! the line search's objective and the certificates inside the iteration use it alone: with
+//! `b = R^T P z`, `||P (R t - z)||^2 = t'(R^T P R t - b) - t'b + z'P z` and
+//! `z'P (R t - z) = t'b - z'P z`. The certificate reported at the end is formed again with the
+//! residual itself.
+//!
 //! The solve stops when the relative gap bound or the relative KKT residual is below the
 //! tolerance, and says which ([`ConvergenceCriterion`]). Products with `R` and `R^T` are parallel with fixed-order sums, every other
 //! reduction uses fixed chunks: the result is bit-identical for any thread count. No allocation
@@ -172,6 +179,12 @@ struct Data<'a> {
     column_sums: Vec<f64>,
     /// Jacobi scale `S`.
     s: Vec<f64>,
+    /// Objective and gradient through the normal product (see [`Data::normal_terms`]).
+    via_normal: bool,
+    /// `R^T P z`.
+    rtpz: Vec<f64>,
+    /// `0.5 z'P z`.
+    half_zpz: f64,
     lo_w: Vec<f64>,
     hi_w: Vec<f64>,
 }
@@ -260,10 +273,32 @@ impl Data<'_> {
         self.half_smoothing(work)
     }
 
-    /// The full objective `f` at `w` (one product with `R`).
-    fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
-        let half_r2 = self.residual(w, work);
+    /// Through one normal product: `work.t = S w`, `work.g` as [`Data::gradient`] leaves it,
+    /// and `(0.5 ||r||^2, 0.5 lambda ||D t||^2, z'r)` for `r = P (R t - z)` from the quadratic
+    /// form: with `b = R^T P z` and `g_r = R^T P R t - b`, `||r||^2 = t'g_r - t'b + z'P z` and
+    /// `z'r = t'b - z'P z` (cancellation costs about `eps z'Pz / ||r||^2` relative).
+    fn normal_terms(&self, w: &[f64], work: &mut Work) -> (f64, f64, f64) {
+        self.normal_gradient(w, true, work);
         let half_d2 = self.half_smoothing(work);
+        let (t, g, b, lam) = (&work.t, &work.g, &self.rtpz, self.lambda);
+        let tg = fixed_sum(t.len(), &mut work.partials, |j| {
+            let gr = if lam > 0.0 { g[j] - lam * dtd(t, j) } else { g[j] };
+            t[j] * gr
+        });
+        let tb = fixed_sum(t.len(), &mut work.partials, |j| t[j] * b[j]);
+        let r2 = (tg - tb + 2.0 * self.half_zpz).max(0.0);
+        (0.5 * r2, half_d2, tb - 2.0 * self.half_zpz)
+    }
+
+    /// The full objective `f` at `w` (one product with `R`, or one normal product).
+    fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
+        let (half_r2, half_d2) = if self.via_normal {
+            let (a, b, _) = self.normal_terms(w, work);
+            (a, b)
+        } else {
+            let half_r2 = self.residual(w, work);
+            (half_r2, self.half_smoothing(work))
+        };
         let t = &work.t;
         let sum_t = fixed_sum(t.len(), &mut work.partials, |j| t[j]);
         half_r2 + half_d2 + self.rho * sum_t
@@ -436,15 +471,26 @@ fn minimise_here(
     op.apply_transpose(z_nm, &mut rtz);
     work.rt.iter_mut().for_each(|r| *r = 1.0);
     op.apply_transpose(&work.rt, &mut column_sums);
+    let sum_z: f64 = z_nm.iter().sum();
+    let mean_z = sum_z / m as f64;
+    let rtpz: Vec<f64> = rtz
+        .iter()
+        .zip(&column_sums)
+        .map(|(a, c)| a - mean_z * c)
+        .collect();
+    let half_zpz = 0.5 * z_nm.iter().map(|z| (z - mean_z).powi(2)).sum::<f64>();
     let data = Data {
         op,
         z: z_nm,
-        sum_z: z_nm.iter().sum(),
+        sum_z,
         rtz,
         column_sums,
         rho,
         lambda,
         s,
+        via_normal: op.prefers_normal_products(),
+        rtpz,
+        half_zpz,
         lo_w,
         hi_w,
     };
@@ -511,6 +557,20 @@ fn minimise_here(
         }
     };
     observer.finish(Stage::Solve);
+    let converged_by = match status {
+        Status::Converged => limits.met(&cert),
+        // Stalled at rounding level with the KKT residual below the square root of the
+        // tolerance.
+        Status::AlmostConverged => Some(ConvergenceCriterion::KktResidual),
+        _ => None,
+    };
+    // The reported certificate through products with R (the iterations' went through the
+    // quadratic form).
+    let cert = if data.via_normal {
+        certificate_with(&data, &x, &mut work, bounds, limits.kkt_scale, true)
+    } else {
+        cert
+    };
     let dwell_s: Vec<f64> = x.iter().zip(&data.s).map(|(w, s)| w * s).collect();
     Ok(FirstOrderResult {
         status,
@@ -519,13 +579,7 @@ fn minimise_here(
         full_objective: cert.f,
         kkt_residual: cert.kkt,
         objective_gap_bound: cert.gap,
-        converged_by: match status {
-            Status::Converged => limits.met(&cert),
-            // Stalled at rounding level with the KKT residual below the square root of the
-            // tolerance.
-            Status::AlmostConverged => Some(ConvergenceCriterion::KktResidual),
-            _ => None,
-        },
+        converged_by,
     })
 }
 
@@ -863,20 +917,32 @@ fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
         .collect();
     let zero = vec![0.0; n];
     // The gradient is H t + b (with S scaling); b from the zero point.
-    data.gradient(&zero, work);
-    let b: Vec<f64> = work.g.clone();
+    let b: Vec<f64> = if data.via_normal {
+        zero.clone()
+    } else {
+        data.gradient(&zero, work);
+        work.g.clone()
+    };
     let mut est = 0.0;
+    let mut hv = vec![0.0; n];
     for _ in 0..POWER_STEPS {
         let norm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
         if norm <= 0.0 || !norm.is_finite() {
             return 0.0;
         }
         v.iter_mut().for_each(|a| *a /= norm);
-        data.gradient(&v, work);
-        // Hv (scaled) = S (g(v) - g(0)).
-        let hv: Vec<f64> = (0..n).map(|j| data.s[j] * (work.g[j] - b[j])).collect();
+        if data.via_normal {
+            // Hv (scaled) directly from the normal product.
+            data.hessian_product(&v, work, &mut hv);
+        } else {
+            data.gradient(&v, work);
+            // Hv (scaled) = S (g(v) - g(0)).
+            hv.iter_mut()
+                .enumerate()
+                .for_each(|(j, h)| *h = data.s[j] * (work.g[j] - b[j]));
+        }
         est = v.iter().zip(&hv).map(|(a, b)| a * b).sum::<f64>();
-        v = hv;
+        std::mem::swap(&mut v, &mut hv);
     }
     est
 }
@@ -889,14 +955,25 @@ struct Certificate {
     gap: GapBound,
 }
 
-fn certificate(
+/// The certificate at `w`: through the normal product when the data prefer it, unless `exact`
+/// asks for the products with `R` (the residual formed explicitly).
+fn certificate_with(
     data: &Data<'_>,
     w: &[f64],
     work: &mut Work,
     bounds: &DwellBounds,
     kkt_scale: f64,
+    exact: bool,
 ) -> Certificate {
-    let (half_r2, half_d2) = data.gradient(w, work);
+    let (half_r2, half_d2, zr) = if data.via_normal && !exact {
+        data.normal_terms(w, work)
+    } else {
+        let (half_r2, half_d2) = data.gradient(w, work);
+        // Dual bound: needs z'r.
+        let (z, rt) = (data.z, &work.rt);
+        let zr = fixed_sum(z.len(), &mut work.partials, |i| z[i] * rt[i]);
+        (half_r2, half_d2, zr)
+    };
     let n = w.len();
     let rho = data.rho;
     let t = &work.t;
@@ -910,10 +987,6 @@ fn certificate(
         (w[j] - p).powi(2)
     });
     let kkt = kkt2.sqrt() / kkt_scale;
-    // Dual bound: needs z'r.
-    let z = data.z;
-    let rt = &work.rt;
-    let zr = fixed_sum(z.len(), &mut work.partials, |i| z[i] * rt[i]);
     let inputs = DualInputs {
         f,
         zr,
@@ -924,4 +997,15 @@ fn certificate(
     };
     let gap = gap_bound(&inputs, bounds, &mut work.partials);
     Certificate { f, kkt, gap }
+}
+
+/// [`certificate_with`] as the iterations take it.
+fn certificate(
+    data: &Data<'_>,
+    w: &[f64],
+    work: &mut Work,
+    bounds: &DwellBounds,
+    kkt_scale: f64,
+) -> Certificate {
+    certificate_with(data, w, work, bounds, kkt_scale, false)
 }

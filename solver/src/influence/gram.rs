@@ -10,10 +10,10 @@
 //! takes at least.
 //!
 //! **Formation.** Column `j` of `G` is `R^T (R e_j)`: for every row `i` of column `j` (ascending),
-//! every entry `(k, R[i, k])` of row `i` adds `R[i, j] R[i, k]` to a dense accumulator. Each
-//! entry `G[j, k]` is thus the sum over the shared rows in ascending row order, the same
-//! products in the same order as `G[k, j]`: `G` is exactly symmetric, and columns are formed
-//! independently, so it is bit-identical for any thread count.
+//! every entry `(k, R[i, k])` of row `i` with `k >= j` adds `R[i, j] R[i, k]` to a dense
+//! accumulator. Each entry `G[j, k]` is thus the sum over the shared rows in ascending row
+//! order; the upper triangle is formed so and mirrored, so `G` is exactly symmetric, and columns
+//! are formed independently, so it is bit-identical for any thread count.
 //!
 //! **Products.** `G t` is one dot product per row in a fixed order (outputs distributed over
 //! threads): bit-identical for any thread count. It differs from `R^T (R t)` by rounding only.
@@ -66,59 +66,101 @@ impl GramMatrix {
     }
 
     /// Forms `G = R^T R` from the operator's column and row storage (see the module
-    /// documentation).
+    /// documentation): the upper triangle column by column, then its mirror.
     pub fn new(op: &SparseOperator<'_>) -> Self {
         let (csc, csr) = (op.csc(), op.csr());
         let n = csc.ncols();
         let (c_off, c_rows, c_vals) = (csc.col_offsets(), csc.row_indices(), csc.values());
         let (r_off, r_cols, r_vals) = (csr.row_offsets(), csr.col_indices(), csr.values());
         let starts: Vec<usize> = (0..n).step_by(COLUMNS_PER_TASK).collect();
-        // Each task: its columns' lengths, indices and values, in column order.
-        let blocks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)> = starts
+        // Each task: its columns' upper-triangle lengths, indices `k >= j` and values.
+        type Block = (Vec<usize>, Vec<u32>, Vec<f64>);
+        let blocks: Vec<Block> = starts
             .par_iter()
             .map_init(
                 || (vec![0.0; n], vec![false; n], Vec::new()),
                 |(acc, seen, touched): &mut (Vec<f64>, Vec<bool>, Vec<u32>), &start| {
-                let end = (start + COLUMNS_PER_TASK).min(n);
-                let (mut lens, mut cols, mut vals) = (Vec::new(), Vec::new(), Vec::new());
-                for j in start..end {
-                    for p in c_off[j]..c_off[j + 1] {
-                        let (i, a) = (c_rows[p], c_vals[p]);
-                        for q in r_off[i]..r_off[i + 1] {
-                            let k = r_cols[q];
-                            if !seen[k] {
-                                seen[k] = true;
-                                touched.push(k as u32);
+                    let end = (start + COLUMNS_PER_TASK).min(n);
+                    let (mut lens, mut cols, mut vals) = (Vec::new(), Vec::new(), Vec::new());
+                    for j in start..end {
+                        for p in c_off[j]..c_off[j + 1] {
+                            let (i, a) = (c_rows[p], c_vals[p]);
+                            let row = r_off[i]..r_off[i + 1];
+                            // The row's entries at columns k >= j (its columns are sorted).
+                            let from = row.start + r_cols[row.clone()].partition_point(|&k| k < j);
+                            for (&k, &v) in r_cols[from..row.end].iter().zip(&r_vals[from..row.end])
+                            {
+                                if !seen[k] {
+                                    seen[k] = true;
+                                    touched.push(k as u32);
+                                }
+                                acc[k] += a * v;
                             }
-                            acc[k] += a * r_vals[q];
                         }
+                        touched.sort_unstable();
+                        lens.push(touched.len());
+                        for &k in touched.iter() {
+                            let k = k as usize;
+                            cols.push(k as u32);
+                            vals.push(acc[k]);
+                            acc[k] = 0.0;
+                            seen[k] = false;
+                        }
+                        touched.clear();
                     }
-                    touched.sort_unstable();
-                    lens.push(touched.len());
-                    for &k in touched.iter() {
-                        let k = k as usize;
-                        cols.push(k as u32);
-                        vals.push(acc[k]);
-                        acc[k] = 0.0;
-                        seen[k] = false;
-                    }
-                    touched.clear();
-                }
-                (lens, cols, vals)
-            },
+                    (lens, cols, vals)
+                },
             )
             .collect();
+        // The upper triangle by rows.
+        let mut up_off = Vec::with_capacity(n + 1);
+        up_off.push(0);
         let total: usize = blocks.iter().map(|b| b.1.len()).sum();
-        let mut offsets = Vec::with_capacity(n + 1);
-        offsets.push(0);
-        let (mut cols, mut vals) = (Vec::with_capacity(total), Vec::with_capacity(total));
+        let (mut up_cols, mut up_vals) = (Vec::with_capacity(total), Vec::with_capacity(total));
         for (lens, c, v) in blocks {
             for len in lens {
-                let last = *offsets.last().unwrap_or(&0);
-                offsets.push(last + len);
+                let last = *up_off.last().unwrap_or(&0);
+                up_off.push(last + len);
             }
-            cols.extend_from_slice(&c);
-            vals.extend_from_slice(&v);
+            up_cols.extend_from_slice(&c);
+            up_vals.extend_from_slice(&v);
+        }
+        // Both triangles: row j holds the mirrored entries (k, j), k < j, then its upper row.
+        let mut len = vec![0usize; n];
+        for j in 0..n {
+            len[j] += up_off[j + 1] - up_off[j];
+            for &k in &up_cols[up_off[j]..up_off[j + 1]] {
+                if k as usize != j {
+                    len[k as usize] += 1;
+                }
+            }
+        }
+        let mut offsets = Vec::with_capacity(n + 1);
+        offsets.push(0);
+        for l in &len {
+            let last = *offsets.last().unwrap_or(&0);
+            offsets.push(last + l);
+        }
+        let nnz = *offsets.last().unwrap_or(&0);
+        let (mut cols, mut vals) = (vec![0u32; nnz], vec![0.0; nnz]);
+        let mut next: Vec<usize> = offsets[..n].to_vec();
+        for j in 0..n {
+            for p in up_off[j]..up_off[j + 1] {
+                let k = up_cols[p] as usize;
+                if k != j {
+                    // Entry (k, j) of the lower triangle, appended to row k in ascending j.
+                    cols[next[k]] = j as u32;
+                    vals[next[k]] = up_vals[p];
+                    next[k] += 1;
+                }
+            }
+            // Row j's own upper part follows its mirrored entries (all at columns < j, and
+            // every one of them is placed by the rows before j).
+            let (a, b) = (up_off[j], up_off[j + 1]);
+            let at = next[j];
+            cols[at..at + (b - a)].copy_from_slice(&up_cols[a..b]);
+            vals[at..at + (b - a)].copy_from_slice(&up_vals[a..b]);
+            next[j] += b - a;
         }
         Self {
             n,
@@ -196,6 +238,10 @@ impl LinearOperator for GramOperator<'_> {
     /// `out = G t`; `scratch` is not used.
     fn apply_normal(&self, t: &[f64], _scratch: &mut [f64], out: &mut [f64]) {
         self.gram.apply(t, out);
+    }
+
+    fn prefers_normal_products(&self) -> bool {
+        true
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {

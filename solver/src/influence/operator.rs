@@ -22,6 +22,13 @@ pub trait LinearOperator: Sync {
         self.apply(t, scratch);
         self.apply_transpose(scratch, out);
     }
+    /// Whether [`LinearOperator::apply_normal`] is much cheaper than `R t` and `R^T y` (a
+    /// formed Gram matrix): the first-order solvers then evaluate objective and gradient
+    /// through it, from the quadratic form, and keep products with `R` for the final
+    /// certificate.
+    fn prefers_normal_products(&self) -> bool {
+        false
+    }
     /// Squared norms of the centred columns, `||R_j||^2 - (1' R_j)^2 / m` (the diagonal of
     /// `R^T P R` with `P = I - 11'/m`), used for the Jacobi scaling.
     fn centred_column_norms_sq(&self) -> Vec<f64>;
