@@ -654,8 +654,14 @@ fn products_through_the_gram_matrix_reach_the_same_optimum_with_an_honest_certif
             minimise(op, p.z_nm(), p.bounds(), 0.1, 1.0, &s, None, &Silent).unwrap()
         };
         let (a, b) = (run(&sparse), run(&gram));
-        assert!(a.status.is_converged() && b.status.is_converged(), "{method:?}");
-        let (fa, fb) = (full_objective(&p, &a.dwell_s), full_objective(&p, &b.dwell_s));
+        assert!(
+            a.status.is_converged() && b.status.is_converged(),
+            "{method:?}"
+        );
+        let (fa, fb) = (
+            full_objective(&p, &a.dwell_s),
+            full_objective(&p, &b.dwell_s),
+        );
         assert!(
             (fa - fb).abs() <= GRAM_AGREE_REL * fa,
             "{method:?}: {fa} through R, {fb} through G"

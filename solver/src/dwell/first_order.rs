@@ -53,13 +53,6 @@
 //!   this is the Frank-Wolfe gap; with `rho = 0` and no upper bound no finite bound exists unless
 //!   every gradient entry is non-negative, and none is reported.
 //!
-//! **Through the normal product.** Where the operator's `R^T R t` is much cheaper than `R t`
-//! and `R^T y` (a formed Gram matrix, [`crate::influence::GramMatrix`]), the power iteration,
-//! the line search's objective and the certificates inside the iteration use it alone: with
-//! `b = R^T P z`, `||P (R t - z)||^2 = t'(R^T P R t - b) - t'b + z'P z` and
-//! `z'P (R t - z) = t'b - z'P z`. The certificate reported at the end is formed again with the
-//! residual itself.
-//!
 //! The solve stops when the relative gap bound or the relative KKT residual is below the
 //! tolerance, and says which ([`ConvergenceCriterion`]). Products with `R` and `R^T` are parallel with fixed-order sums, every other
 //! reduction uses fixed chunks: the result is bit-identical for any thread count. No allocation
@@ -125,7 +118,7 @@ pub fn solve(
         ));
     }
     let t0 = Instant::now();
-    let res = with_solver_operator(problem, POWER_STEPS, |op| {
+    let res = with_solver_operator(problem, POWER_STEPS, settings.first_order_tolerance, |op| {
         minimise_with(
             op,
             problem.z_nm(),
@@ -179,12 +172,6 @@ struct Data<'a> {
     column_sums: Vec<f64>,
     /// Jacobi scale `S`.
     s: Vec<f64>,
-    /// Objective and gradient through the normal product (see [`Data::normal_terms`]).
-    via_normal: bool,
-    /// `R^T P z`.
-    rtpz: Vec<f64>,
-    /// `0.5 z'P z`.
-    half_zpz: f64,
     lo_w: Vec<f64>,
     hi_w: Vec<f64>,
 }
@@ -273,32 +260,10 @@ impl Data<'_> {
         self.half_smoothing(work)
     }
 
-    /// Through one normal product: `work.t = S w`, `work.g` as [`Data::gradient`] leaves it,
-    /// and `(0.5 ||r||^2, 0.5 lambda ||D t||^2, z'r)` for `r = P (R t - z)` from the quadratic
-    /// form: with `b = R^T P z` and `g_r = R^T P R t - b`, `||r||^2 = t'g_r - t'b + z'P z` and
-    /// `z'r = t'b - z'P z` (cancellation costs about `eps z'Pz / ||r||^2` relative).
-    fn normal_terms(&self, w: &[f64], work: &mut Work) -> (f64, f64, f64) {
-        self.normal_gradient(w, true, work);
-        let half_d2 = self.half_smoothing(work);
-        let (t, g, b, lam) = (&work.t, &work.g, &self.rtpz, self.lambda);
-        let tg = fixed_sum(t.len(), &mut work.partials, |j| {
-            let gr = if lam > 0.0 { g[j] - lam * dtd(t, j) } else { g[j] };
-            t[j] * gr
-        });
-        let tb = fixed_sum(t.len(), &mut work.partials, |j| t[j] * b[j]);
-        let r2 = (tg - tb + 2.0 * self.half_zpz).max(0.0);
-        (0.5 * r2, half_d2, tb - 2.0 * self.half_zpz)
-    }
-
-    /// The full objective `f` at `w` (one product with `R`, or one normal product).
+    /// The full objective `f` at `w` (one product with `R`).
     fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
-        let (half_r2, half_d2) = if self.via_normal {
-            let (a, b, _) = self.normal_terms(w, work);
-            (a, b)
-        } else {
-            let half_r2 = self.residual(w, work);
-            (half_r2, self.half_smoothing(work))
-        };
+        let half_r2 = self.residual(w, work);
+        let half_d2 = self.half_smoothing(work);
         let t = &work.t;
         let sum_t = fixed_sum(t.len(), &mut work.partials, |j| t[j]);
         half_r2 + half_d2 + self.rho * sum_t
@@ -471,26 +436,15 @@ fn minimise_here(
     op.apply_transpose(z_nm, &mut rtz);
     work.rt.iter_mut().for_each(|r| *r = 1.0);
     op.apply_transpose(&work.rt, &mut column_sums);
-    let sum_z: f64 = z_nm.iter().sum();
-    let mean_z = sum_z / m as f64;
-    let rtpz: Vec<f64> = rtz
-        .iter()
-        .zip(&column_sums)
-        .map(|(a, c)| a - mean_z * c)
-        .collect();
-    let half_zpz = 0.5 * z_nm.iter().map(|z| (z - mean_z).powi(2)).sum::<f64>();
     let data = Data {
         op,
         z: z_nm,
-        sum_z,
+        sum_z: z_nm.iter().sum(),
         rtz,
         column_sums,
         rho,
         lambda,
         s,
-        via_normal: op.prefers_normal_products(),
-        rtpz,
-        half_zpz,
         lo_w,
         hi_w,
     };
@@ -557,20 +511,6 @@ fn minimise_here(
         }
     };
     observer.finish(Stage::Solve);
-    let converged_by = match status {
-        Status::Converged => limits.met(&cert),
-        // Stalled at rounding level with the KKT residual below the square root of the
-        // tolerance.
-        Status::AlmostConverged => Some(ConvergenceCriterion::KktResidual),
-        _ => None,
-    };
-    // The reported certificate through products with R (the iterations' went through the
-    // quadratic form).
-    let cert = if data.via_normal {
-        certificate_with(&data, &x, &mut work, bounds, limits.kkt_scale, true)
-    } else {
-        cert
-    };
     let dwell_s: Vec<f64> = x.iter().zip(&data.s).map(|(w, s)| w * s).collect();
     Ok(FirstOrderResult {
         status,
@@ -579,7 +519,13 @@ fn minimise_here(
         full_objective: cert.f,
         kkt_residual: cert.kkt,
         objective_gap_bound: cert.gap,
-        converged_by,
+        converged_by: match status {
+            Status::Converged => limits.met(&cert),
+            // Stalled at rounding level with the KKT residual below the square root of the
+            // tolerance.
+            Status::AlmostConverged => Some(ConvergenceCriterion::KktResidual),
+            _ => None,
+        },
     })
 }
 
@@ -916,8 +862,9 @@ fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
         .map(|j| 1.0 + 0.5 * (((j * 7919) % 13) as f64 / 13.0))
         .collect();
     let zero = vec![0.0; n];
+    let via_normal = data.op.prefers_normal_products();
     // The gradient is H t + b (with S scaling); b from the zero point.
-    let b: Vec<f64> = if data.via_normal {
+    let b: Vec<f64> = if via_normal {
         zero.clone()
     } else {
         data.gradient(&zero, work);
@@ -931,8 +878,8 @@ fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
             return 0.0;
         }
         v.iter_mut().for_each(|a| *a /= norm);
-        if data.via_normal {
-            // Hv (scaled) directly from the normal product.
+        if via_normal {
+            // Hv (scaled) from the normal product alone.
             data.hessian_product(&v, work, &mut hv);
         } else {
             data.gradient(&v, work);
@@ -955,25 +902,14 @@ struct Certificate {
     gap: GapBound,
 }
 
-/// The certificate at `w`: through the normal product when the data prefer it, unless `exact`
-/// asks for the products with `R` (the residual formed explicitly).
-fn certificate_with(
+fn certificate(
     data: &Data<'_>,
     w: &[f64],
     work: &mut Work,
     bounds: &DwellBounds,
     kkt_scale: f64,
-    exact: bool,
 ) -> Certificate {
-    let (half_r2, half_d2, zr) = if data.via_normal && !exact {
-        data.normal_terms(w, work)
-    } else {
-        let (half_r2, half_d2) = data.gradient(w, work);
-        // Dual bound: needs z'r.
-        let (z, rt) = (data.z, &work.rt);
-        let zr = fixed_sum(z.len(), &mut work.partials, |i| z[i] * rt[i]);
-        (half_r2, half_d2, zr)
-    };
+    let (half_r2, half_d2) = data.gradient(w, work);
     let n = w.len();
     let rho = data.rho;
     let t = &work.t;
@@ -987,6 +923,10 @@ fn certificate_with(
         (w[j] - p).powi(2)
     });
     let kkt = kkt2.sqrt() / kkt_scale;
+    // Dual bound: needs z'r.
+    let z = data.z;
+    let rt = &work.rt;
+    let zr = fixed_sum(z.len(), &mut work.partials, |i| z[i] * rt[i]);
     let inputs = DualInputs {
         f,
         zr,
@@ -997,15 +937,4 @@ fn certificate_with(
     };
     let gap = gap_bound(&inputs, bounds, &mut work.partials);
     Certificate { f, kkt, gap }
-}
-
-/// [`certificate_with`] as the iterations take it.
-fn certificate(
-    data: &Data<'_>,
-    w: &[f64],
-    work: &mut Work,
-    bounds: &DwellBounds,
-    kkt_scale: f64,
-) -> Certificate {
-    certificate_with(data, w, work, bounds, kkt_scale, false)
 }

@@ -81,8 +81,12 @@ pub fn extend_on_lattice(
     let mut lattice = values.to_vec();
     let mut spectrum = vec![zero; nh * ny];
     let mut column = vec![zero; ny];
-    let mut column_scratch =
-        vec![zero; fwd_y.get_inplace_scratch_len().max(inv_y.get_inplace_scratch_len())];
+    let mut column_scratch = vec![
+        zero;
+        fwd_y
+            .get_inplace_scratch_len()
+            .max(inv_y.get_inplace_scratch_len())
+    ];
     let row_scratch_len = r2c.get_scratch_len().max(c2r.get_scratch_len());
     let row_work = || (vec![0.0; nx], vec![zero; row_scratch_len]);
     let scale = 1.0 / n as f64;

@@ -23,9 +23,10 @@ pub trait LinearOperator: Sync {
         self.apply_transpose(scratch, out);
     }
     /// Whether [`LinearOperator::apply_normal`] is much cheaper than `R t` and `R^T y` (a
-    /// formed Gram matrix): the first-order solvers then evaluate objective and gradient
-    /// through it, from the quadratic form, and keep products with `R` for the final
-    /// certificate.
+    /// formed Gram matrix): the first-order solvers' power iteration then takes Hessian
+    /// products through it alone. Objective, residual and certificate always go through `R`:
+    /// the quadratic form `t'R^T R t - 2 t'R^T z + z'z` loses the relative accuracy of a small
+    /// residual to cancellation.
     fn prefers_normal_products(&self) -> bool {
         false
     }
