@@ -91,7 +91,7 @@ pub fn extend_on_lattice(
     let row_work = || (vec![0.0; nx], vec![zero; row_scratch_len]);
     let scale = 1.0 / n as f64;
     // A real input of even length has a real Nyquist bin as well as a real DC bin.
-    let nyquist = (nx % 2 == 0).then_some(nh - 1);
+    let nyquist = nx.is_multiple_of(2).then_some(nh - 1);
     for _ in 0..iterations {
         lattice
             .par_chunks(nx)
