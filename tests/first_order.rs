@@ -622,3 +622,56 @@ fn matrix_free_problem_solves_like_the_assembled_one() {
     let err = dwell::solve(&free, &settings(SolverChoice::Qp), &Silent).unwrap_err();
     assert!(err.to_string().contains("matrix-free"), "{err}");
 }
+
+/// Relative agreement of two first-order runs whose products differ by rounding only (the Gram
+/// matrix `R^T R` against `R` then `R^T`), both at the tolerance `GRAM_TOL`.
+const GRAM_AGREE_REL: f64 = 1e-6;
+/// The tolerance of those runs.
+const GRAM_TOL: f64 = 1e-9;
+
+#[test]
+fn products_through_the_gram_matrix_reach_the_same_optimum_with_an_honest_certificate() {
+    use preston::solver::dwell::first_order::minimise;
+    use preston::solver::influence::{GramMatrix, GramOperator, SparseOperator};
+    // With rho, lambda and an upper bound: the gap bound is finite and must cover the QP's
+    // optimum.
+    let p = problem(23, 300.0, 0.1, 1.0);
+    let r = p.influence().expect("assembled");
+    let sparse = SparseOperator::new(r.csc());
+    // A map twice as fine as the raster: forming G pays for the power iteration alone, so
+    // the default solve takes it.
+    assert!(GramMatrix::worthwhile(&sparse, 60));
+    let gram = GramOperator::new(SparseOperator::new(r.csc()));
+    assert!(gram.gram().nnz() < 2 * r.csc().nnz());
+    let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
+    let optimum = full_objective(&p, &qp.dwell_s);
+    for method in METHODS {
+        let s = Settings {
+            first_order_tolerance: GRAM_TOL,
+            ..first_order(method)
+        };
+        let run = |op: &dyn preston::solver::influence::LinearOperator| {
+            minimise(op, p.z_nm(), p.bounds(), 0.1, 1.0, &s, None, &Silent).unwrap()
+        };
+        let (a, b) = (run(&sparse), run(&gram));
+        assert!(
+            a.status.is_converged() && b.status.is_converged(),
+            "{method:?}"
+        );
+        let (fa, fb) = (
+            full_objective(&p, &a.dwell_s),
+            full_objective(&p, &b.dwell_s),
+        );
+        assert!(
+            (fa - fb).abs() <= GRAM_AGREE_REL * fa,
+            "{method:?}: {fa} through R, {fb} through G"
+        );
+        // The reported objective and gap bound are those of the final point, through R.
+        assert!((b.full_objective - fb).abs() <= 1e-9 * fb, "{method:?}");
+        let gap = b.objective_gap_bound.value().expect("a finite bound");
+        assert!(
+            fb - optimum <= gap * (1.0 + 1e-9),
+            "{method:?}: {fb} - {optimum} above the bound {gap}"
+        );
+    }
+}

@@ -76,6 +76,7 @@ pub fn simulate(
         feed: limits.copied(),
         a_max_mm_per_s2: None,
         corner_angle_deg: None,
+        accel_method: Default::default(),
         rho: 0.0,
         lambda: 0.0,
         settings: Settings {

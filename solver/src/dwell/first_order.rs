@@ -60,7 +60,7 @@
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
 use super::precond::{CirculantPreconditioner, DwellLattice};
-use super::with_operator;
+use super::with_solver_operator;
 use super::{
     DwellBounds, FirstOrderMethod, Preconditioner, Problem, Settings, Solution, SolverKind, Status,
 };
@@ -130,7 +130,7 @@ pub(crate) fn solve_validated(
         ));
     }
     let t0 = Instant::now();
-    let res = with_operator(problem, |op| {
+    let res = with_solver_operator(problem, POWER_STEPS, settings.first_order_tolerance, |op| {
         minimise_validated(
             op,
             problem.z_nm(),
@@ -910,21 +910,34 @@ pub(crate) fn power_iteration(data: &Data<'_>, work: &mut Work) -> f64 {
         .map(|j| 1.0 + 0.5 * (((j * 7919) % 13) as f64 / 13.0))
         .collect();
     let zero = vec![0.0; n];
+    let via_normal = data.op.prefers_normal_products();
     // The gradient is H t + b (with S scaling); b from the zero point.
-    data.gradient(&zero, work);
-    let b: Vec<f64> = work.g.clone();
+    let b: Vec<f64> = if via_normal {
+        zero.clone()
+    } else {
+        data.gradient(&zero, work);
+        work.g.clone()
+    };
     let mut est = 0.0;
+    let mut hv = vec![0.0; n];
     for _ in 0..POWER_STEPS {
         let norm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
         if norm <= 0.0 || !norm.is_finite() {
             return 0.0;
         }
         v.iter_mut().for_each(|a| *a /= norm);
-        data.gradient(&v, work);
-        // Hv (scaled) = S (g(v) - g(0)).
-        let hv: Vec<f64> = (0..n).map(|j| data.s[j] * (work.g[j] - b[j])).collect();
+        if via_normal {
+            // Hv (scaled) from the normal product alone.
+            data.hessian_product(&v, work, &mut hv);
+        } else {
+            data.gradient(&v, work);
+            // Hv (scaled) = S (g(v) - g(0)).
+            hv.iter_mut()
+                .enumerate()
+                .for_each(|(j, h)| *h = data.s[j] * (work.g[j] - b[j]));
+        }
         est = v.iter().zip(&hv).map(|(a, b)| a * b).sum::<f64>();
-        v = hv;
+        std::mem::swap(&mut v, &mut hv);
     }
     est
 }

@@ -782,6 +782,36 @@ fn dispatch(
     }
 }
 
+/// Below this first-order tolerance the normal products stay with `R`: `G t` and `R^T (R t)`
+/// differ by rounding relative to `||G|| ||t||`, which near a KKT residual of 1e-11 (and large
+/// dwell, `rho = 0` without `v_min`) is the residual itself, and Newton-CG then stalls.
+const GRAM_MIN_TOLERANCE: f64 = 1e-9;
+
+/// As [`with_operator`], for an iterative solver that takes at least `products` normal products
+/// `R^T R t` to the first-order `tolerance`: the assembled `R` comes with its Gram matrix when
+/// forming it pays ([`crate::influence::GramMatrix::worthwhile`]) and the tolerance is at least
+/// `GRAM_MIN_TOLERANCE`.
+pub(crate) fn with_solver_operator<T>(
+    problem: &Problem,
+    products: usize,
+    tolerance: f64,
+    f: impl FnOnce(&dyn LinearOperator) -> Result<T>,
+) -> Result<T> {
+    match problem.influence() {
+        Some(r) => {
+            let op = crate::influence::SparseOperator::new(r.csc());
+            if tolerance >= GRAM_MIN_TOLERANCE
+                && crate::influence::GramMatrix::worthwhile(&op, products)
+            {
+                f(&crate::influence::GramOperator::new(op))
+            } else {
+                f(&op)
+            }
+        }
+        None => with_operator(problem, f),
+    }
+}
+
 /// Runs `f` with `problem`'s operator: the assembled `R` (wrapped for products) or the
 /// matrix-free FFT operator.
 pub(crate) fn with_operator<T>(

@@ -16,12 +16,20 @@
 
 use crate::error::{Error, Result};
 use crate::machine::machinability::map_pitch_mm;
+use rayon::prelude::*;
+use realfft::RealFftPlanner;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 
 /// The iteration on a periodic `nx x ny` lattice of pitch `pitch_mm` (row-major, x fastest):
 /// `values` at the `known` nodes are kept, the others are replaced by the band-limited
 /// extension after `iterations` steps.
+///
+/// The lattice is real, so its transform is Hermitian: rows go through a real-to-complex FFT
+/// (`nx / 2 + 1` frequencies) and back. Only the columns `kx` holding a frequency inside the
+/// band are transformed along y (a band of `f_c` keeps about `2 f_c nx p` of them); the others
+/// are zeroed outright, which is what the mask would leave of them. Rows are transformed in
+/// parallel, each the same way on any thread: the result is bit-identical for any thread count.
 pub fn extend_on_lattice(
     values: &mut [f64],
     known: &[bool],
@@ -39,8 +47,12 @@ pub fn extend_on_lattice(
             expected: n,
         });
     }
+    let mut real_planner = RealFftPlanner::<f64>::new();
+    let (r2c, c2r) = (
+        real_planner.plan_fft_forward(nx),
+        real_planner.plan_fft_inverse(nx),
+    );
     let mut planner = FftPlanner::<f64>::new();
-    let (fwd_x, inv_x) = (planner.plan_fft_forward(nx), planner.plan_fft_inverse(nx));
     let (fwd_y, inv_y) = (planner.plan_fft_forward(ny), planner.plan_fft_inverse(ny));
     let freq = |k: usize, len: usize| -> f64 {
         let s = if k <= len / 2 {
@@ -50,48 +62,94 @@ pub fn extend_on_lattice(
         };
         s / (len as f64 * pitch_mm)
     };
-    let keep: Vec<bool> = (0..n)
-        .map(|i| {
-            let (kx, ky) = (i % nx, i / nx);
-            freq(kx, nx).powi(2) + freq(ky, ny).powi(2) <= band_limit_per_mm.powi(2)
-        })
+    // Half spectrum: kx in 0..=nx/2 (non-negative x frequencies), all ky.
+    let nh = nx / 2 + 1;
+    let band2 = band_limit_per_mm.powi(2);
+    let keep = |kx: usize, ky: usize| freq(kx, nx).powi(2) + freq(ky, ny).powi(2) <= band2;
+    let active: Vec<usize> = (0..nh)
+        .filter(|&kx| (0..ny).any(|ky| keep(kx, ky)))
         .collect();
-    let mut buf: Vec<Complex<f64>> = values.iter().map(|&v| Complex::new(v, 0.0)).collect();
-    let mut column = vec![Complex::new(0.0, 0.0); ny];
+    let column_mask: Vec<Vec<bool>> = active
+        .iter()
+        .map(|&kx| (0..ny).map(|ky| keep(kx, ky)).collect())
+        .collect();
+    let numerical = |e: realfft::FftError| Error::Numerical {
+        stage: "Gerchberg-Papoulis extension",
+        why: e.to_string(),
+    };
+    let zero = Complex::new(0.0, 0.0);
+    let mut lattice = values.to_vec();
+    let mut spectrum = vec![zero; nh * ny];
+    let mut column = vec![zero; ny];
+    let mut column_scratch = vec![
+        zero;
+        fwd_y
+            .get_inplace_scratch_len()
+            .max(inv_y.get_inplace_scratch_len())
+    ];
+    let row_scratch_len = r2c.get_scratch_len().max(c2r.get_scratch_len());
+    let row_work = || (vec![0.0; nx], vec![zero; row_scratch_len]);
     let scale = 1.0 / n as f64;
+    // A real input of even length has a real Nyquist bin as well as a real DC bin.
+    let nyquist = nx.is_multiple_of(2).then_some(nh - 1);
     for _ in 0..iterations {
-        for row in buf.chunks_mut(nx) {
-            fwd_x.process(row);
-        }
-        for kx in 0..nx {
-            for (ky, c) in column.iter_mut().enumerate() {
-                *c = buf[ky * nx + kx];
-            }
-            fwd_y.process(&mut column);
-            for (ky, c) in column.iter_mut().enumerate() {
-                if !keep[ky * nx + kx] {
-                    *c = Complex::new(0.0, 0.0);
+        lattice
+            .par_chunks(nx)
+            .zip(spectrum.par_chunks_mut(nh))
+            .try_for_each_init(row_work, |(row, scratch), (values, out)| {
+                row.copy_from_slice(values);
+                r2c.process_with_scratch(row, out, scratch)
+            })
+            .map_err(numerical)?;
+        let mut next = 0;
+        for (a, mask) in active.iter().zip(&column_mask) {
+            // Columns between the active ones hold only frequencies outside the band.
+            for kx in next..*a {
+                for ky in 0..ny {
+                    spectrum[ky * nh + kx] = zero;
                 }
             }
-            inv_y.process(&mut column);
+            next = a + 1;
+            for (ky, c) in column.iter_mut().enumerate() {
+                *c = spectrum[ky * nh + a];
+            }
+            fwd_y.process_with_scratch(&mut column, &mut column_scratch);
+            for (c, keep) in column.iter_mut().zip(mask) {
+                if !keep {
+                    *c = zero;
+                }
+            }
+            inv_y.process_with_scratch(&mut column, &mut column_scratch);
             for (ky, c) in column.iter().enumerate() {
-                buf[ky * nx + kx] = *c;
+                spectrum[ky * nh + a] = *c;
             }
         }
-        for row in buf.chunks_mut(nx) {
-            inv_x.process(row);
+        for kx in next..nh {
+            for ky in 0..ny {
+                spectrum[ky * nh + kx] = zero;
+            }
         }
-        for i in 0..n {
-            buf[i] = if known[i] {
-                Complex::new(values[i], 0.0)
-            } else {
-                Complex::new(buf[i].re * scale, 0.0)
-            };
-        }
+        lattice
+            .par_chunks_mut(nx)
+            .zip(spectrum.par_chunks_mut(nh))
+            .zip(values.par_chunks(nx).zip(known.par_chunks(nx)))
+            .try_for_each_init(row_work, |(_, scratch), ((row, spec), (v, k))| {
+                // The transform of a real lattice: DC and Nyquist bins are real up to rounding.
+                spec[0].im = 0.0;
+                if let Some(last) = nyquist {
+                    spec[last].im = 0.0;
+                }
+                c2r.process_with_scratch(spec, row, scratch)?;
+                for ((r, v), k) in row.iter_mut().zip(v).zip(k) {
+                    *r = if *k { *v } else { *r * scale };
+                }
+                Ok(())
+            })
+            .map_err(numerical)?;
     }
-    for i in 0..n {
-        if !known[i] {
-            values[i] = buf[i].re;
+    for ((v, l), k) in values.iter_mut().zip(&lattice).zip(known) {
+        if !k {
+            *v = *l;
         }
     }
     Ok(())
@@ -227,6 +285,57 @@ mod tests {
                 assert_eq!(v[k], truth[k]);
             }
         }
+    }
+
+    /// A band-limited surface periodic on an odd `nx x ny` lattice (no Nyquist bin along x):
+    /// harmonics (1, 0), (2, 1) and (-1, 1) of the lattice periods.
+    fn odd_surface(i: usize, j: usize, nx: usize, ny: usize) -> f64 {
+        let (u, v) = (i as f64 / nx as f64, j as f64 / ny as f64);
+        12.0 * (TAU * u + 0.4).cos() + 6.0 * (TAU * (2.0 * u + v)).sin()
+            - 3.0 * (TAU * (-u + v)).cos()
+    }
+
+    #[test]
+    fn recovers_a_band_limited_surface_on_an_odd_lattice_for_any_thread_count() {
+        let (nx, ny) = (63, 50);
+        let pitch = 0.5;
+        // Band limit just above the surface's highest frequency, |(2 / 31.5, 1 / 25)| = 0.075
+        // cycles/mm.
+        let band = 0.08;
+        let truth: Vec<f64> = (0..nx * ny)
+            .map(|k| odd_surface(k % nx, k / nx, nx, ny))
+            .collect();
+        let known: Vec<bool> = (0..nx * ny)
+            .map(|k| {
+                let (i, j) = (k % nx, k / nx);
+                !((20..26).contains(&i) && (10..30).contains(&j))
+            })
+            .collect();
+        let start: Vec<f64> = truth
+            .iter()
+            .zip(&known)
+            .map(|(&t, &k)| if k { t } else { 0.0 })
+            .collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut v = start.clone();
+            pool.install(|| extend_on_lattice(&mut v, &known, nx, ny, pitch, band, 300))
+                .unwrap();
+            v
+        };
+        let v = run(1);
+        let err = truth
+            .iter()
+            .zip(&v)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        // Stated tolerance: 1e-6 of the surface's 21 nm amplitude after 300 iterations.
+        assert!(err < 1e-6 * 21.0, "max error {err}");
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&v), bits(&run(2)));
     }
 
     #[test]

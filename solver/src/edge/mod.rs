@@ -252,6 +252,25 @@ impl Buckets {
         }
     }
 
+    /// Whether some point lies at distance `d <= r` from `(px, py)` (stops at the first).
+    pub(crate) fn any_within(&self, x: &[f64], y: &[f64], px: f64, py: f64, r: f64) -> bool {
+        let k = (r / self.h).ceil() as i64;
+        let (cx, cy) = ((px / self.h).floor() as i64, (py / self.h).floor() as i64);
+        for dx in -k..=k {
+            for dy in -k..=k {
+                if let Some(v) = self.cells.get(&(cx + dx, cy + dy)) {
+                    if v.iter().any(|&i| {
+                        let i = i as usize;
+                        (x[i] - px).hypot(y[i] - py) <= r
+                    }) {
+                        return true;
+                    }
+                }
+            }
+        }
+        false
+    }
+
     /// The nearest point within `r_max` of `(px, py)` and its distance, by growing rings.
     pub(crate) fn nearest(
         &self,
@@ -327,12 +346,12 @@ pub fn extension_points(
     for j in j0..=j1 {
         for i in i0..=i1 {
             let (px, py) = (ax + i as f64 * p, ay + j as f64 * p);
-            match buckets.nearest(map_x_mm, map_y_mm, px, py, width_mm.max(covered)) {
-                Some((_, d)) if d > covered && d <= width_mm => {
-                    xs.push(px);
-                    ys.push(py);
-                }
-                _ => {}
+            // The nearest map point is farther than `covered` and within the band.
+            if !buckets.any_within(map_x_mm, map_y_mm, px, py, covered)
+                && buckets.any_within(map_x_mm, map_y_mm, px, py, width_mm)
+            {
+                xs.push(px);
+                ys.push(py);
             }
         }
     }

@@ -8,11 +8,13 @@
 //! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
 //! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
 //!   onto an oversampled lattice, then FFT convolution);
+//! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
 //! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
 //! - [`operator`]: the product trait ([`LinearOperator`]: `R t`, `R^T y`) every solver goes through.
 
 pub mod curvature;
 pub mod fft;
+pub mod gram;
 pub mod matrix;
 pub mod operator;
 pub mod spread;
@@ -21,6 +23,7 @@ pub mod surface;
 
 pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
 pub use fft::FftOperator;
+pub use gram::{GramMatrix, GramOperator};
 pub use matrix::{InfluenceMatrix, NNZ_BYTES};
 pub use operator::{LinearOperator, SparseOperator};
 pub use spread::SpreadOperator;

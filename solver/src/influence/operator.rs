@@ -22,6 +22,14 @@ pub trait LinearOperator: Sync {
         self.apply(t, scratch);
         self.apply_transpose(scratch, out);
     }
+    /// Whether [`LinearOperator::apply_normal`] is much cheaper than `R t` and `R^T y` (a
+    /// formed Gram matrix): the first-order solvers' power iteration then takes Hessian
+    /// products through it alone. Objective, residual and certificate always go through `R`:
+    /// the quadratic form `t'R^T R t - 2 t'R^T z + z'z` loses the relative accuracy of a small
+    /// residual to cancellation.
+    fn prefers_normal_products(&self) -> bool {
+        false
+    }
     /// Squared norms of the centred columns, `||R_j||^2 - (1' R_j)^2 / m` (the diagonal of
     /// `R^T P R` with `P = I - 11'/m`), used for the Jacobi scaling.
     fn centred_column_norms_sq(&self) -> Vec<f64>;
@@ -42,6 +50,16 @@ impl<'a> SparseOperator<'a> {
             csc,
             csr: CsrMatrix::from(csc),
         }
+    }
+
+    /// The matrix by columns.
+    pub fn csc(&self) -> &CscMatrix<f64> {
+        self.csc
+    }
+
+    /// The matrix by rows.
+    pub fn csr(&self) -> &CsrMatrix<f64> {
+        &self.csr
     }
 }
 
