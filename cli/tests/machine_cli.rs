@@ -118,13 +118,13 @@ fn squared_speed_meets_the_limit_on_a_raster_and_matches_the_scp_reference() {
     let d = tempfile::tempdir().unwrap();
     let base = raster_case(d.path());
     let free_dir = d.path().join("free");
-    run_ok(preston().args(&base).arg("--out").arg(&free_dir));
+    run_ok(preston_cmd().args(&base).arg("--out").arg(&free_dir));
     let a_free = max_accel(&dwell_rows(&free_dir));
     let a_max = 0.1 * a_free;
     let run = |method: &str| {
         let dir = d.path().join(method);
         run_ok(
-            preston()
+            preston_cmd()
                 .args(&base)
                 .args(["--a-max-mm-per-s2", &a_max.to_string()])
                 .args(["--accel-method", method])

@@ -35,6 +35,9 @@ pub enum GapBoundReason {
     UnboundedDwellWithoutTimeWeight,
     /// The dual bound did not come out finite (overflowing data).
     NonFinite,
+    /// The acceleration limit makes the problem non-convex in the dwell times: no Lagrangian
+    /// dual bound applies.
+    NonConvexAccelerationLimit,
 }
 
 impl fmt::Display for GapBoundReason {
@@ -45,6 +48,10 @@ impl fmt::Display for GapBoundReason {
                  the KKT residual is the optimality test"
             }
             GapBoundReason::NonFinite => "the dual bound is not finite (overflow in the data)",
+            GapBoundReason::NonConvexAccelerationLimit => {
+                "the acceleration limit is not convex in the dwell times: no dual bound; the KKT \
+                 residual of the limited problem is the stationarity test"
+            }
         })
     }
 }

@@ -84,7 +84,7 @@ impl Side {
     }
 
     /// A piece `A z + B` starting at actual `x`, in this side's stored coordinates.
-    fn from_actual(&self, x: f64, a: f64, b: f64) -> Piece {
+    fn stored(&self, x: f64, a: f64, b: f64) -> Piece {
         let pa = a - self.alpha;
         Piece {
             x: x - self.shift,
@@ -179,7 +179,7 @@ impl ChainScratch {
     fn move_left_to_right(&mut self) {
         if let Some(p) = self.left.pieces.pop_back() {
             let (x, a, b) = self.left.to_actual(&p);
-            let q = self.right.from_actual(x, a, b);
+            let q = self.right.stored(x, a, b);
             self.right.pieces.push_front(q);
         }
     }
@@ -187,7 +187,7 @@ impl ChainScratch {
     fn move_right_to_left(&mut self) {
         if let Some(p) = self.right.pieces.pop_front() {
             let (x, a, b) = self.right.to_actual(&p);
-            let q = self.left.from_actual(x, a, b);
+            let q = self.left.stored(x, a, b);
             self.left.pieces.push_back(q);
         }
     }
@@ -247,7 +247,7 @@ impl ChainScratch {
                 let (start, a, b) = self.left.to_actual(&p);
                 let root = if a > 0.0 { -b / a } else { start };
                 let m = root.min(s_in).max(start.max(lo)).min(hi);
-                let q = self.right.from_actual(m, a, b);
+                let q = self.right.stored(m, a, b);
                 self.right.pieces.push_front(q);
                 return m;
             }
@@ -261,7 +261,7 @@ impl ChainScratch {
                     let root = if a > 0.0 { -b / a } else { end };
                     let m = root.min(end.min(hi)).max(s.max(lo));
                     self.move_right_to_left();
-                    let q = self.right.from_actual(m, a, b);
+                    let q = self.right.stored(m, a, b);
                     self.right.pieces.push_front(q);
                     return m;
                 }
@@ -307,7 +307,7 @@ pub fn project_chain(chain: &Chain<'_>, scratch: &mut ChainScratch, out: &mut [f
                 let m = scratch.minimiser[j - 1];
                 scratch.left.move_by(-c);
                 scratch.right.move_by(c);
-                let zero = scratch.right.from_actual(m - c, 0.0, 0.0);
+                let zero = scratch.right.stored(m - c, 0.0, 0.0);
                 scratch.right.pieces.push_front(zero);
                 lo = nlo;
                 hi = nhi;
