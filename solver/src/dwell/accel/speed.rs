@@ -130,6 +130,23 @@ impl Projection {
         }
     }
 
+    /// Fills each point's target, weight and box from `f(j)`; a point with a zero-length stretch
+    /// has no speed and enters its chain fixed at `u = 0`.
+    fn fill(&mut self, ds: &[f64], f: impl Fn(usize) -> (f64, f64, f64, f64) + Sync) {
+        self.target
+            .par_iter_mut()
+            .zip(self.weight.par_iter_mut())
+            .zip(self.lower.par_iter_mut().zip(self.upper.par_iter_mut()))
+            .enumerate()
+            .for_each(|(j, ((tg, wt), (l, h)))| {
+                (*tg, *wt, *l, *h) = if ds[j] == 0.0 {
+                    (0.0, 1.0, 0.0, 0.0)
+                } else {
+                    f(j)
+                };
+            });
+    }
+
     /// Projects `target` (weights, boxes filled) onto the chains into `self.z`; returns cuts.
     fn run(&mut self) -> usize {
         let (target, weight, lower, upper, cap, linked) = (
@@ -192,31 +209,20 @@ struct Iteration<'a> {
 
 impl Iteration<'_> {
     /// Projects `w_hat` onto the constraint set linearised at `y` (scaled variables), into `out`.
-    fn project_linearised(&mut self, y: &[f64], w_hat: &[f64], out: &mut [f64]) -> usize {
+    fn project_linearised(&mut self, y: &[f64], w_hat: &[f64], out: &mut [f64]) {
         let (ds, s, lo, hi) = (&self.kin.ds, &self.data.s, &self.data.lo_w, &self.data.hi_w);
         let p = &mut self.proj;
-        p.target
-            .par_iter_mut()
-            .zip(p.weight.par_iter_mut())
-            .zip(p.lower.par_iter_mut().zip(p.upper.par_iter_mut()))
-            .enumerate()
-            .for_each(|(j, ((tg, wt), (l, h)))| {
-                if ds[j] == 0.0 {
-                    // No speed at a zero-length stretch: it enters the chain as u = 0.
-                    *tg = 0.0;
-                    *wt = 1.0;
-                    *l = 0.0;
-                    *h = 0.0;
-                    return;
-                }
-                let (u, d) = speed_and_slope(ds[j], s[j], y[j]);
-                *tg = u + d * (w_hat[j] - y[j]);
-                *wt = (1.0 / (d * d)).min(1e300);
-                // d < 0: the upper dwell bound gives the lower squared speed.
-                *l = u + d * (hi[j] - y[j]);
-                *h = u + d * (lo[j] - y[j]);
-            });
-        let cuts = p.run();
+        p.fill(ds, |j| {
+            let (u, d) = speed_and_slope(ds[j], s[j], y[j]);
+            // d < 0: the upper dwell bound gives the lower squared speed.
+            (
+                u + d * (w_hat[j] - y[j]),
+                (1.0 / (d * d)).min(1e300),
+                u + d * (hi[j] - y[j]),
+                u + d * (lo[j] - y[j]),
+            )
+        });
+        p.run();
         let z = &p.z;
         out.par_iter_mut().enumerate().for_each(|(j, o)| {
             *o = if ds[j] == 0.0 {
@@ -228,39 +234,32 @@ impl Iteration<'_> {
             .max(lo[j])
             .min(hi[j]);
         });
-        cuts
     }
 
     /// Moves `w` onto the true constraint set: the exact projection of `u(t)` onto `C` in the
     /// metric of the linearisation at `w` (boxes `[(ds / t_max)^2, (ds / t_min)^2]`).
-    fn retract(&mut self, w: &mut [f64]) -> usize {
+    fn retract(&mut self, w: &mut [f64]) {
         let (ds, s, lo, hi) = (&self.kin.ds, &self.data.s, &self.data.lo_w, &self.data.hi_w);
         let p = &mut self.proj;
-        p.target
-            .par_iter_mut()
-            .zip(p.weight.par_iter_mut())
-            .zip(p.lower.par_iter_mut().zip(p.upper.par_iter_mut()))
-            .enumerate()
-            .for_each(|(j, ((tg, wt), (l, h)))| {
-                if ds[j] == 0.0 {
-                    *tg = 0.0;
-                    *wt = 1.0;
-                    *l = 0.0;
-                    *h = 0.0;
-                    return;
-                }
+        {
+            let w = &*w;
+            p.fill(ds, |j| {
                 let (u, d) = speed_and_slope(ds[j], s[j], w[j]);
-                *tg = u;
-                *wt = (1.0 / (d * d)).min(1e300);
                 let t_max = s[j] * hi[j];
-                *l = if t_max.is_finite() {
+                let l = if t_max.is_finite() {
                     (ds[j] / t_max).powi(2)
                 } else {
                     0.0
                 };
-                *h = (ds[j] / (s[j] * lo[j])).powi(2);
+                (
+                    u,
+                    (1.0 / (d * d)).min(1e300),
+                    l,
+                    (ds[j] / (s[j] * lo[j])).powi(2),
+                )
             });
-        let cuts = p.run();
+        }
+        p.run();
         let z = &p.z;
         w.par_iter_mut().enumerate().for_each(|(j, wj)| {
             if ds[j] > 0.0 {
@@ -269,7 +268,6 @@ impl Iteration<'_> {
                 *wj = (t / s[j]).max(lo[j]).min(hi[j]);
             }
         });
-        cuts
     }
 }
 
