@@ -113,25 +113,34 @@ fn raster_case(dir: &Path) -> Vec<String> {
 /// of at most 500 points.
 const OBJECTIVE_TO_SCP: f64 = 0.01;
 
-#[test]
-fn squared_speed_meets_the_limit_on_a_raster_and_matches_the_scp_reference() {
-    let d = tempfile::tempdir().unwrap();
-    let base = raster_case(d.path());
-    let free_dir = d.path().join("free");
-    run_ok(preston_cmd().args(&base).arg("--out").arg(&free_dir));
+/// Solves `base` (plus `extra`) without a limit, then at a tenth of its acceleration with the
+/// squared-speed method and the SCP-QP reference; checks every line segment of the squared-speed
+/// `dwell.csv` against the limit and its objective against the reference. Returns the objective
+/// without a limit.
+fn check_squared_speed_against_scp(dir: &Path, base: &[String], extra: &[&str]) -> f64 {
+    let free_dir = dir.join("free");
+    run_ok(
+        preston_cmd()
+            .args(base)
+            .args(extra)
+            .arg("--out")
+            .arg(&free_dir),
+    );
+    let free = read_json(&free_dir.join("report.json"));
     let a_free = max_accel(&dwell_rows(&free_dir));
     let a_max = 0.1 * a_free;
     let run = |method: &str| {
-        let dir = d.path().join(method);
+        let out = dir.join(method);
         run_ok(
             preston_cmd()
-                .args(&base)
+                .args(base)
+                .args(extra)
                 .args(["--a-max-mm-per-s2", &a_max.to_string()])
                 .args(["--accel-method", method])
                 .arg("--out")
-                .arg(&dir),
+                .arg(&out),
         );
-        (read_json(&dir.join("report.json")), dwell_rows(&dir))
+        (read_json(&out.join("report.json")), dwell_rows(&out))
     };
     let (fast, rows) = run("squared-speed");
     let (scp, _) = run("scp-qp");
@@ -164,6 +173,47 @@ fn squared_speed_meets_the_limit_on_a_raster_and_matches_the_scp_reference() {
     assert!(
         f <= f_ref * (1.0 + OBJECTIVE_TO_SCP),
         "squared speed {f} against the SCP's {f_ref}"
+    );
+    free["objective"].as_f64().unwrap()
+}
+
+#[test]
+fn squared_speed_meets_the_limit_on_a_raster_and_matches_the_scp_reference() {
+    let d = tempfile::tempdir().unwrap();
+    let base = raster_case(d.path());
+    check_squared_speed_against_scp(d.path(), &base, &[]);
+}
+
+/// Radius of the sphere in the curved-part case, mm: over the raster's +-15 mm the surface
+/// tilts by up to 22 degrees, so the tangent-frame TIF footprints differ from the flat ones.
+const SPHERE_RADIUS_MM: f64 = 40.0;
+
+#[test]
+fn squared_speed_meets_the_limit_on_a_curved_part_with_the_tangent_frame_r() {
+    let d = tempfile::tempdir().unwrap();
+    let base = raster_case(d.path());
+    let surface = write(
+        d.path(),
+        "sphere.json",
+        &format!(
+            r#"{{"type": "conic", "curvature_per_mm": {}, "conic": 0}}"#,
+            1.0 / SPHERE_RADIUS_MM
+        ),
+    );
+    let curved_dir = d.path().join("curved");
+    std::fs::create_dir(&curved_dir).unwrap();
+    let surface_arg = surface.to_str().unwrap();
+    let curved_free =
+        check_squared_speed_against_scp(&curved_dir, &base, &["--surface", surface_arg]);
+    // The curved solve used the tangent-frame R: the same inputs in the plane give another optimum.
+    let flat_dir = d.path().join("flat");
+    run_ok(preston_cmd().args(&base).arg("--out").arg(&flat_dir));
+    let flat_free = read_json(&flat_dir.join("report.json"))["objective"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (curved_free - flat_free).abs() > 1e-3 * flat_free,
+        "curved {curved_free} and flat {flat_free} objectives agree: the surface was not used"
     );
 }
 
