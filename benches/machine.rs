@@ -1,10 +1,10 @@
-//! Machine benchmarks: the acceleration-limited dwell solve (sequential convex programming) on a
-//! small and a medium path, and NC planning and G-code writing for 1e5 points.
+//! Machine benchmarks: the acceleration-limited dwell solve by size (squared speed, and the
+//! SCP-QP reference where it is small enough), and NC planning and G-code writing for 1e5 points.
 //!
 //! `cargo bench --bench machine` (criterion).
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use preston::solver::dwell::accel::{self, max_acceleration_mm_per_s2, AccelLimits};
+use preston::solver::dwell::accel::{self, max_acceleration_mm_per_s2, AccelLimits, AccelMethod};
 use preston::solver::dwell::{self, DwellBounds, FeedLimits, Problem, Settings};
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::machine::gcode::dialect::Dialect;
@@ -51,31 +51,54 @@ fn trench_case(width_mm: f64, height_mm: f64) -> (Problem, DwellPath) {
     (Problem::new(r, z, b, 0.0, 0.0).unwrap(), path)
 }
 
-fn scp(c: &mut Criterion) {
-    let mut group = c.benchmark_group("accel_scp");
+/// The acceleration-limited solve at a fifth of the feed-limited optimum's acceleration, by size:
+/// the squared-speed method (default) on every case, the SCP-QP reference on the two small ones.
+fn accel_limit(c: &mut Criterion) {
+    let mut group = c.benchmark_group("accel_limit");
     group.sample_size(10);
     let settings = Settings::default();
-    for (name, w, h) in [("small_line", 20.0, 0.0), ("medium_raster", 40.0, 10.0)] {
+    for (name, w, h) in [
+        ("small_line", 20.0, 0.0),
+        ("medium_raster", 40.0, 10.0),
+        ("large_raster", 80.0, 40.0),
+    ] {
         let (problem, path) = trench_case(w, h);
         let free = dwell::solve(&problem, &settings, &Silent).unwrap();
         let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
-        let limits = AccelLimits::new(0.2 * a_free);
-        let out = accel::solve(&problem, &path, &limits, &settings, &Silent).unwrap();
-        eprintln!(
-            "{name}: m {} n {}, a_max {:.1} mm/s^2, {} SCP iterations, status {:?}, RMS {:.3} -> {:.3} nm",
-            problem.m(),
-            problem.n(),
-            limits.a_max_mm_per_s2,
-            out.report.scp_iterations,
-            out.report.status,
-            out.report.rms_after_reference_nm,
-            out.report.rms_after_nm
-        );
-        group.bench_with_input(
-            BenchmarkId::new(name, format!("{}map_{}dwell", problem.m(), problem.n())),
-            &(),
-            |b, _| b.iter(|| accel::solve(&problem, &path, &limits, &settings, &Silent).unwrap()),
-        );
+        let methods: &[AccelMethod] = if problem.n() <= 500 {
+            &[AccelMethod::SquaredSpeed, AccelMethod::ScpQp]
+        } else {
+            &[AccelMethod::SquaredSpeed]
+        };
+        for &method in methods {
+            let limits = AccelLimits {
+                method,
+                ..AccelLimits::new(0.2 * a_free)
+            };
+            let out = accel::solve(&problem, &path, &limits, &settings, &Silent).unwrap();
+            eprintln!(
+                "{name} {method:?}: m {} n {}, a_max {:.1} mm/s^2, {} SCP iterations, {} gradient \
+                 steps, status {:?}, RMS {:.3} -> {:.3} nm",
+                problem.m(),
+                problem.n(),
+                limits.a_max_mm_per_s2,
+                out.report.scp_iterations,
+                out.report.gradient_steps,
+                out.report.status,
+                out.report.rms_after_reference_nm,
+                out.report.rms_after_nm
+            );
+            group.bench_with_input(
+                BenchmarkId::new(
+                    format!("{name}_{method:?}"),
+                    format!("{}map_{}dwell", problem.m(), problem.n()),
+                ),
+                &(),
+                |b, _| {
+                    b.iter(|| accel::solve(&problem, &path, &limits, &settings, &Silent).unwrap())
+                },
+            );
+        }
     }
     group.finish();
 }
@@ -133,5 +156,5 @@ fn nc_planning(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, scp, nc_planning);
+criterion_group!(benches, accel_limit, nc_planning);
 criterion_main!(benches);
