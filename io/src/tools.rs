@@ -1,16 +1,7 @@
-//! Several tools in one solve: each tool `k` has its own TIF (`R_k`), dwell path and feed limits,
-//! and one optimisation runs over all dwell times at once,
-//!
-//! `min 0.5 ||sum_k R_k t_k - z - c 1||^2 + rho sum_k w_k sum_j t_kj`,
-//! `ds_kj / v_max,k <= t_kj <= ds_kj / v_min,k`,
-//!
-//! with `w_k` the tool's machining-time weight (`time_weight`, default 1). With `u_k = w_k t_k` this
-//! is the single-tool contract ([`preston_solver::dwell`]) for the stacked operator
-//! `[R_1 / w_1, R_2 / w_2, ...]` and the bounds scaled by `w_k`, so the QP and the first-order
-//! solver run on it unchanged (the assembled block matrix; the smoothness term `lambda` would
-//! couple the last dwell of one tool to the first of the next, so it is refused here).
-//! Large and small tools in one plan: the large tool takes the low spatial frequencies cheaply,
-//! the small one what it cannot reach.
+//! Several tools in one solve (`[[tool]]`, repeated `--tif`/`--dwell`): this module reads each
+//! tool's TIF and path, hands them to the set-up stage
+//! ([`preston_solver::setup::tools`]: the stacked problem and its solve), and builds the report
+//! and writes the outputs.
 
 use crate::atomic::commit_all;
 use crate::error::{Error, Result};
@@ -19,30 +10,15 @@ use crate::readers::read_dwell;
 pub use crate::report::ToolReport;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::dwell::{self, DwellBounds, FeedLimits, OperatorChoice, Problem, Solution};
-use preston_solver::influence::stacked::stack_scaled;
-use preston_solver::influence::InfluenceMatrix;
+use preston_solver::dwell::{FeedLimits, Solution};
 use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
-use preston_solver::path::DwellPath;
+pub use preston_solver::setup::tools::Tool;
+use preston_solver::setup::tools::{ToolChoices, ToolsOutcome, ToolsSetup};
+use preston_solver::setup::{Choices, SetupError, SetupInput};
 use preston_solver::tif::Tif;
 use std::path::Path;
 use std::time::Instant;
-
-/// One tool, read: its TIF, path, path lengths and bounds (unscaled).
-#[derive(Debug, Clone)]
-pub struct Tool {
-    /// The TIF.
-    pub tif: Tif,
-    /// The dwell path.
-    pub path: DwellPath,
-    /// Path length per dwell point, mm.
-    pub ds_mm: Vec<f64>,
-    /// Feed limits.
-    pub limits: FeedLimits,
-    /// Machining-time weight `w_k`.
-    pub time_weight: f64,
-}
 
 /// A finished multi-tool solve.
 #[derive(Debug, Clone)]
@@ -85,34 +61,9 @@ fn load_tool_tif(src: &TifSource, job_path: &Path, k: usize) -> Result<Tif> {
     crate::pipeline::load_tif_input(input, job_path)
 }
 
-/// Reads each `[[tool]]`'s TIF and path and checks what multi-tool solves support.
+/// Reads each `[[tool]]`'s TIF and path; the set-up stage checks the tools
+/// ([`Tool::new`]); what a multi-tool solve supports is checked before ([`ToolChoices::check`]).
 pub fn read_tools(job: &Job, job_path: &Path) -> Result<Vec<Tool>> {
-    let refuse = |why: &str| Error::Job {
-        file: job_path.to_path_buf(),
-        why: format!("several tools cannot be combined with {why}"),
-    };
-    if job.objective.lambda > 0.0 {
-        return Err(refuse(
-            "lambda > 0 (it would couple one tool's path to the next)",
-        ));
-    }
-    if job.machine.a_max_mm_per_s2.is_some() {
-        return Err(refuse("an acceleration limit"));
-    }
-    if job.surface.file.is_some() {
-        return Err(refuse("a [surface] file"));
-    }
-    if job.dwell.warm_start.is_some() {
-        return Err(refuse("a warm start"));
-    }
-    if !matches!(
-        job.solver.operator,
-        OperatorChoice::Auto | OperatorChoice::Sparse
-    ) {
-        return Err(refuse(
-            "a matrix-free operator (the stacked R is assembled)",
-        ));
-    }
     job.tool
         .iter()
         .enumerate()
@@ -140,84 +91,51 @@ pub fn read_tools(job: &Job, job_path: &Path) -> Result<Vec<Tool>> {
                     .or(job.machine.v_min_mm_per_min)
                     .unwrap_or(0.0),
             };
-            limits.validate().map_err(|e| Error::engine(job_path, e))?;
-            let time_weight = spec.time_weight.unwrap_or(1.0);
-            if !(time_weight.is_finite() && time_weight > 0.0) {
-                return Err(Error::Job {
-                    file: job_path.to_path_buf(),
-                    why: format!("tool {k}: time_weight must be positive, got {time_weight}"),
-                });
-            }
-            let ds_mm = d.path.ds_mm();
-            Ok(Tool {
-                tif,
-                path: d.path,
-                ds_mm,
-                limits,
-                time_weight,
-            })
+            Tool::new(k, tif, d.path, limits, spec.time_weight.unwrap_or(1.0))
+                .map_err(|e| Error::engine(job_path, e))
         })
         .collect()
 }
 
-/// The stacked problem `[R_1 / w_1, R_2 / w_2, ...]` over `map` with bounds `w_k ds / v`.
-pub fn stacked_problem(
-    map: &HeightMap,
-    tools: &[Tool],
-    rho: f64,
-    observer: &dyn Observer,
-) -> std::result::Result<Problem, preston_solver::Error> {
-    let mut blocks = Vec::with_capacity(tools.len());
-    let (mut lower, mut upper, mut any_upper) = (Vec::new(), Vec::new(), false);
-    for tool in tools {
-        let r = InfluenceMatrix::assemble(
-            map.x_mm(),
-            map.y_mm(),
-            tool.path.x_mm(),
-            tool.path.y_mm(),
-            &tool.tif,
-            observer,
-        )?;
-        let w = tool.time_weight;
-        blocks.push((r, w));
-        let b = DwellBounds::from_feeds(&tool.ds_mm, &tool.limits)?;
-        lower.extend(b.lower_s().iter().map(|l| l * w));
-        match b.upper_s() {
-            Some(u) => {
-                any_upper = true;
-                upper.extend(u.iter().map(|u| u * w));
-            }
-            None => upper.extend(std::iter::repeat_n(f64::INFINITY, tool.path.len())),
-        }
-    }
-    let refs: Vec<(&InfluenceMatrix, f64)> = blocks.iter().map(|(r, w)| (r, *w)).collect();
-    let stacked = stack_scaled(&refs)?;
-    let bounds = DwellBounds::new(lower, any_upper.then_some(upper))?;
-    Problem::new(stacked, map.z_nm().to_vec(), bounds, rho, 0.0)
+/// The job's choices for a multi-tool solve: as [`Job::choices`], with the feed limits left to
+/// each tool.
+fn tool_choices(job: &Job) -> std::result::Result<Choices, preston_solver::Error> {
+    Ok(Choices {
+        feed: None,
+        a_max_mm_per_s2: job.machine.a_max_mm_per_s2,
+        corner_angle_deg: job.machine.corner_angle_deg,
+        accel_method: job.machine.accel_method.unwrap_or_default(),
+        rho: job.objective.rho,
+        lambda: job.objective.lambda,
+        settings: job.solver.clone(),
+        edge: job.edge.clone(),
+        tif_model: job.tif.model()?,
+        tif_frame: job.surface.tif_frame,
+        warm_start: job.dwell.warm_start.is_some(),
+    })
 }
 
-/// Splits a stacked (scaled) dwell vector into each tool's dwell times, s (`t_k = u_k / w_k`).
-pub fn split_dwell(tools: &[Tool], u: &[f64]) -> Vec<Vec<f64>> {
-    let mut start = 0;
-    tools
-        .iter()
-        .map(|t| {
-            let part = u[start..start + t.path.len()]
-                .iter()
-                .map(|v| v / t.time_weight)
-                .collect();
-            start += t.path.len();
-            part
-        })
-        .collect()
-}
-
-/// Reads the map and tools, solves the stacked problem and builds the report.
+/// Reads the map and tools, solves the stacked problem through the set-up stage and builds the
+/// report.
 pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<MultiSolved> {
     let started = Instant::now();
-    job.solver
-        .validate()
-        .map_err(|e| Error::engine(job_path, e))?;
+    let map_path = job.map.file.as_deref().unwrap_or(job_path);
+    let at_fault = |e: SetupError| match e.input {
+        SetupInput::None => Error::Solver(e.source),
+        SetupInput::Map => Error::engine(map_path, e.source),
+        _ => Error::engine(job_path, e.source),
+    };
+    let checked = tool_choices(job)
+        .map_err(|e| Error::engine(job_path, e))?
+        .check(observer)
+        .and_then(ToolChoices::check)
+        .map_err(at_fault)?;
+    if job.surface.file.is_some() {
+        return Err(Error::Job {
+            file: job_path.to_path_buf(),
+            why: "several tools cannot be combined with a [surface] file".into(),
+        });
+    }
     if job.map.file.is_none() {
         return Err(Error::Job {
             file: job_path.to_path_buf(),
@@ -225,17 +143,18 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         });
     }
     let map_read = job.map.read()?;
-    let map = map_read.map;
     let tools = read_tools(job, job_path)?;
-    let map_path = job.map.file.as_deref().unwrap_or(job_path);
-    let problem = stacked_problem(&map, &tools, job.objective.rho, observer)
-        .map_err(|e| Error::engine(map_path, e))?;
+    let setup = ToolsSetup::resolve(&checked, map_read.map, tools).map_err(at_fault)?;
+    let problem = setup.problem(observer).map_err(at_fault)?;
     let build_seconds = started.elapsed().as_secs_f64();
-    let solution = dwell::solve(&problem, &job.solver, observer)?;
-    let dwell_s = split_dwell(&tools, &solution.dwell_s);
-    let removal_nm = problem.removal_nm(&solution.dwell_s)?;
+    let ToolsOutcome {
+        solution,
+        dwell_s,
+        removal_nm,
+        tool_removal_nm,
+    } = setup.solve(&problem, observer)?;
     // The stacked report: dwell and feeds in seconds of each tool (not the scaled variables).
-    let ds_all: Vec<f64> = tools.iter().flat_map(|t| t.ds_mm.clone()).collect();
+    let ds_all: Vec<f64> = setup.tools.iter().flat_map(|t| t.ds_mm.clone()).collect();
     let mut unscaled = solution.clone();
     unscaled.dwell_s = dwell_s.concat();
     let mut report = Report::new(
@@ -255,22 +174,18 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
                 .into(),
         );
     }
-    report.tools = tools
+    report.tools = setup
+        .tools
         .iter()
         .zip(&dwell_s)
+        .zip(&tool_removal_nm)
         .enumerate()
-        .map(|(i, (tool, t))| {
-            // Tool i's removal `R_i t_i` through the stacked problem: its block of the scaled
-            // variable `u = w t`, every other tool's zero (no second assembly of `R_i`).
-            let start: usize = tools[..i].iter().map(|t| t.path.len()).sum();
-            let mut u_i = vec![0.0; solution.dwell_s.len()];
-            u_i[start..start + t.len()].copy_from_slice(&solution.dwell_s[start..start + t.len()]);
-            let h = problem.removal_nm(&u_i)?;
-            let stats = HeightStats::of(&h);
+        .map(|(i, ((tool, t), h))| {
+            let stats = HeightStats::of(h);
             let feeds = feeds_mm_per_min(&tool.ds_mm, t);
             let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
             let total: f64 = t.iter().sum();
-            Ok(ToolReport {
+            ToolReport {
                 tool: i + 1,
                 n: t.len(),
                 total_dwell_s: total,
@@ -285,13 +200,12 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
                     .fold(f64::INFINITY, f64::min)
                     .min(f64::MAX),
                 max_feed_mm_per_min: moving.iter().copied().fold(0.0, f64::max),
-            })
+            }
         })
-        .collect::<std::result::Result<Vec<_>, preston_solver::Error>>()
-        .map_err(|e| Error::engine(map_path, e))?;
+        .collect();
     Ok(MultiSolved {
-        map,
-        tools,
+        map: setup.map,
+        tools: setup.tools,
         solution,
         dwell_s,
         removal_nm,

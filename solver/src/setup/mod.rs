@@ -17,6 +17,7 @@
 //! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
 
 mod off_lattice;
+pub mod tools;
 
 use crate::dwell::accel::{self, AccelLimits, AccelMethod, AccelReport};
 use crate::dwell::precond::DwellLattice;
