@@ -669,8 +669,8 @@ impl Setup {
             None => self.spread_plan(&rows, &mut warnings)?,
         };
         let problem = match (fft, spread) {
-            (Some(op), _) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
-            (None, Some(op)) => Problem::off_lattice(op, z_nm, bounds, rho, lambda),
+            (Some(op), _) => Problem::new(op, z_nm, bounds, rho, lambda),
+            (None, Some(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
             (None, None) => {
                 Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
             }
