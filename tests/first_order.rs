@@ -3,8 +3,8 @@
 use preston::solver::dwell::certificate::{ConvergenceCriterion, GapBoundReason};
 use preston::solver::dwell::precond::DwellLattice;
 use preston::solver::dwell::{
-    self, DwellBounds, FeedLimits, FirstOrderMethod, Preconditioner, Problem, Settings,
-    SolverChoice, Status,
+    self, DwellBounds, FeedLimits, FirstOrderMethod, OperatorKind, Preconditioner, Problem,
+    Settings, SolverChoice, Status,
 };
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::observer::Silent;
@@ -580,8 +580,8 @@ fn matrix_free_problem_solves_like_the_assembled_one() {
     let pitch = FftOperator::lattice_pitch_mm(&x, &y).unwrap();
     assert!((pitch - 0.5).abs() < 1e-12, "detected pitch {pitch}");
     let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), pitch, &tif).unwrap();
-    let free = Problem::matrix_free(fft, z, bounds, 0.0, 0.0).unwrap();
-    assert!(free.influence().is_none() && free.fft_operator().is_some());
+    let free = Problem::new(fft, z, bounds, 0.0, 0.0).unwrap();
+    assert!(free.influence().is_none() && free.operator_kind() == OperatorKind::Fft);
     // The implicit R has exactly the assembled one's non-zeros and empty columns.
     assert_eq!(free.nnz(), assembled.nnz());
     assert_eq!(free.empty_columns(), assembled.empty_columns());

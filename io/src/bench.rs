@@ -13,7 +13,7 @@ use crate::pipeline;
 use preston_solver::dwell::precond::DwellLattice;
 use preston_solver::dwell::{policy, SolverKind};
 use preston_solver::dwell::{
-    DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, SolverChoice,
+    DwellBounds, FeedLimits, OperatorChoice, OperatorKind, Problem, Settings, SolverChoice,
 };
 use preston_solver::edge::{EdgeMethod, EdgeSettings};
 use preston_solver::influence::fft::FftOperator;
@@ -118,9 +118,7 @@ pub fn generated_problem_with(
             &g.tif,
         )?;
         let lattice = DwellLattice::detect(g.path.x_mm(), g.path.y_mm());
-        return Ok(
-            Problem::matrix_free(op, g.z_nm, g.bounds, 0.0, 0.0)?.with_dwell_lattice(lattice)?
-        );
+        return Ok(Problem::new(op, g.z_nm, g.bounds, 0.0, 0.0)?.with_dwell_lattice(lattice)?);
     }
     let r = InfluenceMatrix::assemble(
         &g.x_mm,
@@ -267,7 +265,7 @@ pub fn run_generated(
         .map(|(h, z)| z - h)
         .collect();
     let mut solver_name = crate::report::solver_name(sol.solver);
-    if problem.fft_operator().is_some() {
+    if problem.operator_kind() == OperatorKind::Fft {
         solver_name.push_str("-fft");
     }
     Ok(BenchRow {

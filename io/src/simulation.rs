@@ -9,25 +9,19 @@ use crate::plots::{stage_convergence_plot, stage_map_plot, stage_path_plot};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
-use preston_solver::dwell::{DwellBounds, FeedLimits, OperatorChoice, Problem, Settings};
-use preston_solver::edge::{EdgeMethod, EdgeSettings};
-use preston_solver::influence::surface::TifFrame;
-use preston_solver::influence::InfluenceMatrix;
+use preston_solver::dwell::{FeedLimits, Problem};
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
 use preston_solver::machine::gcode::motion::{Kinematics, StretchCheck};
 use preston_solver::machine::gcode::program::{Program, MAX_PROGRAM_BYTES};
-use preston_solver::machine::gcode::{run_on_map, ProgramRun};
+use preston_solver::machine::gcode::ProgramRun;
 use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
-use preston_solver::setup::{
-    Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput, TifModel,
-};
+use preston_solver::setup::{Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput};
 use preston_solver::simulate::{removal_nm, Motion};
-use preston_solver::tif::InfluenceFunction;
 use preston_solver::tif::Tif;
 use std::io::Write;
 use std::path::Path;
@@ -72,27 +66,9 @@ pub fn simulate(
         SetupInput::None => Error::Solver(e.source),
         _ => Error::engine(dwell_file, e.source),
     };
-    let checked = Choices {
-        feed: limits.copied(),
-        a_max_mm_per_s2: None,
-        corner_angle_deg: None,
-        accel_method: Default::default(),
-        rho: 0.0,
-        lambda: 0.0,
-        settings: Settings {
-            operator: OperatorChoice::Sparse,
-            ..Settings::default()
-        },
-        edge: EdgeSettings {
-            method: EdgeMethod::None,
-            ..EdgeSettings::default()
-        },
-        tif_model: TifModel::ShiftInvariant,
-        tif_frame: TifFrame::default(),
-        warm_start: false,
-    }
-    .check(observer)
-    .map_err(at_fault)?;
+    let checked = Choices::evaluation(limits.copied())
+        .check(observer)
+        .map_err(at_fault)?;
     let setup = Setup::resolve(
         checked,
         SetupData {
@@ -223,11 +199,7 @@ pub struct ProgramOptions<'a> {
     pub part: Option<(&'a dyn PartGeometry, f64)>,
 }
 
-/// Default removal sample step: 1/64 of the TIF's support radius (0.11 mm for the sample job's
-/// fluid-jet TIF); halving it moves the sample job's residual RMS by less than 0.05%.
-pub fn default_sample_step_mm(tif: &Tif) -> f64 {
-    tif.support_radius_mm() / 64.0
-}
+pub use preston_solver::setup::default_sample_step_mm;
 
 /// A simulated program: the simulation on the map plus the executed dwell per stretch.
 #[derive(Debug, Clone)]
@@ -246,8 +218,10 @@ pub struct ProgramSimulated {
 }
 
 /// Simulates the G-code program in `program_file` as the machine runs it ([`preston_solver::machine::gcode`]):
-/// reads it back, executes its motion, integrates the TIF along the contact motion and reports on
-/// the map in `map_file`.
+/// reads it back, then through the set-up stage as `simulate --dwell` ([`Choices::evaluation`],
+/// the program's marked points as the dwell points, [`DwellPoints::of_program`]):
+/// [`Setup::run_program`] executes its motion and integrates the TIF along the contact motion,
+/// and the report is on the map in `map_file`.
 pub fn simulate_program(
     map_source: &MapSource,
     tif: &Tif,
@@ -299,43 +273,43 @@ pub fn simulate_program(
         .or_else(|| Program::detect_dialect(&text))
         .unwrap_or_default();
     let program = Program::parse(&text, dialect).map_err(|e| Error::engine(program_file, e))?;
-    if program.stretches.is_empty() {
-        return Err(Error::engine(
-            program_file,
-            preston_solver::Error::invalid(
-                "program",
-                "no DWELL markers: the executed dwell needs the stretches `preston nc` marks",
-            ),
-        ));
-    }
-    let step = options
-        .sample_step_mm
-        .unwrap_or_else(|| default_sample_step_mm(tif));
-    let m = &map.map;
+    let at_fault = |e: SetupError| match e.input {
+        SetupInput::Map => Error::engine(map_file, e.source),
+        SetupInput::None => Error::Solver(e.source),
+        _ => Error::engine(program_file, e.source),
+    };
+    let dwell = DwellPoints::of_program(&program).map_err(|e| Error::engine(program_file, e))?;
+    let checked = Choices::evaluation(None)
+        .check(observer)
+        .map_err(at_fault)?;
+    let MapRead { map, input } = map;
+    let setup = Setup::resolve(
+        checked,
+        SetupData {
+            map,
+            tif: tif.clone(),
+            dwell,
+            surface: None,
+            warm_start_s: None,
+        },
+        observer,
+    )
+    .map_err(at_fault)?;
     let ProgramRun {
         executed,
         check,
         removal_nm: removal,
         samples: n_samples,
-    } = run_on_map(
-        &program,
-        options.kinematics,
-        step,
-        options.part,
-        m.x_mm(),
-        m.y_mm(),
-        tif,
-        observer,
-    )
-    .map_err(|e| Error::engine(program_file, e))?;
-    let px: Vec<f64> = program.stretches.iter().map(|s| s.x_mm).collect();
-    let py: Vec<f64> = program.stretches.iter().map(|s| s.y_mm).collect();
-    let path = DwellPath::new(px, py).map_err(|e| Error::engine(program_file, e))?;
-    let r = InfluenceMatrix::assemble(m.x_mm(), m.y_mm(), path.x_mm(), path.y_mm(), tif, observer)?;
-    let bounds = DwellBounds::new(vec![0.0; path.len()], None)
+    } = setup
+        .run_program(
+            &program,
+            options.kinematics,
+            options.sample_step_mm,
+            options.part,
+            observer,
+        )
         .map_err(|e| Error::engine(program_file, e))?;
-    let problem = Problem::new(r, m.z_nm().to_vec(), bounds, 0.0, 0.0)
-        .map_err(|e| Error::engine(map_file, e))?;
+    let problem = setup.problem(observer).map_err(at_fault)?.problem;
     let build_seconds = start.elapsed().as_secs_f64();
     let label = match options.kinematics {
         Kinematics::ProgrammedFeed => SolverLabel::SimulateProgram,
@@ -344,10 +318,13 @@ pub fn simulate_program(
         } => SolverLabel::SimulateProgramAtLimit { a_max_mm_per_s2 },
     };
     let sim = assemble(
-        map,
+        MapRead {
+            map: setup.map,
+            input,
+        },
         program_file,
         Sweep {
-            path,
+            path: setup.path,
             dwell_s: executed.stretch_time_s.clone(),
             removal_nm: removal,
             problem,

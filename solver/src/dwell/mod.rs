@@ -15,49 +15,24 @@ pub mod qp;
 pub use bounds::{DwellBounds, FeedLimits};
 
 use crate::error::{Error, Result};
-use crate::influence::InfluenceMatrix;
-use crate::influence::{FftOperator, LinearOperator, SpreadOperator};
+use crate::influence::{InfluenceMatrix, InfluenceOperator, LinearOperator};
 use crate::map::HeightStats;
 use crate::observer::Observer;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
+pub use crate::influence::OperatorKind;
+
 /// A validated dwell problem: the influence operator, the error map, bounds and weights.
 #[derive(Debug, Clone)]
 pub struct Problem {
-    influence: Influence,
+    /// `R`, however it is held (shared by the problems derived from this one).
+    operator: Arc<dyn InfluenceOperator>,
     z_nm: Vec<f64>,
     bounds: DwellBounds,
     rho: f64,
     lambda: f64,
     dwell_lattice: Option<Arc<precond::DwellLattice>>,
-}
-
-/// How a problem holds `R`: assembled, or as a matrix-free FFT operator (regular grids).
-#[derive(Debug, Clone)]
-enum Influence {
-    Matrix(InfluenceMatrix),
-    MatrixFree(Arc<FftOperator>),
-    /// Dwell points off the map lattice: spread onto it, then FFT convolution.
-    Spread(Arc<SpreadOperator>),
-}
-
-impl Influence {
-    fn nrows(&self) -> usize {
-        match self {
-            Influence::Matrix(r) => r.nrows(),
-            Influence::MatrixFree(op) => op.nrows(),
-            Influence::Spread(op) => op.nrows(),
-        }
-    }
-
-    fn ncols(&self) -> usize {
-        match self {
-            Influence::Matrix(r) => r.ncols(),
-            Influence::MatrixFree(op) => op.ncols(),
-            Influence::Spread(op) => op.ncols(),
-        }
-    }
 }
 
 /// How `R` is held and applied: `auto` uses the FFT operator where it is predicted faster and
@@ -83,76 +58,44 @@ pub enum OperatorChoice {
 }
 
 impl Problem {
-    /// Builds the problem; `z_nm` has one entry per row of `R`, the bounds one per column,
-    /// `rho >= 0` (nm^2 per s of dwell) and `lambda >= 0` (nm^2/s^2) finite.
+    /// Builds the problem over the influence operator `operator` (the assembled
+    /// [`InfluenceMatrix`], or a matrix-free [`crate::influence::FftOperator`] or
+    /// [`crate::influence::SpreadOperator`], which only the first-order solver can solve);
+    /// `z_nm` has one entry per row of `R`, the bounds one per column, `rho >= 0` (nm^2 per s of
+    /// dwell) and `lambda >= 0` (nm^2/s^2) finite.
     pub fn new(
-        influence: InfluenceMatrix,
+        operator: impl InfluenceOperator + 'static,
         z_nm: Vec<f64>,
         bounds: DwellBounds,
         rho: f64,
         lambda: f64,
     ) -> Result<Self> {
-        Self::build(Influence::Matrix(influence), z_nm, bounds, rho, lambda)
-    }
-
-    /// As [`Problem::new`] with the matrix-free FFT operator in place of the assembled `R`: only
-    /// the first-order solver can solve it.
-    pub fn matrix_free(
-        operator: FftOperator,
-        z_nm: Vec<f64>,
-        bounds: DwellBounds,
-        rho: f64,
-        lambda: f64,
-    ) -> Result<Self> {
-        Self::build(
-            Influence::MatrixFree(Arc::new(operator)),
-            z_nm,
-            bounds,
-            rho,
-            lambda,
-        )
-    }
-
-    /// As [`Problem::new`] with the off-lattice spreading operator ([`SpreadOperator`]) in place
-    /// of the assembled `R`: only the first-order solver can solve it.
-    pub fn off_lattice(
-        operator: SpreadOperator,
-        z_nm: Vec<f64>,
-        bounds: DwellBounds,
-        rho: f64,
-        lambda: f64,
-    ) -> Result<Self> {
-        Self::build(
-            Influence::Spread(Arc::new(operator)),
-            z_nm,
-            bounds,
-            rho,
-            lambda,
-        )
+        Self::build(Arc::new(operator), z_nm, bounds, rho, lambda)
     }
 
     fn build(
-        influence: Influence,
+        operator: Arc<dyn InfluenceOperator>,
         z_nm: Vec<f64>,
         bounds: DwellBounds,
         rho: f64,
         lambda: f64,
     ) -> Result<Self> {
-        if z_nm.len() != influence.nrows() {
+        let (m, n) = operator.shape();
+        if z_nm.len() != m {
             return Err(Error::LengthMismatch {
                 what: "z_nm",
                 got: z_nm.len(),
-                expected: influence.nrows(),
+                expected: m,
             });
         }
         if z_nm.is_empty() {
             return Err(Error::invalid("map", "has no points"));
         }
-        if bounds.len() != influence.ncols() {
+        if bounds.len() != n {
             return Err(Error::LengthMismatch {
                 what: "dwell bounds",
                 got: bounds.len(),
-                expected: influence.ncols(),
+                expected: n,
             });
         }
         if let Some((i, z)) = z_nm.iter().enumerate().find(|(_, z)| !z.is_finite()) {
@@ -168,7 +111,7 @@ impl Problem {
             }
         }
         Ok(Self {
-            influence,
+            operator,
             z_nm,
             bounds,
             rho,
@@ -199,12 +142,14 @@ impl Problem {
         self.dwell_lattice.as_deref()
     }
 
+    /// The influence operator `R`, however it is held.
+    pub fn operator(&self) -> &dyn InfluenceOperator {
+        self.operator.as_ref()
+    }
+
     /// The assembled influence matrix `R` (m x n); `None` for a matrix-free problem.
     pub fn influence(&self) -> Option<&InfluenceMatrix> {
-        match &self.influence {
-            Influence::Matrix(r) => Some(r),
-            Influence::MatrixFree(_) | Influence::Spread(_) => None,
-        }
+        self.operator.matrix()
     }
 
     /// The assembled `R`, or an error naming `who` for a matrix-free problem (the QP needs `R`).
@@ -218,61 +163,29 @@ impl Problem {
         })
     }
 
-    /// The matrix-free FFT operator, if the problem uses one.
-    pub fn fft_operator(&self) -> Option<&FftOperator> {
-        match &self.influence {
-            Influence::Matrix(_) | Influence::Spread(_) => None,
-            Influence::MatrixFree(op) => Some(op),
-        }
-    }
-
     /// How `R` is held: assembled, matrix-free on one lattice, or spread onto the map lattice.
     pub fn operator_kind(&self) -> OperatorKind {
-        match &self.influence {
-            Influence::Matrix(_) => OperatorKind::Sparse,
-            Influence::MatrixFree(_) => OperatorKind::Fft,
-            Influence::Spread(_) => OperatorKind::FftSpread,
-        }
+        self.operator.kind()
     }
 
-    /// The off-lattice spreading operator, if the problem uses one.
-    pub fn spread_operator(&self) -> Option<&SpreadOperator> {
-        match &self.influence {
-            Influence::Spread(op) => Some(op),
-            _ => None,
-        }
-    }
-
-    /// Whether `R` is matrix-free (FFT or spreading operator): only the first-order solver runs.
+    /// Whether `R` is matrix-free (no assembled matrix): only the first-order solver runs.
     pub fn is_matrix_free(&self) -> bool {
-        !matches!(self.influence, Influence::Matrix(_))
+        self.operator.matrix().is_none()
     }
 
-    /// Non-zero entries of `R` (stored, or implicit in the FFT operator).
+    /// Non-zero entries of `R` (stored, or implicit in a matrix-free operator).
     pub fn nnz(&self) -> usize {
-        match &self.influence {
-            Influence::Matrix(r) => r.nnz(),
-            Influence::MatrixFree(op) => op.nnz(),
-            Influence::Spread(op) => op.nnz(),
-        }
+        self.operator.nnz()
     }
 
     /// Dwell points whose column of `R` is empty (no measurement point in the tool's reach).
     pub fn empty_columns(&self) -> Vec<usize> {
-        match &self.influence {
-            Influence::Matrix(r) => r.empty_columns(),
-            Influence::MatrixFree(op) => op.empty_columns(),
-            Influence::Spread(op) => op.empty_columns(),
-        }
+        self.operator.empty_columns()
     }
 
     /// Removal `h = R t`, nm, at the measurement points for dwell times `t` (s).
     pub fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
-        match &self.influence {
-            Influence::Matrix(r) => r.removal_nm(dwell_s),
-            Influence::MatrixFree(op) => apply_free(op.as_ref(), dwell_s),
-            Influence::Spread(op) => apply_free(op.as_ref(), dwell_s),
-        }
+        self.operator.removal_nm(dwell_s)
     }
 
     /// The height error to remove, nm.
@@ -297,18 +210,18 @@ impl Problem {
 
     /// Number of measurement points `m`.
     pub fn m(&self) -> usize {
-        self.influence.nrows()
+        self.operator.shape().0
     }
 
     /// Number of dwell points `n`.
     pub fn n(&self) -> usize {
-        self.influence.ncols()
+        self.operator.shape().1
     }
 
     /// The same problem (operator, bounds, weights) with another target `z_nm` (one per row).
     pub fn with_target_nm(&self, z_nm: Vec<f64>) -> Result<Self> {
         Self::build(
-            self.influence.clone(),
+            Arc::clone(&self.operator),
             z_nm,
             self.bounds.clone(),
             self.rho,
@@ -319,7 +232,7 @@ impl Problem {
     /// The same problem with other weights (used by the minimum-time mode).
     pub fn with_weights(&self, rho: f64, lambda: f64) -> Result<Self> {
         let mut p = Self::build(
-            self.influence.clone(),
+            Arc::clone(&self.operator),
             self.z_nm.clone(),
             self.bounds.clone(),
             rho,
@@ -419,20 +332,6 @@ impl Problem {
     }
 }
 
-/// `R t` by a matrix-free operator, with the length checked.
-fn apply_free(op: &dyn LinearOperator, dwell_s: &[f64]) -> Result<Vec<f64>> {
-    if dwell_s.len() != op.ncols() {
-        return Err(Error::LengthMismatch {
-            what: "dwell_s",
-            got: dwell_s.len(),
-            expected: op.ncols(),
-        });
-    }
-    let mut h = vec![0.0; op.nrows()];
-    op.apply(dwell_s, &mut h);
-    Ok(h)
-}
-
 /// What a dwell vector achieves on a problem.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Evaluation {
@@ -446,19 +345,6 @@ pub struct Evaluation {
     pub total_dwell_s: f64,
     /// Predicted removal `R t` at the measurement points, nm.
     pub removal_nm: Vec<f64>,
-}
-
-/// How `R` was held and applied in a solve (the resolved [`OperatorChoice`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "kebab-case")]
-pub enum OperatorKind {
-    /// The assembled sparse matrix.
-    #[default]
-    Sparse,
-    /// The matrix-free FFT convolution.
-    Fft,
-    /// Dwell points spread onto the map lattice, then FFT convolution.
-    FftSpread,
 }
 
 /// Which solver to run.
@@ -797,33 +683,151 @@ pub(crate) fn with_solver_operator<T>(
     tolerance: f64,
     f: impl FnOnce(&dyn LinearOperator) -> Result<T>,
 ) -> Result<T> {
-    match problem.influence() {
-        Some(r) => {
-            let op = crate::influence::SparseOperator::new(r.csc());
-            if tolerance >= GRAM_MIN_TOLERANCE
-                && crate::influence::GramMatrix::worthwhile(&op, products)
-            {
-                f(&crate::influence::GramOperator::new(op))
-            } else {
-                f(&op)
-            }
-        }
-        None => with_operator(problem, f),
-    }
+    let normal_products = (tolerance >= GRAM_MIN_TOLERANCE).then_some(products);
+    f(&*problem.operator().products(normal_products))
 }
 
-/// Runs `f` with `problem`'s operator: the assembled `R` (wrapped for products) or the
-/// matrix-free FFT operator.
+/// Runs `f` with `problem`'s operator ready for products through `R`
+/// ([`InfluenceOperator::products`]).
 pub(crate) fn with_operator<T>(
     problem: &Problem,
     f: impl FnOnce(&dyn LinearOperator) -> Result<T>,
 ) -> Result<T> {
-    match (problem.influence(), problem.fft_operator()) {
-        (Some(r), _) => f(&crate::influence::SparseOperator::new(r.csc())),
-        (None, Some(fft)) => f(fft),
-        (None, None) => match problem.spread_operator() {
-            Some(op) => f(op),
-            None => Err(Error::invalid("problem", "has no influence operator")),
-        },
+    f(&*problem.operator().products(None))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::influence::{FftOperator, SpreadOperator};
+    use crate::observer::Silent;
+    use crate::tif::GaussianTif;
+
+    /// Largest entry difference of `R t` between the FFT operator and the assembled `R`,
+    /// relative to the largest removal: the same sums in another order, rounding only.
+    const FFT_VS_ASSEMBLED_RTOL: f64 = 1e-9;
+    /// Relative 2-norm difference of `R t` between the spreading operator and the assembled `R`,
+    /// in units of the operator's estimated error `||R~ - R||_F / ||R||_F`: a removal of
+    /// positive dwell times is a positive mix of columns, whose error the estimate tracks.
+    const SPREAD_VS_ASSEMBLED_IN_ESTIMATES: f64 = 2.0;
+    /// `R t` by the column sweep against the products' row sums: rounding only.
+    const SWEEP_VS_ROWS_RTOL: f64 = 1e-13;
+
+    /// A 41 x 31 map on a 0.4 mm lattice, a Gaussian TIF (sigma 1.2 mm, truncated at 4.5 sigma)
+    /// and positive dwell times for `n` points.
+    fn map() -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let (mut x, mut y, mut z) = (vec![], vec![], vec![]);
+        for j in 0..31 {
+            for i in 0..41 {
+                let (px, py) = (-3.0 + 0.4 * i as f64, 1.0 + 0.4 * j as f64);
+                x.push(px);
+                y.push(py);
+                z.push(20.0 + (0.3 * px).sin() * (0.2 * py).cos());
+            }
+        }
+        (x, y, z)
+    }
+
+    fn tif() -> GaussianTif {
+        GaussianTif::new(1.2, 10.0, 5.4).unwrap()
+    }
+
+    fn dwell(n: usize) -> Vec<f64> {
+        (0..n)
+            .map(|j| 0.5 + ((j * 7919) % 13) as f64 * 0.1)
+            .collect()
+    }
+
+    fn problem(op: impl InfluenceOperator + 'static, z: &[f64]) -> Problem {
+        let n = op.shape().1;
+        let bounds = DwellBounds::new(vec![0.0; n], None).unwrap();
+        Problem::new(op, z.to_vec(), bounds, 0.0, 0.0).unwrap()
+    }
+
+    fn max_abs(v: &[f64]) -> f64 {
+        v.iter().fold(0.0_f64, |a, x| a.max(x.abs()))
+    }
+
+    #[test]
+    fn each_operator_kind_gives_the_assembled_removal() {
+        let (mx, my, z) = map();
+        let tif = tif();
+        // Dwell points on the map lattice (every second node, some beyond the map): the FFT
+        // operator's case.
+        let (mut dx, mut dy) = (vec![], vec![]);
+        for j in 0..18 {
+            for i in 0..24 {
+                dx.push(-4.6 + 0.8 * i as f64);
+                dy.push(-0.6 + 0.8 * j as f64);
+            }
+        }
+        let assembled = problem(
+            InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap(),
+            &z,
+        );
+        let fft = problem(FftOperator::new(&mx, &my, &dx, &dy, 0.4, &tif).unwrap(), &z);
+        assert_eq!(assembled.operator_kind(), OperatorKind::Sparse);
+        assert_eq!(fft.operator_kind(), OperatorKind::Fft);
+        assert!(assembled.influence().is_some() && !assembled.is_matrix_free());
+        assert!(fft.influence().is_none() && fft.is_matrix_free());
+        assert_eq!((fft.m(), fft.n()), (assembled.m(), assembled.n()));
+        assert_eq!(fft.nnz(), assembled.nnz());
+        assert_eq!(fft.empty_columns(), assembled.empty_columns());
+        let t = dwell(assembled.n());
+        let (ha, hf) = (
+            assembled.removal_nm(&t).unwrap(),
+            fft.removal_nm(&t).unwrap(),
+        );
+        let scale = max_abs(&ha);
+        assert!(scale > 0.0);
+        for (a, f) in ha.iter().zip(&hf) {
+            assert!((a - f).abs() <= FFT_VS_ASSEMBLED_RTOL * scale, "{a} vs {f}");
+        }
+        // The assembled removal (column sweep) is the products' `R t` (row sums) to rounding.
+        let rows = with_operator(&assembled, |op| {
+            let mut h = vec![0.0; op.nrows()];
+            op.apply(&t, &mut h);
+            Ok(h)
+        })
+        .unwrap();
+        for (a, r) in ha.iter().zip(&rows) {
+            assert!((a - r).abs() <= SWEEP_VS_ROWS_RTOL * scale, "{a} vs {r}");
+        }
+
+        // Dwell points off the lattice: the spreading operator against the assembled `R`.
+        let (mut dx, mut dy) = (vec![], vec![]);
+        for j in 0..20 {
+            for i in 0..28 {
+                dx.push(-3.3 + 0.55 * i as f64 + 0.013 * j as f64);
+                dy.push(0.7 + 0.55 * j as f64);
+            }
+        }
+        let assembled = problem(
+            InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap(),
+            &z,
+        );
+        let op = SpreadOperator::new(&mx, &my, &dx, &dy, 0.4, 2, &tif).unwrap();
+        let estimate = op.estimated_error();
+        let spread = problem(op, &z);
+        assert_eq!(spread.operator_kind(), OperatorKind::FftSpread);
+        assert!(spread.influence().is_none() && spread.is_matrix_free());
+        assert_eq!((spread.m(), spread.n()), (assembled.m(), assembled.n()));
+        let t = dwell(assembled.n());
+        let (ha, hs) = (
+            assembled.removal_nm(&t).unwrap(),
+            spread.removal_nm(&t).unwrap(),
+        );
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let diff: Vec<f64> = ha.iter().zip(&hs).map(|(a, s)| a - s).collect();
+        let rel = norm(&diff) / norm(&ha);
+        assert!(estimate > 0.0 && estimate < 0.05, "estimate {estimate}");
+        assert!(
+            rel <= SPREAD_VS_ASSEMBLED_IN_ESTIMATES * estimate,
+            "relative removal error {rel} against the estimate {estimate}"
+        );
+        // A wrong length is an error for every kind.
+        for p in [&assembled, &fft, &spread] {
+            assert!(p.removal_nm(&t[..1]).is_err());
+        }
     }
 }

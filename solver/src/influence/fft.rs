@@ -31,7 +31,7 @@
 //! and column passes (read a column of the row spectra, y transform, multiply, inverse), about
 //! eight parallel loops for `R^T R t` against eighteen for `R t` and `R^T y` done one by one.
 
-use super::operator::LinearOperator;
+use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use crate::tif::InfluenceFunction;
 use rayon::prelude::*;
@@ -877,6 +877,29 @@ impl LinearOperator for FftOperator {
             .iter()
             .map(|&(s, s2)| (s2 - s * s / m).max(0.0))
             .collect()
+    }
+}
+
+impl InfluenceOperator for FftOperator {
+    fn kind(&self) -> OperatorKind {
+        OperatorKind::Fft
+    }
+
+    fn shape(&self) -> (usize, usize) {
+        (LinearOperator::nrows(self), LinearOperator::ncols(self))
+    }
+
+    fn nnz(&self) -> usize {
+        FftOperator::nnz(self)
+    }
+
+    fn empty_columns(&self) -> Vec<usize> {
+        FftOperator::empty_columns(self)
+    }
+
+    /// The operator itself: its products need no copy, and it has no Gram matrix.
+    fn products(&self, _normal_products: Option<usize>) -> Products<'_> {
+        Products::Direct(self)
     }
 }
 

@@ -6,6 +6,8 @@
 //! the points inside each dwell point's disc, which sizes the arrays once; the second fills every
 //! column in place. The matrix is identical for any thread count.
 
+use super::gram::{GramMatrix, GramOperator};
+use super::operator::{InfluenceOperator, OperatorKind, Products, SparseOperator};
 use crate::error::{Error, Result};
 use crate::observer::{Observer, Stage};
 use crate::tif::InfluenceFunction;
@@ -265,6 +267,43 @@ impl InfluenceMatrix {
                     .sum()
             })
             .collect())
+    }
+}
+
+impl InfluenceOperator for InfluenceMatrix {
+    fn kind(&self) -> OperatorKind {
+        OperatorKind::Sparse
+    }
+
+    fn shape(&self) -> (usize, usize) {
+        (self.csc.nrows(), self.csc.ncols())
+    }
+
+    fn nnz(&self) -> usize {
+        self.csc.nnz()
+    }
+
+    fn empty_columns(&self) -> Vec<usize> {
+        InfluenceMatrix::empty_columns(self)
+    }
+
+    fn matrix(&self) -> Option<&InfluenceMatrix> {
+        Some(self)
+    }
+
+    /// The CSC matrix with a CSR copy built for this call (`R t` by rows), and with its Gram
+    /// matrix where the caller takes normal products and forming it pays.
+    fn products(&self, normal_products: Option<usize>) -> Products<'_> {
+        let op = SparseOperator::new(&self.csc);
+        match normal_products {
+            Some(k) if GramMatrix::worthwhile(&op, k) => Products::Gram(GramOperator::new(op)),
+            _ => Products::Sparse(op),
+        }
+    }
+
+    /// The sequential column sweep of [`InfluenceMatrix::removal_nm`] (no row copy).
+    fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
+        InfluenceMatrix::removal_nm(self, dwell_s)
     }
 }
 

@@ -10,7 +10,8 @@
 //!   onto an oversampled lattice, then FFT convolution);
 //! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
 //! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
-//! - [`operator`]: the product trait ([`LinearOperator`]: `R t`, `R^T y`) every solver goes through.
+//! - [`operator`]: the traits: [`InfluenceOperator`] (`R` as a dwell problem holds it, whichever of
+//!   the above it is) and [`LinearOperator`] (the products `R t`, `R^T y` every solver goes through).
 
 pub mod curvature;
 pub mod fft;
@@ -25,6 +26,6 @@ pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
 pub use fft::FftOperator;
 pub use gram::{GramMatrix, GramOperator};
 pub use matrix::{InfluenceMatrix, NNZ_BYTES};
-pub use operator::{LinearOperator, SparseOperator};
+pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, SparseOperator};
 pub use spread::SpreadOperator;
 pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};

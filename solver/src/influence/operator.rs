@@ -1,11 +1,101 @@
-//! Linear operators `R` (dwell times -> removal) for the first-order solver: the sparse influence
-//! matrix, or a matrix-free FFT convolution on regular grids ([`super::fft`]).
+//! The influence operator `R` (dwell times -> removal) behind two traits:
+//! - [`InfluenceOperator`]: `R` as a dwell problem holds it, whatever its form (the assembled
+//!   [`InfluenceMatrix`], the matrix-free [`super::FftOperator`] on one lattice, the off-lattice
+//!   [`super::SpreadOperator`]): its kind, shape, non-zeros, empty columns, removal `R t`, the
+//!   assembled matrix where there is one, and the operator ready for products;
+//! - [`LinearOperator`]: the products `R t`, `R^T y`, `R^T R t` the first-order solvers take.
 //!
 //! Every product is computed entry by entry in a fixed order (one dot product per output entry,
 //! outputs distributed over threads), so results are bit-identical for any thread count.
 
+use super::gram::GramOperator;
+use super::matrix::InfluenceMatrix;
+use crate::error::{Error, Result};
 use nalgebra_sparse::{CscMatrix, CsrMatrix};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// How `R` is held: assembled, matrix-free on the map's lattice, or spread onto it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum OperatorKind {
+    /// The assembled sparse matrix.
+    #[default]
+    Sparse,
+    /// The matrix-free FFT convolution.
+    Fft,
+    /// Dwell points spread onto the map lattice, then FFT convolution.
+    FftSpread,
+}
+
+/// The influence operator `R` (m x n, nm/s) as a dwell problem holds it. The assembled matrix,
+/// the FFT operator and the spreading operator implement it; a problem holds one behind an
+/// `Arc<dyn InfluenceOperator>` and asks it, never its concrete type.
+pub trait InfluenceOperator: std::fmt::Debug + Send + Sync {
+    /// How `R` is held.
+    fn kind(&self) -> OperatorKind;
+
+    /// `(m, n)`: measurement points (rows) and dwell points (columns).
+    fn shape(&self) -> (usize, usize);
+
+    /// Non-zero entries of `R` (stored, or implicit in a matrix-free operator: the number the
+    /// assembled matrix would store).
+    fn nnz(&self) -> usize;
+
+    /// Dwell points whose column of `R` is empty (no measurement point in the tool's reach).
+    fn empty_columns(&self) -> Vec<usize>;
+
+    /// The assembled matrix, for what needs its entries (the QP, column selection); `None` for a
+    /// matrix-free operator.
+    fn matrix(&self) -> Option<&InfluenceMatrix> {
+        None
+    }
+
+    /// The operator ready for products. `normal_products`: `Some(k)` when the caller takes at
+    /// least `k` normal products `R^T R t` and a formed Gram matrix may serve them (the
+    /// assembled matrix forms one where [`super::GramMatrix::worthwhile`] says it pays); `None`
+    /// for products through `R` alone. The assembled matrix builds its row copy here, per call,
+    /// so a caller that needs no product (the QP) never holds one.
+    fn products(&self, normal_products: Option<usize>) -> Products<'_>;
+
+    /// Removal `h = R t`, nm, for dwell times `t` (s); `t.len() == n`.
+    fn removal_nm(&self, dwell_s: &[f64]) -> Result<Vec<f64>> {
+        let (m, n) = self.shape();
+        if dwell_s.len() != n {
+            return Err(Error::LengthMismatch {
+                what: "dwell_s",
+                got: dwell_s.len(),
+                expected: n,
+            });
+        }
+        let mut h = vec![0.0; m];
+        self.products(None).apply(dwell_s, &mut h);
+        Ok(h)
+    }
+}
+
+/// An [`InfluenceOperator`] ready for products ([`InfluenceOperator::products`]): derefs to the
+/// [`LinearOperator`] the solvers use.
+pub enum Products<'a> {
+    /// A matrix-free operator, used as it is.
+    Direct(&'a dyn LinearOperator),
+    /// The assembled matrix with its row copy.
+    Sparse(SparseOperator<'a>),
+    /// The assembled matrix with its row copy and Gram matrix (normal products through `G`).
+    Gram(GramOperator<'a>),
+}
+
+impl<'a> std::ops::Deref for Products<'a> {
+    type Target = dyn LinearOperator + 'a;
+
+    fn deref(&self) -> &Self::Target {
+        match self {
+            Products::Direct(op) => *op,
+            Products::Sparse(op) => op,
+            Products::Gram(op) => op,
+        }
+    }
+}
 
 /// A linear map `R` from `n` dwell times (s) to `m` removals (nm), with its transpose.
 pub trait LinearOperator: Sync {

@@ -27,7 +27,7 @@
 //! columns, each column computed both ways entry by entry.
 
 use super::fft::FftOperator;
-use super::operator::LinearOperator;
+use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use crate::tif::InfluenceFunction;
 use rayon::prelude::*;
@@ -552,6 +552,29 @@ impl LinearOperator for SpreadOperator {
             .iter()
             .map(|&(s, s2, _)| (s2 - s * s / m).max(0.0))
             .collect()
+    }
+}
+
+impl InfluenceOperator for SpreadOperator {
+    fn kind(&self) -> OperatorKind {
+        OperatorKind::FftSpread
+    }
+
+    fn shape(&self) -> (usize, usize) {
+        (LinearOperator::nrows(self), LinearOperator::ncols(self))
+    }
+
+    fn nnz(&self) -> usize {
+        SpreadOperator::nnz(self)
+    }
+
+    fn empty_columns(&self) -> Vec<usize> {
+        SpreadOperator::empty_columns(self)
+    }
+
+    /// The operator itself: its products need no copy, and it has no Gram matrix.
+    fn products(&self, _normal_products: Option<usize>) -> Products<'_> {
+        Products::Direct(self)
     }
 }
 

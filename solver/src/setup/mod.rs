@@ -8,12 +8,13 @@
 //! ```
 //!
 //! Every consumer (the `solve` pipeline, the loop's runs, the benchmarks, the Python package;
-//! `simulate` up to the problem, then [`Setup::removal_of`] for the given dwell times)
-//! goes through these three steps, so the decisions they hold are written once: how the dwell
-//! points are made (a given path or a serpentine raster), how the dwell area beyond the map is
-//! modelled ([`crate::edge`]), how `R` is held (assembled, in the tangent frame of a design
-//! surface, or the matrix-free FFT operator, [`OperatorPlan`]) and whether the acceleration limit
-//! is imposed by sequential convex programming ([`crate::dwell::accel`]). The removal `R t` and
+//! `simulate` up to the problem, then [`Setup::removal_of`] for the given dwell times or
+//! [`Setup::run_program`] for a given program) goes through these three steps, so the decisions
+//! they hold are written once: how the dwell points are made (a given path or a serpentine
+//! raster), how the dwell area beyond the map is modelled ([`crate::edge`]), how `R` is held
+//! (assembled, in the tangent frame of a design surface, or the matrix-free FFT operator,
+//! [`OperatorPlan`]) and whether the acceleration limit is imposed by sequential convex
+//! programming ([`crate::dwell::accel`]). The removal `R t` and
 //! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
 
 mod off_lattice;
@@ -34,9 +35,10 @@ use crate::influence::surface::{assemble_on_surface, TifFrame};
 use crate::influence::InfluenceMatrix;
 use crate::machine::feeds::FeedSchedule;
 use crate::machine::gcode::motion::Kinematics;
+use crate::machine::gcode::program::Program;
 use crate::machine::gcode::{run_on_map, write_and_check, ProgramRun};
 use crate::machine::nc::{NcProgram, NcSettings};
-use crate::machine::Flat;
+use crate::machine::{Flat, PartGeometry};
 use crate::map::{HeightMap, HeightStats};
 use crate::observer::Observer;
 use crate::path::raster::{self, RasterAxis};
@@ -70,6 +72,30 @@ pub enum DwellPoints {
         /// Direction of the lines.
         along: RasterAxis,
     },
+}
+
+impl DwellPoints {
+    /// The dwell points of a G-code program as it runs: the contact points of its marked
+    /// stretches (`DWELL` comments, as `preston nc` writes them), in program order. The set-up
+    /// then reports the executed run ([`Setup::run_program`]) on them. A program without
+    /// markers has none, an error.
+    pub fn of_program(program: &Program) -> Result<Self> {
+        if program.stretches.is_empty() {
+            return Err(Error::invalid(
+                "program",
+                "no DWELL markers: the executed dwell needs the stretches `preston nc` marks",
+            ));
+        }
+        let (x, y) = program.stretches.iter().map(|s| (s.x_mm, s.y_mm)).unzip();
+        Ok(DwellPoints::Given(DwellPath::new(x, y)?))
+    }
+}
+
+/// Largest arc length of a removal sample along an executed program, mm, by default: 1/64 of
+/// the TIF's support radius (0.11 mm for the sample job's fluid-jet TIF); halving it moves the
+/// sample job's residual RMS by less than 0.05% (README, `preston simulate`).
+pub fn default_sample_step_mm(tif: &Tif) -> f64 {
+    tif.support_radius_mm() / 64.0
 }
 
 /// How the TIF acts on the part: exactly one of the shift-invariant TIF (in the plane, or in each
@@ -195,6 +221,32 @@ impl Checked {
 }
 
 impl Choices {
+    /// The choices of a plan evaluated as given (`simulate`: a dwell file or a program's
+    /// executed stretches): `feed` (if any) only for the bounds the report checks, no
+    /// acceleration limit, no weights, no edge rows, the assembled `R` of the shift-invariant
+    /// TIF in the plane; nothing is solved.
+    pub fn evaluation(feed: Option<FeedLimits>) -> Self {
+        Self {
+            feed,
+            a_max_mm_per_s2: None,
+            corner_angle_deg: None,
+            accel_method: AccelMethod::default(),
+            rho: 0.0,
+            lambda: 0.0,
+            settings: Settings {
+                operator: OperatorChoice::Sparse,
+                ..Settings::default()
+            },
+            edge: EdgeSettings {
+                method: edge::EdgeMethod::None,
+                ..EdgeSettings::default()
+            },
+            tif_model: TifModel::ShiftInvariant,
+            tif_frame: TifFrame::default(),
+            warm_start: false,
+        }
+    }
+
     /// Validates every choice once: solver settings, feed and acceleration limits, weights, the
     /// TIF model and their combinations. A warm start with an acceleration limit is refused: the
     /// sequential convex programme starts from its own feed-limited optimum and would not use it.
@@ -670,8 +722,8 @@ impl Setup {
             None => self.spread_plan(&rows, &mut warnings)?,
         };
         let problem = match (fft, spread) {
-            (Some(op), _) => Problem::matrix_free(op, z_nm, bounds, rho, lambda),
-            (None, Some(op)) => Problem::off_lattice(op, z_nm, bounds, rho, lambda),
+            (Some(op), _) => Problem::new(op, z_nm, bounds, rho, lambda),
+            (None, Some(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
             (None, None) => {
                 Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
             }
@@ -764,6 +816,47 @@ impl Setup {
         Ok(removal)
     }
 
+    /// Runs `program` as the machine would (block by block under `kinematics`) and integrates
+    /// the TIF along the contact motion at the measured map points, in pieces of at most
+    /// `step_mm` of arc length (default [`default_sample_step_mm`]); `part`: the part geometry
+    /// and the tool-centre offset along its normal, to map tool centres back to contact points
+    /// (none: the program's X, Y are the contact points). The executed removal of a given
+    /// program, as [`Setup::removal_of`] is of given dwell times; the set-up's dwell points are
+    /// the program's marked points ([`DwellPoints::of_program`]) for the report.
+    pub fn run_program(
+        &self,
+        program: &Program,
+        kinematics: Kinematics,
+        step_mm: Option<f64>,
+        part: Option<(&dyn PartGeometry, f64)>,
+        observer: &dyn Observer,
+    ) -> Result<ProgramRun> {
+        observer.setup_step(SetupStep::Removal);
+        self.run_on_map(program, kinematics, step_mm, part, observer)
+    }
+
+    /// [`Setup::run_program`] without the step report (also the solve's executed program).
+    fn run_on_map(
+        &self,
+        program: &Program,
+        kinematics: Kinematics,
+        step_mm: Option<f64>,
+        part: Option<(&dyn PartGeometry, f64)>,
+        observer: &dyn Observer,
+    ) -> Result<ProgramRun> {
+        let m = &self.map;
+        run_on_map(
+            program,
+            kinematics,
+            step_mm.unwrap_or_else(|| default_sample_step_mm(&self.tif)),
+            part,
+            m.x_mm(),
+            m.y_mm(),
+            &self.tif,
+            observer,
+        )
+    }
+
     /// The default program for `dwell_s` (ISO, G94, flat part, the feed limit) executed at
     /// `a_max` with look-ahead, and the removal integrated along the executed motion
     /// ([`crate::machine::gcode::motion`]), on the measured map.
@@ -785,18 +878,8 @@ impl Setup {
             a_max_mm_per_s2,
             corner_angle_deg: settings.corner_angle_deg,
         };
-        let m = &self.map;
-        let run = run_on_map(
-            &check.program,
-            kinematics,
-            self.tif.support_radius_mm() / 64.0,
-            None,
-            m.x_mm(),
-            m.y_mm(),
-            &self.tif,
-            observer,
-        )?;
-        let after = HeightStats::of(&centred_residual_nm(m.z_nm(), &run.removal_nm));
+        let run = self.run_on_map(&check.program, kinematics, None, None, observer)?;
+        let after = HeightStats::of(&centred_residual_nm(self.map.z_nm(), &run.removal_nm));
         Ok(Executed {
             a_max_mm_per_s2,
             after,

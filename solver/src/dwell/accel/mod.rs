@@ -906,7 +906,7 @@ mod tests {
         let r = InfluenceMatrix::assemble(&mx, &my, &px, &py, &tif, &Silent).unwrap();
         let sparse = Problem::new(r, z.clone(), b.clone(), 0.0, 0.0).unwrap();
         let fft = FftOperator::new(&mx, &my, &px, &py, 0.5, &tif).unwrap();
-        let matrix_free = Problem::matrix_free(fft, z, b, 0.0, 0.0).unwrap();
+        let matrix_free = Problem::new(fft, z, b, 0.0, 0.0).unwrap();
         let settings = Settings {
             solver: crate::dwell::SolverChoice::FirstOrder,
             ..Settings::default()
