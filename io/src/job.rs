@@ -280,7 +280,8 @@ pub struct MachineSection {
     #[serde(default)]
     pub corner_angle_deg: Option<f64>,
     /// How the acceleration limit is imposed: `"squared-speed"` (default; projected gradient in
-    /// squared speed, any size and operator) or `"scp-qp"` (the sequential QP reference).
+    /// squared speed, any size and operator), `"scp-qp"` (the sequential QP reference) or
+    /// `"squared-speed-then-scp-qp"` (the first, refined by the second).
     #[serde(default)]
     pub accel_method: Option<AccelMethod>,
 }

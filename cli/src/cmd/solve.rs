@@ -67,6 +67,8 @@ pub enum AccelMethodArg {
     SquaredSpeed,
     /// Sequential convex programming around the QP (reference for small cases).
     ScpQp,
+    /// Squared speed, then the SCP-QP from its result (QP-exact refinement; needs the assembled R).
+    SquaredSpeedThenScpQp,
 }
 
 impl From<AccelMethodArg> for AccelMethod {
@@ -74,6 +76,7 @@ impl From<AccelMethodArg> for AccelMethod {
         match m {
             AccelMethodArg::SquaredSpeed => AccelMethod::SquaredSpeed,
             AccelMethodArg::ScpQp => AccelMethod::ScpQp,
+            AccelMethodArg::SquaredSpeedThenScpQp => AccelMethod::SquaredSpeedThenScpQp,
         }
     }
 }
@@ -217,7 +220,8 @@ pub struct Args {
     #[arg(long, value_name = "MM_PER_S2")]
     pub a_max_mm_per_s2: Option<f64>,
     /// How the acceleration limit is imposed: squared-speed (default; projected gradient in
-    /// squared speed, any size and operator) or scp-qp (sequential QP, the small-case reference).
+    /// squared speed, any size and operator), scp-qp (sequential QP, the small-case reference) or
+    /// squared-speed-then-scp-qp (the first, refined by the second).
     #[arg(long, value_enum)]
     pub accel_method: Option<AccelMethodArg>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
@@ -612,6 +616,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "  acceleration limit {a} mm/s^2: {it} {}, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
             match r.accel.as_ref().map(|x| x.method) {
                 Some(AccelMethod::ScpQp) => "SCP iterations",
+                Some(AccelMethod::SquaredSpeedThenScpQp) => "gradient steps and SCP iterations",
                 _ => "gradient steps in squared speed",
             },
             r.rms_after_nm

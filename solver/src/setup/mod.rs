@@ -588,9 +588,9 @@ impl Setup {
         } else if self
             .accel
             .as_ref()
-            .is_some_and(|a| a.method == AccelMethod::ScpQp)
+            .is_some_and(|a| a.method.needs_assembled_r())
         {
-            Some("accel_method = \"scp-qp\" (its sequential QP needs R)")
+            Some("accel_method = \"scp-qp\" or \"squared-speed-then-scp-qp\" (the sequential QP needs R)")
         } else if self.settings.min_time {
             Some("the minimum-time mode (it runs the QP)")
         } else if self.settings.solver == SolverChoice::Qp {

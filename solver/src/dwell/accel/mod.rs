@@ -51,6 +51,16 @@ pub enum AccelMethod {
     /// Sequential convex programming with one Clarabel QP per iteration: the reference for small
     /// cases (it needs the assembled `R`).
     ScpQp,
+    /// The squared-speed method, then the SCP-QP from its result: a KKT point of the first refined
+    /// by the second (QP-exact where the QP is affordable; it needs the assembled `R`).
+    SquaredSpeedThenScpQp,
+}
+
+impl AccelMethod {
+    /// Whether the method solves QPs with the assembled `R`.
+    pub fn needs_assembled_r(self) -> bool {
+        !matches!(self, AccelMethod::SquaredSpeed)
+    }
 }
 
 /// Acceleration limit and solver settings. Job files may set any field.
@@ -367,7 +377,7 @@ pub(crate) fn solve_validated(
     // The feed-limited optimum is the start and the price-of-the-limit reference; for the
     // squared-speed method a first-order reference is solved to that method's own tolerance.
     let reference_settings = match limits.method {
-        AccelMethod::SquaredSpeed => Settings {
+        AccelMethod::SquaredSpeed | AccelMethod::SquaredSpeedThenScpQp => Settings {
             first_order_tolerance: settings.first_order_tolerance.max(limits.kkt_tolerance),
             ..settings.clone()
         },
@@ -396,7 +406,7 @@ pub(crate) fn solve_validated(
                 qp_iterations += r.qp_iterations;
                 (r.dwell_s, r.status, SolverKind::Qp)
             }
-            AccelMethod::SquaredSpeed => {
+            AccelMethod::SquaredSpeed | AccelMethod::SquaredSpeedThenScpQp => {
                 let speed_limits = speed::SpeedLimits {
                     tolerance: limits.kkt_tolerance,
                     max_steps: limits.max_gradient_steps,
@@ -417,8 +427,16 @@ pub(crate) fn solve_validated(
                 })?;
                 gradient_steps = r.iterations;
                 qp_iterations += r.iterations;
-                kkt_residual = Some(r.kkt_residual);
-                (r.dwell_s, r.status, SolverKind::FirstOrder)
+                if limits.method == AccelMethod::SquaredSpeedThenScpQp {
+                    // The squared-speed result meets the limit exactly: the SCP starts there.
+                    let polished = scp(problem, &kin, r.dwell_s, limits, settings, observer)?;
+                    scp_iterations = polished.iterations;
+                    qp_iterations += polished.qp_iterations;
+                    (polished.dwell_s, polished.status, SolverKind::Qp)
+                } else {
+                    kkt_residual = Some(r.kkt_residual);
+                    (r.dwell_s, r.status, SolverKind::FirstOrder)
+                }
             }
         }
     };
@@ -872,7 +890,33 @@ mod tests {
                 fast.report
             );
             assert!(f >= free.objective * (1.0 - 1e-6));
+            // The SCP from the squared-speed result keeps the limit and never loses objective.
+            let refined = solve(
+                &problem,
+                &path,
+                &with_method(a_max, AccelMethod::SquaredSpeedThenScpQp),
+                &settings,
+                &Silent,
+            )
+            .unwrap();
+            let t = &refined.solution.dwell_s;
+            let a = max_acceleration_mm_per_s2(&path, t, 60.0);
+            assert!(
+                a <= a_max * (1.0 + limits_tolerance()),
+                "fraction {frac}: {a}"
+            );
+            assert!(refined.report.gradient_steps > 0 && refined.report.scp_iterations > 0);
+            assert!(
+                refined.solution.objective <= f * (1.0 + 1e-12),
+                "fraction {frac}: refined {} above its start {f}",
+                refined.solution.objective
+            );
         }
+    }
+
+    /// The SCP's relative tolerance on the constraint.
+    fn limits_tolerance() -> f64 {
+        AccelLimits::default().constraint_tolerance
     }
 
     #[test]
