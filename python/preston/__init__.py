@@ -238,6 +238,7 @@ def solve(
     v_max: Optional[float] = None,
     v_min: Optional[float] = None,
     a_max: Optional[float] = None,
+    accel_method: Optional[str] = None,
     corner_angle_deg: Optional[float] = None,
     rho: Optional[float] = None,
     lambda_: Optional[float] = None,
@@ -272,11 +273,13 @@ def solve(
       mm) or ``raster_pitch_mm`` (a serpentine raster at this pitch, mm, over the map extended by
       the TIF radius; lines along ``raster_along`` = ``"x"`` or ``"y"``).
     * limits: ``v_max`` / ``v_min`` (feed, mm/min; ``v_max`` required), ``a_max`` (acceleration
-      along a line, mm/s^2), ``corner_angle_deg`` (turns splitting lines, degrees).
+      along a line, mm/s^2), ``accel_method`` (``"squared-speed"``, the default, ``"scp-qp"`` or
+      ``"squared-speed-then-scp-qp"``, as ``--accel-method``), ``corner_angle_deg`` (turns
+      splitting lines, degrees).
     * objective: ``rho`` (weight of total dwell, nm^2/s), ``lambda_`` (weight of dwell
       differences, nm^2/s^2), ``min_time`` and ``min_time_tolerance`` (relative).
     * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,
-      ``"sparse"``, ``"fft"``), ``first_order_method`` (``"fista"``, ``"newton-cg"``),
+      ``"sparse"``, ``"fft"``, ``"fft-spread"``), ``first_order_method`` (``"fista"``, ``"newton-cg"``),
       ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous
       dwell.csv).
     * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,
@@ -354,6 +357,7 @@ def solve(
         ("v_max_mm_per_min", v_max),
         ("v_min_mm_per_min", v_min),
         ("a_max_mm_per_s2", a_max),
+        ("accel_method", accel_method),
         ("corner_angle_deg", corner_angle_deg),
     ):
         if value is not None:

@@ -182,3 +182,17 @@ def test_threads_do_not_change_the_result(small_job):
     np.testing.assert_array_equal(one.dwell_s, default.dwell_s)
     np.testing.assert_array_equal(three.dwell_s, default.dwell_s)
     np.testing.assert_array_equal(one.residual_nm, default.residual_nm)
+
+
+def test_accel_method_reaches_the_engine(small_job):
+    """Each acceleration method reaches the engine: the report names it, the limit holds, and the
+    refined method is never worse than squared speed; an unknown method is an input error."""
+    results = {}
+    for method in ("squared-speed", "scp-qp", "squared-speed-then-scp-qp"):
+        r = preston.solve(small_job, a_max=50.0, accel_method=method)
+        assert r.report["accel"]["method"] == method
+        assert r.report["max_accel_mm_per_s2"] <= 50.0 * 1.01
+        results[method] = r.report["objective"]
+    assert results["squared-speed-then-scp-qp"] <= results["squared-speed"] * (1 + 1e-12)
+    with pytest.raises(preston.InputError, match="newton"):
+        preston.solve(small_job, a_max=50.0, accel_method="newton")

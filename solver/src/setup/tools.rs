@@ -234,8 +234,6 @@ impl ToolsSetup {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::edge::EdgeSettings;
-    use crate::influence::surface::TifFrame;
     use crate::observer::Silent;
     use crate::setup::Choices;
     use crate::tif::GaussianTif;
@@ -243,20 +241,9 @@ mod tests {
     /// Relative agreement of removals computed two ways (rounding only).
     const REMOVAL_TOL: f64 = 1e-12;
 
+    /// The shared defaults (no limits, no weights, the assembled `R`).
     fn choices() -> Choices {
-        Choices {
-            feed: None,
-            a_max_mm_per_s2: None,
-            corner_angle_deg: None,
-            accel_method: Default::default(),
-            rho: 0.0,
-            lambda: 0.0,
-            settings: Settings::default(),
-            edge: EdgeSettings::default(),
-            tif_model: TifModel::ShiftInvariant,
-            tif_frame: TifFrame::default(),
-            warm_start: false,
-        }
+        Choices::evaluation(None)
     }
 
     fn two_tools() -> (HeightMap, Vec<Tool>) {
