@@ -8,8 +8,7 @@ use preston_solver::surface::Surface;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Exit code when the fit's iteration did not converge (outputs are written).
-pub const EXIT_NOT_CONVERGED: u8 = 3;
+use super::EXIT_NOT_CONVERGED;
 
 /// Arguments of `preston fit`.
 #[derive(Debug, clap::Args)]

@@ -19,8 +19,7 @@ use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Exit code when an inner registration or dwell solve did not converge (outputs are written).
-pub const EXIT_NOT_CONVERGED: u8 = 3;
+use super::EXIT_NOT_CONVERGED;
 
 /// Arguments of `preston iterate`.
 #[derive(Debug, clap::Args)]

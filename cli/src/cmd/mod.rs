@@ -14,3 +14,7 @@ pub mod surface;
 pub mod tif;
 pub mod tif_source;
 pub mod tif_spot;
+
+/// Exit code of every command whose iterative step (dwell solve, SCP, registration, fit, the
+/// loop's inner steps) did not converge: the outputs are written and their status says so.
+pub const EXIT_NOT_CONVERGED: u8 = 3;

@@ -10,8 +10,7 @@ use preston_solver::registration::{
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Exit code when the iteration limit was reached before a stopping test (outputs are written).
-pub const EXIT_NOT_CONVERGED: u8 = 3;
+use super::EXIT_NOT_CONVERGED;
 
 /// Robust weighting on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]

@@ -21,8 +21,7 @@ use preston_solver::psd::LineAxis;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Exit code when the solver did not converge (outputs are written, flagged in report.json).
-pub const EXIT_NOT_CONVERGED: u8 = 3;
+use super::EXIT_NOT_CONVERGED;
 
 /// Raster direction on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
