@@ -277,3 +277,40 @@ fn operator_auto_picks_fft_when_r_would_be_large() {
     assert!(nnz > 20_000_000, "nnz {nnz}");
     assert!(r["rms_after_nm"].as_f64().unwrap() < 0.2 * r["rms_before_nm"].as_f64().unwrap());
 }
+
+/// `preston bench` carries each solve's status to its rows and exits 3 when a solve stopped
+/// before its test (rows still written), 0 when every solve converged.
+#[test]
+fn bench_rows_carry_the_status_and_an_unconverged_solve_exits_3() {
+    let run = |tolerance: &str| {
+        preston_cmd()
+            .args([
+                "bench",
+                "--sizes",
+                "500",
+                "--solvers",
+                "first-order",
+                "--job",
+                "none",
+            ])
+            .args(["--first-order-tolerance", tolerance, "--json"])
+            .output()
+            .unwrap()
+    };
+    let row_status = |out: &std::process::Output| {
+        let rows: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        rows[0]["status"].as_str().unwrap().to_string()
+    };
+    let loose = run("1e-4");
+    assert_eq!(loose.status.code(), Some(0));
+    assert_eq!(row_status(&loose), "converged");
+    // A tolerance below rounding: the first-order solver runs to its iteration limit.
+    let tight = run("1e-30");
+    assert_eq!(
+        tight.status.code(),
+        Some(3),
+        "{}",
+        String::from_utf8_lossy(&tight.stderr)
+    );
+    assert_eq!(row_status(&tight), "max_iterations");
+}

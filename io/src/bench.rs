@@ -66,8 +66,8 @@ pub struct BenchRow {
     pub solve_seconds: f64,
     /// Solver iterations.
     pub iterations: usize,
-    /// Solver status.
-    pub status: String,
+    /// How the solve ended (serialised as in `report.json`).
+    pub status: crate::report::ReportStatus,
     /// Peak resident memory of the process so far (VmHWM), MiB; `None` where unavailable.
     pub peak_memory_mib: Option<f64>,
 }
@@ -281,7 +281,7 @@ pub fn run_generated(
         build_seconds,
         solve_seconds: sol.solve_seconds,
         iterations: sol.iterations,
-        status: crate::report::status_name(sol.status),
+        status: crate::report::ReportStatus::Solved(sol.status),
         peak_memory_mib: peak_memory_mib(),
     })
 }
@@ -332,7 +332,7 @@ pub fn run_job(job_path: &Path, solver: SolverChoice) -> Result<BenchRow> {
         build_seconds: r.build_seconds,
         solve_seconds: r.solve_seconds,
         iterations: r.iterations,
-        status: r.status.to_string(),
+        status: r.status,
         peak_memory_mib: peak_memory_mib(),
     })
 }

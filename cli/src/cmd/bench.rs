@@ -110,5 +110,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         print!("{}", bench::format_table(&rows));
     }
+    let unconverged = rows.iter().filter(|r| !r.status.is_converged()).count();
+    if unconverged > 0 {
+        eprintln!(
+            "  warning: {unconverged} of {} solves did not converge",
+            rows.len()
+        );
+        return Ok(ExitCode::from(super::EXIT_NOT_CONVERGED));
+    }
     Ok(ExitCode::SUCCESS)
 }
