@@ -4,7 +4,8 @@
 //! squared speed with an exact linear-time projection onto each line's chain of constraints
 //! ([`chain`]), which needs only products with `R` and scales to 10^5 dwell points and more; and
 //! the reference, sequential convex programming around the Clarabel QP (below), exact on small
-//! cases and kept to check the other.
+//! cases and kept to check the other. The two chain as a third: the SCP started from the
+//! squared-speed result, which it can only improve (it keeps its best feasible iterate).
 //!
 //! The feed at dwell point `j` is `v_j = ds_j / t_j` (mm/s, `ds_j` from
 //! [`DwellPath::ds_mm`]). With constant acceleration between consecutive dwell points `j` and

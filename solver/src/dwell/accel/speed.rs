@@ -23,7 +23,8 @@
 //! Teboulle 2009), monotone: a step that raises `f` is refused, the momentum restarts, and if the
 //! step had no momentum `L` doubles. The iteration stops when the relative KKT residual
 //! `||w - P_{C_w}(w - grad_w f)|| / (||S R^T P z|| q)` is below the tolerance, with
-//! `q = max(||P r|| / ||P z||, Q_MIN)` the residual left over the error to remove (`r = R t - z`):
+//! `q = ||P r|| / ||P z||` the residual left over the error to remove (`r = R t - z`), clamped to
+//! `[Q_MIN, 1]`:
 //! the gradient's scale shrinks with the residual, so a map corrected a hundredfold is solved to
 //! the same relative accuracy as one corrected twofold. The result is then
 //! moved onto the true `C` by the exact projection of `u(t)` in the same metric (a change of the
@@ -481,7 +482,7 @@ pub(crate) fn minimise(
 
 /// Relative KKT residual at `x` (removal `rx`): `||x - P_x(x - grad_w f(x))|| / (kkt_scale q)`,
 /// with `P_x` the projection onto the constraint set linearised at `x` and
-/// `q = max(||P r|| / ||P z||, Q_MIN)` (`pz_norm = ||P z||`).
+/// `q = ||P r|| / ||P z||` clamped to `[Q_MIN, 1]` (`pz_norm = ||P z||`).
 #[allow(clippy::too_many_arguments)]
 fn kkt_residual(
     state: &mut Iteration<'_>,
