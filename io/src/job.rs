@@ -373,6 +373,18 @@ impl Job {
                 "is required (job [machine] or --v-max)",
             )
         })?;
+        self.choices_with_feed(Some(FeedLimits {
+            v_max_mm_per_min: v_max,
+            v_min_mm_per_min: self.machine.v_min_mm_per_min.unwrap_or(0.0),
+        }))
+    }
+
+    /// As [`Job::choices`] with the feed limits given (`None` for several tools, each of which
+    /// has its own).
+    pub fn choices_with_feed(
+        &self,
+        feed: Option<FeedLimits>,
+    ) -> std::result::Result<Choices, preston_solver::Error> {
         let tif_model = self.tif.model()?;
         if matches!(tif_model, TifModel::CurvatureDependent(_)) && self.surface.file.is_none() {
             return Err(preston_solver::Error::invalid(
@@ -382,10 +394,7 @@ impl Job {
             ));
         }
         Ok(Choices {
-            feed: Some(FeedLimits {
-                v_max_mm_per_min: v_max,
-                v_min_mm_per_min: self.machine.v_min_mm_per_min.unwrap_or(0.0),
-            }),
+            feed,
             a_max_mm_per_s2: self.machine.a_max_mm_per_s2,
             corner_angle_deg: self.machine.corner_angle_deg,
             accel_method: self.machine.accel_method.unwrap_or_default(),

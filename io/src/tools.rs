@@ -15,7 +15,7 @@ use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 pub use preston_solver::setup::tools::Tool;
 use preston_solver::setup::tools::{ToolChoices, ToolsOutcome, ToolsSetup};
-use preston_solver::setup::{Choices, SetupError, SetupInput};
+use preston_solver::setup::{SetupError, SetupInput};
 use preston_solver::tif::Tif;
 use std::path::Path;
 use std::time::Instant;
@@ -97,24 +97,6 @@ pub fn read_tools(job: &Job, job_path: &Path) -> Result<Vec<Tool>> {
         .collect()
 }
 
-/// The job's choices for a multi-tool solve: as [`Job::choices`], with the feed limits left to
-/// each tool.
-fn tool_choices(job: &Job) -> std::result::Result<Choices, preston_solver::Error> {
-    Ok(Choices {
-        feed: None,
-        a_max_mm_per_s2: job.machine.a_max_mm_per_s2,
-        corner_angle_deg: job.machine.corner_angle_deg,
-        accel_method: job.machine.accel_method.unwrap_or_default(),
-        rho: job.objective.rho,
-        lambda: job.objective.lambda,
-        settings: job.solver.clone(),
-        edge: job.edge.clone(),
-        tif_model: job.tif.model()?,
-        tif_frame: job.surface.tif_frame,
-        warm_start: job.dwell.warm_start.is_some(),
-    })
-}
-
 /// Reads the map and tools, solves the stacked problem through the set-up stage and builds the
 /// report.
 pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<MultiSolved> {
@@ -125,7 +107,8 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         SetupInput::Map => Error::engine(map_path, e.source),
         _ => Error::engine(job_path, e.source),
     };
-    let checked = tool_choices(job)
+    let checked = job
+        .choices_with_feed(None)
         .map_err(|e| Error::engine(job_path, e))?
         .check(observer)
         .and_then(ToolChoices::check)
@@ -154,7 +137,11 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         tool_removal_nm,
     } = setup.solve(&problem, observer)?;
     // The stacked report: dwell and feeds in seconds of each tool (not the scaled variables).
-    let ds_all: Vec<f64> = setup.tools.iter().flat_map(|t| t.ds_mm.clone()).collect();
+    let ds_all: Vec<f64> = setup
+        .tools
+        .iter()
+        .flat_map(|t| t.ds_mm.iter().copied())
+        .collect();
     let mut unscaled = solution.clone();
     unscaled.dwell_s = dwell_s.concat();
     let mut report = Report::new(

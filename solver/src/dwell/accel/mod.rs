@@ -861,22 +861,18 @@ mod tests {
         let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
         for frac in [0.5, 0.2, 0.05] {
             let a_max = frac * a_free;
-            let reference = solve(
-                &problem,
-                &path,
-                &with_method(a_max, AccelMethod::ScpQp),
-                &settings,
-                &Silent,
-            )
-            .unwrap();
-            let fast = solve(
-                &problem,
-                &path,
-                &with_method(a_max, AccelMethod::SquaredSpeed),
-                &settings,
-                &Silent,
-            )
-            .unwrap();
+            let run = |method| {
+                solve(
+                    &problem,
+                    &path,
+                    &with_method(a_max, method),
+                    &settings,
+                    &Silent,
+                )
+                .unwrap()
+            };
+            let reference = run(AccelMethod::ScpQp);
+            let fast = run(AccelMethod::SquaredSpeed);
             let t = &fast.solution.dwell_s;
             // Exactly on the constraint set (up to rounding), inside the dwell bounds.
             let a = max_acceleration_mm_per_s2(&path, t, 60.0);
@@ -892,20 +888,11 @@ mod tests {
             );
             assert!(f >= free.objective * (1.0 - 1e-6));
             // The SCP from the squared-speed result keeps the limit and never loses objective.
-            let refined = solve(
-                &problem,
-                &path,
-                &with_method(a_max, AccelMethod::SquaredSpeedThenScpQp),
-                &settings,
-                &Silent,
-            )
-            .unwrap();
+            let refined = run(AccelMethod::SquaredSpeedThenScpQp);
             let t = &refined.solution.dwell_s;
             let a = max_acceleration_mm_per_s2(&path, t, 60.0);
-            assert!(
-                a <= a_max * (1.0 + limits_tolerance()),
-                "fraction {frac}: {a}"
-            );
+            let tolerance = AccelLimits::default().constraint_tolerance;
+            assert!(a <= a_max * (1.0 + tolerance), "fraction {frac}: {a}");
             assert!(refined.report.gradient_steps > 0 && refined.report.scp_iterations > 0);
             assert!(
                 refined.solution.objective <= f * (1.0 + 1e-12),
@@ -913,11 +900,6 @@ mod tests {
                 refined.solution.objective
             );
         }
-    }
-
-    /// The SCP's relative tolerance on the constraint.
-    fn limits_tolerance() -> f64 {
-        AccelLimits::default().constraint_tolerance
     }
 
     #[test]
