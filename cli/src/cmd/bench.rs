@@ -39,7 +39,7 @@ pub struct Args {
     /// Relative tolerance of the first-order solver (KKT residual or gap bound).
     #[arg(long)]
     pub first_order_tolerance: Option<f64>,
-    /// Iteration of the first-order solver on the generated problems (default fista).
+    /// Iteration of the first-order solver on the generated problems (default lbfgs).
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
     /// Sample job to include (default data/job.toml when it exists; "none" to skip).

@@ -48,6 +48,8 @@ pub enum FirstOrderMethodArg {
     NewtonCg,
     /// Accelerated projected gradient with adaptive restart.
     Fista,
+    /// Projected L-BFGS with an exact line search along the projected step.
+    Lbfgs,
 }
 
 impl From<FirstOrderMethodArg> for FirstOrderMethod {
@@ -55,6 +57,7 @@ impl From<FirstOrderMethodArg> for FirstOrderMethod {
         match m {
             FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
             FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
+            FirstOrderMethodArg::Lbfgs => FirstOrderMethod::Lbfgs,
         }
     }
 }
@@ -139,10 +142,11 @@ impl From<OperatorArg> for OperatorChoice {
 pub enum SolverArg {
     /// Sparse interior-point QP (Clarabel).
     Qp,
-    /// First-order solver (FISTA or projected Newton-CG; products with R only) with a KKT/gap
-    /// certificate.
+    /// First-order solver (projected L-BFGS, FISTA or projected Newton-CG; products with R
+    /// only) with a KKT/gap certificate.
     FirstOrder,
-    /// First-order from 5,000 dwell points or 5e6 non-zeros on, QP below (and for --min-time).
+    /// The first-order solver above about 1.6e5 non-zeros of R (a predicted 1 s of QP), the QP
+    /// below and for --min-time (cost models, docs/preconditioning.md).
     Auto,
 }
 
@@ -248,7 +252,7 @@ pub struct Args {
     /// Relative optimality tolerance of the solver (the QP's and the first-order solver's).
     #[arg(long)]
     pub tolerance: Option<f64>,
-    /// Iteration of the first-order solver (default: the job's, else fista).
+    /// Iteration of the first-order solver (default: the job's, else lbfgs).
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
     /// Iteration limit of the solver.
@@ -261,7 +265,7 @@ pub struct Args {
     #[arg(long, value_enum)]
     pub operator: Option<OperatorArg>,
     /// Largest estimated relative error of the off-lattice spreading operator against the
-    /// assembled R (default: the job's, else 1e-3).
+    /// assembled R (default: the job's, else 1e-4).
     #[arg(long)]
     pub spread_tolerance: Option<f64>,
     /// Start the first-order solver from the `dwell_s` column of a previous dwell.csv (same dwell

@@ -1,17 +1,20 @@
 //! A first-order solver for the contract: products with `R` and `R^T` only, on Jacobi-scaled
-//! variables, with one of two iterations ([`FirstOrderMethod`]):
+//! variables, with one of three iterations ([`FirstOrderMethod`]):
 //!
+//! * **Projected L-BFGS** (the default): limited-memory quasi-Newton directions (Nocedal 1980)
+//!   on the free variables, as in Kim, Sra & Dhillon, SIAM J. Sci. Comput. 32 (2010), with an
+//!   exact line search along the projected step. Steps at [`projected_lbfgs`].
 //! * **FISTA** (Beck & Teboulle 2009) with gradient-based adaptive restart (O'Donoghue & Candes,
-//!   "Adaptive restart for accelerated gradient schemes", 2015): the default.
+//!   "Adaptive restart for accelerated gradient schemes", 2015).
 //! * **Projected Newton-CG**: Bertsekas, "Projected Newton methods for optimization problems with
 //!   simple constraints", SIAM J. Control Optim. 20 (1982), with the Newton system solved by
 //!   truncated conjugate gradients on the free variables (Lin & More, SIAM J. Optim. 9, 1999) and
 //!   CG stopped when its steps stall (More & Toraldo, SIAM J. Optim. 1, 1991). Steps below.
 //!
-//! Chosen by measurement (docs/largescale.md): on the sample job (more map points than dwell
-//! points, `rho = 0`) Newton-CG lands 5e-5 relative above the QP optimum in the time FISTA needs
-//! for 2e-4; with many more dwell points than map points, or on the generated random problems, it
-//! is slow to bring its KKT residual down, so FISTA is the default.
+//! Chosen by measurement (docs/preconditioning.md): projected L-BFGS reaches a given objective in
+//! the fewest products on every problem measured (the sample job, the generated 2e3, 2e4 and 2e5
+//! problems, the off-lattice mirror); FISTA's KKT residual falls well before its objective does,
+//! and Newton-CG is slow to bring its KKT residual down where dwell points outnumber map points.
 //!
 //! **Objective.** The free piston is eliminated analytically: for fixed `t` the best `c` is
 //! `mean(R t - z)`, so with `P = I - 11'/m` the contract is
@@ -39,8 +42,8 @@
 //! gradient step of length `1 / L`, which always decreases an `L`-smooth `f`). Iterations count
 //! products with the Hessian or gradient (two operator products each) and objective evaluations.
 //!
-//! **Certificate.** Every 10 FISTA iterations (every `it / 50` past 500; the time limit is checked
-//! there too) or every Newton step, at the current feasible point `t`:
+//! **Certificate.** Every 10 FISTA or L-BFGS iterations (every `it / 50` past 500; the time limit
+//! is checked there too) or every Newton step, at the current feasible point `t`:
 //! * KKT residual: `||w - Proj(w - grad_w f)||_2 / ||S (R^T P z)||_2 + rho ||S 1||_2`, relative,
 //!   in the scaled variables (zero exactly at the optimum);
 //! * gap bound, from Lagrangian duality: `0.5 ||a||^2 >= a'y - 0.5 ||y||^2` for every `y`, so with
@@ -65,7 +68,7 @@ use super::{
     DwellBounds, FirstOrderMethod, Preconditioner, Problem, Settings, Solution, SolverKind, Status,
 };
 use crate::error::{Error, Result};
-use crate::influence::operator::{fill_and_sum, fixed_sum, LinearOperator};
+use crate::influence::operator::{fill_and_sum, fixed_sum, LinearOperator, CHUNK};
 use crate::observer::{IterationInfo, Observer, Stage};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -557,6 +560,15 @@ fn minimise_here(
                 precond.as_mut(),
             )
         }
+        FirstOrderMethod::Lbfgs => projected_lbfgs(
+            &data,
+            x,
+            &mut work,
+            bounds,
+            lambda_hat * NEWTON_L_SAFETY,
+            &limits,
+            observer,
+        ),
     };
     observer.finish(Stage::Solve);
     let dwell_s: Vec<f64> = x.iter().zip(&data.s).map(|(w, s)| w * s).collect();
@@ -884,6 +896,259 @@ fn newton_cg(
         observer.advance(Stage::Solve, (it - it_before) as u64);
     }
     (status, x, it, cert)
+}
+
+/// Correction pairs kept by the projected L-BFGS.
+const LBFGS_MEMORY: usize = 5;
+
+/// Projected L-BFGS from the feasible point `x`, in the scaled variables. At `x` with scaled
+/// gradient `q`, the binding variables (those a projected gradient step of length `1 / L` puts on
+/// a bound) take that step; the others `d_F = -H q_F`, `H` the L-BFGS inverse Hessian (Nocedal,
+/// Math. Comp. 35, 1980: two-loop recursion) on the stored pairs restricted to the free set
+/// (Kim, Sra & Dhillon, "Tackling box-constrained optimization via a new projected quasi-Newton
+/// approach", SIAM J. Sci. Comput. 32, 2010). The step `p = Proj(x + d) - x` and one Hessian
+/// product `H p` give, the objective being quadratic, the exact minimiser along the segment
+/// `x + tau p`, `tau = min(1, -q'p / p'Hp)`, and the new gradient `q + tau H p` without further
+/// products (recomputed exactly at every check). Should `p` not descend, the memory is cleared
+/// and the projected gradient step taken instead. Memory: `2 LBFGS_MEMORY + 6` vectors of `n`.
+fn projected_lbfgs(
+    data: &Data<'_>,
+    mut x: Vec<f64>,
+    work: &mut Work,
+    bounds: &DwellBounds,
+    lip: f64,
+    limits: &Limits,
+    observer: &dyn Observer,
+) -> Outcome {
+    let n = x.len();
+    let rho = data.rho;
+    let mem = LBFGS_MEMORY;
+    let mut s_mem = vec![vec![0.0; n]; mem];
+    let mut y_mem = vec![vec![0.0; n]; mem];
+    let mut inv_sy = vec![0.0; mem];
+    let mut gamma_of = vec![0.0; mem];
+    let mut coef = vec![0.0; mem];
+    let (mut stored, mut newest) = (0usize, 0usize);
+    let mut q = vec![0.0; n];
+    let mut d = vec![0.0; n];
+    let mut p = vec![0.0; n];
+    let mut hp = vec![0.0; n];
+    let mut free = vec![1.0_f64; n];
+    let mut status = Status::MaxIterations;
+    let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+    let scaled_gradient = |work: &Work, q: &mut [f64]| {
+        q.par_iter_mut()
+            .zip(work.g.par_iter().zip(&data.s))
+            .for_each(|(q, (g, s))| *q = s * (g + rho));
+    };
+    scaled_gradient(work, &mut q);
+    let mut it = 1;
+    let (mut last_check, mut next_check) = (it, it + CHECK_EVERY);
+    // The iteration at which `q` and `cert` were last computed exactly.
+    let mut exact_at = it;
+    observer.iteration(&IterationInfo {
+        iteration: it,
+        objective: cert.f,
+        kkt_residual: Some(cert.kkt),
+    });
+    if let Some(st) = limits.stop(&cert) {
+        return (st, x, it, cert);
+    }
+    let (lo, hi) = (&data.lo_w, &data.hi_w);
+    while it < limits.max_it {
+        let step = 1.0 / lip;
+        free.par_chunks_mut(CHUNK)
+            .enumerate()
+            .for_each(|(c, chunk)| {
+                for (k, fr) in chunk.iter_mut().enumerate() {
+                    let j = c * CHUNK + k;
+                    let g = q[j];
+                    let at_lo = g > 0.0 && x[j] - lo[j] <= step * g;
+                    let at_hi = g < 0.0 && hi[j] - x[j] <= -step * g;
+                    *fr = if at_lo || at_hi { 0.0 } else { 1.0 };
+                }
+            });
+        // Two-loop recursion on the free variables; `d` stays zero on the binding ones, so its
+        // dot products with the stored pairs are the restricted ones.
+        let order = |k: usize| (newest + mem - k) % mem;
+        let mut dot = if stored > 0 {
+            let (qq, fr, s0) = (&q, &free, &s_mem[order(0)]);
+            fill_and_sum(&mut d, &mut work.partials, |j| {
+                let v = qq[j] * fr[j];
+                (v, s0[j] * v)
+            })
+        } else {
+            let (qq, fr) = (&q, &free);
+            fill_and_sum(&mut d, &mut work.partials, |j| (qq[j] * fr[j], 0.0))
+        };
+        for k in 0..stored {
+            let i = order(k);
+            let a = inv_sy[i] * dot;
+            coef[i] = a;
+            let next = (k + 1 < stored).then(|| s_mem[order(k + 1)].as_slice());
+            dot = masked_axpy_dot(&mut d, -a, &y_mem[i], &free, next, &mut work.partials);
+        }
+        let gamma = if stored > 0 && gamma_of[order(0)] > 0.0 {
+            gamma_of[order(0)]
+        } else {
+            step
+        };
+        let mut dot = {
+            let first = (stored > 0).then(|| y_mem[order(stored - 1)].as_slice());
+            scale_dot(&mut d, gamma, first, &mut work.partials)
+        };
+        for k in (0..stored).rev() {
+            let i = order(k);
+            let c = coef[i] - inv_sy[i] * dot;
+            let next = (k > 0).then(|| y_mem[order(k - 1)].as_slice());
+            dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, next, &mut work.partials);
+        }
+        d.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
+            for (k, d) in chunk.iter_mut().enumerate() {
+                let j = c * CHUNK + k;
+                *d = if free[j] > 0.0 { -*d } else { -step * q[j] };
+            }
+        });
+        // The projected step, and the projected gradient step when it does not descend.
+        let mut qp = project_step(data, &x, &d, &mut p, &q, &mut work.partials);
+        if !(qp < 0.0) {
+            stored = 0;
+            d.par_iter_mut()
+                .zip(q.par_iter())
+                .for_each(|(d, q)| *d = -step * q);
+            qp = project_step(data, &x, &d, &mut p, &q, &mut work.partials);
+        }
+        if !(qp < 0.0) {
+            // No descent along the updated gradient: take the exact one, and stop if that
+            // shows none either (stationary to rounding).
+            cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+            scaled_gradient(work, &mut q);
+            let fresh = it == exact_at;
+            exact_at = it;
+            if let Some(st) = limits.stop(&cert) {
+                status = st;
+                break;
+            }
+            if fresh {
+                status = if cert.kkt <= limits.tol.sqrt() {
+                    Status::AlmostConverged
+                } else {
+                    Status::NumericalError
+                };
+                break;
+            }
+            continue;
+        }
+        data.hessian_product(&p, work, &mut hp);
+        it += 1;
+        let php = fixed_sum(n, &mut work.partials, |j| p[j] * hp[j]);
+        let tau = if php > 0.0 { (-qp / php).min(1.0) } else { 1.0 };
+        x.par_iter_mut()
+            .zip(
+                p.par_iter_mut()
+                    .zip(hp.par_iter_mut().zip(q.par_iter_mut())),
+            )
+            .with_min_len(CHUNK)
+            .for_each(|(x, (p, (h, q)))| {
+                *p *= tau;
+                *h *= tau;
+                *x += *p;
+                *q += *h;
+            });
+        // The new pair: s = tau p, y = tau H p (exact for the quadratic).
+        let sy = tau * tau * php;
+        if sy > 0.0 && sy.is_finite() {
+            newest = (newest + 1) % mem;
+            s_mem[newest].copy_from_slice(&p);
+            y_mem[newest].copy_from_slice(&hp);
+            inv_sy[newest] = 1.0 / sy;
+            let yy = fixed_sum(n, &mut work.partials, |j| hp[j] * hp[j]);
+            gamma_of[newest] = if yy > 0.0 { sy / yy } else { 0.0 };
+            stored = (stored + 1).min(mem);
+        }
+        if it >= next_check || it >= limits.max_it {
+            cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+            scaled_gradient(work, &mut q);
+            observer.advance(Stage::Solve, (it - last_check) as u64);
+            last_check = it;
+            exact_at = it;
+            next_check = it + CHECK_EVERY.max(it / CHECK_SPACING);
+            observer.iteration(&IterationInfo {
+                iteration: it,
+                objective: cert.f,
+                kkt_residual: Some(cert.kkt),
+            });
+            if let Some(st) = limits.stop(&cert) {
+                status = st;
+                break;
+            }
+        }
+    }
+    if it != exact_at {
+        cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+    }
+    (status, x, it, cert)
+}
+
+/// `d[j] += a v[j] mask[j]` (`mask` 1 on the free variables, 0 elsewhere), then
+/// `sum_j w[j] d[j]` (0 without `w`), in one pass over fixed chunks (bit-identical for any thread
+/// count).
+fn masked_axpy_dot(
+    d: &mut [f64],
+    a: f64,
+    v: &[f64],
+    mask: &[f64],
+    w: Option<&[f64]>,
+    partials: &mut Vec<f64>,
+) -> f64 {
+    d.par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let base = c * CHUNK;
+            let end = base + chunk.len();
+            let (v, mask) = (&v[base..end], &mask[base..end]);
+            for ((d, v), m) in chunk.iter_mut().zip(v).zip(mask) {
+                *d += a * v * m;
+            }
+            match w {
+                Some(w) => chunk.iter().zip(&w[base..end]).map(|(d, w)| d * w).sum(),
+                None => 0.0,
+            }
+        })
+        .collect_into_vec(partials);
+    partials.iter().sum()
+}
+
+/// `d *= a`, then `sum_j w[j] d[j]` (0 without `w`), in fixed chunks.
+fn scale_dot(d: &mut [f64], a: f64, w: Option<&[f64]>, partials: &mut Vec<f64>) -> f64 {
+    d.par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let base = c * CHUNK;
+            chunk.iter_mut().for_each(|d| *d *= a);
+            match w {
+                Some(w) => chunk.iter().zip(&w[base..]).map(|(d, w)| d * w).sum(),
+                None => 0.0,
+            }
+        })
+        .collect_into_vec(partials);
+    partials.iter().sum()
+}
+
+/// `p = Proj(x + d) - x`; returns `q'p`.
+fn project_step(
+    data: &Data<'_>,
+    x: &[f64],
+    d: &[f64],
+    p: &mut [f64],
+    q: &[f64],
+    partials: &mut Vec<f64>,
+) -> f64 {
+    let (lo, hi) = (&data.lo_w, &data.hi_w);
+    fill_and_sum(p, partials, |j| {
+        let v = (x[j] + d[j]).max(lo[j]).min(hi[j]) - x[j];
+        (v, q[j] * v)
+    })
 }
 
 /// Search directions of a Newton-CG step.
