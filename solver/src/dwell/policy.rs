@@ -8,8 +8,7 @@
 //! * one product pair `R t`, `R^T y` with the sparse `R`: `nnz * SPARSE_PAIR_S_PER_NNZ`;
 //! * one `R^T R t` with the FFT operator: `cells * FFT_PAIR_S_PER_CELL`, `cells` the padded
 //!   lattice's cell count;
-//! * the first-order solve: [`FISTA_PRODUCTS`] products (the default FISTA at its default
-//!   tolerance on the generated problems);
+//! * the first-order solve: [`FIRST_ORDER_PRODUCTS`] products;
 //! * the QP: `QP_S_PER_NNZ * nnz` (Clarabel's sparse LDL^T of the KKT system dominates).
 //!
 //! The QP is kept where it is predicted to take under [`QP_CHEAP_S`]: it then returns the
@@ -28,8 +27,13 @@ pub const ASSEMBLY_NNZ_PER_S: f64 = 4.0e7;
 /// Seconds of interior-point QP per non-zero of `R` (sample job 4.5 s at 7.7e5 non-zeros,
 /// generated 2e3 2.6 s at 4.8e5, generated 2e4 68 s at 7.45e6).
 pub const QP_S_PER_NNZ: f64 = 6.0e-6;
-/// Products to the default tolerance with Jacobi-scaled FISTA.
-pub const FISTA_PRODUCTS: f64 = 1000.0;
+/// Products of a first-order solve: FISTA at its default tolerance on the generated problems. The
+/// default iteration, projected L-BFGS, takes 979 (2e5) to 5,157 (2e3) there and 2,172 at 2e4
+/// (docs/preconditioning.md), so the first-order times are optimistic by up to 2x at 2e4; the
+/// crossovers that matter (FFT against sparse, per product) do not depend on it, and with 2,000
+/// the sparse first-order and QP models nearly tie at every size, where the QP's superlinear
+/// growth (1.5 GB at 2e4) is not in its linear model.
+pub const FIRST_ORDER_PRODUCTS: f64 = 1000.0;
 /// The QP is chosen where it is predicted to take less than this, s: it returns the certified
 /// optimum, where the first-order solver at its default tolerance stops 0.1% to 4% above it on
 /// the generated problems.
@@ -76,7 +80,7 @@ pub struct PolicyChoice {
 /// Chooses operator and solver (module documentation).
 pub fn choose(inputs: &PolicyInputs) -> PolicyChoice {
     let assembly = inputs.nnz / ASSEMBLY_NNZ_PER_S;
-    let products = FISTA_PRODUCTS;
+    let products = FIRST_ORDER_PRODUCTS;
     let qp_s = assembly + QP_S_PER_NNZ * inputs.nnz;
     let first_order_sparse_s = assembly + products * SPARSE_PAIR_S_PER_NNZ * inputs.nnz;
     let first_order_fft_s = inputs
