@@ -196,3 +196,22 @@ def test_accel_method_reaches_the_engine(small_job):
     assert results["squared-speed-then-scp-qp"] <= results["squared-speed"] * (1 + 1e-12)
     with pytest.raises(preston.InputError, match="newton"):
         preston.solve(small_job, a_max=50.0, accel_method="newton")
+
+
+def test_each_first_order_method_reaches_the_qp_optimum(small_job):
+    """The three first-order iterations (L-BFGS the default) by name, each at a tight tolerance
+    within 1e-6 of the initial objective of the QP's (the map is nearly removable, so the
+    optimum itself is tiny), L-BFGS within 1e-9; the default is L-BFGS."""
+    qp = preston.solve(small_job, solver="qp")
+    f_qp = qp.report["objective"]
+    f_0 = 0.5 * qp.report["m"] * qp.report["rms_before_nm"] ** 2
+    runs = {
+        m: preston.solve(small_job, solver="first-order", operator="sparse", first_order_method=m, tolerance=1e-10)
+        for m in ("lbfgs", "fista", "newton-cg")
+    }
+    for m, r in runs.items():
+        assert r.report["solver"] == "first-order", m
+        rel = 1e-9 if m == "lbfgs" else 1e-6
+        assert abs(r.report["objective"] - f_qp) <= rel * f_0, (m, r.report["objective"], f_qp, f_0)
+    default = preston.solve(small_job, solver="first-order", operator="sparse", tolerance=1e-10)
+    np.testing.assert_array_equal(default.dwell_s, runs["lbfgs"].dwell_s)
