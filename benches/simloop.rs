@@ -30,14 +30,17 @@ fn main() {
         measurement_noise_nm: 0.5,
     };
     let tif = Tif::Gaussian(GaussianTif::new(2.0, 10.0, 6.0).expect("tif"));
-    // The loop's default is `auto` (the first-order solver, FISTA, at this size) at tolerance
-    // LOOP_SOLVE_TOLERANCE; the other rows show looser and tighter solves, Newton-CG and the QP.
+    // The loop's default is `auto` (the first-order solver, L-BFGS, at this size) at tolerance
+    // LOOP_SOLVE_TOLERANCE; the other rows show looser and tighter solves, FISTA, Newton-CG and
+    // the QP.
     for (choice, method, tolerance) in [
         (
             SolverChoice::Auto,
-            FirstOrderMethod::Fista,
+            FirstOrderMethod::default(),
             LOOP_SOLVE_TOLERANCE,
         ),
+        (SolverChoice::FirstOrder, FirstOrderMethod::Lbfgs, 1e-5),
+        (SolverChoice::FirstOrder, FirstOrderMethod::Fista, 1e-4),
         (SolverChoice::FirstOrder, FirstOrderMethod::Fista, 1e-3),
         (SolverChoice::FirstOrder, FirstOrderMethod::Fista, 1e-5),
         (SolverChoice::FirstOrder, FirstOrderMethod::NewtonCg, 1e-4),
