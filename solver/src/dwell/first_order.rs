@@ -783,10 +783,7 @@ fn newton_cg(
         let (lo, hi) = (&data.lo_w, &data.hi_w);
         let step = 1.0 / lip;
         free.par_iter_mut().enumerate().for_each(|(j, f)| {
-            let g = grad[j];
-            let at_lo = g > 0.0 && x[j] - lo[j] <= step * g;
-            let at_hi = g < 0.0 && hi[j] - x[j] <= -step * g;
-            *f = !(at_lo || at_hi);
+            *f = !binds(grad[j], x[j], lo[j], hi[j], step);
         });
         // Truncated CG on the free variables.
         d.iter_mut().for_each(|v| *v = 0.0);
@@ -962,10 +959,11 @@ fn projected_lbfgs(
             .for_each(|(c, chunk)| {
                 for (k, fr) in chunk.iter_mut().enumerate() {
                     let j = c * CHUNK + k;
-                    let g = q[j];
-                    let at_lo = g > 0.0 && x[j] - lo[j] <= step * g;
-                    let at_hi = g < 0.0 && hi[j] - x[j] <= -step * g;
-                    *fr = if at_lo || at_hi { 0.0 } else { 1.0 };
+                    *fr = if binds(q[j], x[j], lo[j], hi[j], step) {
+                        0.0
+                    } else {
+                        1.0
+                    };
                 }
             });
         // Two-loop recursion on the free variables; `d` stays zero on the binding ones, so its
@@ -1149,6 +1147,12 @@ fn project_step(
         let v = (x[j] + d[j]).max(lo[j]).min(hi[j]) - x[j];
         (v, q[j] * v)
     })
+}
+
+/// Whether a projected gradient step of length `step` from `x` along the scaled gradient `g`
+/// puts the variable on its bound `lo` or `hi` (the binding set of Bertsekas 1982).
+fn binds(g: f64, x: f64, lo: f64, hi: f64, step: f64) -> bool {
+    (g > 0.0 && x - lo <= step * g) || (g < 0.0 && hi - x <= -step * g)
 }
 
 /// Search directions of a Newton-CG step.
