@@ -929,18 +929,24 @@ mod tests {
         }
     }
 
-    fn data() -> SetupData {
-        let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
+    /// A 21 x 21 map at 0.5 mm (10 x 10 mm from the origin) with heights `z(x, y)`, nm: the
+    /// fixture of the set-up tests here and in [`super::tools`].
+    pub(super) fn grid_map_21(z: impl Fn(f64, f64) -> f64) -> HeightMap {
+        let (mut xs, mut ys, mut zs) = (Vec::new(), Vec::new(), Vec::new());
         for j in 0..21 {
             for i in 0..21 {
-                let (px, py) = (i as f64 * 0.5, j as f64 * 0.5);
-                x.push(px);
-                y.push(py);
-                z.push(10.0 + (0.3 * px).sin() * (0.2 * py).cos());
+                let (x, y) = (i as f64 * 0.5, j as f64 * 0.5);
+                xs.push(x);
+                ys.push(y);
+                zs.push(z(x, y));
             }
         }
+        HeightMap::new(xs, ys, zs).unwrap()
+    }
+
+    fn data() -> SetupData {
         SetupData {
-            map: HeightMap::new(x, y, z).unwrap(),
+            map: grid_map_21(|x, y| 10.0 + (0.3 * x).sin() * (0.2 * y).cos()),
             tif: Tif::Gaussian(GaussianTif::new(1.0, 10.0, 3.0).unwrap()),
             dwell: DwellPoints::Raster {
                 pitch_mm: 1.0,

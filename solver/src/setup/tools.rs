@@ -247,16 +247,9 @@ mod tests {
     }
 
     fn two_tools() -> (HeightMap, Vec<Tool>) {
-        let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
-        for j in 0..21 {
-            for i in 0..21 {
-                let (px, py) = (i as f64 * 0.5, j as f64 * 0.5);
-                x.push(px);
-                y.push(py);
-                z.push(20.0 + 10.0 * (px / 3.0).sin() * (py / 4.0).cos());
-            }
-        }
-        let map = HeightMap::new(x, y, z).unwrap();
+        let map = crate::setup::tests::grid_map_21(|x, y| {
+            20.0 + 10.0 * (x / 3.0).sin() * (y / 4.0).cos()
+        });
         let line = |n: usize, pitch: f64, y0: f64| {
             let xs: Vec<f64> = (0..n).map(|i| 1.0 + i as f64 * pitch).collect();
             DwellPath::new(xs, vec![y0; n]).unwrap()
