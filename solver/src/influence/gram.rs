@@ -20,6 +20,7 @@
 
 use super::operator::{LinearOperator, SparseOperator};
 use rayon::prelude::*;
+use std::borrow::Cow;
 
 /// Columns of `G` formed by one rayon task (each task holds one dense accumulator).
 const COLUMNS_PER_TASK: usize = 64;
@@ -202,14 +203,23 @@ impl GramMatrix {
 #[derive(Debug, Clone)]
 pub struct GramOperator<'a> {
     op: SparseOperator<'a>,
-    gram: GramMatrix,
+    gram: Cow<'a, GramMatrix>,
 }
 
 impl<'a> GramOperator<'a> {
     /// Forms the Gram matrix of `op`.
     pub fn new(op: SparseOperator<'a>) -> Self {
-        let gram = GramMatrix::new(&op);
+        let gram = Cow::Owned(GramMatrix::new(&op));
         Self { op, gram }
+    }
+
+    /// `op` with its Gram matrix `gram`, formed once by the caller ([`GramMatrix::new`] of the
+    /// same matrix).
+    pub fn with_gram(op: SparseOperator<'a>, gram: &'a GramMatrix) -> Self {
+        Self {
+            op,
+            gram: Cow::Borrowed(gram),
+        }
     }
 
     /// The Gram matrix.

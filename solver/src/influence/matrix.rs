@@ -7,12 +7,13 @@
 //! column in place. The matrix is identical for any thread count.
 
 use super::gram::{GramMatrix, GramOperator};
-use super::operator::{InfluenceOperator, OperatorKind, Products, SparseOperator};
+use super::operator::{rows_of, InfluenceOperator, OperatorKind, Products, SparseOperator};
 use crate::error::{Error, Result};
 use crate::observer::{Observer, Stage};
 use crate::tif::InfluenceFunction;
-use nalgebra_sparse::CscMatrix;
+use nalgebra_sparse::{CscMatrix, CsrMatrix};
 use rayon::prelude::*;
+use std::sync::OnceLock;
 
 /// Dwell columns handled by one rayon task.
 const COLUMNS_PER_TASK: usize = 64;
@@ -21,10 +22,22 @@ const COLUMNS_PER_TASK: usize = 64;
 /// again in the row-major copy the products use.
 pub const NNZ_BYTES: f64 = 32.0;
 
-/// The sparse influence matrix, stored by columns (one column per dwell point).
-#[derive(Debug, Clone, PartialEq)]
+/// The sparse influence matrix, stored by columns (one column per dwell point), with the row
+/// copy and Gram matrix its products take, each built at the first call that needs it
+/// ([`InfluenceOperator::products`]) and kept for the next (a solve followed by another on the
+/// same matrix, as the acceleration-limited stage does, builds them once).
+#[derive(Debug, Clone)]
 pub struct InfluenceMatrix {
     csc: CscMatrix<f64>,
+    rows: OnceLock<CsrMatrix<f64>>,
+    gram: OnceLock<GramMatrix>,
+}
+
+impl PartialEq for InfluenceMatrix {
+    /// Equal entries (the kept copies are derived from them).
+    fn eq(&self, other: &Self) -> bool {
+        self.csc == other.csc
+    }
 }
 
 impl InfluenceMatrix {
@@ -184,12 +197,16 @@ impl InfluenceMatrix {
                     why: e.to_string(),
                 }
             })?;
-        Ok(Self { csc })
+        Ok(Self::from_csc(csc))
     }
 
     /// Wraps an existing CSC matrix (m measurement points x n dwell points).
     pub fn from_csc(csc: CscMatrix<f64>) -> Self {
-        Self { csc }
+        Self {
+            csc,
+            rows: OnceLock::new(),
+            gram: OnceLock::new(),
+        }
     }
 
     /// The matrix in compressed sparse column form.
@@ -291,13 +308,25 @@ impl InfluenceOperator for InfluenceMatrix {
         Some(self)
     }
 
-    /// The CSC matrix with a CSR copy built for this call (`R t` by rows), and with its Gram
-    /// matrix where the caller takes normal products and forming it pays.
+    /// The CSC matrix with its CSR copy (`R t` by rows), and with its Gram matrix where the
+    /// caller takes normal products and it is formed already or forming it pays; both are built
+    /// once and kept.
     fn products(&self, normal_products: Option<usize>) -> Products<'_> {
-        let op = SparseOperator::new(&self.csc);
-        match normal_products {
-            Some(k) if GramMatrix::worthwhile(&op, k) => Products::Gram(GramOperator::new(op)),
-            _ => Products::Sparse(op),
+        let csr = self.rows.get_or_init(|| rows_of(&self.csc));
+        let op = SparseOperator::with_rows(&self.csc, csr);
+        let gram = match normal_products {
+            Some(k) => match self.gram.get() {
+                Some(g) => Some(g),
+                None if GramMatrix::worthwhile(&op, k) => {
+                    Some(self.gram.get_or_init(|| GramMatrix::new(&op)))
+                }
+                None => None,
+            },
+            None => None,
+        };
+        match gram {
+            Some(g) => Products::Gram(GramOperator::with_gram(op, g)),
+            None => Products::Sparse(op),
         }
     }
 
@@ -373,7 +402,7 @@ where
 /// Map points bucketed into horizontal strips; within a strip sorted by x (then by index), so a
 /// disc query is one binary search per strip. For a row-major map (y-major, x ascending) the
 /// visited indices come out ascending and need no sort.
-struct StripIndex {
+pub(crate) struct StripIndex {
     y0: f64,
     strip_height: f64,
     strip_start: Vec<usize>,
@@ -383,7 +412,7 @@ struct StripIndex {
 }
 
 impl StripIndex {
-    fn new(x: &[f64], y: &[f64], radius: f64) -> Self {
+    pub(crate) fn new(x: &[f64], y: &[f64], radius: f64) -> Self {
         let m = x.len();
         let (y_lo, y_hi) = y
             .iter()
@@ -447,7 +476,13 @@ impl StripIndex {
     /// Calls `f(index, x, y)` for every point whose strip and x-range can lie within `radius` of
     /// `(cx, cy)` (a superset of the disc; callers test the distance).
     #[inline]
-    fn for_each_near(&self, cx: f64, cy: f64, radius: f64, mut f: impl FnMut(usize, f64, f64)) {
+    pub(crate) fn for_each_near(
+        &self,
+        cx: f64,
+        cy: f64,
+        radius: f64,
+        mut f: impl FnMut(usize, f64, f64),
+    ) {
         let n_strips = self.strip_start.len() - 1;
         let lo = ((cy - radius - self.y0) / self.strip_height).floor();
         let hi = ((cy + radius - self.y0) / self.strip_height).floor();
@@ -581,6 +616,39 @@ mod tests {
         let lhs: f64 = h1.iter().zip(&y).map(|(a, b)| a * b).sum();
         let rhs: f64 = g.iter().zip(&t1).map(|(a, b)| a * b).sum();
         assert!((lhs - rhs).abs() <= 1e-12 * lhs.abs().max(1.0));
+    }
+
+    /// The row copy and Gram matrix are built once and kept: a second call borrows the same
+    /// ones, and its products equal the first call's and the CSC matrix's own (`R t` by rows,
+    /// `G t` against `R^T (R t)`: rounding only).
+    #[test]
+    fn products_build_the_row_copy_and_gram_matrix_once() {
+        let (mx, my) = scattered(400, 5);
+        let (dx, dy) = scattered(60, 6);
+        let tif = GaussianTif::new(1.5, 2.0, 4.5).unwrap();
+        let r = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap();
+        let t: Vec<f64> = (0..60).map(|j| 0.5 + (j % 7) as f64 * 0.2).collect();
+        let (first, second) = (r.products(Some(10_000)), r.products(Some(10_000)));
+        let (Products::Gram(a), Products::Gram(b)) = (&first, &second) else {
+            panic!("a Gram matrix pays for 10,000 normal products here");
+        };
+        assert!(std::ptr::eq(a.gram(), b.gram()));
+        // Without normal products: the kept row copy, no Gram matrix.
+        let plain = r.products(None);
+        assert!(matches!(plain, Products::Sparse(_)));
+        let (mut h_rows, mut h_normal, mut h_gram) = (vec![0.0; 400], vec![0.0; 60], vec![0.0; 60]);
+        plain.apply(&t, &mut h_rows);
+        let h_cols = r.removal_nm(&t).unwrap();
+        let scale = h_cols.iter().fold(0.0_f64, |a, &b| a.max(b.abs()));
+        for (x, y) in h_rows.iter().zip(&h_cols) {
+            assert!((x - y).abs() <= 1e-13 * scale);
+        }
+        plain.apply_transpose(&h_rows, &mut h_normal);
+        second.apply_normal(&t, &mut vec![0.0; 400], &mut h_gram);
+        let scale = h_normal.iter().fold(0.0_f64, |a, &b| a.max(b.abs()));
+        for (x, y) in h_gram.iter().zip(&h_normal) {
+            assert!((x - y).abs() <= 1e-12 * scale);
+        }
     }
 
     #[test]
