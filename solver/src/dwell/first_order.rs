@@ -71,6 +71,7 @@ use crate::error::{Error, Result};
 use crate::influence::operator::{fill_and_sum, fixed_sum, LinearOperator, CHUNK};
 use crate::observer::{IterationInfo, Observer, Stage};
 use rayon::prelude::*;
+use std::sync::OnceLock;
 use std::time::Instant;
 
 /// Iterations between certificate evaluations (each costs one extra `R t` and `R^T r`) at least;
@@ -81,7 +82,7 @@ const CHECK_EVERY: usize = 10;
 /// See [`CHECK_EVERY`].
 const CHECK_SPACING: usize = 50;
 /// Power-iteration steps for the Lipschitz constant.
-const POWER_STEPS: usize = 60;
+pub(crate) const POWER_STEPS: usize = 60;
 /// Newton-CG's safety factor on the power-iteration estimate (it approaches the largest
 /// eigenvalue from below); FISTA uses the estimate itself (see the module documentation).
 const NEWTON_L_SAFETY: f64 = 1.1;
@@ -144,6 +145,7 @@ pub(crate) fn solve_validated(
             start,
             observer,
             problem.dwell_lattice(),
+            Some(problem.scaled_hessian_norm()),
         )
     })?;
     let mut dwell_s = res.dwell_s;
@@ -436,11 +438,12 @@ pub fn minimise_with(
 ) -> Result<FirstOrderResult> {
     settings.validate()?;
     minimise_validated(
-        op, z_nm, bounds, rho, lambda, settings, start, observer, lattice,
+        op, z_nm, bounds, rho, lambda, settings, start, observer, lattice, None,
     )
 }
 
-/// As [`minimise_with`], with `settings` already validated.
+/// As [`minimise_with`], with `settings` already validated; the scaled Hessian's norm is taken
+/// from `norm_cache` when it holds one and kept there otherwise ([`Problem`]'s cache).
 #[allow(clippy::too_many_arguments)]
 fn minimise_validated(
     op: &dyn LinearOperator,
@@ -452,6 +455,7 @@ fn minimise_validated(
     start: Option<&[f64]>,
     observer: &dyn Observer,
     lattice: Option<&DwellLattice>,
+    norm_cache: Option<&OnceLock<f64>>,
 ) -> Result<FirstOrderResult> {
     if op.nrows() + op.ncols() < SMALL_PROBLEM && rayon::current_num_threads() > 1 {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -463,7 +467,7 @@ fn minimise_validated(
             })?;
         return pool.install(|| {
             minimise_here(
-                op, z_nm, bounds, rho, lambda, settings, start, observer, lattice,
+                op, z_nm, bounds, rho, lambda, settings, start, observer, lattice, norm_cache,
             )
         });
     }
@@ -472,7 +476,7 @@ fn minimise_validated(
     // one thread more than there are workers competing for the cores).
     rayon::scope(|_| {
         minimise_here(
-            op, z_nm, bounds, rho, lambda, settings, start, observer, lattice,
+            op, z_nm, bounds, rho, lambda, settings, start, observer, lattice, norm_cache,
         )
     })
 }
@@ -488,6 +492,7 @@ fn minimise_here(
     start: Option<&[f64]>,
     observer: &dyn Observer,
     lattice: Option<&DwellLattice>,
+    norm_cache: Option<&OnceLock<f64>>,
 ) -> Result<FirstOrderResult> {
     let (m, n) = (op.nrows(), op.ncols());
     if z_nm.len() != m {
@@ -519,7 +524,7 @@ fn minimise_here(
     let began = Instant::now();
     let (data, mut work, kkt_scale) = Data::prepare(op, z_nm, bounds, rho, lambda);
 
-    let mut lambda_hat = power_iteration(&data, &mut work);
+    let mut lambda_hat = scaled_hessian_norm(&data, &mut work, norm_cache);
     if !(lambda_hat.is_finite() && lambda_hat > 0.0) {
         lambda_hat = 1.0;
     }
@@ -1168,6 +1173,19 @@ fn trial(data: &Data<'_>, x: &[f64], d: &[f64], alpha: f64, out: &mut [f64]) {
         .zip(x.par_iter().zip(d.par_iter()))
         .for_each(|(o, (x, d))| *o = x + alpha * d);
     data.project(out);
+}
+
+/// The largest eigenvalue of the scaled Hessian: `cache`'s value when it holds one, else
+/// [`power_iteration`]'s (then kept in `cache`).
+pub(crate) fn scaled_hessian_norm(
+    data: &Data<'_>,
+    work: &mut Work,
+    cache: Option<&OnceLock<f64>>,
+) -> f64 {
+    match cache {
+        Some(c) => *c.get_or_init(|| power_iteration(data, work)),
+        None => power_iteration(data, work),
+    }
 }
 
 /// Largest eigenvalue of the scaled Hessian `S (R^T P R + lambda D^T D) S` by power iteration

@@ -19,7 +19,7 @@ use crate::influence::{InfluenceMatrix, InfluenceOperator, LinearOperator};
 use crate::map::HeightStats;
 use crate::observer::Observer;
 use serde::{Deserialize, Serialize};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 pub use crate::influence::OperatorKind;
 
@@ -33,6 +33,10 @@ pub struct Problem {
     rho: f64,
     lambda: f64,
     dwell_lattice: Option<Arc<precond::DwellLattice>>,
+    /// The largest eigenvalue of the Jacobi-scaled Hessian `S (R^T P R + lambda D^T D) S` (a
+    /// property of `R` and `lambda` alone), estimated by the first solve that needs it and kept
+    /// for the next (the acceleration-limited stage after its feed-limited reference).
+    scaled_hessian_norm: OnceLock<f64>,
 }
 
 /// How `R` is held and applied: `auto` uses the FFT operator where it is predicted faster and
@@ -117,6 +121,7 @@ impl Problem {
             rho,
             lambda,
             dwell_lattice: None,
+            scaled_hessian_norm: OnceLock::new(),
         })
     }
 
@@ -206,6 +211,12 @@ impl Problem {
     /// Weight of the smoothness term, `lambda`.
     pub fn lambda(&self) -> f64 {
         self.lambda
+    }
+
+    /// Where the first-order solvers keep the largest eigenvalue of the Jacobi-scaled Hessian
+    /// once estimated (see the field's documentation).
+    pub(crate) fn scaled_hessian_norm(&self) -> &OnceLock<f64> {
+        &self.scaled_hessian_norm
     }
 
     /// Number of measurement points `m`.

@@ -413,19 +413,33 @@ pub(crate) fn solve_validated(
                     max_steps: limits.max_gradient_steps,
                     time_limit_s: settings.time_limit_s,
                 };
-                let r = super::with_operator(problem, |op| {
-                    let (data, mut work, kkt_scale) =
-                        Data::prepare(op, problem.z_nm(), bounds, problem.rho(), problem.lambda());
-                    Ok(speed::minimise(
-                        &data,
-                        &mut work,
-                        kkt_scale,
-                        &kin,
-                        &reference.dwell_s,
-                        &speed_limits,
-                        observer,
-                    ))
-                })?;
+                // The power iteration alone pays for a Gram matrix where the first-order
+                // solvers form one.
+                let products = super::first_order::POWER_STEPS;
+                let r =
+                    super::with_solver_operator(problem, products, limits.kkt_tolerance, |op| {
+                        let (data, mut work, kkt_scale) = Data::prepare(
+                            op,
+                            problem.z_nm(),
+                            bounds,
+                            problem.rho(),
+                            problem.lambda(),
+                        );
+                        // On a worker of the pool, as the first-order solvers run: called
+                        // from outside it, every parallel loop would wait on a futex.
+                        Ok(rayon::scope(|_| {
+                            speed::minimise(
+                                &data,
+                                &mut work,
+                                kkt_scale,
+                                &kin,
+                                &reference.dwell_s,
+                                &speed_limits,
+                                observer,
+                                Some(problem.scaled_hessian_norm()),
+                            )
+                        }))
+                    })?;
                 gradient_steps = r.iterations;
                 qp_iterations += r.iterations;
                 if limits.method == AccelMethod::SquaredSpeedThenScpQp {

@@ -30,18 +30,24 @@
 //! moved onto the true `C` by the exact projection of `u(t)` in the same metric (a change of the
 //! order of the remaining violation), so the written dwell times meet the limit exactly.
 //!
-//! Each iteration costs one product with `R` and one with `R^T` (the removal of the new iterate
-//! is kept, and the extrapolated point's removal is the same combination of removals) and one
-//! chain projection (`O(n)`, parallel over lines); it needs only the operator's products, so the
-//! assembled, FFT and spreading operators and curved parts all serve.
+//! Each iteration costs one normal product `R^T R t` (the gradient of the new iterate; the
+//! gradient is affine in `t`, so the extrapolated point's is the same combination of gradients
+//! unless the bounds clip it) and one chain projection (`O(n)`, parallel over lines). A step is
+//! accepted when `f(t_new) - f(t) = (t_new - t)' (g + g_new) / 2 <= 0`, exact for the quadratic
+//! and free of the cancellation a difference of two objective values suffers; the objective
+//! itself is evaluated through `R` only at the KKT checks. Normal products go through the Gram
+//! matrix where the assembled `R` has one ([`crate::influence::GramMatrix`]), through one pass
+//! over the lattice for the FFT operator, and as `R^T (R t)` otherwise, so the assembled, FFT and
+//! spreading operators and curved parts all serve.
 
 use super::chain::{project_chain, Chain, ChainScratch};
 use super::Kinematics;
-use crate::dwell::first_order::{power_iteration, Data, Work};
+use crate::dwell::first_order::{scaled_hessian_norm, Data, Work};
 use crate::dwell::Status;
 use crate::influence::operator::{fill_and_sum, fixed_sum};
 use crate::observer::{IterationInfo, Observer, Stage};
 use rayon::prelude::*;
+use std::sync::OnceLock;
 use std::time::Instant;
 
 /// Iterations between KKT checks.
@@ -279,63 +285,44 @@ impl Iteration<'_> {
     }
 }
 
-/// The contract's value and gradient from a removal `rt = R t` (overwritten by the centred
-/// residual `P (R t - z)`): `grad = R^T P (R t - z) + lambda D^T D t + rho` (into `work.g`,
-/// unscaled). Returns `f`.
-fn value_and_gradient(data: &Data<'_>, t: &[f64], rt: &mut [f64], work: &mut Work) -> f64 {
-    let (z, m) = (data.z, data.z.len());
-    let mean = {
-        let r = &*rt;
-        fixed_sum(m, &mut work.partials, |i| r[i] - z[i]) / m as f64
-    };
-    rt.par_iter_mut()
-        .zip(z.par_iter())
-        .for_each(|(r, z)| *r = *r - z - mean);
-    let half_r2 = {
-        let r = &*rt;
-        0.5 * fixed_sum(m, &mut work.partials, |i| r[i] * r[i])
-    };
-    data.op.apply_transpose(rt, &mut work.g);
-    let (rho, lam) = (data.rho, data.lambda);
-    work.g.par_iter_mut().enumerate().for_each(|(j, g)| {
-        if lam > 0.0 {
-            *g += lam * crate::dwell::first_order::dtd(t, j);
-        }
-        *g += rho;
-    });
-    let n = t.len();
-    let half_d2 = if lam > 0.0 {
-        0.5 * lam
-            * fixed_sum(n.saturating_sub(1), &mut work.partials, |k| {
-                (t[k + 1] - t[k]).powi(2)
-            })
-    } else {
-        0.0
-    };
-    let sum_t = fixed_sum(n, &mut work.partials, |j| t[j]);
-    half_r2 + half_d2 + rho * sum_t
+/// The gradient `grad_t f = R^T P (R t - z) + lambda D^T D t + rho` at the scaled point `w`
+/// (`t = S w`) into `g`, from one normal product ([`Data::normal_gradient`]: through the Gram
+/// matrix where the operator holds one).
+fn gradient(data: &Data<'_>, w: &[f64], work: &mut Work, g: &mut [f64]) {
+    data.normal_gradient(w, true, work);
+    let rho = data.rho;
+    g.par_iter_mut()
+        .zip(work.g.par_iter())
+        .for_each(|(g, wg)| *g = wg + rho);
 }
 
-/// The contract's value at `t` from its removal `rt = R t` (not modified).
-fn value(data: &Data<'_>, t: &[f64], rt: &[f64], work: &mut Work) -> f64 {
-    let (z, m) = (data.z, data.z.len());
-    let mean = fixed_sum(m, &mut work.partials, |i| rt[i] - z[i]) / m as f64;
-    let half_r2 = 0.5 * fixed_sum(m, &mut work.partials, |i| (rt[i] - z[i] - mean).powi(2));
-    let n = t.len();
-    let lam = data.lambda;
-    let half_d2 = if lam > 0.0 {
-        0.5 * lam
-            * fixed_sum(n.saturating_sub(1), &mut work.partials, |k| {
-                (t[k + 1] - t[k]).powi(2)
-            })
-    } else {
-        0.0
-    };
-    half_r2 + half_d2 + data.rho * fixed_sum(n, &mut work.partials, |j| t[j])
+/// The contract's value at the scaled point `w` from one product with `R`, and `||P r||`
+/// (`r = R t - z`).
+fn exact_value(data: &Data<'_>, w: &[f64], work: &mut Work) -> (f64, f64) {
+    let f = data.objective(w, work);
+    let r = &work.rt;
+    let pr = fixed_sum(r.len(), &mut work.partials, |i| r[i] * r[i]).sqrt();
+    (f, pr)
+}
+
+/// `f(b) - f(a)` of the quadratic contract from the gradients at both ends:
+/// `(t_b - t_a)' (g_a + g_b) / 2`, exact for a quadratic (scaled points, `t = S w`). Its rounding
+/// is relative to the change, not to `f`.
+fn change(
+    s: &[f64],
+    (wa, ga): (&[f64], &[f64]),
+    (wb, gb): (&[f64], &[f64]),
+    partials: &mut Vec<f64>,
+) -> f64 {
+    0.5 * fixed_sum(s.len(), partials, |j| {
+        s[j] * (wb[j] - wa[j]) * (ga[j] + gb[j])
+    })
 }
 
 /// Minimises the contract under the acceleration limit from `start` (dwell times, s, inside the
-/// bounds); see the module documentation.
+/// bounds); see the module documentation. The step's Lipschitz constant comes from `norm_cache`
+/// when an earlier solve on the same problem left it there.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn minimise(
     data: &Data<'_>,
     work: &mut Work,
@@ -344,15 +331,16 @@ pub(crate) fn minimise(
     start: &[f64],
     limits: &SpeedLimits,
     observer: &dyn Observer,
+    norm_cache: Option<&OnceLock<f64>>,
 ) -> SpeedResult {
     let began = Instant::now();
-    let (m, n) = (data.z.len(), start.len());
+    let n = start.len();
     let mut it_state = Iteration {
         data,
         kin,
         proj: Projection::new(kin),
     };
-    let mut lip = power_iteration(data, work);
+    let mut lip = scaled_hessian_norm(data, work, norm_cache);
     if !(lip.is_finite() && lip > 0.0) {
         lip = 1.0;
     }
@@ -361,29 +349,20 @@ pub(crate) fn minimise(
     let mut x: Vec<f64> = start.iter().zip(s).map(|(t, s)| t / s).collect();
     data.project(&mut x);
     it_state.retract(&mut x);
-    let to_t = |w: &[f64], t: &mut [f64]| {
-        t.par_iter_mut()
-            .zip(w.par_iter().zip(s.par_iter()))
-            .for_each(|(t, (w, s))| *t = w * s);
-    };
-    let mut t = vec![0.0; n];
-    let mut ty = vec![0.0; n];
-    to_t(&x, &mut t);
-    let mut rx = vec![0.0; m];
-    data.op.apply(&t, &mut rx);
-    let mut fx = value(data, &t, &rx, work);
     let pz_norm = {
         let (z, m) = (data.z, data.z.len());
         let mean = fixed_sum(m, &mut work.partials, |i| z[i]) / m as f64;
         fixed_sum(m, &mut work.partials, |i| (z[i] - mean).powi(2)).sqrt()
     };
+    let mut g_x = vec![0.0; n];
+    gradient(data, &x, work, &mut g_x);
     let mut x_prev = x.clone();
-    let mut rx_prev = rx.clone();
+    let mut g_prev = g_x.clone();
     let mut y = x.clone();
-    let mut ry = vec![0.0; m];
+    let mut g_y = vec![0.0; n];
     let mut w_hat = vec![0.0; n];
     let mut x_new = vec![0.0; n];
-    let mut r_new = vec![0.0; m];
+    let mut g_new = vec![0.0; n];
     let mut theta = 1.0_f64;
     let mut beta = 0.0_f64;
     let mut kkt = f64::INFINITY;
@@ -392,7 +371,7 @@ pub(crate) fn minimise(
     observer.start(Stage::Loop, limits.max_steps as u64);
     while it < limits.max_steps {
         it += 1;
-        // Extrapolated point, clipped to the bounds, and its removal (R is linear).
+        // Extrapolated point, clipped to the bounds, and its gradient (affine in the point).
         let clipped = {
             let (x, xp, lo, hi) = (&x, &x_prev, &data.lo_w, &data.hi_w);
             fill_and_sum(&mut y, &mut work.partials, |j| {
@@ -401,32 +380,28 @@ pub(crate) fn minimise(
                 (v, (v - raw).abs())
             }) > 0.0
         };
-        to_t(&y, &mut ty);
         if beta == 0.0 {
-            ry.copy_from_slice(&rx);
+            g_y.copy_from_slice(&g_x);
         } else if clipped {
-            data.op.apply(&ty, &mut ry);
+            gradient(data, &y, work, &mut g_y);
         } else {
-            ry.par_iter_mut()
-                .zip(rx.par_iter().zip(rx_prev.par_iter()))
-                .for_each(|(r, (a, b))| *r = a + beta * (a - b));
+            g_y.par_iter_mut()
+                .zip(g_x.par_iter().zip(g_prev.par_iter()))
+                .for_each(|(g, (a, b))| *g = a + beta * (a - b));
         }
-        value_and_gradient(data, &ty, &mut ry, work);
         let step = 1.0 / lip;
         w_hat
             .par_iter_mut()
-            .zip(y.par_iter().zip(work.g.par_iter().zip(s.par_iter())))
+            .zip(y.par_iter().zip(g_y.par_iter().zip(s.par_iter())))
             .for_each(|(wh, (y, (g, s)))| *wh = y - step * s * g);
         it_state.project_linearised(&y, &w_hat, &mut x_new);
-        to_t(&x_new, &mut t);
-        data.op.apply(&t, &mut r_new);
-        let f_new = value(data, &t, &r_new, work);
-        if f_new <= fx {
+        gradient(data, &x_new, work, &mut g_new);
+        let df = change(s, (&x, &g_x), (&x_new, &g_new), &mut work.partials);
+        if df <= 0.0 {
             std::mem::swap(&mut x_prev, &mut x);
             std::mem::swap(&mut x, &mut x_new);
-            std::mem::swap(&mut rx_prev, &mut rx);
-            std::mem::swap(&mut rx, &mut r_new);
-            fx = f_new;
+            std::mem::swap(&mut g_prev, &mut g_x);
+            std::mem::swap(&mut g_x, &mut g_new);
             let theta_next = 0.5 * (1.0 + (1.0 + 4.0 * theta * theta).sqrt());
             beta = (theta - 1.0) / theta_next;
             theta = theta_next;
@@ -438,21 +413,18 @@ pub(crate) fn minimise(
             beta = 0.0;
             theta = 1.0;
             x_prev.copy_from_slice(&x);
-            rx_prev.copy_from_slice(&rx);
+            g_prev.copy_from_slice(&g_x);
         }
         if it % CHECK_EVERY == 0 || it == limits.max_steps {
-            kkt = kkt_residual(
-                &mut it_state,
-                &x,
-                &rx,
-                work,
-                kkt_scale,
-                pz_norm,
-                &mut w_hat,
-                &mut x_new,
-                &mut ry,
-                &mut ty,
-            );
+            // The value through R and the residual's share of the error.
+            let (fx, pr_norm) = exact_value(data, &x, work);
+            let q = if pz_norm > 0.0 {
+                (pr_norm / pz_norm).clamp(Q_MIN, 1.0)
+            } else {
+                1.0
+            };
+            kkt = kkt_residual(&mut it_state, &x, &g_x, &mut w_hat, &mut x_new, work)
+                / (kkt_scale * q);
             observer.advance(Stage::Loop, CHECK_EVERY as u64);
             observer.iteration(&IterationInfo {
                 iteration: it,
@@ -480,42 +452,22 @@ pub(crate) fn minimise(
     }
 }
 
-/// Relative KKT residual at `x` (removal `rx`): `||x - P_x(x - grad_w f(x))|| / (kkt_scale q)`,
-/// with `P_x` the projection onto the constraint set linearised at `x` and
-/// `q = ||P r|| / ||P z||` clamped to `[Q_MIN, 1]` (`pz_norm = ||P z||`).
-#[allow(clippy::too_many_arguments)]
+/// Unnormalised KKT residual at `x` with gradient `g_x` (unscaled):
+/// `||x - P_x(x - S g_x)||`, with `P_x` the projection onto the constraint set linearised at
+/// `x`; the caller divides by `kkt_scale q` (module documentation).
 fn kkt_residual(
     state: &mut Iteration<'_>,
     x: &[f64],
-    rx: &[f64],
-    work: &mut Work,
-    kkt_scale: f64,
-    pz_norm: f64,
+    g_x: &[f64],
     w_hat: &mut [f64],
     out: &mut [f64],
-    scratch_r: &mut [f64],
-    scratch_t: &mut [f64],
+    work: &mut Work,
 ) -> f64 {
     let s = &state.data.s;
-    scratch_t
-        .par_iter_mut()
-        .zip(x.par_iter().zip(s.par_iter()))
-        .for_each(|(t, (w, s))| *t = w * s);
-    scratch_r.copy_from_slice(rx);
-    value_and_gradient(state.data, scratch_t, scratch_r, work);
-    let q = if pz_norm > 0.0 {
-        let r = &*scratch_r;
-        let pr_norm = fixed_sum(r.len(), &mut work.partials, |i| r[i] * r[i]).sqrt();
-        (pr_norm / pz_norm).clamp(Q_MIN, 1.0)
-    } else {
-        1.0
-    };
     w_hat
         .par_iter_mut()
-        .zip(x.par_iter().zip(work.g.par_iter().zip(s.par_iter())))
+        .zip(x.par_iter().zip(g_x.par_iter().zip(s.par_iter())))
         .for_each(|(wh, (x, (g, s)))| *wh = x - s * g);
     state.project_linearised(x, w_hat, out);
-    let n = x.len();
-    let r2 = fixed_sum(n, &mut work.partials, |j| (x[j] - out[j]).powi(2));
-    r2.sqrt() / (kkt_scale * q)
+    fixed_sum(x.len(), &mut work.partials, |j| (x[j] - out[j]).powi(2)).sqrt()
 }
