@@ -22,9 +22,6 @@ use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
 use serde::{Deserialize, Serialize};
 
-/// Sampled dwell columns assembled at a time (bounds the memory of a continuous simulation).
-const SAMPLES_PER_CHUNK: usize = 1 << 15;
-
 /// How the tool moves through a dwell program.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "mode")]
@@ -191,8 +188,8 @@ pub fn sample_program(path: &DwellPath, dwell_s: &[f64], motion: Motion) -> Resu
 }
 
 /// Removal (nm) at the map points `(map_x_mm, map_y_mm)` produced by the dwell program under
-/// `motion` with `tif`. Samples are assembled in chunks and summed in path order, so the result
-/// does not depend on the thread count; discrete motion equals `R t` of the solver bit for bit.
+/// `motion` with `tif`; the result does not depend on the thread count, and discrete motion equals
+/// `R t` of the solver bit for bit.
 pub fn removal_nm<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -218,8 +215,8 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
 }
 
 /// Removal (nm) at the map points of dwell samples (positions and the time the tool spends at
-/// each), `h(x) = sum_k TIF(x - s_k) tau_k`: assembled in chunks of samples and summed in sample
-/// order, so the result does not depend on the thread count.
+/// each), `h(x) = sum_k TIF(x - s_k) tau_k`, summed directly ([`crate::influence::direct`]): no
+/// matrix is held, and the result does not depend on the thread count.
 pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -227,26 +224,15 @@ pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     tif: &T,
     observer: &dyn Observer,
 ) -> Result<Vec<f64>> {
-    let mut h = vec![0.0; map_x_mm.len()];
-    let n = program.dwell_s.len();
-    let mut start = 0;
-    while start < n {
-        let end = (start + SAMPLES_PER_CHUNK).min(n);
-        let r = InfluenceMatrix::assemble(
-            map_x_mm,
-            map_y_mm,
-            &program.x_mm[start..end],
-            &program.y_mm[start..end],
-            tif,
-            observer,
-        )?;
-        let part = r.removal_nm(&program.dwell_s[start..end])?;
-        for (hi, p) in h.iter_mut().zip(part) {
-            *hi += p;
-        }
-        start = end;
-    }
-    Ok(h)
+    crate::influence::direct::removal_nm(
+        map_x_mm,
+        map_y_mm,
+        &program.x_mm,
+        &program.y_mm,
+        &program.dwell_s,
+        tif,
+        observer,
+    )
 }
 
 #[cfg(test)]

@@ -8,12 +8,15 @@
 //! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
 //! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
 //!   onto an oversampled lattice, then FFT convolution);
+//! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
+//!   programs);
 //! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
 //! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
 //! - [`operator`]: the traits: [`InfluenceOperator`] (`R` as a dwell problem holds it, whichever of
 //!   the above it is) and [`LinearOperator`] (the products `R t`, `R^T y` every solver goes through).
 
 pub mod curvature;
+pub mod direct;
 pub mod fft;
 pub mod gram;
 pub mod matrix;

@@ -1,0 +1,161 @@
+//! The removal `h = R t` summed directly, without assembling `R`: for one product with many
+//! columns, such as a program sampled along its path (tens of thousands of samples), where the
+//! assembled matrix would be held for a single use.
+//!
+//! `h_i = sum_j TIF(x_i - X_j, y_i - Y_j) t_j` over the dwell points `j` within the TIF's support
+//! radius of map point `i` (the pairs [`super::InfluenceMatrix::assemble`] keeps), found with a
+//! strip index over the dwell points. Each map point is summed by one task in the index's fixed
+//! order, so the result does not depend on the thread count; it equals the assembled `R t` to
+//! rounding (the terms are the same, the order differs).
+
+use super::matrix::StripIndex;
+use crate::error::{Error, Result};
+use crate::observer::{Observer, Stage};
+use crate::tif::InfluenceFunction;
+use rayon::prelude::*;
+
+/// Map points summed by one rayon task.
+const POINTS_PER_TASK: usize = 256;
+
+/// `h = R t`, nm, at the map points `(map_x_mm, map_y_mm)` of dwell times `dwell_s` (s) at
+/// `(dwell_x_mm, dwell_y_mm)` with `tif`, without assembling `R` (module documentation).
+pub fn removal_nm<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    dwell_s: &[f64],
+    tif: &T,
+    observer: &dyn Observer,
+) -> Result<Vec<f64>> {
+    let (m, n) = (map_x_mm.len(), dwell_x_mm.len());
+    for (what, got, expected) in [
+        ("map y_mm", map_y_mm.len(), m),
+        ("dwell y_mm", dwell_y_mm.len(), n),
+        ("dwell_s", dwell_s.len(), n),
+    ] {
+        if got != expected {
+            return Err(Error::LengthMismatch {
+                what,
+                got,
+                expected,
+            });
+        }
+    }
+    let radius = tif.support_radius_mm();
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(Error::invalid(
+            "TIF support radius",
+            format!("must be positive and finite, got {radius} mm"),
+        ));
+    }
+    observer.start(Stage::Assembly, n as u64);
+    let index = StripIndex::new(dwell_x_mm, dwell_y_mm, radius);
+    let r2 = radius * radius;
+    let mut h = vec![0.0; m];
+    h.par_chunks_mut(POINTS_PER_TASK)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            for (k, hi) in chunk.iter_mut().enumerate() {
+                let i = c * POINTS_PER_TASK + k;
+                let (px, py) = (map_x_mm[i], map_y_mm[i]);
+                let mut sum = 0.0;
+                index.for_each_near(px, py, radius, |j, cx, cy| {
+                    let (dx, dy) = (px - cx, py - cy);
+                    if dx * dx + dy * dy <= r2 {
+                        sum += tif.rate_nm_per_s(dx, dy) * dwell_s[j];
+                    }
+                });
+                *hi = sum;
+            }
+        });
+    observer.advance(Stage::Assembly, n as u64);
+    observer.finish(Stage::Assembly);
+    Ok(h)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::influence::InfluenceMatrix;
+    use crate::observer::Silent;
+    use crate::tif::GaussianTif;
+
+    /// Direct sum against the assembled `R t`: the same terms in another order.
+    const DIRECT_VS_ASSEMBLED_RTOL: f64 = 1e-13;
+
+    /// Scattered points in a box (a deterministic sequence).
+    fn scattered(
+        n: usize,
+        seed: u64,
+        (x0, y0, w, h): (f64, f64, f64, f64),
+    ) -> (Vec<f64>, Vec<f64>) {
+        let mut s = seed;
+        let mut next = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..n).map(|_| (x0 + w * next(), y0 + h * next())).unzip()
+    }
+
+    #[test]
+    fn direct_removal_equals_the_assembled_product() {
+        let tif = GaussianTif::new(1.1, 12.0, 4.0).unwrap();
+        let (mx, my) = scattered(900, 3, (0.0, 0.0, 20.0, 12.0));
+        // Dwell points beyond the map on every side, so some reach no map point.
+        let (dx, dy) = scattered(1500, 7, (-6.0, -6.0, 32.0, 24.0));
+        let t: Vec<f64> = (0..dx.len())
+            .map(|j| 0.1 + (j % 17) as f64 * 0.05)
+            .collect();
+        let r = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap();
+        let want = r.removal_nm(&t).unwrap();
+        let got = removal_nm(&mx, &my, &dx, &dy, &t, &tif, &Silent).unwrap();
+        let scale = want.iter().fold(0.0_f64, |a, &b| a.max(b.abs()));
+        assert!(scale > 0.0);
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (a - b).abs() <= DIRECT_VS_ASSEMBLED_RTOL * scale,
+                "point {i}: direct {a} against assembled {b}"
+            );
+        }
+    }
+
+    #[test]
+    fn direct_removal_is_identical_for_one_and_two_threads() {
+        let tif = GaussianTif::new(0.8, 5.0, 3.0).unwrap();
+        let (mx, my) = scattered(3000, 11, (0.0, 0.0, 30.0, 30.0));
+        let (dx, dy) = scattered(4000, 13, (0.0, 0.0, 30.0, 30.0));
+        let t: Vec<f64> = (0..dx.len()).map(|j| 1.0 + (j % 5) as f64).collect();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| removal_nm(&mx, &my, &dx, &dy, &t, &tif, &Silent).unwrap())
+        };
+        assert_eq!(run(1), run(2));
+    }
+
+    #[test]
+    fn mismatched_lengths_are_refused() {
+        let tif = GaussianTif::new(1.0, 1.0, 3.0).unwrap();
+        let e = removal_nm(
+            &[0.0],
+            &[0.0],
+            &[0.0, 1.0],
+            &[0.0, 1.0],
+            &[1.0],
+            &tif,
+            &Silent,
+        );
+        assert!(matches!(
+            e,
+            Err(Error::LengthMismatch {
+                what: "dwell_s",
+                ..
+            })
+        ));
+    }
+}
