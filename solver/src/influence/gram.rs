@@ -13,7 +13,11 @@
 //! every entry `(k, R[i, k])` of row `i` with `k >= j` adds `R[i, j] R[i, k]` to a dense
 //! accumulator. Each entry `G[j, k]` is thus the sum over the shared rows in ascending row
 //! order; the upper triangle is formed so and mirrored, so `G` is exactly symmetric, and columns
-//! are formed independently, so it is bit-identical for any thread count.
+//! are formed independently, so it is bit-identical for any thread count. The column's entries
+//! are read off the accumulator's span `j..=k_max` when that span is at most twice the
+//! multiply-adds (neighbours numbered close, as along a raster: no per-entry bookkeeping in the
+//! inner loop), else from the rows' sorted, deduplicated indices; entries that sum to exactly zero
+//! are not stored.
 //!
 //! **Products.** `G t` is one dot product per row in a fixed order (outputs distributed over
 //! threads): bit-identical for any thread count. It differs from `R^T (R t)` by rounding only.
@@ -79,35 +83,59 @@ impl GramMatrix {
         let blocks: Vec<Block> = starts
             .par_iter()
             .map_init(
-                || (vec![0.0; n], vec![false; n], Vec::new()),
-                |(acc, seen, touched): &mut (Vec<f64>, Vec<bool>, Vec<u32>), &start| {
+                || (vec![0.0; n], Vec::new()),
+                |(acc, touched): &mut (Vec<f64>, Vec<u32>), &start| {
                     let end = (start + COLUMNS_PER_TASK).min(n);
                     let (mut lens, mut cols, mut vals) = (Vec::new(), Vec::new(), Vec::new());
+                    // The rows of column j from its entry at j on (their columns are sorted).
+                    let upper = |j: usize, p: usize| {
+                        let i = c_rows[p];
+                        let row = r_off[i]..r_off[i + 1];
+                        let from = row.start + r_cols[row.clone()].partition_point(|&k| k < j);
+                        from..row.end
+                    };
                     for j in start..end {
+                        let (mut last, mut work) = (j, 0usize);
                         for p in c_off[j]..c_off[j + 1] {
-                            let (i, a) = (c_rows[p], c_vals[p]);
-                            let row = r_off[i]..r_off[i + 1];
-                            // The row's entries at columns k >= j (its columns are sorted).
-                            let from = row.start + r_cols[row.clone()].partition_point(|&k| k < j);
-                            for (&k, &v) in r_cols[from..row.end].iter().zip(&r_vals[from..row.end])
-                            {
-                                if !seen[k] {
-                                    seen[k] = true;
-                                    touched.push(k as u32);
-                                }
+                            let a = c_vals[p];
+                            let part = upper(j, p);
+                            if let Some(&k) = r_cols[part.clone()].last() {
+                                last = last.max(k);
+                            }
+                            work += part.len();
+                            for (&k, &v) in r_cols[part.clone()].iter().zip(&r_vals[part]) {
                                 acc[k] += a * v;
                             }
                         }
-                        touched.sort_unstable();
-                        lens.push(touched.len());
-                        for &k in touched.iter() {
-                            let k = k as usize;
-                            cols.push(k as u32);
-                            vals.push(acc[k]);
-                            acc[k] = 0.0;
-                            seen[k] = false;
+                        let before = cols.len();
+                        if last - j < 2 * work {
+                            // Read the span j..=last off the accumulator: at most twice the
+                            // accumulation's cost (a path whose neighbours are numbered close).
+                            for (k, a) in acc.iter_mut().enumerate().take(last + 1).skip(j) {
+                                if *a != 0.0 {
+                                    cols.push(k as u32);
+                                    vals.push(*a);
+                                    *a = 0.0;
+                                }
+                            }
+                        } else {
+                            // Neighbours numbered far apart: collect the indices the rows hold.
+                            touched.clear();
+                            for p in c_off[j]..c_off[j + 1] {
+                                touched.extend(r_cols[upper(j, p)].iter().map(|&k| k as u32));
+                            }
+                            touched.sort_unstable();
+                            touched.dedup();
+                            for &k in touched.iter() {
+                                let a = &mut acc[k as usize];
+                                if *a != 0.0 {
+                                    cols.push(k);
+                                    vals.push(*a);
+                                }
+                                *a = 0.0;
+                            }
                         }
-                        touched.clear();
+                        lens.push(cols.len() - before);
                     }
                     (lens, cols, vals)
                 },
@@ -317,6 +345,40 @@ mod tests {
         // Column 2 of R is empty: so is row 2 of G; columns 0 and 3 share no row.
         assert_eq!(g.offsets[3] - g.offsets[2], 0);
         assert!(!g.cols[g.offsets[0]..g.offsets[1]].contains(&3));
+    }
+
+    /// Both ways of reading a column off the accumulator (its span, for neighbours numbered
+    /// close; the rows' indices, for neighbours numbered far apart) give `R^T R`: a banded matrix
+    /// whose columns are numbered in order, and the same with the columns shuffled so that a row's
+    /// four entries lie far apart (column `j` then spans far more than twice its multiply-adds).
+    #[test]
+    fn gram_matrix_is_r_transpose_r_for_close_and_far_numbering() {
+        let (m, n) = (400, 300);
+        let shuffled: Vec<usize> = (0..n).map(|j| (j * 7) % n).collect();
+        for perm in [(0..n).collect::<Vec<usize>>(), shuffled] {
+            let mut coo = CooMatrix::new(m, n);
+            for i in 0..m {
+                for c in 0..4 {
+                    let v = 1.0 + ((i * 5 + c * 3) % 11) as f64 * 0.25;
+                    coo.push(i, perm[(i + c) % n], v);
+                }
+            }
+            let csc = CscMatrix::from(&coo);
+            let g = GramMatrix::new(&SparseOperator::new(&csc));
+            let dense = nalgebra::DMatrix::from(&csc);
+            let reference = dense.transpose() * &dense;
+            let mut stored = nalgebra::DMatrix::<f64>::zeros(n, n);
+            for j in 0..n {
+                for p in g.offsets[j]..g.offsets[j + 1] {
+                    stored[(j, g.cols[p] as usize)] = g.vals[p];
+                }
+            }
+            let count = (0..n * n).filter(|&e| reference[e] != 0.0).count();
+            assert_eq!(g.nnz(), count);
+            for e in 0..n * n {
+                assert!((stored[e] - reference[e]).abs() <= 1e-13 * reference[e].abs().max(1.0));
+            }
+        }
     }
 
     #[test]
