@@ -65,7 +65,8 @@ def test_sample_job_equals_cli(cli_out, py_job_result):
 
 
 def test_arrays_in_equal_files_in(cli_out, py_job_result):
-    """The map and TIF as arrays (no files), every option as a keyword: the same dwell."""
+    """The map and TIF as arrays (no files), every option the job sets as a keyword (it sets no
+    solver options: the defaults): the same dwell."""
     x, y, z = preston.read_map(DATA / "mirror_error_118x8mm.csv")
     tif = np.loadtxt(DATA / "tif_fluid_jet_10mm.csv", delimiter=",", skiprows=1)
     r = preston.solve(
@@ -75,9 +76,6 @@ def test_arrays_in_equal_files_in(cli_out, py_job_result):
         raster_along="x",
         v_max=3000.0,
         a_max=1000.0,
-        solver="first-order",
-        tolerance=5e-6,
-        first_order_method="newton-cg",
         edge="gerchberg-papoulis",
     )
     _, d = read_csv(cli_out / "dwell.csv")
