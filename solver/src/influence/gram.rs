@@ -96,8 +96,8 @@ impl GramMatrix {
                     };
                     for j in start..end {
                         let (mut last, mut work) = (j, 0usize);
-                        for p in c_off[j]..c_off[j + 1] {
-                            let a = c_vals[p];
+                        let column = c_off[j]..c_off[j + 1];
+                        for (p, &a) in column.clone().zip(&c_vals[column]) {
                             let part = upper(j, p);
                             if let Some(&k) = r_cols[part.clone()].last() {
                                 last = last.max(k);
