@@ -7,7 +7,7 @@
 //! column in place. The matrix is identical for any thread count.
 
 use super::gram::{GramMatrix, GramOperator};
-use super::operator::{rows_of, InfluenceOperator, OperatorKind, Products, SparseOperator};
+use super::operator::{InfluenceOperator, OperatorKind, Products, SparseOperator};
 use crate::error::{Error, Result};
 use crate::observer::{Observer, Stage};
 use crate::tif::InfluenceFunction;
@@ -312,7 +312,7 @@ impl InfluenceOperator for InfluenceMatrix {
     /// caller takes normal products and it is formed already or forming it pays; both are built
     /// once and kept.
     fn products(&self, normal_products: Option<usize>) -> Products<'_> {
-        let csr = self.rows.get_or_init(|| rows_of(&self.csc));
+        let csr = self.rows.get_or_init(|| CsrMatrix::from(&self.csc));
         let op = SparseOperator::with_rows(&self.csc, csr);
         let gram = match normal_products {
             Some(k) => match self.gram.get() {

@@ -139,7 +139,7 @@ impl<'a> SparseOperator<'a> {
     pub fn new(csc: &'a CscMatrix<f64>) -> Self {
         Self {
             csc,
-            csr: Cow::Owned(rows_of(csc)),
+            csr: Cow::Owned(CsrMatrix::from(csc)),
         }
     }
 
@@ -161,34 +161,6 @@ impl<'a> SparseOperator<'a> {
     pub fn csr(&self) -> &CsrMatrix<f64> {
         &self.csr
     }
-}
-
-/// The CSR copy of `csc`: a counting sort of its entries by row (one pass to count, one to
-/// place, columns ascending within each row as they are visited in column order).
-pub fn rows_of(csc: &CscMatrix<f64>) -> CsrMatrix<f64> {
-    let (m, n) = (csc.nrows(), csc.ncols());
-    let (c_off, c_rows, c_vals) = (csc.col_offsets(), csc.row_indices(), csc.values());
-    let mut offsets = vec![0usize; m + 1];
-    for &i in c_rows {
-        offsets[i + 1] += 1;
-    }
-    for i in 0..m {
-        offsets[i + 1] += offsets[i];
-    }
-    let mut next = offsets[..m].to_vec();
-    let nnz = c_rows.len();
-    let (mut cols, mut vals) = (vec![0usize; nnz], vec![0.0; nnz]);
-    for j in 0..n {
-        for p in c_off[j]..c_off[j + 1] {
-            let at = &mut next[c_rows[p]];
-            cols[*at] = j;
-            vals[*at] = c_vals[p];
-            *at += 1;
-        }
-    }
-    // The data is a valid CSR matrix by construction; should the check disagree, nalgebra's own
-    // conversion gives the same matrix.
-    CsrMatrix::try_from_csr_data(m, n, offsets, cols, vals).unwrap_or_else(|_| CsrMatrix::from(csc))
 }
 
 /// Minimum number of output entries handed to one rayon task.
