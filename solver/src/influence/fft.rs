@@ -537,15 +537,28 @@ impl FftOperator {
             .column_pass(&mut full.columns, |kx, column, scratch| {
                 let kernel = &self.kernel_hat[kx * fy..(kx + 1) * fy];
                 let kx = kx % sx;
+                // `fy` is a multiple of `sy`: the column is `fy / sy` tiles of `from`.
+                debug_assert_eq!(fy % sy, 0);
+                let tiles = column.chunks_exact_mut(sy).zip(kernel.chunks_exact(sy));
                 if kx < shx {
                     let from = &small[kx * sy..(kx + 1) * sy];
-                    for (ky, (c, k)) in column.iter_mut().zip(kernel).enumerate() {
-                        *c = from[ky % sy] * k;
+                    for (tile, k) in tiles {
+                        for ((c, f), k) in tile.iter_mut().zip(from).zip(k) {
+                            *c = f * k;
+                        }
                     }
                 } else {
+                    // `S[-k]`: index `(sy - r) % sy` for `r = ky mod sy`.
                     let from = &small[(sx - kx) * sy..(sx - kx + 1) * sy];
-                    for (ky, (c, k)) in column.iter_mut().zip(kernel).enumerate() {
-                        *c = from[(sy - ky % sy) % sy].conj() * k;
+                    for (tile, k) in tiles {
+                        tile[0] = from[0].conj() * k[0];
+                        for ((c, f), k) in tile[1..]
+                            .iter_mut()
+                            .zip(from[1..].iter().rev())
+                            .zip(&k[1..])
+                        {
+                            *c = f.conj() * k;
+                        }
                     }
                 }
                 self.transforms.ifft_y.process_with_scratch(column, scratch);
@@ -571,7 +584,7 @@ impl FftOperator {
                 let i = kx * fy + ky;
                 columns[i] * kernel[i].conj()
             } else {
-                let i = (fx - kx) * fy + (fy - ky) % fy;
+                let i = (fx - kx) * fy + if ky == 0 { 0 } else { fy - ky };
                 columns[i].conj() * kernel[i]
             }
         };
