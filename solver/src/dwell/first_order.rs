@@ -294,6 +294,16 @@ impl Data<'_> {
             .for_each(|(o, (g, s))| *o = s * g);
     }
 
+    /// [`Data::hessian_product`] that also returns `v'out` (in the scaling pass).
+    fn hessian_product_dot(&self, v: &[f64], work: &mut Work, out: &mut [f64]) -> f64 {
+        self.normal_gradient(v, false, work);
+        let (g, s) = (&work.g, &self.s);
+        fill_and_sum(out, &mut work.partials, |j| {
+            let o = s[j] * g[j];
+            (o, v[j] * o)
+        })
+    }
+
     pub(crate) fn project(&self, w: &mut [f64]) {
         w.par_iter_mut()
             .zip(self.lo_w.par_iter().zip(self.hi_w.par_iter()))
@@ -1042,30 +1052,18 @@ fn projected_lbfgs(
             }
             continue;
         }
-        data.hessian_product(&p, work, &mut hp);
+        let php = data.hessian_product_dot(&p, work, &mut hp);
         it += 1;
-        let php = fixed_sum(n, &mut work.partials, |j| p[j] * hp[j]);
         let tau = if php > 0.0 { (-qp / php).min(1.0) } else { 1.0 };
-        x.par_iter_mut()
-            .zip(
-                p.par_iter_mut()
-                    .zip(hp.par_iter_mut().zip(q.par_iter_mut())),
-            )
-            .with_min_len(CHUNK)
-            .for_each(|(x, (p, (h, q)))| {
-                *p *= tau;
-                *h *= tau;
-                *x += *p;
-                *q += *h;
-            });
-        // The new pair: s = tau p, y = tau H p (exact for the quadratic).
+        let yy = move_along(&mut x, &mut p, &mut hp, &mut q, tau, &mut work.partials);
+        // The new pair: s = tau p, y = tau H p (exact for the quadratic). `p` and `hp` are
+        // overwritten in full by the next step, so the pair's vectors are swapped in.
         let sy = tau * tau * php;
         if sy > 0.0 && sy.is_finite() {
             newest = (newest + 1) % mem;
-            s_mem[newest].copy_from_slice(&p);
-            y_mem[newest].copy_from_slice(&hp);
+            std::mem::swap(&mut s_mem[newest], &mut p);
+            std::mem::swap(&mut y_mem[newest], &mut hp);
             inv_sy[newest] = 1.0 / sy;
-            let yy = fixed_sum(n, &mut work.partials, |j| hp[j] * hp[j]);
             gamma_of[newest] = if yy > 0.0 { sy / yy } else { 0.0 };
             stored = (stored + 1).min(mem);
         }
@@ -1113,10 +1111,7 @@ fn masked_axpy_dot(
             for ((d, v), m) in chunk.iter_mut().zip(v).zip(mask) {
                 *d += a * v * m;
             }
-            match w {
-                Some(w) => chunk.iter().zip(&w[base..end]).map(|(d, w)| d * w).sum(),
-                None => 0.0,
-            }
+            w.map_or(0.0, |w| lane_dot(chunk, &w[base..end]))
         })
         .collect_into_vec(partials);
     partials.iter().sum()
@@ -1129,10 +1124,54 @@ fn scale_dot(d: &mut [f64], a: f64, w: Option<&[f64]>, partials: &mut Vec<f64>) 
         .map(|(c, chunk)| {
             let base = c * CHUNK;
             chunk.iter_mut().for_each(|d| *d *= a);
-            match w {
-                Some(w) => chunk.iter().zip(&w[base..]).map(|(d, w)| d * w).sum(),
-                None => 0.0,
+            w.map_or(0.0, |w| lane_dot(chunk, &w[base..base + chunk.len()]))
+        })
+        .collect_into_vec(partials);
+    partials.iter().sum()
+}
+
+/// `sum_j a[j] b[j]` with four running sums, combined in a fixed order (so bit-identical for
+/// any thread count; the independent sums let the additions overlap).
+fn lane_dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `p *= tau`, `hp *= tau`, `x += p`, `q += hp`; returns `||hp||^2` after the scaling (one pass,
+/// fixed chunks).
+fn move_along(
+    x: &mut [f64],
+    p: &mut [f64],
+    hp: &mut [f64],
+    q: &mut [f64],
+    tau: f64,
+    partials: &mut Vec<f64>,
+) -> f64 {
+    x.par_chunks_mut(CHUNK)
+        .zip(p.par_chunks_mut(CHUNK))
+        .zip(hp.par_chunks_mut(CHUNK).zip(q.par_chunks_mut(CHUNK)))
+        .map(|((x, p), (h, q))| {
+            let mut acc = 0.0;
+            for (((x, p), h), q) in x.iter_mut().zip(p.iter_mut()).zip(h.iter_mut()).zip(q) {
+                *p *= tau;
+                *h *= tau;
+                *x += *p;
+                *q += *h;
+                acc += *h * *h;
             }
+            acc
         })
         .collect_into_vec(partials);
     partials.iter().sum()
@@ -1272,4 +1311,25 @@ fn certificate(
     };
     let gap = gap_bound(&inputs, bounds, &mut work.partials);
     Certificate { f, kkt, gap }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::lane_dot;
+
+    /// `sum_{j<n} j (j + 1) = (n - 1) n (n + 1) / 3`, exact in `f64` at these sizes, for every
+    /// length modulo the four running sums.
+    #[test]
+    fn lane_dot_is_the_inner_product_for_every_remainder() {
+        for n in 0..=13usize {
+            let a: Vec<f64> = (0..n).map(|j| j as f64).collect();
+            let b: Vec<f64> = (0..n).map(|j| (j + 1) as f64).collect();
+            let expected = if n == 0 {
+                0.0
+            } else {
+                ((n - 1) * n * (n + 1)) as f64 / 3.0
+            };
+            assert_eq!(lane_dot(&a, &b), expected, "length {n}");
+        }
+    }
 }
