@@ -288,10 +288,7 @@ impl Data<'_> {
 
     /// Scaled Hessian product `out = S (R^T P R + lambda D^T D) S v`.
     fn hessian_product(&self, v: &[f64], work: &mut Work, out: &mut [f64]) {
-        self.normal_gradient(v, false, work);
-        out.par_iter_mut()
-            .zip(work.g.par_iter().zip(&self.s))
-            .for_each(|(o, (g, s))| *o = s * g);
+        self.hessian_product_dot(v, work, out);
     }
 
     /// [`Data::hessian_product`] that also returns `v'out` (in the scaling pass).
