@@ -6,6 +6,8 @@ use serde::{Deserialize, Serialize};
 
 /// Relative tolerance for deciding that sample coordinates lie on one grid line.
 pub const GRID_COORD_REL_TOL: f64 = 1e-6;
+/// An offset within this many grid cells outside the grid's edge is on the edge.
+const ON_EDGE_CELLS: f64 = 1e-9;
 
 /// Removal rates on a regular grid of offsets from the tool centre.
 ///
@@ -435,14 +437,18 @@ fn axis_of(v: &[f64], name: &str) -> Result<(f64, f64, usize)> {
 impl InfluenceFunction for GridTif {
     #[inline]
     fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
-        let fx = (dx_mm - self.x0_mm) * self.inv_pitch.0;
-        let fy = (dy_mm - self.y0_mm) * self.inv_pitch.1;
         let max_x = (self.nx - 1) as f64;
         let max_y = (self.ny - 1) as f64;
-        // Outside the grid (this also rejects NaN).
-        if !(fx >= 0.0 && fx <= max_x && fy >= 0.0 && fy <= max_y) {
+        let fx = (dx_mm - self.x0_mm) * self.inv_pitch.0;
+        let fy = (dy_mm - self.y0_mm) * self.inv_pitch.1;
+        // Outside the grid (this also rejects NaN). The grid is closed: an offset on its edge up
+        // to rounding (a dwell raster placed one grid half-width off the map puts whole rows of
+        // pairs there) is on it, so rounding does not decide whether the edge samples count.
+        let e = ON_EDGE_CELLS;
+        if !(fx >= -e && fx <= max_x + e && fy >= -e && fy <= max_y + e) {
             return 0.0;
         }
+        let (fx, fy) = (fx.clamp(0.0, max_x), fy.clamp(0.0, max_y));
         // Cell index, clamped so the far edge uses the last cell with weight 1 on its far nodes
         // (truncation is the floor here: fx, fy >= 0).
         let ix = (fx as usize).min(self.nx - 2);
@@ -512,6 +518,29 @@ mod tests {
         assert_eq!(g.rate_nm_per_s(1.0001, 1.0), 0.0);
         assert_eq!(g.rate_nm_per_s(0.0, -0.001), 0.0);
         assert_eq!(g.rate_nm_per_s(f64::NAN, 0.0), 0.0);
+    }
+
+    /// An offset on the grid's edge up to rounding is on it: `x - X` for a map point and a dwell
+    /// point one grid half-width apart lands a few ulps either side of the edge, and both sides
+    /// give the edge value; a step of 1e-6 cell beyond it is outside.
+    #[test]
+    fn the_edge_is_on_the_grid_up_to_rounding() {
+        let g = small();
+        for (dx, dy, edge) in [
+            (1.0, 1.0, 4.0),
+            (-1.0, 1.0, 2.0),
+            (0.0, 2.0, 5.0),
+            (0.5, 0.0, 1.5),
+        ] {
+            for ulps in [-3.0, 0.0, 3.0] {
+                let (x, y) = (dx + ulps * f64::EPSILON, dy + ulps * f64::EPSILON);
+                assert!((g.rate_nm_per_s(x, y) - edge).abs() < 1e-12, "({x}, {y})");
+            }
+        }
+        // 0.3 - 0.2 - 0.1 rounds to -2.8e-17: on the edge at y = 0.
+        assert_eq!(g.rate_nm_per_s(0.0, 0.3 - 0.2 - 0.1), 1.0);
+        assert_eq!(g.rate_nm_per_s(1.0 + 1e-6, 1.0), 0.0);
+        assert_eq!(g.rate_nm_per_s(0.0, -2e-6), 0.0);
     }
 
     #[test]
