@@ -1,13 +1,16 @@
-//! The off-lattice spreading operator on the simulated 210 x 30 mm mirror: map 580 x 81 points
-//! at 0.36 mm (46,980), dwell raster 440 x 79 at 0.5 mm (34,760), off the map lattice.
+//! The off-lattice operators on the simulated 210 x 30 mm mirror: map 580 x 81 points at 0.36 mm
+//! (46,980), dwell raster 440 x 79 at 0.5 mm (34,760), off the map lattice.
 //!
 //! `cargo bench --bench off_lattice` prints, for each TIF and oversampling factor `s`, the
-//! estimated relative operator error (sampled columns), the relative error of `R~ t` against the
-//! assembled `R t` for a random `t`, and the time of one `R^T R t` by each operator. With
+//! spreading operator's estimated relative error (sampled columns), the relative error of `R~ t`
+//! against the assembled `R t` for a random `t`, and the time of one `R^T R t` by each operator;
+//! then the same for the exact phase-stencil operator (18 x 18 phases). With
 //! `PRESTON_MIRROR_DIR=dir` it also writes `dir/map.csv` and `dir/dwell.csv` for timing
 //! `preston solve` on the same case (docs/off_lattice.md).
 
-use preston::solver::influence::{InfluenceMatrix, LinearOperator, SparseOperator, SpreadOperator};
+use preston::solver::influence::{
+    InfluenceMatrix, LinearOperator, SparseOperator, SpreadOperator, StencilOperator,
+};
 use preston::solver::observer::Silent;
 use preston::solver::tif::{GaussianTif, Tif};
 use std::io::Write;
@@ -107,6 +110,7 @@ fn main() {
     let t: Vec<f64> = (0..dwell.0.len())
         .map(|j| 0.5 + ((j * 7919) % 101) as f64 / 101.0)
         .collect();
+    let mut stencils = Vec::new();
     println!("| TIF | s | fine pitch mm | estimated error | ||R~t - Rt|| / ||Rt|| | R^T R t spread ms | R^T R t sparse ms |");
     println!("| --- | --- | --- | --- | --- | --- | --- |");
     for (name, tif) in &tifs {
@@ -116,6 +120,16 @@ fn main() {
         let mut rt = vec![0.0; sparse.nrows()];
         sparse.apply(&t, &mut rt);
         let sparse_ms = 1e3 * time_normal(&sparse, &t, 5);
+        let stencil = StencilOperator::new(&map.0, &map.1, &dwell.0, &dwell.1, 0.36, tif).unwrap();
+        let mut exact_rt = vec![0.0; stencil.nrows()];
+        stencil.apply(&t, &mut exact_rt);
+        let diff: Vec<f64> = exact_rt.iter().zip(&rt).map(|(a, b)| a - b).collect();
+        stencils.push(format!(
+            "| {name} | {} | {:.2e} | {:.2} | {sparse_ms:.2} |",
+            stencil.phase_class_count(),
+            norm(&diff) / norm(&rt),
+            1e3 * time_normal(&stencil, &t, 5)
+        ));
         for s in 1..=4 {
             let op = SpreadOperator::new(&map.0, &map.1, &dwell.0, &dwell.1, 0.36, s, tif).unwrap();
             let mut approx = vec![0.0; op.nrows()];
@@ -130,5 +144,11 @@ fn main() {
                 sparse_ms
             );
         }
+    }
+    println!();
+    println!("| TIF | phase stencils | ||R t (stencil) - R t|| / ||R t|| | R^T R t stencil ms | R^T R t sparse ms |");
+    println!("| --- | --- | --- | --- | --- |");
+    for row in &stencils {
+        println!("{row}");
     }
 }

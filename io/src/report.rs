@@ -29,7 +29,8 @@ pub struct Report {
     /// Non-zeros of the influence matrix (stored, or implicit in the FFT operator).
     pub nnz: usize,
     /// How `R` was applied: `sparse` (assembled), `fft` (matrix-free convolution, map and dwell
-    /// points on one lattice) or `fft-spread` (dwell points spread onto the map lattice, then FFT).
+    /// points on one lattice), `fft-spread` (dwell points spread onto the map lattice, then FFT)
+    /// or `stencil` (one tabulated stencil per dwell position within a map cell; exact).
     #[serde(default)]
     pub operator: OperatorKind,
     /// Map rows skipped for an empty or NaN height.

@@ -113,8 +113,10 @@ impl From<EdgeArg> for EdgeMethod {
 /// How R is held, on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum OperatorArg {
-    /// The FFT operator when R would hold at least 5e7 non-zeros and the inputs allow it; the
-    /// spreading operator (fft-spread) for dwell points off the map lattice when accurate and cheaper.
+    /// A matrix-free operator where the cost models predict it faster than the assembled R and the
+    /// inputs allow it: the FFT operator for dwell points on the map lattice, phase stencils
+    /// (exact) for dwell points off it at few positions within a cell, the spreading operator
+    /// (fft-spread) when accurate within --spread-tolerance and cheaper.
     Auto,
     /// Assemble the sparse influence matrix R.
     Sparse,
@@ -124,6 +126,9 @@ pub enum OperatorArg {
     /// Never form R: dwell points spread onto an oversampled map lattice, then FFT (map on a
     /// lattice, dwell points anywhere, first-order solver; error within --spread-tolerance).
     FftSpread,
+    /// Never form R: one stencil per distinct dwell position within a map cell, scattered and
+    /// gathered on the map lattice (exact; map on a lattice, first-order solver).
+    Stencil,
 }
 
 impl From<OperatorArg> for OperatorChoice {
@@ -133,6 +138,7 @@ impl From<OperatorArg> for OperatorChoice {
             OperatorArg::Sparse => OperatorChoice::Sparse,
             OperatorArg::Fft => OperatorChoice::Fft,
             OperatorArg::FftSpread => OperatorChoice::FftSpread,
+            OperatorArg::Stencil => OperatorChoice::Stencil,
         }
     }
 }
@@ -567,6 +573,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         match r.operator {
             OperatorKind::Fft => "matrix-free FFT operator",
             OperatorKind::FftSpread => "matrix-free, spread onto the map lattice + FFT",
+            OperatorKind::Stencil => "matrix-free, phase stencils on the map lattice",
             OperatorKind::Sparse => "assembled",
         },
         if r.skipped_rows > 0 {

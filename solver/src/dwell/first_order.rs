@@ -68,7 +68,7 @@ use super::{
     DwellBounds, FirstOrderMethod, Preconditioner, Problem, Settings, Solution, SolverKind, Status,
 };
 use crate::error::{Error, Result};
-use crate::influence::operator::{fill_and_sum, fixed_sum, LinearOperator, CHUNK};
+use crate::influence::operator::{fill_and_sum, fixed_sum, lane_dot, LinearOperator, CHUNK};
 use crate::observer::{IterationInfo, Observer, Stage};
 use rayon::prelude::*;
 use std::sync::OnceLock;
@@ -1127,25 +1127,6 @@ fn scale_dot(d: &mut [f64], a: f64, w: Option<&[f64]>, partials: &mut Vec<f64>) 
     partials.iter().sum()
 }
 
-/// `sum_j a[j] b[j]` with four running sums, combined in a fixed order (so bit-identical for
-/// any thread count; the independent sums let the additions overlap).
-fn lane_dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for k in 0..4 {
-            acc[k] += x[k] * y[k];
-        }
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
-}
-
 /// `p *= tau`, `hp *= tau`, `x += p`, `q += hp`; returns `||hp||^2` after the scaling (one pass,
 /// fixed chunks).
 fn move_along(
@@ -1308,25 +1289,4 @@ fn certificate(
     };
     let gap = gap_bound(&inputs, bounds, &mut work.partials);
     Certificate { f, kkt, gap }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::lane_dot;
-
-    /// `sum_{j<n} j (j + 1) = (n - 1) n (n + 1) / 3`, exact in `f64` at these sizes, for every
-    /// length modulo the four running sums.
-    #[test]
-    fn lane_dot_is_the_inner_product_for_every_remainder() {
-        for n in 0..=13usize {
-            let a: Vec<f64> = (0..n).map(|j| j as f64).collect();
-            let b: Vec<f64> = (0..n).map(|j| (j + 1) as f64).collect();
-            let expected = if n == 0 {
-                0.0
-            } else {
-                ((n - 1) * n * (n + 1)) as f64 / 3.0
-            };
-            assert_eq!(lane_dot(&a, &b), expected, "length {n}");
-        }
-    }
 }

@@ -39,8 +39,9 @@ pub struct Problem {
     scaled_hessian_norm: OnceLock<f64>,
 }
 
-/// How `R` is held and applied: `auto` uses the FFT operator where it is predicted faster and
-/// the inputs allow it (see the pipeline in the `preston-io` crate).
+/// How `R` is held and applied: `auto` uses a matrix-free operator (FFT on one lattice, phase
+/// stencils off it) where it is predicted faster and the inputs allow it (see the set-up's
+/// operator plans).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum OperatorChoice {
@@ -59,6 +60,11 @@ pub enum OperatorChoice {
     /// error is within `spread_tolerance`. Needs map points on a regular lattice (dwell points
     /// anywhere) and the first-order solver.
     FftSpread,
+    /// Never form `R`: one stencil tabulated per distinct dwell position within a map cell, scattered
+    /// and gathered on the map lattice ([`crate::influence::StencilOperator`]; exact, no
+    /// tolerance). Needs map points on a regular lattice and the first-order solver; pays where
+    /// the dwell raster's pitch is a rational multiple of the map's (few distinct positions).
+    Stencil,
 }
 
 impl Problem {

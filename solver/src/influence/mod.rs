@@ -8,6 +8,9 @@
 //! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
 //! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
 //!   onto an oversampled lattice, then FFT convolution);
+//! - [`stencil`]: the exact matrix-free operator for dwell points off the map lattice at few
+//!   distinct positions within a cell (one tabulated stencil per position, scattered and
+//!   gathered on the lattice);
 //! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
 //!   programs);
 //! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
@@ -23,6 +26,7 @@ pub mod matrix;
 pub mod operator;
 pub mod spread;
 pub mod stacked;
+pub mod stencil;
 pub mod surface;
 
 pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
@@ -31,4 +35,5 @@ pub use gram::{GramMatrix, GramOperator};
 pub use matrix::{InfluenceMatrix, NNZ_BYTES};
 pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, SparseOperator};
 pub use spread::SpreadOperator;
+pub use stencil::StencilOperator;
 pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};

@@ -1,7 +1,7 @@
 //! The influence operator `R` (dwell times -> removal) behind two traits:
 //! - [`InfluenceOperator`]: `R` as a dwell problem holds it, whatever its form (the assembled
 //!   [`InfluenceMatrix`], the matrix-free [`super::FftOperator`] on one lattice, the off-lattice
-//!   [`super::SpreadOperator`]): its kind, shape, non-zeros, empty columns, removal `R t`, the
+//!   [`super::StencilOperator`] and [`super::SpreadOperator`]): its kind, shape, non-zeros, empty columns, removal `R t`, the
 //!   assembled matrix where there is one, and the operator ready for products;
 //! - [`LinearOperator`]: the products `R t`, `R^T y`, `R^T R t` the first-order solvers take.
 //!
@@ -27,6 +27,8 @@ pub enum OperatorKind {
     Fft,
     /// Dwell points spread onto the map lattice, then FFT convolution.
     FftSpread,
+    /// Matrix-free, one tabulated stencil per dwell position within a map cell (exact).
+    Stencil,
 }
 
 /// The influence operator `R` (m x n, nm/s) as a dwell problem holds it. The assembled matrix,
@@ -263,4 +265,44 @@ where
         })
         .collect_into_vec(partials);
     partials.iter().sum()
+}
+
+/// `sum_j a[j] b[j]` with four running sums, combined in a fixed order (so bit-identical for
+/// any thread count; the independent sums let the additions overlap).
+pub(crate) fn lane_dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..4 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+#[cfg(test)]
+mod tests {
+    use super::lane_dot;
+
+    /// `sum_{j<n} j (j + 1) = (n - 1) n (n + 1) / 3`, exact in `f64` at these sizes, for every
+    /// length modulo the four running sums.
+    #[test]
+    fn lane_dot_is_the_inner_product_for_every_remainder() {
+        for n in 0..=13usize {
+            let a: Vec<f64> = (0..n).map(|j| j as f64).collect();
+            let b: Vec<f64> = (0..n).map(|j| (j + 1) as f64).collect();
+            let expected = if n == 0 {
+                0.0
+            } else {
+                ((n - 1) * n * (n + 1)) as f64 / 3.0
+            };
+            assert_eq!(lane_dot(&a, &b), expected, "length {n}");
+        }
+    }
 }

@@ -610,8 +610,12 @@ impl Setup {
         warnings: &mut Vec<String>,
     ) -> SetupResult<OperatorPlan> {
         let choice = self.settings.operator;
-        // The spreading operator is planned by `spread_plan` where the lattice one is not.
-        if matches!(choice, OperatorChoice::Sparse | OperatorChoice::FftSpread) {
+        // The off-lattice operators are planned by `stencil_plan` and `spread_plan` where the
+        // lattice one is not.
+        if matches!(
+            choice,
+            OperatorChoice::Sparse | OperatorChoice::FftSpread | OperatorChoice::Stencil
+        ) {
             return Ok(OperatorPlan::Assembled);
         }
         let blocker = self.fft_blocker();
@@ -638,6 +642,14 @@ impl Setup {
             .at(SetupInput::Job),
             (OperatorChoice::Fft, None, Some(p)) => Ok(OperatorPlan::Fft { pitch_mm: p }),
             (_, Some(_), _) | (_, None, None) => Ok(OperatorPlan::Assembled),
+            // Dwell points off the lattice are the off-lattice operators' case.
+            (_, None, Some(p))
+                if !rows
+                    .bounding_box_mm()
+                    .is_some_and(|b| self.dwell_on_map_lattice(&b, p)) =>
+            {
+                Ok(OperatorPlan::Assembled)
+            }
             (_, None, Some(p)) => {
                 // Map points inside one TIF disc, at most all of them, per dwell point.
                 let r = self.tif.support_radius_mm();
@@ -717,16 +729,14 @@ impl Setup {
         };
         let z_nm = rows.z_nm().to_vec();
         let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
-        let spread = match fft {
-            Some(_) => None,
-            None => self.spread_plan(&rows, &mut warnings)?,
-        };
-        let problem = match (fft, spread) {
-            (Some(op), _) => Problem::new(op, z_nm, bounds, rho, lambda),
-            (None, Some(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
-            (None, None) => {
-                Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
-            }
+        let problem = if let Some(op) = fft {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.stencil_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.spread_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else {
+            Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
         }
         .and_then(|p| {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))

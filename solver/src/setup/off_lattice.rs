@@ -1,84 +1,100 @@
-//! When a solve uses the off-lattice spreading operator ([`SpreadOperator`]): map points on a
-//! regular lattice, dwell points off it, a plane TIF and the first-order solver, and then only
-//! when `operator = "fft-spread"` asks for it, or `auto` finds it both accurate enough (estimated
-//! relative operator error within `spread_tolerance`) and cheaper per product than the assembled
-//! `R` by the cost model below.
+//! When a solve uses an off-lattice matrix-free operator: map points on a regular lattice, dwell
+//! points off it, a plane TIF and the first-order solver.
+//!
+//! - The phase-stencil operator ([`StencilOperator`], exact) when `operator = "stencil"` asks for
+//!   it, or `auto` finds few distinct dwell positions within a map cell (at most one per
+//!   [`MIN_DWELL_POINTS_PER_STENCIL`] dwell points: a raster whose pitch is a rational multiple
+//!   of the map's) and the cost model below finds it cheaper than the assembled `R`.
+//! - Otherwise the spreading operator ([`SpreadOperator`], approximate) when
+//!   `operator = "fft-spread"` asks for it, or `auto` finds it both accurate enough (estimated
+//!   relative operator error within `spread_tolerance`) and cheaper than the assembled `R`.
 //!
 //! Cost model (per `R^T R t`, the first-order solver's product): the sparse operator makes two
-//! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`]; the spreading
-//! operator transforms the padded fine lattice of `F` cells forth and back, about
-//! `F log2 F` times [`SPREAD_NS_PER_CELL_LOG`]. Assembling `R` costs a TIF evaluation per
-//! non-zero on top, which the comparison leaves out (in the spreading operator's favour).
+//! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
+//! its Gram matrix where that is smaller, for the stencil's comparison); the stencil
+//! operator scatters and gathers every stencil entry, `2 n pi r^2 / h^2` at about
+//! [`STENCIL_NS_PER_ENTRY`]; the spreading operator transforms the padded fine lattice of `F`
+//! cells forth and back, about `F log2 F` times [`SPREAD_NS_PER_CELL_LOG`]. Assembling `R` costs
+//! a TIF evaluation per non-zero on top, which the comparison leaves out (in the matrix-free
+//! operators' favour).
 
 use super::{At, Setup, SetupInput, SetupResult};
+use crate::dwell::first_order::POWER_STEPS;
 use crate::dwell::{policy, OperatorChoice, SolverChoice, SolverKind};
 use crate::error::Error;
 use crate::influence::fft::FftOperator;
 use crate::influence::spread::MAX_OVERSAMPLING;
-use crate::influence::SpreadOperator;
-use crate::map::HeightMap;
+use crate::influence::{SpreadOperator, StencilOperator};
+use crate::map::{BoundingBox, HeightMap};
 use crate::tif::InfluenceFunction;
 
 /// Sparse `R^T R t`: nanoseconds per stored non-zero (two passes, 2 cores).
 pub const SPARSE_NS_PER_NNZ: f64 = 1.0;
+/// Stencil `R^T R t`: nanoseconds per stencil entry and dwell point (two passes, 2 cores).
+pub const STENCIL_NS_PER_ENTRY: f64 = 0.5;
 /// Spreading operator `R^T R t`: nanoseconds per `F log2 F` of the fine lattice (2 cores).
 pub const SPREAD_NS_PER_CELL_LOG: f64 = 0.5;
+/// `auto` takes the stencil operator only when each stencil serves this many dwell points on
+/// average (the tables stay small next to `R`).
+pub const MIN_DWELL_POINTS_PER_STENCIL: usize = 16;
 /// The map must fill at least this share of its lattice's bounding box.
 const MIN_LATTICE_FILL: f64 = 0.25;
 
+/// The map lattice an off-lattice operator would work on, and the estimate of `R`'s size.
+struct OffLattice {
+    pitch_mm: f64,
+    bbox: BoundingBox,
+    /// Estimated non-zeros of `R`: the map points inside one TIF disc (at most all of them),
+    /// times the dwell points.
+    nnz: f64,
+}
+
+/// Why an off-lattice operator does not serve a set-up.
+enum NotServed {
+    /// The inputs rule it out (an error when the operator was asked for).
+    Cannot(String),
+    /// `auto` prefers another operator.
+    Declined,
+}
+
 impl Setup {
-    /// The spreading operator over the problem rows `rows` when it applies (see the module
-    /// documentation); `None` to assemble `R`. With `operator = "fft-spread"` inputs it cannot
-    /// serve are an error naming why. Notes on the choice go to `warnings`.
-    pub(super) fn spread_plan(
-        &self,
-        rows: &HeightMap,
-        warnings: &mut Vec<String>,
-    ) -> SetupResult<Option<SpreadOperator>> {
-        let forced = self.settings.operator == OperatorChoice::FftSpread;
-        if !forced && self.settings.operator != OperatorChoice::Auto {
-            return Ok(None);
-        }
-        let refuse = |why: String| -> SetupResult<Option<SpreadOperator>> {
-            if forced {
-                Err(Error::invalid(
-                    "operator",
-                    format!("operator = \"fft-spread\" cannot be used: {why}"),
-                ))
-                .at(SetupInput::Job)
-            } else {
-                Ok(None)
-            }
-        };
+    /// Whether every dwell point lies on the map lattice of pitch `pitch_mm` through the lowest
+    /// corner of `bbox` (the FFT operator's exact case).
+    pub(super) fn dwell_on_map_lattice(&self, bbox: &BoundingBox, pitch_mm: f64) -> bool {
+        let on = |v: f64, o: f64| ((v - o) / pitch_mm - ((v - o) / pitch_mm).round()).abs() <= 1e-6;
+        self.path
+            .x_mm()
+            .iter()
+            .zip(self.path.y_mm())
+            .all(|(&x, &y)| on(x, bbox.x_min_mm) && on(y, bbox.y_min_mm))
+    }
+
+    /// The checks both off-lattice operators share: nothing needs `R`, the map fills a regular
+    /// lattice, and (unless `forced`) the first-order solver would run and the dwell points are
+    /// off the lattice.
+    fn off_lattice_case(&self, rows: &HeightMap, forced: bool) -> Result<OffLattice, NotServed> {
         if let Some(why) = self.fft_blocker() {
-            return refuse(format!("with {why}"));
+            return Err(NotServed::Cannot(format!("with {why}")));
         }
-        let Some(pitch) = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()) else {
-            return refuse("the map points are not on a regular lattice".into());
+        let Some(pitch_mm) = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()) else {
+            return Err(NotServed::Cannot(
+                "the map points are not on a regular lattice".into(),
+            ));
         };
         let Some(bbox) = rows.bounding_box_mm() else {
-            return refuse("the map is empty".into());
+            return Err(NotServed::Cannot("the map is empty".into()));
         };
-        let cells = ((bbox.x_max_mm - bbox.x_min_mm) / pitch + 1.0)
-            * ((bbox.y_max_mm - bbox.y_min_mm) / pitch + 1.0);
+        let cells = ((bbox.x_max_mm - bbox.x_min_mm) / pitch_mm + 1.0)
+            * ((bbox.y_max_mm - bbox.y_min_mm) / pitch_mm + 1.0);
         if (rows.len() as f64) < MIN_LATTICE_FILL * cells {
-            return refuse(format!(
-                "the map fills less than {MIN_LATTICE_FILL} of its {pitch} mm lattice"
-            ));
+            return Err(NotServed::Cannot(format!(
+                "the map fills less than {MIN_LATTICE_FILL} of its {pitch_mm} mm lattice"
+            )));
         }
-        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
-        // Map points inside one TIF disc, at most all of them, per dwell point.
         let r = self.tif.support_radius_mm();
-        let per_column = (std::f64::consts::PI * r * r / (pitch * pitch)).min(rows.len() as f64);
+        let per_column =
+            (std::f64::consts::PI * r * r / (pitch_mm * pitch_mm)).min(rows.len() as f64);
         let nnz = per_column * self.path.len() as f64;
-        let sparse_ns = 2.0 * SPARSE_NS_PER_NNZ * nnz;
-        let spread_ns = |s: usize| {
-            let fine = pitch / s as f64;
-            let pad = 2.0 * r / fine;
-            let lattice = ((bbox.x_max_mm - bbox.x_min_mm) / fine + pad)
-                * ((bbox.y_max_mm - bbox.y_min_mm) / fine + pad);
-            SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2()
-        };
         if !forced {
             // Only where the first-order solver would run anyway: below the policy's crossover
             // the QP on the assembled `R` is the faster, certified route.
@@ -96,30 +112,146 @@ impl Setup {
                         == SolverKind::FirstOrder
                 }
             };
-            if !first_order {
+            if !first_order || self.dwell_on_map_lattice(&bbox, pitch_mm) {
+                return Err(NotServed::Declined);
+            }
+        }
+        Ok(OffLattice {
+            pitch_mm,
+            bbox,
+            nnz,
+        })
+    }
+
+    /// The phase-stencil operator over the problem rows `rows` when it applies (see the module
+    /// documentation); `None` otherwise. With `operator = "stencil"` inputs it cannot serve are
+    /// an error naming why. Notes on the choice go to `warnings`.
+    pub(super) fn stencil_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<Option<StencilOperator>> {
+        let forced = self.settings.operator == OperatorChoice::Stencil;
+        if !forced && self.settings.operator != OperatorChoice::Auto {
+            return Ok(None);
+        }
+        let case = match self.off_lattice_case(rows, forced) {
+            Ok(case) => case,
+            Err(not) => return refusal(forced, "stencil", not),
+        };
+        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        if !forced {
+            let n = self.path.len();
+            let Some(classes) = StencilOperator::phase_classes(
+                mx,
+                my,
+                dx,
+                dy,
+                case.pitch_mm,
+                n / MIN_DWELL_POINTS_PER_STENCIL,
+            ) else {
+                return Ok(None);
+            };
+            let r = self.tif.support_radius_mm();
+            let entries = std::f64::consts::PI * r * r / (case.pitch_mm * case.pitch_mm);
+            let stencil_ns = 2.0 * STENCIL_NS_PER_ENTRY * entries * n as f64;
+            // The assembled `R` serves normal products through `R` (two passes) or, where its
+            // formation (`k^2` multiply-adds per map point, `k` the dwell points in its reach)
+            // costs at most the products the solver declares, through its Gram matrix (one pass
+            // over `G`: each dwell point against those within `2 r`).
+            let span = |v: &[f64]| {
+                let (lo, hi) = v
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                        (a.min(x), b.max(x))
+                    });
+                hi - lo + 2.0 * r
+            };
+            let per_mm2 = n as f64 / (span(dx) * span(dy));
+            let in_reach = (std::f64::consts::PI * r * r * per_mm2).min(n as f64);
+            let formation = rows.len() as f64 * in_reach * in_reach;
+            let gram_nnz = (4.0 * std::f64::consts::PI * r * r * per_mm2).min(n as f64) * n as f64;
+            let through_r = 2.0 * case.nnz;
+            let sparse_ns = SPARSE_NS_PER_NNZ
+                * if formation <= through_r * POWER_STEPS as f64 {
+                    through_r.min(gram_nnz)
+                } else {
+                    through_r
+                };
+            if stencil_ns >= sparse_ns {
                 return Ok(None);
             }
-            // Dwell points on the map lattice are the FFT operator's (exact) case.
-            let on = |v: f64, o: f64| ((v - o) / pitch - ((v - o) / pitch).round()).abs() <= 1e-6;
-            let all_on = dx
-                .iter()
-                .zip(dy)
-                .all(|(&x, &y)| on(x, bbox.x_min_mm) && on(y, bbox.y_min_mm));
-            if all_on || spread_ns(1) >= sparse_ns {
-                return Ok(None);
+            warnings.push(format!(
+                "operator auto: dwell points off the map lattice, at {classes} distinct positions \
+                 within a {} mm cell; products use one tabulated stencil per position (exact), \
+                 predicted {:.1}x cheaper than R's {:.2e} non-zeros (operator = \"sparse\" \
+                 assembles R)",
+                case.pitch_mm,
+                sparse_ns / stencil_ns,
+                case.nnz
+            ));
+        }
+        match StencilOperator::new(mx, my, dx, dy, case.pitch_mm, &self.tif) {
+            Ok(op) => Ok(Some(op)),
+            Err(e) if forced => Err(e).at(SetupInput::Map),
+            Err(e) => {
+                warnings.push(format!(
+                    "operator auto: the stencil operator does not apply ({e}); assembling R"
+                ));
+                Ok(None)
             }
+        }
+    }
+
+    /// The spreading operator over the problem rows `rows` when it applies (see the module
+    /// documentation); `None` to assemble `R`. With `operator = "fft-spread"` inputs it cannot
+    /// serve are an error naming why. Notes on the choice go to `warnings`.
+    pub(super) fn spread_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<Option<SpreadOperator>> {
+        let forced = self.settings.operator == OperatorChoice::FftSpread;
+        if !forced && self.settings.operator != OperatorChoice::Auto {
+            return Ok(None);
+        }
+        let case = match self.off_lattice_case(rows, forced) {
+            Ok(case) => case,
+            Err(not) => return refusal(forced, "fft-spread", not),
+        };
+        let OffLattice {
+            pitch_mm: pitch,
+            bbox,
+            nnz,
+        } = case;
+        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        let r = self.tif.support_radius_mm();
+        let sparse_ns = 2.0 * SPARSE_NS_PER_NNZ * nnz;
+        let spread_ns = |s: usize| {
+            let fine = pitch / s as f64;
+            let pad = 2.0 * r / fine;
+            let lattice = ((bbox.x_max_mm - bbox.x_min_mm) / fine + pad)
+                * ((bbox.y_max_mm - bbox.y_min_mm) / fine + pad);
+            SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2()
+        };
+        if !forced && spread_ns(1) >= sparse_ns {
+            return Ok(None);
         }
         let tolerance = self.settings.spread_tolerance;
         let chosen =
             match SpreadOperator::oversampling_for(mx, my, dx, dy, pitch, &self.tif, tolerance) {
                 Ok(c) => c,
-                Err(e) => return refuse(e.to_string()),
+                Err(e) => return refusal(forced, "fft-spread", NotServed::Cannot(e.to_string())),
             };
         let Some((s, error)) = chosen else {
-            return refuse(format!(
-                "no oversampling up to {MAX_OVERSAMPLING} brings the estimated operator error \
-                 within spread_tolerance = {tolerance}"
-            ));
+            return refusal(
+                forced,
+                "fft-spread",
+                NotServed::Cannot(format!(
+                    "no oversampling up to {MAX_OVERSAMPLING} brings the estimated operator error \
+                     within spread_tolerance = {tolerance}"
+                )),
+            );
         };
         if !forced {
             if spread_ns(s) >= sparse_ns {
@@ -144,5 +276,18 @@ impl Setup {
                 Ok(None)
             }
         }
+    }
+}
+
+/// `None` (the assembled `R`) when `auto` finds the operator `name` does not serve, an error
+/// naming why when the settings asked for it.
+fn refusal<T>(forced: bool, name: &str, not: NotServed) -> SetupResult<Option<T>> {
+    match not {
+        NotServed::Cannot(why) if forced => Err(Error::invalid(
+            "operator",
+            format!("operator = \"{name}\" cannot be used: {why}"),
+        ))
+        .at(SetupInput::Job),
+        _ => Ok(None),
     }
 }
