@@ -279,7 +279,7 @@ def solve(
     * objective: ``rho`` (weight of total dwell, nm^2/s), ``lambda_`` (weight of dwell
       differences, nm^2/s^2), ``min_time`` and ``min_time_tolerance`` (relative).
     * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,
-      ``"sparse"``, ``"fft"``, ``"fft-spread"``), ``first_order_method`` (``"lbfgs"``, the default,
+      ``"sparse"``, ``"fft"``, ``"stencil"``, ``"fft-spread"``), ``first_order_method`` (``"lbfgs"``, the default,
       ``"fista"``, ``"newton-cg"``),
       ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous
       dwell.csv).
