@@ -269,6 +269,7 @@ where
 
 /// `sum_j a[j] b[j]` with four running sums, combined in a fixed order (so bit-identical for
 /// any thread count; the independent sums let the additions overlap).
+#[inline(always)]
 pub(crate) fn lane_dot(a: &[f64], b: &[f64]) -> f64 {
     let mut acc = [0.0; 4];
     let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));

@@ -31,7 +31,7 @@ use crate::tif::InfluenceFunction;
 /// Sparse `R^T R t`: nanoseconds per stored non-zero (two passes, 2 cores).
 pub const SPARSE_NS_PER_NNZ: f64 = 1.0;
 /// Stencil `R^T R t`: nanoseconds per stencil entry and dwell point (two passes, 2 cores).
-pub const STENCIL_NS_PER_ENTRY: f64 = 0.5;
+pub const STENCIL_NS_PER_ENTRY: f64 = 0.35;
 /// Spreading operator `R^T R t`: nanoseconds per `F log2 F` of the fine lattice (2 cores).
 pub const SPREAD_NS_PER_CELL_LOG: f64 = 0.5;
 /// `auto` takes the stencil operator only when each stencil serves this many dwell points on
@@ -183,7 +183,7 @@ impl Setup {
             }
             warnings.push(format!(
                 "operator auto: dwell points off the map lattice, at {classes} distinct positions \
-                 within a {} mm cell; products use one tabulated stencil per position (exact), \
+                 within a {:.4} mm cell; products use one tabulated stencil per position (exact), \
                  predicted {:.1}x cheaper than R's {:.2e} non-zeros (operator = \"sparse\" \
                  assembles R)",
                 case.pitch_mm,
