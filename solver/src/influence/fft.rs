@@ -31,7 +31,9 @@
 //! and column passes (read a column of the row spectra, y transform, multiply, inverse), about
 //! eight parallel loops for `R^T R t` against eighteen for `R t` and `R^T y` done one by one.
 
-use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
+use super::operator::{
+    ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
+};
 use crate::error::{Error, Result};
 use crate::tif::InfluenceFunction;
 use rayon::prelude::*;
@@ -58,10 +60,8 @@ pub struct FftOperator {
     map: Cells,
     /// The dwell points: on the lattice, or on a sub-lattice coarser than it.
     dwell: DwellCells,
-    /// `(k, k^2)` sums of each column over the map points, for the Jacobi scaling.
-    col_sums: Vec<(f64, f64)>,
-    /// Non-zero entries of each column of the implicit `R`.
-    col_nnz: Vec<usize>,
+    /// Each column's sums over the map points (non-zeros, Jacobi scaling).
+    columns: ColumnStats,
     transforms: Transforms,
     buffers: Mutex<Buffers>,
 }
@@ -381,22 +381,19 @@ impl FftOperator {
         } else {
             map_cells
         };
-        let (col_sums, col_nnz): (Vec<(f64, f64)>, Vec<usize>) = dwell_ij
+        let columns = dwell_ij
             .iter()
             .map(|&(i, j)| {
-                let (mut s, mut s2, mut count) = (0.0, 0.0, 0usize);
+                let mut sums = ColumnSums::default();
                 for &(dx, dy, v) in &taps {
                     let (a, b) = (i as isize + dx, j as isize + dy);
                     if a >= 0 && b >= 0 && (a as usize) < nx && (b as usize) < ny {
-                        let k = map_count[b as usize * fx + a as usize];
-                        s += f64::from(k) * v;
-                        s2 += f64::from(k) * v * v;
-                        count += k as usize;
+                        sums.add(map_count[b as usize * fx + a as usize], v);
                     }
                 }
-                ((s, s2), count)
+                sums
             })
-            .unzip();
+            .collect();
         Ok(Self {
             fx,
             fy,
@@ -406,8 +403,7 @@ impl FftOperator {
                 Some(sub) => DwellCells::Sub(sub),
                 None => DwellCells::Lattice(Cells::new(dwell_cells, fx, fy)),
             },
-            col_sums,
-            col_nnz,
+            columns: ColumnStats::new(map_ij.len(), columns),
             transforms,
             buffers: Mutex::new(buffers),
         })
@@ -415,17 +411,12 @@ impl FftOperator {
 
     /// Non-zero entries of the implicit matrix `R` (the number the sparse operator would store).
     pub fn nnz(&self) -> usize {
-        self.col_nnz.iter().sum()
+        self.columns.nnz()
     }
 
     /// Dwell points whose column is empty: no map point lies in the tool's reach.
     pub fn empty_columns(&self) -> Vec<usize> {
-        self.col_nnz
-            .iter()
-            .enumerate()
-            .filter(|(_, &c)| c == 0)
-            .map(|(j, _)| j)
-            .collect()
+        self.columns.empty_columns()
     }
 
     /// The pitch, mm, of the lattice the map points lie on: the smallest step between distinct
@@ -885,11 +876,7 @@ impl LinearOperator for FftOperator {
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
-        let m = self.map.len().max(1) as f64;
-        self.col_sums
-            .iter()
-            .map(|&(s, s2)| (s2 - s * s / m).max(0.0))
-            .collect()
+        self.columns.centred_norms_sq()
     }
 }
 

@@ -226,6 +226,70 @@ impl LinearOperator for SparseOperator<'_> {
     }
 }
 
+/// One column's sums over the map points, as a matrix-free operator accumulates them entry by
+/// entry: the sum and sum of squares of its entries and its non-zeros (an entry held by `k` map
+/// points, several measurements in one lattice cell, counts `k` times).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct ColumnSums {
+    sum: f64,
+    sum_sq: f64,
+    nnz: usize,
+}
+
+impl ColumnSums {
+    /// Adds entry `v` held by `count` map points (a zero entry or count adds nothing).
+    #[inline]
+    pub(crate) fn add(&mut self, count: u32, v: f64) {
+        if v != 0.0 && count > 0 {
+            let c = f64::from(count);
+            self.sum += c * v;
+            self.sum_sq += c * v * v;
+            self.nnz += count as usize;
+        }
+    }
+}
+
+/// The column sums of a matrix-free operator over its `m` map points: its non-zeros, empty
+/// columns and the centred column norms of the Jacobi scaling, read the same way by every
+/// matrix-free operator.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct ColumnStats {
+    columns: Vec<ColumnSums>,
+    m: usize,
+}
+
+impl ColumnStats {
+    /// The statistics of `columns` over `m` map points.
+    pub(crate) fn new(m: usize, columns: Vec<ColumnSums>) -> Self {
+        Self { columns, m }
+    }
+
+    /// Non-zero entries of the implicit matrix (the number the sparse operator would store).
+    pub(crate) fn nnz(&self) -> usize {
+        self.columns.iter().map(|c| c.nnz).sum()
+    }
+
+    /// Columns with no non-zero entry: dwell points with no map point in the tool's reach.
+    pub(crate) fn empty_columns(&self) -> Vec<usize> {
+        self.columns
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.nnz == 0)
+            .map(|(j, _)| j)
+            .collect()
+    }
+
+    /// `||R_j||^2 - (1' R_j)^2 / m` for every column (see
+    /// [`LinearOperator::centred_column_norms_sq`]).
+    pub(crate) fn centred_norms_sq(&self) -> Vec<f64> {
+        let m = self.m.max(1) as f64;
+        self.columns
+            .iter()
+            .map(|c| (c.sum_sq - c.sum * c.sum / m).max(0.0))
+            .collect()
+    }
+}
+
 /// Length of the fixed chunks of [`fixed_sum`]: the chunking does not depend on the thread count.
 pub(crate) const CHUNK: usize = 4096;
 

@@ -27,7 +27,9 @@
 //! columns, each column computed both ways entry by entry.
 
 use super::fft::FftOperator;
-use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
+use super::operator::{
+    ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
+};
 use crate::error::{Error, Result};
 use crate::tif::InfluenceFunction;
 use rayon::prelude::*;
@@ -56,8 +58,8 @@ pub struct SpreadOperator {
     /// Transpose of `stencil` (CSR by node): the dwell points spread onto each node.
     node_start: Vec<usize>,
     node_entries: Vec<(u32, f64)>,
-    /// `(sum, sum of squares, count)` of each column of `R~` over the map points.
-    columns: Vec<(f64, f64, usize)>,
+    /// Each column's sums of `R~` over the map points (non-zeros, Jacobi scaling).
+    columns: ColumnStats,
     estimated_error: f64,
     m: usize,
     /// Node-space work vectors for the products.
@@ -251,18 +253,11 @@ impl Layout {
         }
     }
 
-    /// `(sum, sum of squares, non-zero count)` of column `j` of `R~` over the map points.
-    fn column_sums(&self, j: usize) -> (f64, f64, usize) {
-        let (mut s1, mut s2, mut nnz) = (0.0, 0.0, 0usize);
-        self.for_each_entry(j, |_, count, v| {
-            if v != 0.0 {
-                let c = f64::from(count);
-                s1 += c * v;
-                s2 += c * v * v;
-                nnz += count as usize;
-            }
-        });
-        (s1, s2, nnz)
+    /// Column `j`'s sums of `R~` over the map points.
+    fn column_sums(&self, j: usize) -> ColumnSums {
+        let mut sums = ColumnSums::default();
+        self.for_each_entry(j, |_, count, v| sums.add(count, v));
+        sums
     }
 
     /// `(||R~_j - R_j||^2, ||R_j||^2)` for column `j`, against the exact contract
@@ -429,10 +424,13 @@ impl SpreadOperator {
             .map(|&(j, _)| layout.y0 + j as f64 * fine)
             .collect();
         let inner = FftOperator::new(map_x_mm, map_y_mm, &node_x, &node_y, fine, tif)?;
-        let columns: Vec<(f64, f64, usize)> = (0..layout.nodes.len())
-            .into_par_iter()
-            .map(|j| layout.column_sums(j))
-            .collect();
+        let columns = ColumnStats::new(
+            layout.map_ij.len(),
+            (0..layout.nodes.len())
+                .into_par_iter()
+                .map(|j| layout.column_sums(j))
+                .collect(),
+        );
         let nodes = touched.len();
         Ok(Self {
             inner,
@@ -466,17 +464,12 @@ impl SpreadOperator {
 
     /// Non-zero entries of `R~` (over the map points).
     pub fn nnz(&self) -> usize {
-        self.columns.iter().map(|c| c.2).sum()
+        self.columns.nnz()
     }
 
     /// Dwell points whose column is empty: no map point in the tool's reach.
     pub fn empty_columns(&self) -> Vec<usize> {
-        self.columns
-            .iter()
-            .enumerate()
-            .filter(|(_, c)| c.2 == 0)
-            .map(|(j, _)| j)
-            .collect()
+        self.columns.empty_columns()
     }
 
     /// Fine nodes the dwell points spread onto.
@@ -547,11 +540,7 @@ impl LinearOperator for SpreadOperator {
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
-        let m = self.m.max(1) as f64;
-        self.columns
-            .iter()
-            .map(|&(s, s2, _)| (s2 - s * s / m).max(0.0))
-            .collect()
+        self.columns.centred_norms_sq()
     }
 }
 

@@ -27,7 +27,9 @@
 //! the other. Everything else is the assembled contract, entry for entry.
 
 use super::fft::lattice_index;
-use super::operator::{lane_dot, InfluenceOperator, LinearOperator, OperatorKind, Products};
+use super::operator::{
+    lane_dot, ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
+};
 use crate::error::{Error, Result};
 use crate::tif::InfluenceFunction;
 use rayon::prelude::*;
@@ -77,10 +79,8 @@ pub struct StencilOperator {
     by_cell_cells: Vec<usize>,
     /// Map points per image cell.
     cell_count: Vec<f64>,
-    /// Per dwell point, the column sum and sum of squares over the map points.
-    col_sums: Vec<(f64, f64)>,
-    /// Per dwell point, the non-zeros of its column.
-    col_nnz: Vec<usize>,
+    /// Each column's sums over the map points (non-zeros, Jacobi scaling).
+    columns: ColumnStats,
     /// The image every product works in.
     image: Mutex<Vec<f64>>,
     /// The widest vector instructions this CPU has, detected once: the kernels run compiled
@@ -339,15 +339,17 @@ impl StencilOperator {
             by_cell,
             by_cell_cells,
             cell_count,
-            col_sums: Vec::new(),
-            col_nnz: Vec::new(),
+            columns: ColumnStats::default(),
             image: Mutex::new(vec![0.0; nx * ny]),
             arch: pulp::Arch::new(),
         };
-        (op.col_sums, op.col_nnz) = (0..op.dwell_class.len())
-            .into_par_iter()
-            .map(|j| op.column_sums(j))
-            .unzip();
+        op.columns = ColumnStats::new(
+            op.map_cells.len(),
+            (0..op.dwell_class.len())
+                .into_par_iter()
+                .map(|j| op.column_sums(j))
+                .collect(),
+        );
         Ok(op)
     }
 
@@ -358,17 +360,12 @@ impl StencilOperator {
 
     /// Non-zero entries of the implicit matrix `R` (the number the sparse operator would store).
     pub fn nnz(&self) -> usize {
-        self.col_nnz.iter().sum()
+        self.columns.nnz()
     }
 
     /// Dwell points whose column is empty: no map point lies in the tool's reach.
     pub fn empty_columns(&self) -> Vec<usize> {
-        self.col_nnz
-            .iter()
-            .enumerate()
-            .filter(|(_, &c)| c == 0)
-            .map(|(j, _)| j)
-            .collect()
+        self.columns.empty_columns()
     }
 
     /// Stencil row `b` of class `k`: its span start and its non-zero span of values.
@@ -379,22 +376,19 @@ impl StencilOperator {
         (lo, &self.stencils[start + lo..start + hi])
     }
 
-    /// Column `j`'s sum and sum of squares over the map points, and its non-zeros.
-    fn column_sums(&self, j: usize) -> ((f64, f64), usize) {
+    /// Column `j`'s sums over the map points.
+    fn column_sums(&self, j: usize) -> ColumnSums {
         let (cx, cy) = self.dwell_corner[j];
-        let (mut s, mut s2, mut nnz) = (0.0, 0.0, 0usize);
+        let mut sums = ColumnSums::default();
         for b in 0..self.side {
             let (lo, row) = self.stencil_row(self.dwell_class[j], b);
             let start = (cy + b) * self.nx + cx + lo;
             for (&v, &c) in row.iter().zip(&self.cell_count[start..start + row.len()]) {
-                if v != 0.0 && c > 0.0 {
-                    s += c * v;
-                    s2 += c * v * v;
-                    nnz += c as usize;
-                }
+                // Counts are small whole numbers, exact in both types.
+                sums.add(c as u32, v);
             }
         }
-        ((s, s2), nnz)
+        sums
     }
 
     /// `image = R t` on every cell, times the cell's map-point count when `weighted`: strips of
@@ -571,11 +565,7 @@ impl LinearOperator for StencilOperator {
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
-        let m = self.map_cells.len().max(1) as f64;
-        self.col_sums
-            .iter()
-            .map(|&(s, s2)| (s2 - s * s / m).max(0.0))
-            .collect()
+        self.columns.centred_norms_sq()
     }
 }
 
