@@ -402,6 +402,33 @@ fn operator_stencil_matches_the_assembled_matrix_and_auto_takes_it_off_the_latti
     assert!(!out.join("report.json").exists());
 }
 
+/// Dwell points far from the map make the stencils' image of the lattice huge (its clearing
+/// dominates each product): `auto` assembles `R` instead, and the far points stay unreachable.
+#[test]
+fn operator_auto_declines_the_stencils_when_their_image_would_dwarf_the_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let (map, dwell) = off_lattice_case(dir.path());
+    let mut text = std::fs::read_to_string(&dwell).unwrap();
+    text.push_str("1500,1500.5\n1500.5,-1500\n");
+    std::fs::write(&dwell, text).unwrap();
+    let out = dir.path().join("far");
+    let dwell = dwell.to_str().unwrap();
+    let args = [
+        "--dwell",
+        dwell,
+        "--gaussian-truncation-mm",
+        "5.905",
+        "--tolerance",
+        "1e-4",
+    ];
+    let o = solve_gaussian(&map, &args, &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    assert_eq!(r["operator"], "sparse");
+    assert_eq!(r["solver"], "first-order");
+    assert_eq!(r["unreachable_dwell_points"], 2);
+}
+
 /// `preston bench` carries each solve's status to its rows and exits 3 when a solve stopped
 /// before its test (rows still written), 0 when every solve converged.
 #[test]

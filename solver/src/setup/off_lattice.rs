@@ -13,7 +13,8 @@
 //! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
 //! its Gram matrix where that is smaller, for the stencil's comparison); the stencil
 //! operator scatters and gathers every stencil entry, `2 n pi r^2 / h^2` at about
-//! [`STENCIL_NS_PER_ENTRY`]; the spreading operator transforms the padded fine lattice of `F`
+//! [`STENCIL_NS_PER_ENTRY`], and clears and weights its image of the lattice, two passes over its
+//! cells at about [`IMAGE_NS_PER_CELL`]; the spreading operator transforms the padded fine lattice of `F`
 //! cells forth and back, about `F log2 F` times [`SPREAD_NS_PER_CELL_LOG`]. Assembling `R` costs
 //! a TIF evaluation per non-zero on top, which the comparison leaves out (in the matrix-free
 //! operators' favour).
@@ -32,6 +33,8 @@ use crate::tif::InfluenceFunction;
 pub const SPARSE_NS_PER_NNZ: f64 = 1.0;
 /// Stencil `R^T R t`: nanoseconds per stencil entry and dwell point (two passes, 2 cores).
 pub const STENCIL_NS_PER_ENTRY: f64 = 0.35;
+/// Stencil `R^T R t`: nanoseconds per image cell (clearing and weighting the image, 2 cores).
+pub const IMAGE_NS_PER_CELL: f64 = 0.5;
 /// Spreading operator `R^T R t`: nanoseconds per `F log2 F` of the fine lattice (2 cores).
 pub const SPREAD_NS_PER_CELL_LOG: f64 = 0.5;
 /// `auto` takes the stencil operator only when each stencil serves this many dwell points on
@@ -154,20 +157,34 @@ impl Setup {
             };
             let r = self.tif.support_radius_mm();
             let entries = std::f64::consts::PI * r * r / (case.pitch_mm * case.pitch_mm);
-            let stencil_ns = 2.0 * STENCIL_NS_PER_ENTRY * entries * n as f64;
+            // The image spans map and dwell points with a stencil's reach around the dwell
+            // points; every product clears it and weights it once.
+            let extent = |v: &[f64]| {
+                v.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+                        (a.min(x), b.max(x))
+                    })
+            };
+            let image_side = |(map_lo, map_hi): (f64, f64), (d_lo, d_hi): (f64, f64)| {
+                ((map_hi.max(d_hi + r) - map_lo.min(d_lo - r)) / case.pitch_mm).max(0.0) + 1.0
+            };
+            let image_cells = image_side((case.bbox.x_min_mm, case.bbox.x_max_mm), extent(dx))
+                * image_side((case.bbox.y_min_mm, case.bbox.y_max_mm), extent(dy));
+            let stencil_ns = 2.0 * STENCIL_NS_PER_ENTRY * entries * n as f64
+                + 2.0 * IMAGE_NS_PER_CELL * image_cells;
             // The assembled `R` serves normal products through `R` (two passes) or, where its
             // formation (`k^2` multiply-adds per map point, `k` the dwell points in its reach)
             // costs at most the products the solver declares, through its Gram matrix (one pass
             // over `G`: each dwell point against those within `2 r`).
-            let span = |v: &[f64]| {
-                let (lo, hi) = v
-                    .iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-                        (a.min(x), b.max(x))
-                    });
-                hi - lo + 2.0 * r
-            };
-            let per_mm2 = n as f64 / (span(dx) * span(dy));
+            // Dwell points per mm^2 where there are any: over the squares of side `2 r` they
+            // occupy (a few stray points far out do not thin the estimate).
+            let square = 2.0 * r;
+            let occupied: std::collections::HashSet<(i64, i64)> = dx
+                .iter()
+                .zip(dy)
+                .map(|(&x, &y)| ((x / square).floor() as i64, (y / square).floor() as i64))
+                .collect();
+            let per_mm2 = n as f64 / (occupied.len().max(1) as f64 * square * square);
             let in_reach = (std::f64::consts::PI * r * r * per_mm2).min(n as f64);
             let formation = rows.len() as f64 * in_reach * in_reach;
             let gram_nnz = (4.0 * std::f64::consts::PI * r * r * per_mm2).min(n as f64) * n as f64;
