@@ -47,7 +47,9 @@ pub struct Problem {
 pub enum OperatorChoice {
     /// The FFT operator when map and dwell points lie on one lattice, the TIF is applied in the
     /// plane, nothing needs the QP and the cost models of [`policy`] predict it faster than the
-    /// assembled matrix (and the QP); the assembled matrix otherwise.
+    /// assembled matrix (and the QP); for dwell points off the map lattice the phase stencils,
+    /// then the spreading operator, where they serve and are predicted faster; the assembled
+    /// matrix otherwise.
     #[default]
     Auto,
     /// Assemble the sparse influence matrix `R`.
