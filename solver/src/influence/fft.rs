@@ -43,7 +43,7 @@ use rustfft::{Fft, FftPlanner};
 use std::sync::{Arc, Mutex};
 
 /// Relative tolerance for a coordinate to count as on the lattice.
-pub(super) const ON_LATTICE_TOL: f64 = 1e-6;
+const ON_LATTICE_TOL: f64 = 1e-6;
 /// Largest lattice (cells) the operator accepts: at about 32 bytes per cell (a real buffer and three
 /// half-spectrum complex ones) 4e8 cells take ~13 GB.
 const MAX_LATTICE_CELLS: usize = 400_000_000;
@@ -209,7 +209,7 @@ fn smooth_size(n: usize) -> usize {
 }
 
 /// Signed lattice index of `v` on the lattice of pitch `pitch` through `origin`.
-pub(super) fn lattice_index(v: f64, origin: f64, pitch: f64) -> Option<i64> {
+pub(crate) fn lattice_index(v: f64, origin: f64, pitch: f64) -> Option<i64> {
     let u = (v - origin) / pitch;
     let k = u.round();
     ((u - k).abs() <= ON_LATTICE_TOL && k.abs() < 1e15).then_some(k as i64)

@@ -1,8 +1,9 @@
 //! The influence operator `R` (dwell times -> removal) behind two traits:
 //! - [`InfluenceOperator`]: `R` as a dwell problem holds it, whatever its form (the assembled
 //!   [`InfluenceMatrix`], the matrix-free [`super::FftOperator`] on one lattice, the off-lattice
-//!   [`super::StencilOperator`] and [`super::SpreadOperator`]): its kind, shape, non-zeros, empty columns, removal `R t`, the
-//!   assembled matrix where there is one, and the operator ready for products;
+//!   [`super::StencilOperator`] and [`super::SpreadOperator`]): its kind, shape, non-zeros, empty
+//!   columns, removal `R t`, the assembled matrix where there is one, and the operator ready for
+//!   products;
 //! - [`LinearOperator`]: the products `R t`, `R^T y`, `R^T R t` the first-order solvers take.
 //!
 //! Every product is computed entry by entry in a fixed order (one dot product per output entry,

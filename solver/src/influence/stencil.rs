@@ -114,6 +114,18 @@ fn cell_and_phase(v: f64, origin: f64, pitch: f64) -> Option<(i64, i64)> {
     Some((q.div_euclid(PHASE_STEPS), q.rem_euclid(PHASE_STEPS)))
 }
 
+/// A dwell point's cell and rounded phase along x and y (see [`cell_and_phase`]) on the lattice
+/// through `(x0, y0)`.
+fn dwell_cell_and_phase(
+    (x, y): (f64, f64),
+    (x0, y0): (f64, f64),
+    pitch: f64,
+) -> Option<((i64, i64), (i64, i64))> {
+    let (bx, fx) = cell_and_phase(x, x0, pitch)?;
+    let (by, fy) = cell_and_phase(y, y0, pitch)?;
+    Some(((bx, by), (fx, fy)))
+}
+
 /// The map's lowest x and y: the lattice runs through them.
 fn lattice_origin(map_x_mm: &[f64], map_y_mm: &[f64]) -> (f64, f64) {
     (
@@ -134,12 +146,11 @@ impl StencilOperator {
         pitch_mm: f64,
         limit: usize,
     ) -> Option<usize> {
-        let (x0, y0) = lattice_origin(map_x_mm, map_y_mm);
+        let origin = lattice_origin(map_x_mm, map_y_mm);
         let mut seen = std::collections::HashSet::new();
         for (&x, &y) in dwell_x_mm.iter().zip(dwell_y_mm) {
-            let (_, fx) = cell_and_phase(x, x0, pitch_mm)?;
-            let (_, fy) = cell_and_phase(y, y0, pitch_mm)?;
-            seen.insert((fx, fy));
+            let (_, phase) = dwell_cell_and_phase((x, y), origin, pitch_mm)?;
+            seen.insert(phase);
             if seen.len() > limit {
                 return None;
             }
@@ -219,10 +230,7 @@ impl StencilOperator {
         let mut dwell_class = Vec::with_capacity(dwell_x_mm.len());
         let mut dwell_base = Vec::with_capacity(dwell_x_mm.len());
         for (j, (&x, &y)) in dwell_x_mm.iter().zip(dwell_y_mm).enumerate() {
-            let (Some((bx, fx)), Some((by, fy))) = (
-                cell_and_phase(x, x0, pitch_mm),
-                cell_and_phase(y, y0, pitch_mm),
-            ) else {
+            let Some((base, phase)) = dwell_cell_and_phase((x, y), (x0, y0), pitch_mm) else {
                 return Err(Error::invalid(
                     "dwell point",
                     format!(
@@ -231,12 +239,12 @@ impl StencilOperator {
                     ),
                 ));
             };
-            let class = *class_of.entry((fx, fy)).or_insert_with(|| {
-                phases.push((fx, fy));
+            let class = *class_of.entry(phase).or_insert_with(|| {
+                phases.push(phase);
                 phases.len() - 1
             });
             dwell_class.push(class);
-            dwell_base.push((bx, by));
+            dwell_base.push(base);
         }
         let classes = phases.len();
         crate::budget::check_f64s(

@@ -23,7 +23,7 @@ use super::{At, Setup, SetupInput, SetupResult};
 use crate::dwell::first_order::POWER_STEPS;
 use crate::dwell::{policy, OperatorChoice, SolverChoice, SolverKind};
 use crate::error::Error;
-use crate::influence::fft::FftOperator;
+use crate::influence::fft::{lattice_index, FftOperator};
 use crate::influence::spread::MAX_OVERSAMPLING;
 use crate::influence::{SpreadOperator, StencilOperator};
 use crate::map::{BoundingBox, HeightMap};
@@ -64,7 +64,7 @@ impl Setup {
     /// Whether every dwell point lies on the map lattice of pitch `pitch_mm` through the lowest
     /// corner of `bbox` (the FFT operator's exact case).
     pub(super) fn dwell_on_map_lattice(&self, bbox: &BoundingBox, pitch_mm: f64) -> bool {
-        let on = |v: f64, o: f64| ((v - o) / pitch_mm - ((v - o) / pitch_mm).round()).abs() <= 1e-6;
+        let on = |v: f64, o: f64| lattice_index(v, o, pitch_mm).is_some();
         self.path
             .x_mm()
             .iter()
