@@ -35,7 +35,7 @@ use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
 use crate::error::{Error, Result};
-use crate::tif::InfluenceFunction;
+use crate::tif::{lattice_reach, InfluenceFunction};
 use rayon::prelude::*;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use rustfft::num_complex::Complex;
@@ -291,7 +291,7 @@ impl FftOperator {
                 ),
             ));
         }
-        let kr = (tif.support_radius_mm() / pitch_mm).ceil() as usize;
+        let kr = lattice_reach(tif.support_radius_mm(), pitch_mm) as usize;
         // The dwell points' sub-lattice: steps dx, dy (gcd of their index differences), offset.
         let (dx, dy) = (
             sub_lattice_step(dwell_ij.iter().map(|p| p.0)),

@@ -31,7 +31,7 @@ use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
 use crate::error::{Error, Result};
-use crate::tif::InfluenceFunction;
+use crate::tif::{lattice_reach, InfluenceFunction};
 use rayon::prelude::*;
 use std::sync::Mutex;
 
@@ -190,7 +190,7 @@ impl Layout {
                 ])
             })
             .collect::<Result<Vec<_>>>()?;
-        let kr = (tif.support_radius_mm() / fine).ceil() as i64;
+        let kr = lattice_reach(tif.support_radius_mm(), fine) as i64;
         let side = (2 * kr + 1) as usize;
         let kernel = (0..side * side)
             .map(|k| {

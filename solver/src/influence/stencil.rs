@@ -707,6 +707,31 @@ mod tests {
     }
 
     #[test]
+    fn pairs_on_a_gaussian_cut_circle_count_in_both_operators() {
+        // A 0.36 mm map and a 0.5 mm raster (18 x 18 phases, rounded) put families of pairs
+        // exactly 4.5 mm apart, on the cut circle, some of whose computed offsets round outward.
+        let tif = crate::tif::GaussianTif::new(1.5, 20.0, 4.5).unwrap();
+        let (mx, my): (Vec<f64>, Vec<f64>) = (0..60 * 40)
+            .map(|k| (0.36 * (k % 60) as f64, 0.36 * (k / 60) as f64))
+            .unzip();
+        let (dx, dy): (Vec<f64>, Vec<f64>) = (0..60 * 46)
+            .map(|k| (-4.0 + 0.5 * (k % 60) as f64, -4.0 + 0.5 * (k / 60) as f64))
+            .unzip();
+        let op = StencilOperator::new(&mx, &my, &dx, &dy, 0.36, &tif).unwrap();
+        let exact = InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap();
+        assert_eq!(op.nnz(), exact.nnz());
+        let sparse = SparseOperator::new(exact.csc());
+        let t: Vec<f64> = (0..dx.len())
+            .map(|j| 0.1 + ((j * 7919) % 13) as f64)
+            .collect();
+        let (mut a, mut b) = (vec![0.0; mx.len()], vec![0.0; mx.len()]);
+        op.apply(&t, &mut a);
+        sparse.apply(&t, &mut b);
+        let forward = rel_diff(&a, &b);
+        assert!(forward < ROUNDED_REL_TOL, "R t off by {forward:e}");
+    }
+
+    #[test]
     fn products_at_scattered_dwell_points_equal_the_assembled_matrix_to_the_rounding() {
         // Every dwell point its own phase.
         let (dx, dy): (Vec<f64>, Vec<f64>) = (0..300)
