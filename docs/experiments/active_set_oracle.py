@@ -101,26 +101,27 @@ def admm(iters, rho1, rho2, every=50):
     return hist
 
 
-t_ref, h_f = fista(20000)
-fstar = min(o for _, o in h_f)
-F = dmask & (t_ref > l * (1 + 1e-6))
-print(f"best objective {fstar:.6f} nm^2 (Jacobi-FISTA, 20,000 products); free at it {F.sum()}")
-first = lambda hist, tol: next((i for i, o in hist if o <= fstar * (1 + tol)), None)
-runs = {"Jacobi-FISTA": h_f, "oracle CG, Jacobi": pcg(F, lambda r: Dinv * r, 4000)}
-col = Ct(C(np.roll(np.roll((np.arange(N)[:, None] == 0) & (np.arange(N)[None, :] == 0), 0, 0), 0, 1).astype(float)))
-Ah = np.real(np.fft.fft2(col[::2, ::2]))
-sc = np.where(dmask, np.sqrt(diag / col.max()), 1.0)
-for mu in (1e-4, 1e-2):
-    den = np.maximum(Ah, 0) + mu * Ah.max()
-    for scaled in (False, True):
-        def Minv(r, den=den, scaled=scaled):
-            u = (r / sc if scaled else r)[::2, ::2]
-            out = np.zeros_like(r); out[::2, ::2] = np.real(np.fft.ifft2(np.fft.fft2(u) / den))
-            return np.where(F, out / sc if scaled else out, 0)
-        runs[f"oracle CG, circulant mu={mu:g}{' Jacobi-scaled' if scaled else ''}"] = pcg(F, Minv, 1000)
-for rho1, rho2 in ((0.01, 1e3), (0.01, 1e2), (0.1, 1e3)):
-    runs[f"ADMM rho1={rho1:g} rho2={rho2:g}"] = admm(2000, rho1, rho2)
-for name, hist in runs.items():
-    last_i, last_o = hist[-1]
-    print(f"{name:45s} to 1%: {first(hist, 1e-2)}, 0.1%: {first(hist, 1e-3)}, 0.01%: {first(hist, 1e-4)};"
-          f" after {last_i}: {100 * (last_o / fstar - 1):+.3f}%")
+if __name__ == "__main__":
+    t_ref, h_f = fista(20000)
+    fstar = min(o for _, o in h_f)
+    F = dmask & (t_ref > l * (1 + 1e-6))
+    print(f"best objective {fstar:.6f} nm^2 (Jacobi-FISTA, 20,000 products); free at it {F.sum()}")
+    first = lambda hist, tol: next((i for i, o in hist if o <= fstar * (1 + tol)), None)
+    runs = {"Jacobi-FISTA": h_f, "oracle CG, Jacobi": pcg(F, lambda r: Dinv * r, 4000)}
+    col = Ct(C(np.roll(np.roll((np.arange(N)[:, None] == 0) & (np.arange(N)[None, :] == 0), 0, 0), 0, 1).astype(float)))
+    Ah = np.real(np.fft.fft2(col[::2, ::2]))
+    sc = np.where(dmask, np.sqrt(diag / col.max()), 1.0)
+    for mu in (1e-4, 1e-2):
+        den = np.maximum(Ah, 0) + mu * Ah.max()
+        for scaled in (False, True):
+            def Minv(r, den=den, scaled=scaled):
+                u = (r / sc if scaled else r)[::2, ::2]
+                out = np.zeros_like(r); out[::2, ::2] = np.real(np.fft.ifft2(np.fft.fft2(u) / den))
+                return np.where(F, out / sc if scaled else out, 0)
+            runs[f"oracle CG, circulant mu={mu:g}{' Jacobi-scaled' if scaled else ''}"] = pcg(F, Minv, 1000)
+    for rho1, rho2 in ((0.01, 1e3), (0.01, 1e2), (0.1, 1e3)):
+        runs[f"ADMM rho1={rho1:g} rho2={rho2:g}"] = admm(2000, rho1, rho2)
+    for name, hist in runs.items():
+        last_i, last_o = hist[-1]
+        print(f"{name:45s} to 1%: {first(hist, 1e-2)}, 0.1%: {first(hist, 1e-3)}, 0.01%: {first(hist, 1e-4)};"
+              f" after {last_i}: {100 * (last_o / fstar - 1):+.3f}%")
