@@ -94,6 +94,7 @@ mod tests {
         assert!((g.rate_nm_per_s(0.0, -2.0) - 10.0 * (-0.5f64).exp()).abs() < 1e-14);
         assert_eq!(g.rate_nm_per_s(6.01, 0.0), 0.0);
         assert!(GaussianTif::new(0.0, 1.0, 1.0).is_err());
+        assert!(GaussianTif::new(1.0, -1.0, 1.0).is_err());
     }
 
     #[test]
@@ -116,6 +117,5 @@ mod tests {
         assert_eq!(g.rate_nm_per_s(4.5 * (1.0 + 1e-5), 0.0), 0.0);
         assert_eq!(g.nominal_radius_mm(), 4.5);
         assert!(g.support_radius_mm() >= 4.5 && g.support_radius_mm() <= 4.5 * (1.0 + 2e-6));
-        assert!(GaussianTif::new(1.0, -1.0, 1.0).is_err());
     }
 }

@@ -7,8 +7,8 @@ use serde::{Deserialize, Serialize};
 /// Relative tolerance for deciding that sample coordinates lie on one grid line.
 pub const GRID_COORD_REL_TOL: f64 = 1e-6;
 /// An offset within this many grid cells outside the grid's edge is on the edge (wider than the
-/// phase stencils' rounding of offsets, `2^-25` of a map cell, for maps up to 5 times coarser than
-/// the grid).
+/// phase stencils' rounding of offsets, `2^-25` of a map cell, for maps up to 30 times coarser
+/// than the grid).
 const ON_EDGE_CELLS: f64 = 1e-6;
 
 /// Removal rates on a regular grid of offsets from the tool centre.
