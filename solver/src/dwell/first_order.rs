@@ -208,29 +208,39 @@ impl Data<'_> {
     /// has one (`work.rt` is scratch): `R^T P (R t - z) = R^T R t - R^T z - mean c`,
     /// `c = R^T 1`, `mean = (c't - 1'z) / m`. `with_z = false` drops `z` (Hessian products).
     pub(crate) fn normal_gradient(&self, w: &[f64], with_z: bool, work: &mut Work) {
+        let mean = self.raw_normal_product(w, with_z, work);
+        let t = &work.t;
+        work.g
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(j, g)| *g = self.gradient_entry(*g, j, mean, with_z, t));
+    }
+
+    /// `work.t = S w` and `work.g = R^T R t`; returns `mean = (c't - 1'z) / m` (`1'z` only
+    /// `with_z`), what [`Data::gradient_entry`] needs to finish the gradient.
+    fn raw_normal_product(&self, w: &[f64], with_z: bool, work: &mut Work) -> f64 {
         let (c, s) = (&self.column_sums, &self.s);
         let ct = fill_and_sum(&mut work.t, &mut work.partials, |j| {
             let t = w[j] * s[j];
             (t, c[j] * t)
         });
         self.op.apply_normal(&work.t, &mut work.rt, &mut work.g);
-        let (sum_z, rtz) = if with_z {
-            (self.sum_z, self.rtz.as_slice())
-        } else {
-            (0.0, &[][..])
-        };
-        let mean = (ct - sum_z) / self.z.len() as f64;
-        let (t, lam) = (&work.t, self.lambda);
-        work.g.par_iter_mut().enumerate().for_each(|(j, g)| {
-            let mut v = *g - mean * c[j];
-            if with_z {
-                v -= rtz[j];
-            }
-            if lam > 0.0 {
-                v += lam * dtd(t, j);
-            }
-            *g = v;
-        });
+        let sum_z = if with_z { self.sum_z } else { 0.0 };
+        (ct - sum_z) / self.z.len() as f64
+    }
+
+    /// Entry `j` of `R^T P (R t - z) + lambda D^T D t` from entry `rtrt` of `R^T R t`:
+    /// `rtrt - mean c_j - (R^T z)_j + lambda (D^T D t)_j` (`z` only `with_z`).
+    #[inline(always)]
+    fn gradient_entry(&self, rtrt: f64, j: usize, mean: f64, with_z: bool, t: &[f64]) -> f64 {
+        let mut v = rtrt - mean * self.column_sums[j];
+        if with_z {
+            v -= self.rtz[j];
+        }
+        if self.lambda > 0.0 {
+            v += self.lambda * dtd(t, j);
+        }
+        v
     }
 
     /// `work.t = S w`, `work.rt = P(R t - z)`; returns `0.5 ||rt||^2`.
@@ -291,12 +301,13 @@ impl Data<'_> {
         self.hessian_product_dot(v, work, out);
     }
 
-    /// [`Data::hessian_product`] that also returns `v'out` (in the scaling pass).
+    /// [`Data::hessian_product`] that also returns `v'out`, finishing the product, scaling it and
+    /// taking the dot product in one pass (`work.g` is left as scratch).
     fn hessian_product_dot(&self, v: &[f64], work: &mut Work, out: &mut [f64]) -> f64 {
-        self.normal_gradient(v, false, work);
-        let (g, s) = (&work.g, &self.s);
+        let mean = self.raw_normal_product(v, false, work);
+        let (g, t, s) = (&work.g, &work.t, &self.s);
         fill_and_sum(out, &mut work.partials, |j| {
-            let o = s[j] * g[j];
+            let o = s[j] * self.gradient_entry(g[j], j, mean, false, t);
             (o, v[j] * o)
         })
     }
@@ -919,7 +930,10 @@ const LBFGS_MEMORY: usize = 5;
 /// product `H p` give, the objective being quadratic, the exact minimiser along the segment
 /// `x + tau p`, `tau = min(1, -q'p / p'Hp)`, and the new gradient `q + tau H p` without further
 /// products (recomputed exactly at every check). Should `p` not descend, the memory is cleared
-/// and the projected gradient step taken instead. Memory: `2 LBFGS_MEMORY + 6` vectors of `n`.
+/// and the projected gradient step taken instead. Memory: `2 LBFGS_MEMORY + 5` vectors of `n`
+/// and a free-set mask. The recursion's first and last passes carry the binding test and the
+/// projection, so an iteration makes `2 LBFGS_MEMORY + 4` passes over `n`-vectors besides the
+/// Hessian product.
 fn projected_lbfgs(
     data: &Data<'_>,
     mut x: Vec<f64>,
@@ -942,7 +956,7 @@ fn projected_lbfgs(
     let mut d = vec![0.0; n];
     let mut p = vec![0.0; n];
     let mut hp = vec![0.0; n];
-    let mut free = vec![1.0_f64; n];
+    let mut free = vec![true; n];
     let mut status = Status::MaxIterations;
     let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
     let scaled_gradient = |work: &Work, q: &mut [f64]| {
@@ -963,33 +977,23 @@ fn projected_lbfgs(
     if let Some(st) = limits.stop(&cert) {
         return (st, x, it, cert);
     }
-    let (lo, hi) = (&data.lo_w, &data.hi_w);
     while it < limits.max_it {
         let step = 1.0 / lip;
-        free.par_chunks_mut(CHUNK)
-            .enumerate()
-            .for_each(|(c, chunk)| {
-                for (k, fr) in chunk.iter_mut().enumerate() {
-                    let j = c * CHUNK + k;
-                    *fr = if binds(q[j], x[j], lo[j], hi[j], step) {
-                        0.0
-                    } else {
-                        1.0
-                    };
-                }
-            });
         // Two-loop recursion on the free variables; `d` stays zero on the binding ones, so its
         // dot products with the stored pairs are the restricted ones.
         let order = |k: usize| (newest + mem - k) % mem;
-        let mut dot = if stored > 0 {
-            let (qq, fr, s0) = (&q, &free, &s_mem[order(0)]);
-            fill_and_sum(&mut d, &mut work.partials, |j| {
-                let v = qq[j] * fr[j];
-                (v, s0[j] * v)
-            })
-        } else {
-            let (qq, fr) = (&q, &free);
-            fill_and_sum(&mut d, &mut work.partials, |j| (qq[j] * fr[j], 0.0))
+        let mut dot = {
+            let newest_s = (stored > 0).then(|| s_mem[order(0)].as_slice());
+            free_gradient(
+                data,
+                &x,
+                &q,
+                step,
+                newest_s,
+                &mut free,
+                &mut d,
+                &mut work.partials,
+            )
         };
         for k in 0..stored {
             let i = order(k);
@@ -1013,14 +1017,8 @@ fn projected_lbfgs(
             let next = (k > 0).then(|| y_mem[order(k - 1)].as_slice());
             dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, next, &mut work.partials);
         }
-        d.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
-            for (k, d) in chunk.iter_mut().enumerate() {
-                let j = c * CHUNK + k;
-                *d = if free[j] > 0.0 { -*d } else { -step * q[j] };
-            }
-        });
         // The projected step, and the projected gradient step when it does not descend.
-        let mut qp = project_step(data, &x, &d, &mut p, &q, &mut work.partials);
+        let mut qp = project_direction(data, &x, &d, &free, step, &mut p, &q, &mut work.partials);
         if !(qp < 0.0) {
             stored = 0;
             d.par_iter_mut()
@@ -1088,14 +1086,48 @@ fn projected_lbfgs(
     (status, x, it, cert)
 }
 
-/// `d[j] += a v[j] mask[j]` (`mask` 1 on the free variables, 0 elsewhere), then
-/// `sum_j w[j] d[j]` (0 without `w`), in one pass over fixed chunks (bit-identical for any thread
-/// count).
+/// The start of the two-loop recursion, in one pass over fixed chunks: `free[j]` = whether a
+/// projected gradient step of length `step` leaves variable `j` off its bounds ([`binds`]),
+/// `d = q` on the free variables and 0 on the binding ones; returns `sum_j w[j] d[j]` (0 without
+/// `w`).
+#[allow(clippy::too_many_arguments)]
+fn free_gradient(
+    data: &Data<'_>,
+    x: &[f64],
+    q: &[f64],
+    step: f64,
+    w: Option<&[f64]>,
+    free: &mut [bool],
+    d: &mut [f64],
+    partials: &mut Vec<f64>,
+) -> f64 {
+    let (lo, hi) = (&data.lo_w, &data.hi_w);
+    d.par_chunks_mut(CHUNK)
+        .zip(free.par_chunks_mut(CHUNK))
+        .enumerate()
+        .map(|(c, (d_chunk, free_chunk))| {
+            let mut acc = 0.0;
+            for (k, (d, fr)) in d_chunk.iter_mut().zip(free_chunk).enumerate() {
+                let j = c * CHUNK + k;
+                *fr = !binds(q[j], x[j], lo[j], hi[j], step);
+                *d = if *fr { q[j] } else { 0.0 };
+                if let Some(w) = w {
+                    acc += w[j] * *d;
+                }
+            }
+            acc
+        })
+        .collect_into_vec(partials);
+    partials.iter().sum()
+}
+
+/// `d[j] += a v[j]` on the free variables (`mask`), then `sum_j w[j] d[j]` (0 without `w`), in
+/// one pass over fixed chunks (bit-identical for any thread count).
 fn masked_axpy_dot(
     d: &mut [f64],
     a: f64,
     v: &[f64],
-    mask: &[f64],
+    mask: &[bool],
     w: Option<&[f64]>,
     partials: &mut Vec<f64>,
 ) -> f64 {
@@ -1105,8 +1137,8 @@ fn masked_axpy_dot(
             let base = c * CHUNK;
             let end = base + chunk.len();
             let (v, mask) = (&v[base..end], &mask[base..end]);
-            for ((d, v), m) in chunk.iter_mut().zip(v).zip(mask) {
-                *d += a * v * m;
+            for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
+                *d += if m { a * v } else { 0.0 };
             }
             w.map_or(0.0, |w| lane_dot(chunk, &w[base..end]))
         })
@@ -1153,6 +1185,28 @@ fn move_along(
         })
         .collect_into_vec(partials);
     partials.iter().sum()
+}
+
+/// The end of the two-loop recursion and the projected step in one pass: the direction is
+/// `-d` on the free variables (`d` the recursion's `H q`) and the gradient step `-step q` on the
+/// binding ones; `p = Proj(x + direction) - x`; returns `q'p`.
+#[allow(clippy::too_many_arguments)]
+fn project_direction(
+    data: &Data<'_>,
+    x: &[f64],
+    d: &[f64],
+    free: &[bool],
+    step: f64,
+    p: &mut [f64],
+    q: &[f64],
+    partials: &mut Vec<f64>,
+) -> f64 {
+    let (lo, hi) = (&data.lo_w, &data.hi_w);
+    fill_and_sum(p, partials, |j| {
+        let direction = if free[j] { -d[j] } else { -step * q[j] };
+        let v = (x[j] + direction).max(lo[j]).min(hi[j]) - x[j];
+        (v, q[j] * v)
+    })
 }
 
 /// `p = Proj(x + d) - x`; returns `q'p`.
@@ -1289,4 +1343,126 @@ fn certificate(
     };
     let gap = gap_bound(&inputs, bounds, &mut work.partials);
     Certificate { f, kkt, gap }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::influence::operator::SparseOperator;
+    use crate::rng::SplitMix64;
+    use nalgebra_sparse::{CooMatrix, CscMatrix};
+
+    /// Agreement of the fused passes with their definitions: rounding of a few terms.
+    const FUSED_REL_TOL: f64 = 1e-12;
+
+    /// A dense random `R` (m x n, entries in [0, 1)) as a CSC matrix, and its rows.
+    fn random_r(m: usize, n: usize, seed: u64) -> (CscMatrix<f64>, Vec<Vec<f64>>) {
+        let mut rng = SplitMix64::new(seed);
+        let rows: Vec<Vec<f64>> = (0..m)
+            .map(|_| (0..n).map(|_| rng.uniform()).collect())
+            .collect();
+        let mut coo = CooMatrix::new(m, n);
+        for (i, row) in rows.iter().enumerate() {
+            for (j, &v) in row.iter().enumerate() {
+                coo.push(i, j, v);
+            }
+        }
+        (CscMatrix::from(&coo), rows)
+    }
+
+    /// The Hessian product's one fused pass gives `S (R^T P R + lambda D^T D) S v` and `v'out`,
+    /// against the product formed entry by entry (`P = I - 11'/m`, `D` the first differences).
+    #[test]
+    fn the_fused_hessian_product_is_the_scaled_hessian() {
+        let (m, n, lambda) = (9, 6, 0.3);
+        let (csc, rows) = random_r(m, n, 7);
+        let op = SparseOperator::new(&csc);
+        let z: Vec<f64> = (0..m).map(|i| (i as f64).sin()).collect();
+        let bounds = DwellBounds::new(vec![0.0; n], None).unwrap();
+        let (data, mut work, _) = Data::prepare(&op, &z, &bounds, 0.0, lambda);
+        let v: Vec<f64> = (0..n).map(|j| 1.0 - 0.2 * j as f64).collect();
+        let mut out = vec![0.0; n];
+        let vho = data.hessian_product_dot(&v, &mut work, &mut out);
+        // Reference: t = S v, r = P R t, h = R^T r + lambda D^T D t, out = S h.
+        let t: Vec<f64> = (0..n).map(|j| data.s[j] * v[j]).collect();
+        let rt: Vec<f64> = rows
+            .iter()
+            .map(|row| row.iter().zip(&t).map(|(a, b)| a * b).sum())
+            .collect();
+        let mean = rt.iter().sum::<f64>() / m as f64;
+        let mut expected_vho = 0.0;
+        for j in 0..n {
+            let h: f64 =
+                (0..m).map(|i| rows[i][j] * (rt[i] - mean)).sum::<f64>() + lambda * dtd(&t, j);
+            let o = data.s[j] * h;
+            assert!(
+                (out[j] - o).abs() <= FUSED_REL_TOL * o.abs().max(1.0),
+                "{j}"
+            );
+            expected_vho += v[j] * o;
+        }
+        assert!((vho - expected_vho).abs() <= FUSED_REL_TOL * expected_vho.abs());
+        // The gradient of the normal equations without `z`, scaled, is the same product.
+        data.normal_gradient(&v, false, &mut work);
+        for ((s, g), o) in data.s.iter().zip(&work.g).zip(&out) {
+            assert_eq!(s * g, *o);
+        }
+    }
+
+    /// The recursion's first pass marks as binding exactly what [`binds`] says and starts from
+    /// `q` on the free set; its last pass takes `-d` there and the gradient step elsewhere, then
+    /// projects, as [`project_step`] does on the direction formed first.
+    #[test]
+    fn the_fused_recursion_passes_follow_their_definitions() {
+        let n = 3 * CHUNK + 17;
+        let (csc, _) = random_r(2, n, 11);
+        let op = SparseOperator::new(&csc);
+        let z = [1.0, -1.0];
+        let upper: Vec<f64> = (0..n).map(|j| 1.0 + (j % 5) as f64).collect();
+        let bounds = DwellBounds::new(vec![0.0; n], Some(upper)).unwrap();
+        let (data, mut work, _) = Data::prepare(&op, &z, &bounds, 0.0, 0.0);
+        let mut rng = SplitMix64::new(3);
+        // Points on a bound, near one and inside; gradients of both signs.
+        let x: Vec<f64> = (0..n)
+            .map(|j| match j % 4 {
+                0 => data.lo_w[j],
+                1 => data.hi_w[j],
+                2 => data.lo_w[j] + 1e-3 * rng.uniform(),
+                _ => 0.5 * (data.lo_w[j] + data.hi_w[j]),
+            })
+            .collect();
+        let q: Vec<f64> = (0..n).map(|_| rng.normal()).collect();
+        let w: Vec<f64> = (0..n).map(|_| rng.normal()).collect();
+        let step = 0.01;
+        let (mut free, mut d) = (vec![false; n], vec![f64::NAN; n]);
+        let dot = free_gradient(
+            &data,
+            &x,
+            &q,
+            step,
+            Some(&w),
+            &mut free,
+            &mut d,
+            &mut work.partials,
+        );
+        let mut expected_dot = 0.0;
+        for j in 0..n {
+            let binding = binds(q[j], x[j], data.lo_w[j], data.hi_w[j], step);
+            assert_eq!(free[j], !binding, "{j}");
+            assert_eq!(d[j], if binding { 0.0 } else { q[j] }, "{j}");
+            expected_dot += w[j] * d[j];
+        }
+        assert!(free.contains(&true) && free.contains(&false));
+        assert!((dot - expected_dot).abs() <= FUSED_REL_TOL * expected_dot.abs());
+        let hq: Vec<f64> = (0..n).map(|_| rng.normal()).collect();
+        let mut p = vec![0.0; n];
+        let qp = project_direction(&data, &x, &hq, &free, step, &mut p, &q, &mut work.partials);
+        let direction: Vec<f64> = (0..n)
+            .map(|j| if free[j] { -hq[j] } else { -step * q[j] })
+            .collect();
+        let mut p_ref = vec![0.0; n];
+        let qp_ref = project_step(&data, &x, &direction, &mut p_ref, &q, &mut work.partials);
+        assert_eq!(p, p_ref);
+        assert_eq!(qp, qp_ref);
+    }
 }
