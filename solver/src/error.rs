@@ -66,6 +66,12 @@ pub enum Error {
 /// Result alias of the engine library.
 pub type Result<T> = std::result::Result<T, Error>;
 
+/// `v` rounded to 12 significant figures, for messages: a pitch found from differences of
+/// coordinates then reads as the instrument wrote it (0.2, not 0.1999999999999993).
+pub(crate) fn twelve_figures(v: f64) -> f64 {
+    format!("{v:.11e}").parse().unwrap_or(v)
+}
+
 impl Error {
     /// Shorthand for [`Error::InvalidInput`].
     pub fn invalid(what: impl Into<String>, why: impl Into<String>) -> Self {
@@ -81,6 +87,24 @@ impl Error {
         match values.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
             Some((name, v)) => Err(Error::invalid(*name, format!("must be positive, got {v}"))),
             None => Ok(()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::twelve_figures;
+
+    /// Differences of decimal coordinates read as written; numbers with 12 or fewer significant
+    /// figures are unchanged.
+    #[test]
+    fn twelve_figures_undoes_the_rounding_of_differences() {
+        assert_ne!(0.6 - 0.4, 0.2);
+        assert_eq!(twelve_figures(0.6 - 0.4), 0.2);
+        assert_eq!(twelve_figures(0.1999999999999993), 0.2);
+        assert_eq!(twelve_figures(1000.36 - 1000.0).to_string(), "0.36");
+        for v in [0.36, 1234.5678, -7.25e-5, 0.0, 118.0] {
+            assert_eq!(twelve_figures(v), v);
         }
     }
 }

@@ -11,7 +11,7 @@
 //! Audio Electroacoust. 15(2); ISO 10110-8 for the 1-D PSD of optical surfaces). Units: heights
 //! in nm give nm^2 mm; `sum_k P(f_k) / (L p)` is the mean variance of the segments (Parseval).
 
-use crate::error::{Error, Result};
+use crate::error::{twelve_figures, Error, Result};
 use crate::influence::fft::FftOperator;
 use realfft::RealFftPlanner;
 
@@ -66,8 +66,9 @@ impl Lattice {
                 return Err(Error::invalid(
                     "psd",
                     format!(
-                        "map point {} ({x} mm, {y} mm) is off the {pitch_mm} mm lattice",
-                        i + 1
+                        "map point {} ({x} mm, {y} mm) is off the {} mm lattice",
+                        i + 1,
+                        twelve_figures(pitch_mm)
                     ),
                 ));
             }

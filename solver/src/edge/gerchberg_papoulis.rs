@@ -14,7 +14,7 @@
 //! band-limited surface that fits the known samples (both steps are projections onto convex
 //! sets), and when the band-limited fit is unique it converges to it.
 
-use crate::error::{Error, Result};
+use crate::error::{twelve_figures, Error, Result};
 use crate::machine::machinability::map_pitch_mm;
 use rayon::prelude::*;
 use realfft::RealFftPlanner;
@@ -211,7 +211,8 @@ pub fn extend(
                 "edge gerchberg-papoulis",
                 format!(
                     "needs a map on a regular lattice: map point {k} ({x}, {y}) is off the \
-                     {p} mm lattice"
+                     {} mm lattice",
+                    twelve_figures(p)
                 ),
             )
         })?;

@@ -34,7 +34,7 @@
 use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
-use crate::error::{Error, Result};
+use crate::error::{twelve_figures, Error, Result};
 use crate::tif::{lattice_reach, InfluenceFunction};
 use rayon::prelude::*;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
@@ -215,6 +215,29 @@ pub(crate) fn lattice_index(v: f64, origin: f64, pitch: f64) -> Option<i64> {
     ((u - k).abs() <= ON_LATTICE_TOL && k.abs() < 1e15).then_some(k as i64)
 }
 
+/// The error for point `k` of `what` at `(x, y)` mm, off the lattice of pitch `pitch_mm` mm
+/// through `origin` (numbers to [`twelve_figures`]).
+pub(crate) fn off_lattice_error(
+    what: &str,
+    k: usize,
+    (x, y): (f64, f64),
+    pitch_mm: f64,
+    (x0, y0): (f64, f64),
+) -> Error {
+    let f = twelve_figures;
+    Error::invalid(
+        what,
+        format!(
+            "{k} at ({}, {}) mm is not on the map's {} mm lattice through ({}, {}) mm",
+            f(x),
+            f(y),
+            f(pitch_mm),
+            f(x0),
+            f(y0)
+        ),
+    )
+}
+
 impl FftOperator {
     /// Builds the operator for map points `(x, y)` and dwell points `(X, Y)` (mm) on a lattice of
     /// pitch `pitch_mm`; an error when a point is off the lattice or two dwell points share a cell.
@@ -245,13 +268,7 @@ impl FftOperator {
                         lattice_index(y, y0, pitch_mm),
                     ) {
                         (Some(i), Some(j)) => Ok((i, j)),
-                        _ => Err(Error::invalid(
-                            what,
-                            format!(
-                                "{k} at ({x}, {y}) mm is not on the map's {pitch_mm} mm lattice \
-                                 through ({x0}, {y0}) mm"
-                            ),
-                        )),
+                        _ => Err(off_lattice_error(what, k, (x, y), pitch_mm, (x0, y0))),
                     }
                 })
                 .collect()
@@ -926,6 +943,31 @@ mod tests {
         fn support_radius_mm(&self) -> f64 {
             2.6
         }
+    }
+
+    /// A map with x pitch 0.2 mm and y pitch 0.3 mm is refused with the pitch as written, not as
+    /// the coordinates' differences round it.
+    #[test]
+    fn an_anisotropic_map_is_refused_with_its_pitch_as_written() {
+        let (mut x, mut y) = (Vec::new(), Vec::new());
+        for j in 0..4 {
+            for i in 0..5 {
+                x.push(0.1 + i as f64 * 0.2);
+                y.push(j as f64 * 0.3);
+            }
+        }
+        let pitch = FftOperator::lattice_pitch_mm(&x, &y).unwrap();
+        assert_ne!(pitch, 0.2);
+        let err = FftOperator::new(&x, &y, &x, &y, pitch, &Lopsided)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            err.contains(
+                "5 at (0.1, 0.3) mm is not on the map's 0.2 mm lattice through (0.1, 0) mm"
+            ),
+            "{err}"
+        );
     }
 
     /// `R t` and `R^T y` against `R[i, j] = TIF(p_i - q_j)` summed directly, for dwell points on

@@ -26,7 +26,7 @@
 //! the relative Frobenius error `||R~ - R||_F / ||R||_F` over a fixed, evenly spaced sample of
 //! columns, each column computed both ways entry by entry.
 
-use super::fft::FftOperator;
+use super::fft::{off_lattice_error, FftOperator};
 use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
@@ -137,9 +137,12 @@ impl Layout {
             .enumerate()
             .map(|(k, (&x, &y))| match (index(x, x0), index(y, y0)) {
                 (Some(i), Some(j)) => Ok((i, j)),
-                _ => Err(Error::invalid(
+                _ => Err(off_lattice_error(
                     "map point",
-                    format!("{k} at ({x}, {y}) mm is not on the map's {pitch_mm} mm lattice"),
+                    k,
+                    (x, y),
+                    pitch_mm,
+                    (x0, y0),
                 )),
             })
             .collect::<Result<Vec<_>>>()?;

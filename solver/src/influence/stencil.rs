@@ -29,7 +29,7 @@
 //! truncated Gaussian's cut) may be kept by one and not the other. Everything else is the
 //! assembled contract, entry for entry.
 
-use super::fft::lattice_index;
+use super::fft::{lattice_index, off_lattice_error};
 use super::operator::{
     lane_dot, ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
@@ -215,12 +215,12 @@ impl StencilOperator {
                     lattice_index(y, y0, pitch_mm),
                 ) {
                     (Some(a), Some(b)) => Ok((a, b)),
-                    _ => Err(Error::invalid(
+                    _ => Err(off_lattice_error(
                         "map point",
-                        format!(
-                            "{i} at ({x}, {y}) mm is not on the map's {pitch_mm} mm lattice \
-                             through ({x0}, {y0}) mm"
-                        ),
+                        i,
+                        (x, y),
+                        pitch_mm,
+                        (x0, y0),
                     )),
                 }
             })

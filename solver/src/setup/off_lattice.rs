@@ -22,7 +22,7 @@
 use super::{At, Setup, SetupInput, SetupResult};
 use crate::dwell::first_order::POWER_STEPS;
 use crate::dwell::{policy, OperatorChoice, SolverChoice, SolverKind};
-use crate::error::Error;
+use crate::error::{twelve_figures, Error};
 use crate::influence::fft::{lattice_index, FftOperator};
 use crate::influence::spread::MAX_OVERSAMPLING;
 use crate::influence::{SpreadOperator, StencilOperator};
@@ -91,7 +91,8 @@ impl Setup {
             * ((bbox.y_max_mm - bbox.y_min_mm) / pitch_mm + 1.0);
         if (rows.len() as f64) < MIN_LATTICE_FILL * cells {
             return Err(NotServed::Cannot(format!(
-                "the map fills less than {MIN_LATTICE_FILL} of its {pitch_mm} mm lattice"
+                "the map fills less than {MIN_LATTICE_FILL} of its {} mm lattice",
+                twelve_figures(pitch_mm)
             )));
         }
         let r = self.tif.support_radius_mm();
