@@ -1018,13 +1018,18 @@ fn projected_lbfgs(
             dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, next, &mut work.partials);
         }
         // The projected step, and the projected gradient step when it does not descend.
-        let mut qp = project_direction(data, &x, &d, &free, step, &mut p, &q, &mut work.partials);
+        // The direction is `-d` on the free variables (`d` the recursion's `H q`) and the
+        // gradient step on the binding ones.
+        let mut qp = project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
+            if free[j] {
+                -d[j]
+            } else {
+                -step * q[j]
+            }
+        });
         if !(qp < 0.0) {
             stored = 0;
-            d.par_iter_mut()
-                .zip(q.par_iter())
-                .for_each(|(d, q)| *d = -step * q);
-            qp = project_step(data, &x, &d, &mut p, &q, &mut work.partials);
+            qp = project_along(data, &x, &mut p, &q, &mut work.partials, |j| -step * q[j]);
         }
         if !(qp < 0.0) {
             // No descent along the updated gradient: take the exact one, and stop if that
@@ -1187,40 +1192,22 @@ fn move_along(
     partials.iter().sum()
 }
 
-/// The end of the two-loop recursion and the projected step in one pass: the direction is
-/// `-d` on the free variables (`d` the recursion's `H q`) and the gradient step `-step q` on the
-/// binding ones; `p = Proj(x + direction) - x`; returns `q'p`.
-#[allow(clippy::too_many_arguments)]
-fn project_direction(
+/// `p = Proj(x + direction) - x`, the direction given entry by entry (so that it is assembled
+/// in the projection's pass); returns `q'p`.
+fn project_along<F>(
     data: &Data<'_>,
     x: &[f64],
-    d: &[f64],
-    free: &[bool],
-    step: f64,
     p: &mut [f64],
     q: &[f64],
     partials: &mut Vec<f64>,
-) -> f64 {
+    direction: F,
+) -> f64
+where
+    F: Fn(usize) -> f64 + Sync,
+{
     let (lo, hi) = (&data.lo_w, &data.hi_w);
     fill_and_sum(p, partials, |j| {
-        let direction = if free[j] { -d[j] } else { -step * q[j] };
-        let v = (x[j] + direction).max(lo[j]).min(hi[j]) - x[j];
-        (v, q[j] * v)
-    })
-}
-
-/// `p = Proj(x + d) - x`; returns `q'p`.
-fn project_step(
-    data: &Data<'_>,
-    x: &[f64],
-    d: &[f64],
-    p: &mut [f64],
-    q: &[f64],
-    partials: &mut Vec<f64>,
-) -> f64 {
-    let (lo, hi) = (&data.lo_w, &data.hi_w);
-    fill_and_sum(p, partials, |j| {
-        let v = (x[j] + d[j]).max(lo[j]).min(hi[j]) - x[j];
+        let v = (x[j] + direction(j)).max(lo[j]).min(hi[j]) - x[j];
         (v, q[j] * v)
     })
 }
@@ -1410,8 +1397,8 @@ mod tests {
     }
 
     /// The recursion's first pass marks as binding exactly what [`binds`] says and starts from
-    /// `q` on the free set; its last pass takes `-d` there and the gradient step elsewhere, then
-    /// projects, as [`project_step`] does on the direction formed first.
+    /// `q` on the free set; the projection of a direction given entry by entry is
+    /// `min(max(x + d, lo), hi) - x`, and its returned dot product `q'p`.
     #[test]
     fn the_fused_recursion_passes_follow_their_definitions() {
         let n = 3 * CHUNK + 17;
@@ -1455,14 +1442,18 @@ mod tests {
         assert!(free.contains(&true) && free.contains(&false));
         assert!((dot - expected_dot).abs() <= FUSED_REL_TOL * expected_dot.abs());
         let hq: Vec<f64> = (0..n).map(|_| rng.normal()).collect();
+        let direction = |j: usize| if free[j] { -hq[j] } else { -step * q[j] };
         let mut p = vec![0.0; n];
-        let qp = project_direction(&data, &x, &hq, &free, step, &mut p, &q, &mut work.partials);
-        let direction: Vec<f64> = (0..n)
-            .map(|j| if free[j] { -hq[j] } else { -step * q[j] })
-            .collect();
-        let mut p_ref = vec![0.0; n];
-        let qp_ref = project_step(&data, &x, &direction, &mut p_ref, &q, &mut work.partials);
-        assert_eq!(p, p_ref);
-        assert_eq!(qp, qp_ref);
+        let qp = project_along(&data, &x, &mut p, &q, &mut work.partials, direction);
+        let (mut expected_qp, mut clipped) = (0.0, 0);
+        for j in 0..n {
+            let (lo, hi) = (data.lo_w[j], data.hi_w[j]);
+            let inside = (x[j] + direction(j)).clamp(lo, hi);
+            assert_eq!(p[j], inside - x[j], "{j}");
+            clipped += usize::from(inside != x[j] + direction(j));
+            expected_qp += q[j] * p[j];
+        }
+        assert!(clipped > 0 && clipped < n);
+        assert!((qp - expected_qp).abs() <= FUSED_REL_TOL * expected_qp.abs());
     }
 }
