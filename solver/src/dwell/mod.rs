@@ -436,7 +436,9 @@ pub struct Settings {
     /// Print the solver's iteration log (Clarabel prints it on stdout).
     pub verbose: bool,
     /// First-order solver: stop when the relative gap bound or the relative KKT residual is
-    /// below this.
+    /// below this. The KKT residual is relative to the scaled gradient at zero dwell, so the
+    /// excess over the optimum it allows grows with `f0 / f*`, the share of the initial
+    /// objective that the plan removes (`docs/preconditioning.md`).
     pub first_order_tolerance: f64,
     /// First-order solver: iteration limit (gradient or Hessian products).
     pub first_order_max_iterations: usize,
