@@ -706,10 +706,11 @@ mod tests {
         assert!(rel_diff(&got, &want) < EXACT_REL_TOL);
     }
 
+    /// A 0.36 mm map and a 0.5 mm raster (18 x 18 phases, rounded) put families of pairs
+    /// exactly 4.5 mm apart, on the cut circle, some of whose computed offsets round outward:
+    /// the stencils and the assembled `R` count the same pairs.
     #[test]
     fn pairs_on_a_gaussian_cut_circle_count_in_both_operators() {
-        // A 0.36 mm map and a 0.5 mm raster (18 x 18 phases, rounded) put families of pairs
-        // exactly 4.5 mm apart, on the cut circle, some of whose computed offsets round outward.
         let tif = crate::tif::GaussianTif::new(1.5, 20.0, 4.5).unwrap();
         let (mx, my): (Vec<f64>, Vec<f64>) = (0..60 * 40)
             .map(|k| (0.36 * (k % 60) as f64, 0.36 * (k / 60) as f64))

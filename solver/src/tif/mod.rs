@@ -15,6 +15,8 @@ pub use gaussian::GaussianTif;
 pub use grid::GridTif;
 pub use hertz::{HertzParams, HertzTif};
 
+use serde::{Deserialize, Serialize};
+
 /// Whole lattice steps of `pitch_mm` that hold every integer offset within a support of radius
 /// `radius_mm`: `ceil(radius / pitch)`, taken below the rounding margin by which supports are
 /// closed ([`gaussian::ON_CIRCLE_REL`]), so closing a support does not widen a lattice kernel.
@@ -22,8 +24,6 @@ pub use hertz::{HertzParams, HertzTif};
 pub(crate) fn lattice_reach(radius_mm: f64, pitch_mm: f64) -> f64 {
     (radius_mm / pitch_mm * (1.0 - 2.0 * gaussian::ON_CIRCLE_REL)).ceil()
 }
-
-use serde::{Deserialize, Serialize};
 
 /// A removal footprint: rate in nm/s at offset `(dx_mm, dy_mm)` from the tool centre.
 pub trait InfluenceFunction: Send + Sync {
