@@ -30,7 +30,14 @@
 //! again in the same pass. Every product runs as row passes (scatter or read a row, x transform)
 //! and column passes (read a column of the row spectra, y transform, multiply, inverse), about
 //! eight parallel loops for `R^T R t` against eighteen for `R t` and `R^T y` done one by one.
+//!
+//! Where the map covers most of the tool's reach, `R^T R t` takes the complement route instead
+//! ([`super::complement`]): the kernel's autocorrelation convolved on the dwell lattice, less the
+//! rows of the band of cells within reach whose map count is not one, summed directly. A cost
+//! model counts both routes' work (`N log2 N` per transform of `N` cells against the band's
+//! multiply-adds) and takes the cheaper.
 
+use super::complement::{ComplementNormal, LatticeGeometry};
 use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
@@ -51,6 +58,9 @@ const MAX_LATTICE_CELLS: usize = 400_000_000;
 /// ones (32), the dwell occupancy and map count masks (5), rounded up.
 const LATTICE_BYTES_PER_CELL: f64 = 40.0;
 
+/// Cost of a 2-D transform of `N` cells per `N log2 N`, in multiply-adds of the band's passes.
+const FFT_WORK_PER_CELL_LOG2: f64 = 1.5;
+
 /// The FFT convolution operator (see the module documentation).
 pub struct FftOperator {
     fx: usize,
@@ -64,6 +74,22 @@ pub struct FftOperator {
     columns: ColumnStats,
     transforms: Transforms,
     buffers: Mutex<Buffers>,
+    /// The normal product through the kernel's autocorrelation and the band of cells whose map
+    /// count is not one, where the cost model prefers it (see [`super::complement`]).
+    complement: Option<ComplementNormal>,
+}
+
+/// How [`FftOperator`] forms `R^T P R t`.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum NormalRoute {
+    /// By the cost model: the complement where it costs less than the direct route.
+    Cheaper,
+    /// `R t` on the lattice, masked, then `R^T` (tests).
+    #[cfg_attr(not(test), allow(dead_code))]
+    Direct,
+    /// Through the complement wherever it can be built (tests).
+    #[cfg_attr(not(test), allow(dead_code))]
+    Complement,
 }
 
 /// Where the dwell side of each product runs.
@@ -95,16 +121,16 @@ struct SubLattice {
 /// Points on a lattice `width` cells wide: their cells, the points ordered by cell with each
 /// lattice row's range, and the rows holding a point (only those rows are transformed forward
 /// when scattered from, and back when gathered into).
-struct Cells {
+pub(super) struct Cells {
     width: usize,
     cells: Vec<usize>,
     by_cell: Vec<usize>,
     row_start: Vec<usize>,
-    rows: Vec<bool>,
+    pub(super) rows: Vec<bool>,
 }
 
 impl Cells {
-    fn new(cells: Vec<usize>, width: usize, height: usize) -> Self {
+    pub(super) fn new(cells: Vec<usize>, width: usize, height: usize) -> Self {
         let mut by_cell: Vec<usize> = (0..cells.len()).collect();
         by_cell.sort_by_key(|&k| cells[k]);
         let mut row_start = vec![0; height + 1];
@@ -154,7 +180,7 @@ impl Cells {
     }
 
     /// `out[k] = scale real[cells[k]]`.
-    fn gather(&self, real: &[f64], scale: f64, out: &mut [f64]) {
+    pub(super) fn gather(&self, real: &[f64], scale: f64, out: &mut [f64]) {
         out.par_iter_mut()
             .zip(self.cells.par_iter())
             .with_min_len(4096)
@@ -163,7 +189,7 @@ impl Cells {
 }
 
 /// The 2-D real transform: real-to-complex along x (`fx / 2 + 1` frequencies), complex along y.
-struct Transforms {
+pub(super) struct Transforms {
     fx: usize,
     fy: usize,
     r2c_x: Arc<dyn RealToComplex<f64>>,
@@ -176,10 +202,10 @@ struct Transforms {
 
 /// Reused by every product: the real lattice (`fy` rows of `fx`), its row spectra (`fy` rows of
 /// `fx / 2 + 1`) and their transpose (`fx / 2 + 1` rows of `fy`), where the y transforms run.
-struct Buffers {
-    real: Vec<f64>,
+pub(super) struct Buffers {
+    pub(super) real: Vec<f64>,
     rows: Vec<Complex<f64>>,
-    columns: Vec<Complex<f64>>,
+    pub(super) columns: Vec<Complex<f64>>,
 }
 
 impl std::fmt::Debug for FftOperator {
@@ -194,7 +220,7 @@ impl std::fmt::Debug for FftOperator {
 }
 
 /// The smallest `k >= n` whose prime factors are all 2, 3, 5 or 7.
-fn smooth_size(n: usize) -> usize {
+pub(super) fn smooth_size(n: usize) -> usize {
     (n.max(1)..)
         .find(|&k| {
             let mut r = k;
@@ -248,6 +274,23 @@ impl FftOperator {
         dwell_y_mm: &[f64],
         pitch_mm: f64,
         tif: &T,
+    ) -> Result<Self> {
+        Self::build(
+            (map_x_mm, map_y_mm),
+            (dwell_x_mm, dwell_y_mm),
+            pitch_mm,
+            tif,
+            NormalRoute::Cheaper,
+        )
+    }
+
+    /// As [`FftOperator::new`], with the normal product's route chosen by `route`.
+    fn build<T: InfluenceFunction + ?Sized>(
+        (map_x_mm, map_y_mm): (&[f64], &[f64]),
+        (dwell_x_mm, dwell_y_mm): (&[f64], &[f64]),
+        pitch_mm: f64,
+        tif: &T,
+        route: NormalRoute,
     ) -> Result<Self> {
         if !(pitch_mm.is_finite() && pitch_mm > 0.0) {
             return Err(Error::invalid("lattice pitch", format!("{pitch_mm}")));
@@ -411,6 +454,30 @@ impl FftOperator {
                 sums
             })
             .collect();
+        let complement = match route {
+            NormalRoute::Direct => None,
+            NormalRoute::Cheaper | NormalRoute::Complement => {
+                ComplementNormal::new(&LatticeGeometry {
+                    dwell_ij: &dwell_ij,
+                    nx,
+                    ny,
+                    map_count: &map_count,
+                    row: fx,
+                    taps: &taps,
+                    reach: kr,
+                    step: (dx, dy),
+                    offset: (ox, oy),
+                    held_bytes: fx as f64 * fy as f64 * LATTICE_BYTES_PER_CELL,
+                })
+                .filter(|c| {
+                    let direct = match &sub {
+                        Some(s) => direct_normal_work(fx * fy, s.sx * s.sy),
+                        None => direct_normal_work(fx * fy, 0),
+                    };
+                    route == NormalRoute::Complement || complement_normal_work(c) < direct
+                })
+            }
+        };
         Ok(Self {
             fx,
             fy,
@@ -423,6 +490,7 @@ impl FftOperator {
             columns: ColumnStats::new(map_ij.len(), columns),
             transforms,
             buffers: Mutex::new(buffers),
+            complement,
         })
     }
 
@@ -497,6 +565,10 @@ impl FftOperator {
     /// points, which is what gathering and scattering again would do) and transformed forward
     /// again in the same row pass.
     fn normal(&self, t: &[f64], out: &mut [f64]) {
+        if let Some(c) = &self.complement {
+            c.normal(t, out);
+            return;
+        }
         let mut full_guard = lock(&self.buffers);
         let full = &mut *full_guard;
         let scale = self.scale();
@@ -614,6 +686,27 @@ impl FftOperator {
     }
 }
 
+/// Work of the direct normal product (in units of one multiply-add of the band's passes): two
+/// transforms on the lattice of `full` cells and two on the dwell sub-lattice's `sub` cells (four
+/// on the lattice where there is no sub-lattice), `FFT_WORK_PER_CELL_LOG2 N log2 N` each.
+fn direct_normal_work(full: usize, sub: usize) -> f64 {
+    let fft = |n: usize| {
+        let n = n as f64;
+        FFT_WORK_PER_CELL_LOG2 * n * n.max(2.0).log2()
+    };
+    if sub == 0 {
+        4.0 * fft(full)
+    } else {
+        2.0 * fft(full) + 2.0 * fft(sub)
+    }
+}
+
+/// Work of the complement route in the same units: two transforms on its lattice and the band.
+fn complement_normal_work(c: &ComplementNormal) -> f64 {
+    let n = c.lattice_cells();
+    2.0 * FFT_WORK_PER_CELL_LOG2 * n * n.max(2.0).log2() + c.band_multiply_adds()
+}
+
 /// The buffers behind `m` (a panic elsewhere leaves them as scratch, still usable).
 fn lock(m: &Mutex<Buffers>) -> std::sync::MutexGuard<'_, Buffers> {
     match m.lock() {
@@ -658,7 +751,7 @@ fn sub_lattice_step(mut v: impl Iterator<Item = usize>) -> usize {
 }
 
 impl Buffers {
-    fn new(fx: usize, fy: usize) -> Self {
+    pub(super) fn new(fx: usize, fy: usize) -> Self {
         let hx = fx / 2 + 1;
         Self {
             real: vec![0.0; fx * fy],
@@ -670,7 +763,7 @@ impl Buffers {
 
 /// How a row pass fills a row of the real lattice before its forward transform along x.
 #[derive(Clone, Copy)]
-enum Fill<'a> {
+pub(super) enum Fill<'a> {
     /// The row is already in `real` (every row is transformed).
     Ready,
     /// The points' values scattered onto the row (summed where points share a cell); rows
@@ -684,7 +777,7 @@ enum Fill<'a> {
 
 /// What a column pass does after the forward transform along y.
 #[derive(Clone, Copy)]
-enum Spectrum<'a> {
+pub(super) enum Spectrum<'a> {
     /// Keeps the spectrum.
     Keep,
     /// Multiplies by the kernel's spectrum (column-major) and transforms back along y.
@@ -694,7 +787,7 @@ enum Spectrum<'a> {
 }
 
 impl Transforms {
-    fn new(
+    pub(super) fn new(
         fx: usize,
         fy: usize,
         planner: &mut FftPlanner<f64>,
@@ -802,7 +895,7 @@ impl Transforms {
     /// `after`: one row pass (fill, x transform) and one column pass (read the column, y
     /// transform, and for a convolution the multiplication and the inverse y transform).
     /// `b.real` and `b.rows` are left as scratch.
-    fn spectrum(&self, b: &mut Buffers, fill: Fill<'_>, after: Spectrum<'_>) {
+    pub(super) fn spectrum(&self, b: &mut Buffers, fill: Fill<'_>, after: Spectrum<'_>) {
         let fy = self.fy;
         let Buffers {
             real,
@@ -852,7 +945,7 @@ impl Transforms {
     /// `b.real` = the inverse x transform, for the rows marked in `rows_wanted` (others left as
     /// they were), of the signal whose spectrum transformed back along y is in `b.columns`
     /// (unnormalised; one row pass). `b.rows` is left as scratch.
-    fn to_real(&self, b: &mut Buffers, rows_wanted: &[bool]) {
+    pub(super) fn to_real(&self, b: &mut Buffers, rows_wanted: &[bool]) {
         let Buffers {
             real,
             rows,
@@ -972,41 +1065,60 @@ mod tests {
 
     /// `R t` and `R^T y` against `R[i, j] = TIF(p_i - q_j)` summed directly, for dwell points on
     /// the whole lattice and on sub-lattices with several steps and offsets.
-    #[test]
-    fn products_equal_the_direct_sums_on_every_sub_lattice() {
-        let h = 0.5;
-        let (mx, my) = (17, 13);
+    /// Lattice pitch of the sub-lattice test cases, mm.
+    const CASE_PITCH_MM: f64 = 0.5;
+    /// The test map's size, cells.
+    const CASE_MAP_CELLS: (usize, usize) = (17, 13);
+    /// (steps, offsets, margin): dwell points from `margin` cells before the map to `margin`
+    /// after it (the kernel radius is 6 cells), or inside it for a negative margin.
+    const SUB_LATTICE_CASES: [(usize, usize, usize, usize, i64); 8] = [
+        (1, 1, 0, 0, 6),
+        (2, 2, 0, 0, 6),
+        (2, 2, 1, 1, 6),
+        (3, 2, 2, 1, 6),
+        (1, 3, 0, 2, 6),
+        (2, 2, 1, 0, 9),
+        (1, 1, 0, 0, -4),
+        (2, 2, 0, 1, -3),
+    ];
+
+    /// The test map: every cell of `CASE_MAP_CELLS`, one point measured twice (two rows of `R`,
+    /// summed in `R^T y`).
+    fn case_map() -> Vec<(f64, f64)> {
+        let (h, (mx, my)) = (CASE_PITCH_MM, CASE_MAP_CELLS);
         let mut map: Vec<(f64, f64)> = (0..my)
             .flat_map(|j| (0..mx).map(move |i| (i as f64 * h, j as f64 * h)))
             .collect();
-        // A point measured twice: two rows of R, summed in R^T y.
         map.push(map[40]);
-        // (steps, offsets, margin): dwell points from `margin` cells before the map to `margin`
-        // after it (the kernel radius is 6 cells), or inside it for a negative margin.
-        for (dx, dy, ox, oy, margin) in [
-            (1, 1, 0, 0, 6),
-            (2, 2, 0, 0, 6),
-            (2, 2, 1, 1, 6),
-            (3, 2, 2, 1, 6),
-            (1, 3, 0, 2, 6),
-            (2, 2, 1, 0, 9),
-            (1, 1, 0, 0, -4),
-            (2, 2, 0, 1, -3),
-        ] {
-            let (ax, ay) = (
-                (mx as i64 + 2 * margin) as usize,
-                (my as i64 + 2 * margin) as usize,
-            );
-            let dwell: Vec<(f64, f64)> = (0..ay / dy)
-                .flat_map(|b| {
-                    (0..ax / dx).map(move |a| {
-                        (
-                            ((a * dx + ox) as f64 - margin as f64) * h,
-                            ((b * dy + oy) as f64 - margin as f64) * h,
-                        )
-                    })
+        map
+    }
+
+    /// The dwell raster of one of `SUB_LATTICE_CASES`.
+    fn case_dwell((dx, dy, ox, oy, margin): (usize, usize, usize, usize, i64)) -> Vec<(f64, f64)> {
+        let (h, (mx, my)) = (CASE_PITCH_MM, CASE_MAP_CELLS);
+        let (ax, ay) = (
+            (mx as i64 + 2 * margin) as usize,
+            (my as i64 + 2 * margin) as usize,
+        );
+        (0..ay / dy)
+            .flat_map(|b| {
+                (0..ax / dx).map(move |a| {
+                    (
+                        ((a * dx + ox) as f64 - margin as f64) * h,
+                        ((b * dy + oy) as f64 - margin as f64) * h,
+                    )
                 })
-                .collect();
+            })
+            .collect()
+    }
+
+    #[test]
+    fn products_equal_the_direct_sums_on_every_sub_lattice() {
+        let h = CASE_PITCH_MM;
+        let map = case_map();
+        for case in SUB_LATTICE_CASES {
+            let (dx, dy, ox, oy, margin) = case;
+            let dwell = case_dwell(case);
             let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
             let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
             let op = FftOperator::new(&x, &y, &qx, &qy, h, &Lopsided).unwrap();
@@ -1062,6 +1174,112 @@ mod tests {
                     "steps ({dx}, {dy}) offset ({ox}, {oy}) margin {margin}: (R^T R t)[{j}] {got} vs {direct}"
                 );
             }
+        }
+    }
+
+    /// `R^T P R t` through the lattice and through the complement (the kernel's autocorrelation
+    /// less the band of cells whose map count is not one) against the sums over the map points,
+    /// on every sub-lattice case, for the full map (one cell counted twice) and for the map with
+    /// a hole. The complement's rounding is relative to the sums over every cell of the
+    /// unbounded lattice, which the tolerance takes.
+    #[test]
+    fn both_normal_routes_equal_the_direct_sums() {
+        let h = CASE_PITCH_MM;
+        let full = case_map();
+        let holed: Vec<(f64, f64)> = full
+            .iter()
+            .copied()
+            .filter(|&(x, y)| (x - 4.0).powi(2) + (y - 3.0).powi(2) > 1.2 * 1.2)
+            .collect();
+        assert!(holed.len() + 15 < full.len());
+        let reach = (Lopsided.support_radius_mm() / h).ceil() as i64;
+        for map in [&full, &holed] {
+            let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
+            for case in SUB_LATTICE_CASES {
+                let dwell = case_dwell(case);
+                let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
+                let (m, n) = (map.len(), dwell.len());
+                let t: Vec<f64> = (0..n).map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3).collect();
+                let k = |ex: f64, ey: f64| Lopsided.rate_nm_per_s(ex, ey);
+                let r = |i: usize, j: usize| k(x[i] - qx[j], y[i] - qy[j]);
+                let rt: Vec<f64> = (0..m)
+                    .map(|i| (0..n).map(|j| r(i, j) * t[j]).sum())
+                    .collect();
+                // Scale: sum over every cell within reach of `|K| (|K| |t|)`.
+                let cell = |v: f64| (v / h).round() as i64;
+                let lo = |v: &[f64]| v.iter().map(|&a| cell(a)).min().unwrap_or(0) - reach;
+                let hi = |v: &[f64]| v.iter().map(|&a| cell(a)).max().unwrap_or(0) + reach;
+                let cells: Vec<(f64, f64)> = (lo(&qy)..=hi(&qy))
+                    .flat_map(|cy| {
+                        (lo(&qx)..=hi(&qx)).map(move |cx| (cx as f64 * h, cy as f64 * h))
+                    })
+                    .collect();
+                let abs_rt: Vec<f64> = cells
+                    .iter()
+                    .map(|&(cx, cy)| {
+                        (0..n)
+                            .map(|j| (k(cx - qx[j], cy - qy[j]) * t[j]).abs())
+                            .sum()
+                    })
+                    .collect();
+                for route in [NormalRoute::Direct, NormalRoute::Complement] {
+                    let op = FftOperator::build((&x, &y), (&qx, &qy), h, &Lopsided, route).unwrap();
+                    assert_eq!(op.complement.is_some(), route == NormalRoute::Complement);
+                    let mut got = vec![0.0; n];
+                    op.apply_normal(&t, &mut vec![0.0; m], &mut got);
+                    for (j, got) in got.iter().enumerate() {
+                        let direct: f64 = (0..m).map(|i| r(i, j) * rt[i]).sum();
+                        let s: f64 = cells
+                            .iter()
+                            .zip(&abs_rt)
+                            .map(|(&(cx, cy), a)| k(cx - qx[j], cy - qy[j]).abs() * a)
+                            .sum();
+                        assert!(
+                            (got - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
+                            "{route:?}, case {case:?}, {m} map points: (R^T R t)[{j}] {got} vs {direct}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// The complement route's band passes split their outputs into tasks of whole runs, each
+    /// output summing its taps in one order: the product is the same to the bit for any number
+    /// of threads, on a map with a hole whose band spans many tasks.
+    #[test]
+    fn the_complement_route_does_not_depend_on_the_thread_count() {
+        let h = CASE_PITCH_MM;
+        let map: Vec<(f64, f64)> = (0..70)
+            .flat_map(|j| (0..90).map(move |i| (i as f64 * h, j as f64 * h)))
+            .filter(|&(x, y)| (x - 20.0).powi(2) + (y - 15.0).powi(2) > 16.0)
+            .collect();
+        let dwell: Vec<(f64, f64)> = (0..41)
+            .flat_map(|b| {
+                (0..51).map(move |a| ((2 * a) as f64 * h - 3.0, (2 * b) as f64 * h - 3.0))
+            })
+            .collect();
+        let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
+        let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
+        let op = FftOperator::build((&x, &y), (&qx, &qy), h, &Lopsided, NormalRoute::Complement)
+            .unwrap();
+        let band = &op.complement.as_ref().unwrap().band_runs();
+        assert!(band.0 > 4 && band.1 > 4, "band tasks {band:?}");
+        let t: Vec<f64> = (0..dwell.len()).map(|j| ((j * 17) % 11) as f64).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut normal = vec![0.0; dwell.len()];
+                op.apply_normal(&t, &mut vec![0.0; map.len()], &mut normal);
+                normal
+            })
+        };
+        let one = run(1);
+        for threads in [2, 3, 5] {
+            assert!(run(threads) == one, "{threads} threads");
         }
     }
 

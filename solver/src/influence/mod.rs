@@ -18,6 +18,7 @@
 //! - [`operator`]: the traits: [`InfluenceOperator`] (`R` as a dwell problem holds it, whichever of
 //!   the above it is) and [`LinearOperator`] (the products `R t`, `R^T y` every solver goes through).
 
+mod complement;
 pub mod curvature;
 pub mod direct;
 pub mod fft;
