@@ -995,38 +995,69 @@ fn projected_lbfgs(
                 &mut work.partials,
             )
         };
-        for k in 0..stored {
-            let i = order(k);
-            let a = inv_sy[i] * dot;
-            coef[i] = a;
-            let next = (k + 1 < stored).then(|| s_mem[order(k + 1)].as_slice());
-            dot = masked_axpy_dot(&mut d, -a, &y_mem[i], &free, next, &mut work.partials);
-        }
         let gamma = if stored > 0 && gamma_of[order(0)] > 0.0 {
             gamma_of[order(0)]
         } else {
             step
         };
-        let mut dot = {
-            let first = (stored > 0).then(|| y_mem[order(stored - 1)].as_slice());
-            scale_dot(&mut d, gamma, first, &mut work.partials)
-        };
+        // The first loop's last update also scales `d` by `gamma` and takes the second loop's
+        // first dot product (one pass for the two).
+        for k in 0..stored {
+            let i = order(k);
+            let a = inv_sy[i] * dot;
+            coef[i] = a;
+            let (next, scale) = if k + 1 < stored {
+                (s_mem[order(k + 1)].as_slice(), None)
+            } else {
+                (y_mem[order(k)].as_slice(), Some(gamma))
+            };
+            dot = masked_axpy_dot(
+                &mut d,
+                -a,
+                &y_mem[i],
+                &free,
+                scale,
+                Some(next),
+                &mut work.partials,
+            );
+        }
+        if stored == 0 {
+            scale(&mut d, gamma);
+        }
+        // The second loop's last update is left to the projection's pass: `(c, i)`.
+        let mut last_update = None;
         for k in (0..stored).rev() {
             let i = order(k);
             let c = coef[i] - inv_sy[i] * dot;
-            let next = (k > 0).then(|| y_mem[order(k - 1)].as_slice());
-            dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, next, &mut work.partials);
+            if k == 0 {
+                last_update = Some((c, i));
+                break;
+            }
+            let next = Some(y_mem[order(k - 1)].as_slice());
+            dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, None, next, &mut work.partials);
         }
         // The projected step, and the projected gradient step when it does not descend.
-        // The direction is `-d` on the free variables (`d` the recursion's `H q`) and the
-        // gradient step on the binding ones.
-        let mut qp = project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
-            if free[j] {
-                -d[j]
-            } else {
-                -step * q[j]
+        // The direction is `-d` on the free variables (`d` the recursion's `H q`, finished here
+        // by its last update) and the gradient step on the binding ones.
+        let mut qp = match last_update {
+            Some((c, i)) => {
+                let s_last = &s_mem[i];
+                project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
+                    if free[j] {
+                        -(d[j] + c * s_last[j])
+                    } else {
+                        -step * q[j]
+                    }
+                })
             }
-        });
+            None => project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
+                if free[j] {
+                    -d[j]
+                } else {
+                    -step * q[j]
+                }
+            }),
+        };
         if !(qp < 0.0) {
             stored = 0;
             qp = project_along(data, &x, &mut p, &q, &mut work.partials, |j| -step * q[j]);
@@ -1126,13 +1157,15 @@ fn free_gradient(
     partials.iter().sum()
 }
 
-/// `d[j] += a v[j]` on the free variables (`mask`), then `sum_j w[j] d[j]` (0 without `w`), in
-/// one pass over fixed chunks (bit-identical for any thread count).
+/// `d[j] += a v[j]` on the free variables (`mask`), then `d[j] *= scale` where there is one,
+/// then `sum_j w[j] d[j]` (0 without `w`), in one pass over fixed chunks (bit-identical for any
+/// thread count, and to the update and [`scale`] one after the other).
 fn masked_axpy_dot(
     d: &mut [f64],
     a: f64,
     v: &[f64],
     mask: &[bool],
+    scale: Option<f64>,
     w: Option<&[f64]>,
     partials: &mut Vec<f64>,
 ) -> f64 {
@@ -1142,8 +1175,17 @@ fn masked_axpy_dot(
             let base = c * CHUNK;
             let end = base + chunk.len();
             let (v, mask) = (&v[base..end], &mask[base..end]);
-            for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
-                *d += if m { a * v } else { 0.0 };
+            match scale {
+                None => {
+                    for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
+                        *d += if m { a * v } else { 0.0 };
+                    }
+                }
+                Some(g) => {
+                    for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
+                        *d = (*d + if m { a * v } else { 0.0 }) * g;
+                    }
+                }
             }
             w.map_or(0.0, |w| lane_dot(chunk, &w[base..end]))
         })
@@ -1151,17 +1193,9 @@ fn masked_axpy_dot(
     partials.iter().sum()
 }
 
-/// `d *= a`, then `sum_j w[j] d[j]` (0 without `w`), in fixed chunks.
-fn scale_dot(d: &mut [f64], a: f64, w: Option<&[f64]>, partials: &mut Vec<f64>) -> f64 {
-    d.par_chunks_mut(CHUNK)
-        .enumerate()
-        .map(|(c, chunk)| {
-            let base = c * CHUNK;
-            chunk.iter_mut().for_each(|d| *d *= a);
-            w.map_or(0.0, |w| lane_dot(chunk, &w[base..base + chunk.len()]))
-        })
-        .collect_into_vec(partials);
-    partials.iter().sum()
+/// `d *= a`.
+fn scale(d: &mut [f64], a: f64) {
+    d.par_iter_mut().for_each(|d| *d *= a);
 }
 
 /// `p *= tau`, `hp *= tau`, `x += p`, `q += hp`; returns `||hp||^2` after the scaling (one pass,
@@ -1455,5 +1489,40 @@ mod tests {
         }
         assert!(clipped > 0 && clipped < n);
         assert!((qp - expected_qp).abs() <= FUSED_REL_TOL * expected_qp.abs());
+        // The masked update with the scaling folded in: the same bits as the update, then the
+        // scaling, then the dot product, one after the other.
+        let (a, gamma) = (-0.37, 1.9);
+        let mut fused = d.clone();
+        let fused_dot = masked_axpy_dot(
+            &mut fused,
+            a,
+            &hq,
+            &free,
+            Some(gamma),
+            Some(&w),
+            &mut work.partials,
+        );
+        let mut apart = d.clone();
+        masked_axpy_dot(&mut apart, a, &hq, &free, None, None, &mut work.partials);
+        scale(&mut apart, gamma);
+        for j in 0..n {
+            let want = if free[j] {
+                (d[j] + a * hq[j]) * gamma
+            } else {
+                d[j] * gamma
+            };
+            assert_eq!(fused[j].to_bits(), apart[j].to_bits(), "{j}");
+            assert_eq!(fused[j], want, "{j}");
+        }
+        let apart_dot = masked_axpy_dot(
+            &mut apart,
+            0.0,
+            &hq,
+            &free,
+            None,
+            Some(&w),
+            &mut work.partials,
+        );
+        assert_eq!(fused_dot.to_bits(), apart_dot.to_bits());
     }
 }
