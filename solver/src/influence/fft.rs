@@ -58,7 +58,9 @@ const MAX_LATTICE_CELLS: usize = 400_000_000;
 /// ones (32), the dwell occupancy and map count masks (5), rounded up.
 const LATTICE_BYTES_PER_CELL: f64 = 40.0;
 
-/// Cost of a 2-D transform of `N` cells per `N log2 N`, in multiply-adds of the band's passes.
+/// Cost of a 2-D transform of `N` cells per `N log2 N`, in multiply-adds of the complement
+/// route's band passes (the ratio of the two measured in `docs/largescale.md`, "The normal
+/// product through the complement").
 const FFT_WORK_PER_CELL_LOG2: f64 = 1.5;
 
 /// The FFT convolution operator (see the module documentation).

@@ -6,6 +6,8 @@
 //! - [`surface`]: the same on a curved part, the TIF applied in each dwell point's tangent frame;
 //! - [`curvature`]: one Hertzian TIF per dwell point from the local principal curvatures;
 //! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
+//! - `complement`: the FFT operator's normal product through the kernel's autocorrelation on the
+//!   dwell lattice, less the band of cells within reach that the map does not cover once;
 //! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
 //!   onto an oversampled lattice, then FFT convolution);
 //! - [`stencil`]: the exact matrix-free operator for dwell points off the map lattice at few
