@@ -740,6 +740,8 @@ mod tests {
     const SPREAD_VS_ASSEMBLED_IN_ESTIMATES: f64 = 2.0;
     /// `R t` by the column sweep against the products' row sums: rounding only.
     const SWEEP_VS_ROWS_RTOL: f64 = 1e-13;
+    /// First-order objective at a KKT residual of 1e-8 against the QP's optimum, relative.
+    const ROUTE_VS_QP_RTOL: f64 = 1e-7;
 
     /// A 41 x 31 map on a 0.4 mm lattice, a Gaussian TIF (sigma 1.2 mm, truncated at 4.5 sigma)
     /// and positive dwell times for `n` points.
@@ -774,6 +776,50 @@ mod tests {
 
     fn max_abs(v: &[f64]) -> f64 {
         v.iter().fold(0.0_f64, |a, x| a.max(x.abs()))
+    }
+
+    /// The first-order solver through the FFT operator's two routes for `R^T R t` (the lattice,
+    /// and the autocorrelation less the band around the map) reaches the QP's optimum on the
+    /// assembled `R`, a raster on a sub-lattice reaching past the map.
+    #[test]
+    fn both_normal_routes_solve_to_the_optimum() {
+        let (mx, my, mut z) = map();
+        // A rough part no dwell removes, so that the optimum is not nearly zero.
+        for (i, z) in z.iter_mut().enumerate() {
+            *z += ((i * 7919) % 13) as f64 * 0.1;
+        }
+        let tif = tif();
+        let (mut dx, mut dy) = (vec![], vec![]);
+        for j in 0..18 {
+            for i in 0..24 {
+                dx.push(-4.6 + 0.8 * i as f64);
+                dy.push(-0.6 + 0.8 * j as f64);
+            }
+        }
+        let settings = |solver| Settings {
+            solver,
+            first_order_tolerance: 1e-8,
+            first_order_max_iterations: 200_000,
+            ..Settings::default()
+        };
+        let assembled = problem(
+            InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap(),
+            &z,
+        );
+        let qp = solve(&assembled, &settings(SolverChoice::Qp), &Silent).unwrap();
+        for complement in [false, true] {
+            let op = FftOperator::with_route((&mx, &my), (&dx, &dy), 0.4, &tif, complement);
+            let fft = problem(op.unwrap(), &z);
+            let sol = solve(&fft, &settings(SolverChoice::FirstOrder), &Silent).unwrap();
+            assert_eq!(sol.status, Status::Converged, "complement {complement}");
+            let excess = (sol.objective - qp.objective) / qp.objective;
+            assert!(
+                excess.abs() <= ROUTE_VS_QP_RTOL,
+                "complement {complement}: {} against the QP's {} ({excess:e})",
+                sol.objective,
+                qp.objective
+            );
+        }
     }
 
     #[test]

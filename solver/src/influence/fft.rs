@@ -286,6 +286,24 @@ impl FftOperator {
         )
     }
 
+    /// As [`FftOperator::new`], with `R^T R t` through the direct route (`complement = false`)
+    /// or the complement route wherever it can be built (tests of the solvers on either).
+    #[cfg(test)]
+    pub(crate) fn with_route<T: InfluenceFunction + ?Sized>(
+        map_mm: (&[f64], &[f64]),
+        dwell_mm: (&[f64], &[f64]),
+        pitch_mm: f64,
+        tif: &T,
+        complement: bool,
+    ) -> Result<Self> {
+        let route = if complement {
+            NormalRoute::Complement
+        } else {
+            NormalRoute::Direct
+        };
+        Self::build(map_mm, dwell_mm, pitch_mm, tif, route)
+    }
+
     /// As [`FftOperator::new`], with the normal product's route chosen by `route`.
     fn build<T: InfluenceFunction + ?Sized>(
         (map_x_mm, map_y_mm): (&[f64], &[f64]),
