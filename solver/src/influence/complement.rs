@@ -13,10 +13,11 @@
 //! (around the map's edge and its holes, and cells holding several points). `A * t` is one
 //! forward and one inverse transform on the dwell lattice, padded by the autocorrelation's
 //! radius (a quarter of the lattice's cells for a 1 mm raster over a 0.5 mm map), in place of
-//! the four lattice-sized transforms of the direct route; the band's rows are summed directly,
-//! `u_c = k_c^T t` from a dense image of `t`, then `sum_c w_c u_c k_c` gathered at the dwell
-//! points within reach of the band, both as dot products of contiguous table rows (one table
-//! per position of a lattice cell within the dwell sub-lattice's cell).
+//! the direct route's two transforms on the map lattice and two on the dwell lattice. The band's
+//! rows are summed directly: `u_c = k_c^T t` from a dense image of `t`, then `sum_c w_c u_c k_c`
+//! gathered at the dwell points within reach of the band, from one table per position of a
+//! lattice cell within the dwell sub-lattice's cell, in runs of consecutive image positions
+//! (each tap's multiply-add taken over [`BLOCK`] outputs at once).
 //!
 //! Every output sums its terms in a fixed order, so results do not depend on the thread count.
 //! They differ from the direct route by rounding relative to `||A|| ||t||`, as the direct
@@ -58,7 +59,7 @@ pub(super) struct LatticeGeometry<'a> {
     pub taps: &'a [(isize, isize, f64)],
     /// Kernel reach, cells.
     pub reach: usize,
-    /// Dwell sub-lattice steps and offsets (`1, 0` on the lattice itself).
+    /// Dwell sub-lattice steps (1 on the lattice itself).
     pub step: (usize, usize),
     /// Dwell sub-lattice offset.
     pub offset: (usize, usize),
@@ -250,7 +251,7 @@ impl ComplementNormal {
             for ax in 0..awx {
                 let ix = (ax as isize - kax as isize).rem_euclid(gx as isize) as usize;
                 let iy = (ay as isize - kay as isize).rem_euclid(gy as isize) as usize;
-                buffers.real[iy * gx + ix] = a[ay * awx + ax];
+                buffers.real[iy * gx + ix] += a[ay * awx + ax];
             }
         }
         transforms.spectrum(&mut buffers, Fill::Ready, Spectrum::Keep);

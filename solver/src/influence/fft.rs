@@ -1199,7 +1199,8 @@ mod tests {
 
     /// `R^T P R t` through the lattice and through the complement (the kernel's autocorrelation
     /// less the band of cells whose map count is not one) against the sums over the map points,
-    /// on every sub-lattice case, for the full map (one cell counted twice) and for the map with
+    /// on every sub-lattice case and on three dwell points (fewer dwell columns than the
+    /// autocorrelation's radius), for the full map (one cell counted twice) and for the map with
     /// a hole. The complement's rounding is relative to the sums over every cell of the
     /// unbounded lattice, which the tolerance takes.
     #[test]
@@ -1215,8 +1216,9 @@ mod tests {
         let reach = (Lopsided.support_radius_mm() / h).ceil() as i64;
         for map in [&full, &holed] {
             let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
-            for case in SUB_LATTICE_CASES {
-                let dwell = case_dwell(case);
+            let few = vec![(2.0, 2.0), (2.5, 2.0), (2.0, 3.5)];
+            let rasters = SUB_LATTICE_CASES.map(|c| (format!("{c:?}"), case_dwell(c)));
+            for (case, dwell) in rasters.into_iter().chain([("few".to_string(), few)]) {
                 let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
                 let (m, n) = (map.len(), dwell.len());
                 let t: Vec<f64> = (0..n).map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3).collect();
@@ -1256,7 +1258,7 @@ mod tests {
                             .sum();
                         assert!(
                             (got - direct).abs() <= BRUTE_REL_TOL * s.max(1.0),
-                            "{route:?}, case {case:?}, {m} map points: (R^T R t)[{j}] {got} vs {direct}"
+                            "{route:?}, case {case}, {m} map points: (R^T R t)[{j}] {got} vs {direct}"
                         );
                     }
                 }
