@@ -34,4 +34,7 @@ pub mod status;
 pub mod surface;
 pub mod tif;
 
+#[cfg(test)]
+mod test_support;
+
 pub use error::{Error, Result};

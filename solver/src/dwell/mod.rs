@@ -762,6 +762,19 @@ mod tests {
         GaussianTif::new(1.2, 10.0, 5.4).unwrap()
     }
 
+    /// Dwell points on the map lattice (every second node, some beyond the map): the FFT
+    /// operator's case.
+    fn lattice_raster() -> (Vec<f64>, Vec<f64>) {
+        let (mut dx, mut dy) = (vec![], vec![]);
+        for j in 0..18 {
+            for i in 0..24 {
+                dx.push(-4.6 + 0.8 * i as f64);
+                dy.push(-0.6 + 0.8 * j as f64);
+            }
+        }
+        (dx, dy)
+    }
+
     fn dwell(n: usize) -> Vec<f64> {
         (0..n)
             .map(|j| 0.5 + ((j * 7919) % 13) as f64 * 0.1)
@@ -789,13 +802,7 @@ mod tests {
             *z += ((i * 7919) % 13) as f64 * 0.1;
         }
         let tif = tif();
-        let (mut dx, mut dy) = (vec![], vec![]);
-        for j in 0..18 {
-            for i in 0..24 {
-                dx.push(-4.6 + 0.8 * i as f64);
-                dy.push(-0.6 + 0.8 * j as f64);
-            }
-        }
+        let (dx, dy) = lattice_raster();
         let settings = |solver| Settings {
             solver,
             first_order_tolerance: 1e-8,
@@ -826,15 +833,7 @@ mod tests {
     fn each_operator_kind_gives_the_assembled_removal() {
         let (mx, my, z) = map();
         let tif = tif();
-        // Dwell points on the map lattice (every second node, some beyond the map): the FFT
-        // operator's case.
-        let (mut dx, mut dy) = (vec![], vec![]);
-        for j in 0..18 {
-            for i in 0..24 {
-                dx.push(-4.6 + 0.8 * i as f64);
-                dy.push(-0.6 + 0.8 * j as f64);
-            }
-        }
+        let (dx, dy) = lattice_raster();
         let assembled = problem(
             InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &Silent).unwrap(),
             &z,

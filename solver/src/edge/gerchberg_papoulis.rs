@@ -318,13 +318,11 @@ mod tests {
             .map(|(&t, &k)| if k { t } else { 0.0 })
             .collect();
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
             let mut v = start.clone();
-            pool.install(|| extend_on_lattice(&mut v, &known, nx, ny, pitch, band, 300))
-                .unwrap();
+            crate::test_support::on_threads(threads, || {
+                extend_on_lattice(&mut v, &known, nx, ny, pitch, band, 300)
+            })
+            .unwrap();
             v
         };
         let v = run(1);

@@ -448,36 +448,34 @@ impl Band {
         for &(j, at) in &self.touched {
             image[at] = t[j];
         }
-        let image = &*image;
-        u.par_chunks_mut(BAND_TASK)
-            .zip(0..self.forward.tasks())
-            .for_each(|(chunk, k)| {
-                self.arch.dispatch(Pass {
-                    band: self,
-                    adjoint: false,
-                    image,
-                    runs: &self.forward.runs[self.forward.first[k]..self.forward.first[k + 1]],
-                    out: chunk,
-                })
-            });
+        self.run(false, image, u);
         for (&(phase, at, weight), &u) in self.cells.iter().zip(u.iter()) {
             v[phase * self.image_len + at] = weight * u;
         }
-        let v = &*v;
-        s.par_chunks_mut(BAND_TASK)
-            .zip(0..self.adjoint.tasks())
-            .for_each(|(chunk, k)| {
-                self.arch.dispatch(Pass {
-                    band: self,
-                    adjoint: true,
-                    image: v,
-                    runs: &self.adjoint.runs[self.adjoint.first[k]..self.adjoint.first[k + 1]],
-                    out: chunk,
-                })
-            });
+        self.run(true, v, s);
         for (&(j, _), &s) in self.touched.iter().zip(s.iter()) {
             out[j] -= s;
         }
+    }
+
+    /// The forward (`u`) or adjoint (`s`) pass over `image`, one task per [`BAND_TASK`] outputs.
+    fn run(&self, adjoint: bool, image: &[f64], out: &mut [f64]) {
+        let runs = if adjoint {
+            &self.adjoint
+        } else {
+            &self.forward
+        };
+        out.par_chunks_mut(BAND_TASK)
+            .zip(0..runs.tasks())
+            .for_each(|(chunk, k)| {
+                self.arch.dispatch(Pass {
+                    band: self,
+                    adjoint,
+                    image,
+                    runs: &runs.runs[runs.first[k]..runs.first[k + 1]],
+                    out: chunk,
+                })
+            });
     }
 
     /// The outputs of `runs` (consecutive in `out`): forward, `u_c = sum_r sum_a T[a] K[c - a]`

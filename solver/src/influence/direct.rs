@@ -129,11 +129,9 @@ mod tests {
         let (dx, dy) = scattered(4000, 13, (0.0, 0.0, 30.0, 30.0));
         let t: Vec<f64> = (0..dx.len()).map(|j| 1.0 + (j % 5) as f64).collect();
         let run = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| removal_nm(&mx, &my, &dx, &dy, &t, &tif, &Silent).unwrap())
+            crate::test_support::on_threads(threads, || {
+                removal_nm(&mx, &my, &dx, &dy, &t, &tif, &Silent).unwrap()
+            })
         };
         assert_eq!(run(1), run(2));
     }

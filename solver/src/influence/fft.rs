@@ -1289,11 +1289,7 @@ mod tests {
         assert!(band.0 > 4 && band.1 > 4, "band tasks {band:?}");
         let t: Vec<f64> = (0..dwell.len()).map(|j| ((j * 17) % 11) as f64).collect();
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| {
+            crate::test_support::on_threads(threads, || {
                 let mut normal = vec![0.0; dwell.len()];
                 op.apply_normal(&t, &mut vec![0.0; map.len()], &mut normal);
                 normal

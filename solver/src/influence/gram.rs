@@ -409,11 +409,7 @@ mod tests {
         }
         let csc = CscMatrix::from(&coo);
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| {
+            crate::test_support::on_threads(threads, || {
                 let g = GramMatrix::new(&SparseOperator::new(&csc));
                 let t: Vec<f64> = (0..n).map(|j| (j as f64 * 0.37).sin()).collect();
                 let mut out = vec![0.0; n];

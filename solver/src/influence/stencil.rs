@@ -776,11 +776,7 @@ mod tests {
         let op = StencilOperator::new(&mx, &my, &dx, &dy, 0.4, &Lopsided).unwrap();
         let t: Vec<f64> = (0..dx.len()).map(|j| ((j * 17) % 11) as f64).collect();
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| {
+            crate::test_support::on_threads(threads, || {
                 let (mut rt, mut normal) = (vec![0.0; mx.len()], vec![0.0; dx.len()]);
                 op.apply(&t, &mut rt);
                 op.apply_normal(&t, &mut vec![0.0; mx.len()], &mut normal);
