@@ -77,8 +77,6 @@ pub(super) struct ComplementNormal {
     scale: f64,
     buffers: Mutex<Buffers>,
     band: Band,
-    /// Lattice cells of the autocorrelation's transform.
-    lattice_cells: f64,
 }
 
 /// The band's rows of `R` (see the module documentation), on images of the dwell sub-lattice
@@ -145,6 +143,7 @@ impl Runs {
     }
 }
 
+#[derive(Default)]
 struct BandImages {
     /// `t` on the dwell image (written at the touched dwell points only).
     t: Vec<f64>,
@@ -205,9 +204,14 @@ fn span(row: &[f64]) -> (usize, usize) {
 
 impl ComplementNormal {
     /// Builds the route for `g`; `None` when the kernel is too large for its autocorrelation to
-    /// be summed pair by pair, or the route's arrays with the operator's would exceed the memory
-    /// budget ([`crate::budget`]; the direct route then serves).
-    pub(super) fn new(g: &LatticeGeometry<'_>) -> Option<Self> {
+    /// be summed pair by pair, when the route's arrays with the operator's would exceed the
+    /// memory budget ([`crate::budget`]), or when `take(transform cells, band multiply-adds)`,
+    /// asked once the band is known and before the transforms are planned, declines it (the
+    /// direct route then serves).
+    pub(super) fn new(
+        g: &LatticeGeometry<'_>,
+        take: impl FnOnce(f64, f64) -> bool,
+    ) -> Option<Self> {
         if g.taps.len() > MAX_AUTOCORRELATION_TAPS || g.dwell_ij.is_empty() {
             return None;
         }
@@ -223,6 +227,19 @@ impl ComplementNormal {
 
         // A on the sub-lattice, radius (kax, kay) sub-lattice cells.
         let (kax, kay) = (2 * g.reach / dx, 2 * g.reach / dy);
+        let (gx, gy) = (smooth_size(na + kax), smooth_size(nb + kay));
+        let (kqx, kqy) = (g.reach.div_ceil(dx), g.reach.div_ceil(dy));
+        let image_cells = ((na + 4 * kqx) * (nb + 4 * kqy)) as f64;
+        let bytes = g.held_bytes
+            + (gx * gy) as f64 * BYTES_PER_TRANSFORM_CELL
+            + image_cells * ((1 + dx * dy) as f64 * crate::budget::F64_BYTES + 2.0)
+            + ((g.nx + 2 * g.reach) * (g.ny + 2 * g.reach) * 2) as f64;
+        crate::budget::check("FFT operator", "the complement route", bytes).ok()?;
+        let mut band = Band::new(g, &sub, (na, nb));
+        if !take((gx * gy) as f64, band.multiply_adds()) {
+            return None;
+        }
+        band.allocate_images();
         let (awx, awy) = (2 * kax + 1, 2 * kay + 1);
         let mut a = vec![0.0; awx * awy];
         for &(x1, y1, v1) in g.taps {
@@ -235,14 +252,6 @@ impl ComplementNormal {
                 }
             }
         }
-        let (gx, gy) = (smooth_size(na + kax), smooth_size(nb + kay));
-        let (kqx, kqy) = (g.reach.div_ceil(dx), g.reach.div_ceil(dy));
-        let image_cells = ((na + 4 * kqx) * (nb + 4 * kqy)) as f64;
-        let bytes = g.held_bytes
-            + (gx * gy) as f64 * BYTES_PER_TRANSFORM_CELL
-            + image_cells * ((1 + dx * dy) as f64 * crate::budget::F64_BYTES + 2.0)
-            + ((g.nx + 2 * g.reach) * (g.ny + 2 * g.reach) * 2) as f64;
-        crate::budget::check("FFT operator", "the complement route", bytes).ok()?;
         let mut planner = FftPlanner::<f64>::new();
         let mut real_planner = RealFftPlanner::<f64>::new();
         let transforms = Transforms::new(gx, gy, &mut planner, &mut real_planner);
@@ -257,7 +266,6 @@ impl ComplementNormal {
         transforms.spectrum(&mut buffers, Fill::Ready, Spectrum::Keep);
         let a_hat = buffers.columns.clone();
         let dwell = Cells::new(sub.iter().map(|&(i, j)| j * gx + i).collect(), gx, gy);
-        let band = Band::new(g, &sub, (na, nb));
         Some(Self {
             transforms,
             dwell,
@@ -265,18 +273,7 @@ impl ComplementNormal {
             scale: 1.0 / (gx * gy) as f64,
             buffers: Mutex::new(buffers),
             band,
-            lattice_cells: (gx * gy) as f64,
         })
-    }
-
-    /// Cells of the autocorrelation's transform lattice (for the cost model).
-    pub(super) fn lattice_cells(&self) -> f64 {
-        self.lattice_cells
-    }
-
-    /// Multiply-adds of the band's two passes (for the cost model).
-    pub(super) fn band_multiply_adds(&self) -> f64 {
-        self.band.multiply_adds()
     }
 
     /// Tasks of the band's forward and adjoint passes (tests).
@@ -404,12 +401,6 @@ impl Band {
             .collect();
         touched.sort_by_key(|d| d.1);
         let adjoint = Runs::new(touched.iter().map(|d| (0, d.1, d.2)));
-        let images = BandImages {
-            t: vec![0.0; image_len + BLOCK],
-            v: vec![0.0; phases * image_len + BLOCK],
-            u: vec![0.0; cells.len()],
-            s: vec![0.0; touched.len()],
-        };
         Self {
             width,
             side_x,
@@ -424,9 +415,21 @@ impl Band {
             adjoint,
             image_len,
             phases,
-            images: Mutex::new(images),
+            images: Mutex::new(BandImages::default()),
             arch: pulp::Arch::new(),
         }
+    }
+
+    /// Allocates the images the passes work on (left empty by [`Band::new`] until the route is
+    /// taken).
+    fn allocate_images(&mut self) {
+        let images = self.images.get_mut().unwrap_or_else(|e| e.into_inner());
+        *images = BandImages {
+            t: vec![0.0; self.image_len + BLOCK],
+            v: vec![0.0; self.phases * self.image_len + BLOCK],
+            u: vec![0.0; self.cells.len()],
+            s: vec![0.0; self.touched.len()],
+        };
     }
 
     fn multiply_adds(&self) -> f64 {

@@ -477,7 +477,11 @@ impl FftOperator {
         let complement = match route {
             NormalRoute::Direct => None,
             NormalRoute::Cheaper | NormalRoute::Complement => {
-                ComplementNormal::new(&LatticeGeometry {
+                let direct = match &sub {
+                    Some(s) => direct_normal_work(fx * fy, s.sx * s.sy),
+                    None => direct_normal_work(fx * fy, 0),
+                };
+                let geometry = LatticeGeometry {
                     dwell_ij: &dwell_ij,
                     nx,
                     ny,
@@ -488,13 +492,9 @@ impl FftOperator {
                     step: (dx, dy),
                     offset: (ox, oy),
                     held_bytes: fx as f64 * fy as f64 * LATTICE_BYTES_PER_CELL,
-                })
-                .filter(|c| {
-                    let direct = match &sub {
-                        Some(s) => direct_normal_work(fx * fy, s.sx * s.sy),
-                        None => direct_normal_work(fx * fy, 0),
-                    };
-                    route == NormalRoute::Complement || complement_normal_work(c) < direct
+                };
+                ComplementNormal::new(&geometry, |cells, band| {
+                    route == NormalRoute::Complement || complement_normal_work(cells, band) < direct
                 })
             }
         };
@@ -721,10 +721,10 @@ fn direct_normal_work(full: usize, sub: usize) -> f64 {
     }
 }
 
-/// Work of the complement route in the same units: two transforms on its lattice and the band.
-fn complement_normal_work(c: &ComplementNormal) -> f64 {
-    let n = c.lattice_cells();
-    2.0 * FFT_WORK_PER_CELL_LOG2 * n * n.max(2.0).log2() + c.band_multiply_adds()
+/// Work of the complement route in the same units: two transforms on its lattice of `cells`
+/// cells and the band's `band` multiply-adds.
+fn complement_normal_work(cells: f64, band: f64) -> f64 {
+    2.0 * FFT_WORK_PER_CELL_LOG2 * cells * cells.max(2.0).log2() + band
 }
 
 /// The buffers behind `m` (a panic elsewhere leaves them as scratch, still usable).
