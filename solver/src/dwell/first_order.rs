@@ -931,9 +931,9 @@ const LBFGS_MEMORY: usize = 5;
 /// `x + tau p`, `tau = min(1, -q'p / p'Hp)`, and the new gradient `q + tau H p` without further
 /// products (recomputed exactly at every check). Should `p` not descend, the memory is cleared
 /// and the projected gradient step taken instead. Memory: `2 LBFGS_MEMORY + 5` vectors of `n`
-/// and a free-set mask. The recursion's first and last passes carry the binding test and the
-/// projection, so an iteration makes `2 LBFGS_MEMORY + 4` passes over `n`-vectors besides the
-/// Hessian product.
+/// and a free-set mask. The recursion's first pass carries the binding test, the first loop's
+/// last update the scaling by `gamma`, and the projection the second loop's last update, so an
+/// iteration makes `2 LBFGS_MEMORY + 2` passes over `n`-vectors besides the Hessian product.
 fn projected_lbfgs(
     data: &Data<'_>,
     mut x: Vec<f64>,

@@ -89,7 +89,8 @@ struct Band {
     /// Per phase (position within the sub-lattice's cell), `side_y` rows of `side_x` taps:
     /// entry `(ay, ax)` is `K` at the offset from the dwell point at window position `(ax, ay)`.
     tables: Vec<f64>,
-    /// The tables turned by half a turn (the adjoint's windows).
+    /// The tables turned by half a turn (the adjoint's windows), kept so that both passes read
+    /// their taps left to right in the inner loop.
     flipped: Vec<f64>,
     /// Per phase and row, the span `[lo, hi)` of taps that may be non-zero.
     spans: Vec<(usize, usize)>,
