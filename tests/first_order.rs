@@ -212,6 +212,64 @@ fn first_order_agrees_with_qp_with_rho_and_lambda() {
     assert_agree(&problem(7, 0.0, 0.5, 2.0));
 }
 
+/// Largest growth of the default stop's excess over the QP's optimum from a removal depth of
+/// 4e4 to one of 4e6 (100 times deeper; the excess grew about as the depth before the KKT
+/// normalisation followed what is left).
+const EXCESS_GROWTH_WITH_DEPTH: f64 = 10.0;
+/// Largest excess the default stop may leave on the shallowest case (0.1%).
+const SHALLOW_STOP_EXCESS: f64 = 1e-3;
+
+/// The default stop's excess over the optimum does not grow with the depth of the removal. The
+/// maps are `z = R t + eps e`: a removable figure `R t` plus a rough `e` (white, no dwell follows
+/// it), `eps` from 1 down to 0.01 nm, so that the depth `f(0) / f*` spans four decades. With the
+/// KKT residual relative to the gradient at zero dwell alone, the deepest case stopped 16% above
+/// its optimum (0.18% at 4e4).
+#[test]
+fn the_default_stop_does_not_loosen_with_the_removal_depth() {
+    let base = sized_problem(25, 15, 11, 0.0, 0.0, 0.0);
+    let figure: Vec<f64> = (0..base.n())
+        .map(|j| 1.0 + 2.0 * ((j * 7919) % 17) as f64 / 17.0)
+        .collect();
+    let removable = base.removal_nm(&figure).unwrap();
+    let (mut depths, mut excesses) = (Vec::new(), Vec::new());
+    for eps_nm in [1.0, 0.1, 0.01] {
+        let z: Vec<f64> = removable
+            .iter()
+            .enumerate()
+            .map(|(i, h)| h + eps_nm * (((i * 7919) % 13) as f64 - 6.0) / 6.0)
+            .collect();
+        let p = Problem::new(
+            base.influence().unwrap().clone(),
+            z.clone(),
+            base.bounds().clone(),
+            0.0,
+            0.0,
+        )
+        .unwrap();
+        let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
+        let defaults = Settings {
+            solver: SolverChoice::FirstOrder,
+            ..Settings::default()
+        };
+        let fo = dwell::solve(&p, &defaults, &Silent).unwrap();
+        assert!(fo.status.is_converged(), "eps {eps_nm}: {:?}", fo.status);
+        let (fq, ff) = (
+            full_objective(&p, &qp.dwell_s),
+            full_objective(&p, &fo.dwell_s),
+        );
+        let mean = z.iter().sum::<f64>() / z.len() as f64;
+        let f_zero = 0.5 * z.iter().map(|z| (z - mean).powi(2)).sum::<f64>();
+        depths.push(f_zero / fq);
+        excesses.push((ff - fq) / fq);
+    }
+    assert!(depths[1] < 1e5 && depths[2] > 1e6, "{depths:?}");
+    assert!(excesses[0] <= SHALLOW_STOP_EXCESS, "{excesses:?}");
+    assert!(
+        excesses[2] <= EXCESS_GROWTH_WITH_DEPTH * excesses[1],
+        "excess {excesses:?} at depths {depths:?}"
+    );
+}
+
 /// A problem whose optimum is known exactly: `z = R t*` with `t*` strictly inside a bounded box
 /// (`v_min` > 0), `rho = lambda = 0`, so `min f = 0`.
 fn exactly_removable() -> Problem {

@@ -52,9 +52,10 @@ fn solve(r: InfluenceMatrix, z: &[f64], solver: SolverChoice) -> (f64, Vec<f64>)
         0.0,
     )
     .unwrap();
+    // The default tolerance: the joint plan removes nearly all of the map, the case the KKT
+    // normalisation's depth term is for.
     let settings = Settings {
         solver,
-        first_order_tolerance: 1e-7,
         ..Settings::default()
     };
     let sol = dwell::solve(&problem, &settings, &Silent).unwrap();

@@ -293,6 +293,13 @@ impl Data<'_> {
         self.half_smoothing(work)
     }
 
+    /// `f(0) = 0.5 ||P z||^2`, the objective at zero dwell without the `rho` and `lambda` terms.
+    fn objective_at_zero(&self) -> f64 {
+        let m = self.z.len();
+        let mean = self.sum_z / m as f64;
+        0.5 * self.z.iter().map(|z| (z - mean).powi(2)).sum::<f64>()
+    }
+
     /// The full objective `f` at `w` (one product with `R`).
     pub(crate) fn objective(&self, w: &[f64], work: &mut Work) -> f64 {
         let half_r2 = self.residual(w, work);
@@ -565,7 +572,10 @@ fn minimise_here(
         max_it,
         time_limit_s: settings.time_limit_s,
         began,
-        kkt_scale,
+        kkt_norm: KktNorm {
+            at_zero: kkt_scale,
+            objective_at_zero: data.objective_at_zero(),
+        },
     };
     let lattice = lattice.filter(|l| l.len() == n);
     let (status, x, it, cert) = match settings.first_order_method {
@@ -621,13 +631,49 @@ fn minimise_here(
 /// Height, nm, below which an error map counts as flat in the KKT normalisation (a femtometre).
 const KKT_FLOOR_NM: f64 = 1e-6;
 
+/// Removal depth `f(0) / f(t)` up to which the KKT residual is relative to the scaled gradient
+/// at zero dwell alone ([`KktNorm`]).
+const DEPTH_KNEE: f64 = 1e5;
+/// Removal depth past which the KKT normalisation stops shrinking (a 10,000-fold RMS
+/// reduction): beyond it the map is removed to rounding, and a share of what is left means little.
+const DEPTH_CAP: f64 = 1e8;
+
+/// The KKT residual's normalisation at objective `f`:
+/// `N(f) = N0 sqrt(clamp(DEPTH_KNEE f / f(0), DEPTH_KNEE / DEPTH_CAP, 1))`, `N0 = ||S R^T P z|| +
+/// rho ||S 1||` the scaled gradient at zero dwell and `f(0) = 0.5 ||P z||^2`.
+///
+/// Relative to `N0` alone, the excess `f - f*` left at a given tolerance grows in proportion to
+/// the depth `f(0) / f*` (measured from 8e3 to 1.2e6, docs/preconditioning.md): near the
+/// optimum `f - f* ~ ||g||^2 / (2 mu)` while `N0^2 ~ f(0)`. Deeper than `DEPTH_KNEE` the
+/// normalisation follows `sqrt(f)`, so that the tolerance keeps meaning about the same share of
+/// what is left.
+#[derive(Debug, Clone, Copy)]
+struct KktNorm {
+    /// `N0`.
+    at_zero: f64,
+    /// `f(0)`, nm^2.
+    objective_at_zero: f64,
+}
+
+impl KktNorm {
+    /// `N(f)`; `N0` where the depth is not finite (a flat map).
+    fn at(&self, f: f64) -> f64 {
+        let share = DEPTH_KNEE * f / self.objective_at_zero;
+        if share.is_finite() {
+            self.at_zero * share.clamp(DEPTH_KNEE / DEPTH_CAP, 1.0).sqrt()
+        } else {
+            self.at_zero
+        }
+    }
+}
+
 /// Stopping rule shared by the iterations.
 struct Limits {
     tol: f64,
     max_it: usize,
     time_limit_s: f64,
     began: Instant,
-    kkt_scale: f64,
+    kkt_norm: KktNorm,
 }
 
 impl Limits {
@@ -680,7 +726,7 @@ fn fista(
     let mut best_f = f64::INFINITY;
     let max_it = limits.max_it;
     let mut status = Status::MaxIterations;
-    let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+    let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
     let mut it = 0;
     let (mut last_check, mut next_check) = (0, CHECK_EVERY);
     while it < max_it {
@@ -711,7 +757,7 @@ fn fista(
         std::mem::swap(&mut x, &mut x_new);
 
         if it == next_check || it == max_it {
-            cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+            cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
             observer.advance(Stage::Solve, (it - last_check) as u64);
             last_check = it;
             next_check = it + CHECK_EVERY.max(it / CHECK_SPACING);
@@ -734,7 +780,7 @@ fn fista(
         }
     }
     if status == Status::MaxIterations && it != last_check {
-        cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+        cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
     }
     (status, x, it, cert)
 }
@@ -791,7 +837,7 @@ fn newton_cg(
     let mut x_new = vec![0.0; n];
     let mut status = Status::MaxIterations;
     let mut it = 1;
-    let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+    let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
     while it < limits.max_it {
         let it_before = it;
         observer.iteration(&IterationInfo {
@@ -917,7 +963,7 @@ fn newton_cg(
             }
         }
         std::mem::swap(&mut x, &mut x_new);
-        cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+        cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
         it += 1;
         observer.advance(Stage::Solve, (it - it_before) as u64);
     }
@@ -965,7 +1011,7 @@ fn projected_lbfgs(
     let mut free = vec![true; n];
     let mut pair_partials = Vec::new();
     let mut status = Status::MaxIterations;
-    let mut cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+    let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
     // Without `rho` or dwell upper bounds there is no gap bound to stop on (see
     // `super::certificate`), so the certificate is formed only when the carried gradient's KKT
     // residual says the tolerance is met, to confirm it.
@@ -1012,11 +1058,11 @@ fn projected_lbfgs(
         if it != exact_at {
             // The carried gradient `q` follows the exact one to rounding (`q += tau S H S p`
             // each step), so its KKT residual tells when to form the certificate that decides.
-            let carried_kkt = carried_kkt2.sqrt() / limits.kkt_scale;
+            let carried_kkt = carried_kkt2.sqrt() / limits.kkt_norm.at(carried_f);
             let report = it >= next_check;
             let out_of_time = limits.began.elapsed().as_secs_f64() > limits.time_limit_s;
             if carried_kkt <= limits.tol || (periodic && report) || out_of_time {
-                cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+                cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
                 scaled_gradient(work, &mut q);
                 exact_at = it;
                 carried_f = cert.f;
@@ -1118,7 +1164,7 @@ fn projected_lbfgs(
         if !(qp < 0.0) {
             // No descent along the updated gradient: take the exact one, and stop if that
             // shows none either (stationary to rounding).
-            cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+            cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
             scaled_gradient(work, &mut q);
             let fresh = it == exact_at;
             exact_at = it;
@@ -1155,7 +1201,7 @@ fn projected_lbfgs(
         }
     }
     if it != exact_at {
-        cert = certificate(data, &x, work, bounds, limits.kkt_scale);
+        cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
         if status == Status::MaxIterations && limits.met(&cert).is_some() {
             status = Status::Converged;
         }
@@ -1381,7 +1427,7 @@ fn certificate(
     w: &[f64],
     work: &mut Work,
     bounds: &DwellBounds,
-    kkt_scale: f64,
+    kkt_norm: &KktNorm,
 ) -> Certificate {
     let (half_r2, half_d2) = data.gradient(w, work);
     let n = w.len();
@@ -1396,7 +1442,7 @@ fn certificate(
         let p = (w[j] - gw).max(data.lo_w[j]).min(data.hi_w[j]);
         (w[j] - p).powi(2)
     });
-    let kkt = kkt2.sqrt() / kkt_scale;
+    let kkt = kkt2.sqrt() / kkt_norm.at(f);
     // Dual bound: needs z'r.
     let z = data.z;
     let rt = &work.rt;
@@ -1476,6 +1522,33 @@ mod tests {
         for ((s, g), o) in data.s.iter().zip(&work.g).zip(&out) {
             assert_eq!(s * g, *o);
         }
+    }
+
+    /// The KKT normalisation is the gradient at zero dwell down to the knee's depth, shrinks as
+    /// `sqrt(f)` past it, and stops shrinking at the cap; a flat map keeps `N0`.
+    #[test]
+    fn the_kkt_normalisation_follows_what_is_left_past_the_knee() {
+        const REL: f64 = 1e-15;
+        let norm = KktNorm {
+            at_zero: 2.0,
+            objective_at_zero: 1e6,
+        };
+        let at_knee = 1e6 / DEPTH_KNEE;
+        assert_eq!(norm.at(2e6), 2.0);
+        assert_eq!(norm.at(1e6), 2.0);
+        assert_eq!(norm.at(at_knee), 2.0);
+        // 100 times deeper: a tenth of the normalisation.
+        assert!((norm.at(at_knee / 100.0) - 0.2).abs() <= REL * 0.2);
+        let floor = 2.0 * (DEPTH_KNEE / DEPTH_CAP).sqrt();
+        for f in [1e6 / DEPTH_CAP, 1e6 / DEPTH_CAP / 10.0, 0.0] {
+            assert!((norm.at(f) - floor).abs() <= REL * floor, "{f}");
+        }
+        let flat = KktNorm {
+            at_zero: 2.0,
+            objective_at_zero: 0.0,
+        };
+        assert_eq!(flat.at(0.0), 2.0);
+        assert_eq!(flat.at(1.0), 2.0);
     }
 
     /// Without a gap bound (`rho = 0`, no `v_min`) projected L-BFGS forms its certificate only
