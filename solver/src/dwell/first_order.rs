@@ -87,6 +87,53 @@ use std::time::Instant;
 const CHECK_EVERY: usize = 10;
 /// See [`CHECK_EVERY`].
 const CHECK_SPACING: usize = 50;
+/// When the iterations report their progress: every [`CHECK_EVERY`] iterations, spaced out as
+/// the checks are where a report comes with a certificate.
+struct Reports {
+    /// The iteration last reported.
+    last: usize,
+    /// The iteration the next report is due at.
+    next: usize,
+}
+
+impl Reports {
+    fn new(it: usize) -> Self {
+        Reports {
+            last: it,
+            next: it + CHECK_EVERY,
+        }
+    }
+
+    fn due(&self, it: usize) -> bool {
+        it >= self.next
+    }
+
+    /// Reports iteration `it` (objective, nm^2, and relative KKT residual) to `observer` and
+    /// schedules the next report: `CHECK_EVERY` on, or `it / CHECK_SPACING` where longer and
+    /// `spaced` (the certificates' schedule).
+    fn report(
+        &mut self,
+        observer: &dyn Observer,
+        it: usize,
+        (objective, kkt): (f64, f64),
+        spaced: bool,
+    ) {
+        observer.advance(Stage::Solve, (it - self.last) as u64);
+        self.last = it;
+        let gap = if spaced {
+            CHECK_EVERY.max(it / CHECK_SPACING)
+        } else {
+            CHECK_EVERY
+        };
+        self.next = it + gap;
+        observer.iteration(&IterationInfo {
+            iteration: it,
+            objective,
+            kkt_residual: Some(kkt),
+        });
+    }
+}
+
 /// Power-iteration steps for the Lipschitz constant.
 pub(crate) const POWER_STEPS: usize = 60;
 /// Newton-CG's safety factor on the power-iteration estimate (it approaches the largest
@@ -728,7 +775,7 @@ fn fista(
     let mut status = Status::MaxIterations;
     let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
     let mut it = 0;
-    let (mut last_check, mut next_check) = (0, CHECK_EVERY);
+    let mut reports = Reports::new(0);
     while it < max_it {
         it += 1;
         // Projected gradient step from the extrapolated point y and, in the same pass, the
@@ -756,16 +803,9 @@ fn fista(
         }
         std::mem::swap(&mut x, &mut x_new);
 
-        if it == next_check || it == max_it {
+        if reports.due(it) || it == max_it {
             cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-            observer.advance(Stage::Solve, (it - last_check) as u64);
-            last_check = it;
-            next_check = it + CHECK_EVERY.max(it / CHECK_SPACING);
-            observer.iteration(&IterationInfo {
-                iteration: it,
-                objective: cert.f,
-                kkt_residual: Some(cert.kkt),
-            });
+            reports.report(observer, it, (cert.f, cert.kkt), true);
             if cert.f > best_f * (1.0 + 1e-12) + f64::MIN_POSITIVE {
                 // The objective rose: the step was too long. Halve it and restart the momentum.
                 lip *= 2.0;
@@ -779,7 +819,7 @@ fn fista(
             }
         }
     }
-    if status == Status::MaxIterations && it != last_check {
+    if status == Status::MaxIterations && it != reports.last {
         cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
     }
     (status, x, it, cert)
@@ -1026,7 +1066,7 @@ fn projected_lbfgs(
     };
     scaled_gradient(work, &mut q);
     let mut it = 1;
-    let (mut last_check, mut next_check) = (it, it + CHECK_EVERY);
+    let mut reports = Reports::new(it);
     // The iteration at which `q` and `cert` were last computed exactly.
     let mut exact_at = it;
     observer.iteration(&IterationInfo {
@@ -1059,23 +1099,14 @@ fn projected_lbfgs(
             // The carried gradient `q` follows the exact one to rounding (`q += tau S H S p`
             // each step), so its KKT residual tells when to form the certificate that decides.
             let carried_kkt = carried_kkt2.sqrt() / limits.kkt_norm.at(carried_f);
-            let report = it >= next_check;
+            let report = reports.due(it);
             let out_of_time = limits.began.elapsed().as_secs_f64() > limits.time_limit_s;
             if carried_kkt <= limits.tol || (periodic && report) || out_of_time {
                 cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
                 scaled_gradient(work, &mut q);
                 exact_at = it;
                 carried_f = cert.f;
-                if report {
-                    observer.advance(Stage::Solve, (it - last_check) as u64);
-                    last_check = it;
-                    next_check = it + CHECK_EVERY.max(it / CHECK_SPACING);
-                }
-                observer.iteration(&IterationInfo {
-                    iteration: it,
-                    objective: cert.f,
-                    kkt_residual: Some(cert.kkt),
-                });
+                reports.report(observer, it, (cert.f, cert.kkt), true);
                 if let Some(st) = limits.stop(&cert) {
                     status = st;
                     break;
@@ -1084,14 +1115,7 @@ fn projected_lbfgs(
                 continue;
             }
             if report {
-                observer.advance(Stage::Solve, (it - last_check) as u64);
-                last_check = it;
-                next_check = it + CHECK_EVERY;
-                observer.iteration(&IterationInfo {
-                    iteration: it,
-                    objective: carried_f,
-                    kkt_residual: Some(carried_kkt),
-                });
+                reports.report(observer, it, (carried_f, carried_kkt), false);
             }
         }
         let gamma = if stored > 0 && gamma_of[order(0)] > 0.0 {
@@ -1206,7 +1230,7 @@ fn projected_lbfgs(
             status = Status::Converged;
         }
     }
-    observer.advance(Stage::Solve, (it - last_check) as u64);
+    observer.advance(Stage::Solve, (it - reports.last) as u64);
     (status, x, it, cert)
 }
 
