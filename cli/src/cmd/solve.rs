@@ -257,10 +257,10 @@ pub struct Args {
     pub min_time_tolerance: Option<f64>,
     /// Relative optimality tolerance of the solver (the QP's and the first-order solver's;
     /// defaults 1e-8 and 1e-6). The first-order solver stops when its gap bound, or its KKT
-    /// residual relative to the gradient at zero dwell, is below it. What that leaves above the
-    /// optimum grows with how much of the map the plan removes: at 1e-6 0.02-0.03% where the RMS
-    /// falls 300-fold, 0.2-0.8% where it falls 800- to 1,100-fold (two tools, a nearly removable
-    /// map); 1e-7 took the two-tool case to 0.011% (docs/preconditioning.md).
+    /// residual, is below it. The residual is relative to the gradient at zero dwell and, where
+    /// the plan removes more than 1 - 1e-5 of the objective (the RMS more than 316-fold), to
+    /// what is left: at 1e-6 the generated benchmarks land 0.03-0.07% above the optimum, a
+    /// two-tool plan 0.07% (docs/preconditioning.md).
     #[arg(long)]
     pub tolerance: Option<f64>,
     /// Iteration of the first-order solver (default: the job's, else lbfgs).

@@ -50,8 +50,9 @@
 //! where a gap bound can exist (`rho > 0` or every dwell point bounded above), also on FISTA's
 //! schedule. So it stops at the first iteration whose exact residual meets the tolerance, not at
 //! the next scheduled check. The certificate holds:
-//! * KKT residual: `||w - Proj(w - grad_w f)||_2 / ||S (R^T P z)||_2 + rho ||S 1||_2`, relative,
-//!   in the scaled variables (zero exactly at the optimum);
+//! * KKT residual: `||w - Proj(w - grad_w f)||_2 / N(f)`, relative, in the scaled variables (zero
+//!   exactly at the optimum); `N(f)` is `||S (R^T P z)||_2 + rho ||S 1||_2`, the scaled gradient at
+//!   zero dwell, shrunk as `sqrt(f)` past a removal depth of 1e5 ([`KktNorm`]);
 //! * gap bound, from Lagrangian duality: `0.5 ||a||^2 >= a'y - 0.5 ||y||^2` for every `y`, so with
 //!   `y = alpha r` (`r = P(R t - z)`, the current residual) and `v = alpha D t` every feasible `s`
 //!   has `f(s) >= d(alpha) = -alpha z'r - 0.5 alpha^2 (||r||^2 + lambda ||D t||^2) +

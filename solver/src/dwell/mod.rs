@@ -436,9 +436,9 @@ pub struct Settings {
     /// Print the solver's iteration log (Clarabel prints it on stdout).
     pub verbose: bool,
     /// First-order solver: stop when the relative gap bound or the relative KKT residual is
-    /// below this. The KKT residual is relative to the scaled gradient at zero dwell, so the
-    /// excess over the optimum it allows grows with `f0 / f*`, the share of the initial
-    /// objective that the plan removes (`docs/preconditioning.md`).
+    /// below this. The KKT residual is relative to the scaled gradient at zero dwell and, past a
+    /// removal depth `f0 / f` of 1e5, to `sqrt(1e5 f / f0)` of it, so that the excess over the
+    /// optimum it allows does not keep growing with the depth (`docs/preconditioning.md`).
     pub first_order_tolerance: f64,
     /// First-order solver: iteration limit (gradient or Hessian products).
     pub first_order_max_iterations: usize,
