@@ -341,11 +341,12 @@ impl Data<'_> {
         self.half_smoothing(work)
     }
 
-    /// `f(0) = 0.5 ||P z||^2`, the objective at zero dwell without the `rho` and `lambda` terms.
-    fn objective_at_zero(&self) -> f64 {
-        let m = self.z.len();
-        let mean = self.sum_z / m as f64;
-        0.5 * self.z.iter().map(|z| (z - mean).powi(2)).sum::<f64>()
+    /// `||P z||^2`, the error to remove with its piston taken out (twice the objective at zero
+    /// dwell without the `rho` and `lambda` terms); fixed-chunk sums.
+    pub(crate) fn centred_z_norm_sq(&self, partials: &mut Vec<f64>) -> f64 {
+        let (z, m) = (self.z, self.z.len());
+        let mean = fixed_sum(m, partials, |i| z[i]) / m as f64;
+        fixed_sum(m, partials, |i| (z[i] - mean).powi(2))
     }
 
     /// The full objective `f` at `w` (one product with `R`).
@@ -622,7 +623,7 @@ fn minimise_here(
         began,
         kkt_norm: KktNorm {
             at_zero: kkt_scale,
-            objective_at_zero: data.objective_at_zero(),
+            objective_at_zero: 0.5 * data.centred_z_norm_sq(&mut work.partials),
         },
     };
     let lattice = lattice.filter(|l| l.len() == n);

@@ -349,11 +349,7 @@ pub(crate) fn minimise(
     let mut x: Vec<f64> = start.iter().zip(s).map(|(t, s)| t / s).collect();
     data.project(&mut x);
     it_state.retract(&mut x);
-    let pz_norm = {
-        let (z, m) = (data.z, data.z.len());
-        let mean = fixed_sum(m, &mut work.partials, |i| z[i]) / m as f64;
-        fixed_sum(m, &mut work.partials, |i| (z[i] - mean).powi(2)).sqrt()
-    };
+    let pz_norm = data.centred_z_norm_sq(&mut work.partials).sqrt();
     let mut g_x = vec![0.0; n];
     gradient(data, &x, work, &mut g_x);
     let mut x_prev = x.clone();
