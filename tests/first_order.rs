@@ -4,7 +4,7 @@ use preston::solver::dwell::certificate::{ConvergenceCriterion, GapBoundReason};
 use preston::solver::dwell::precond::DwellLattice;
 use preston::solver::dwell::{
     self, DwellBounds, FeedLimits, FirstOrderMethod, OperatorKind, Preconditioner, Problem,
-    Settings, SolverChoice, Status,
+    Settings, SolverChoice, Status, DEFAULT_LBFGS_MEMORY, MAX_LBFGS_MEMORY,
 };
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::observer::Silent;
@@ -210,6 +210,47 @@ fn first_order_agrees_with_qp_with_v_min() {
 #[test]
 fn first_order_agrees_with_qp_with_rho_and_lambda() {
     assert_agree(&problem(7, 0.0, 0.5, 2.0));
+}
+
+/// The pairs projected L-BFGS keeps change its path, not where it ends: with one pair, the
+/// default and twenty it reaches the QP's optimum on the worst-conditioned case (no `v_min`, no
+/// `rho`), and each memory takes its own number of iterations (the pairs are used). Out-of-range
+/// memories are refused by name; a job's `[solver]` table sets it.
+#[test]
+fn lbfgs_reaches_the_qp_optimum_with_any_memory() {
+    let p = sized_problem(15, 9, 3, 0.0, 0.0, 0.0);
+    let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
+    let fq = full_objective(&p, &qp.dwell_s);
+    let mut iterations = Vec::new();
+    for memory in [1, DEFAULT_LBFGS_MEMORY, 20] {
+        let s = Settings {
+            lbfgs_memory: memory,
+            ..first_order(FirstOrderMethod::Lbfgs)
+        };
+        let fo = dwell::solve(&p, &s, &Silent).unwrap();
+        assert!(fo.status.is_converged(), "memory {memory}: {:?}", fo.status);
+        let rel = (full_objective(&p, &fo.dwell_s) - fq).abs() / fq;
+        assert!(rel < AGREE_REL_TOL, "memory {memory}: rel {rel:e}");
+        iterations.push(fo.iterations);
+    }
+    assert!(
+        iterations[0] != iterations[1] && iterations[1] != iterations[2],
+        "{iterations:?}"
+    );
+    for memory in [0, MAX_LBFGS_MEMORY + 1] {
+        let s = Settings {
+            lbfgs_memory: memory,
+            ..Settings::default()
+        };
+        let e = s.validate().unwrap_err().to_string();
+        assert!(e.contains("lbfgs_memory"), "{e}");
+    }
+    let from_job: Settings = serde_json::from_str(r#"{"lbfgs_memory": 10}"#).unwrap();
+    assert_eq!(from_job.lbfgs_memory, 10);
+    assert_eq!(
+        from_job.first_order_tolerance,
+        Settings::default().first_order_tolerance
+    );
 }
 
 /// Largest growth of the default stop's excess over the QP's optimum from a removal depth of

@@ -155,6 +155,23 @@ fn bad_input_fails_cleanly() {
         .concat(),
         &["v_min_mm_per_min", "exceeds"],
     );
+    expect_failure(
+        &[
+            &[
+                "--map",
+                &good_map,
+                "--tif",
+                &tif,
+                "--v-max",
+                "3000",
+                "--lbfgs-memory",
+                "0",
+            ][..],
+            &common,
+        ]
+        .concat(),
+        &["lbfgs_memory", "1 to 100"],
+    );
     let job = write_arg(
         d.path(),
         "job.toml",

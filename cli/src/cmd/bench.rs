@@ -42,6 +42,9 @@ pub struct Args {
     /// Iteration of the first-order solver on the generated problems (default lbfgs).
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
+    /// Correction pairs of the projected L-BFGS (default 5).
+    #[arg(long, value_name = "PAIRS")]
+    pub lbfgs_memory: Option<usize>,
     /// Sample job to include (default data/job.toml when it exists; "none" to skip).
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
@@ -62,6 +65,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     if let Some(m) = args.first_order_method {
         settings.first_order_method = m.into();
+    }
+    if let Some(pairs) = args.lbfgs_memory {
+        settings.lbfgs_memory = pairs;
     }
     // The named solvers run on the assembled R (FFT: first-order-fft); `auto` leaves the
     // operator to the policy as `preston solve` does.

@@ -627,6 +627,18 @@ fn minimise_here(
         },
     };
     let lattice = lattice.filter(|l| l.len() == n);
+    if settings.first_order_method == FirstOrderMethod::Lbfgs {
+        let mem = settings.lbfgs_memory;
+        crate::budget::check_f64s(
+            "lbfgs_memory",
+            &format!(
+                "{mem} correction pairs: {} vectors of {n} dwell times",
+                2 * mem + 5
+            ),
+            n as f64,
+            (2 * mem + 5) as f64,
+        )?;
+    }
     let (status, x, it, cert) = match settings.first_order_method {
         FirstOrderMethod::Fista => {
             fista(&data, x, &mut work, bounds, lambda_hat, &limits, observer)
@@ -651,6 +663,7 @@ fn minimise_here(
         FirstOrderMethod::Lbfgs => projected_lbfgs(
             &data,
             x,
+            settings.lbfgs_memory,
             &mut work,
             bounds,
             lambda_hat * NEWTON_L_SAFETY,
@@ -1012,9 +1025,6 @@ fn newton_cg(
     (status, x, it, cert)
 }
 
-/// Correction pairs kept by the projected L-BFGS.
-const LBFGS_MEMORY: usize = 5;
-
 /// Projected L-BFGS from the feasible point `x`, in the scaled variables. At `x` with scaled
 /// gradient `q`, the binding variables (those a projected gradient step of length `1 / L` puts on
 /// a bound) take that step; the others `d_F = -H q_F`, `H` the L-BFGS inverse Hessian (Nocedal,
@@ -1024,13 +1034,15 @@ const LBFGS_MEMORY: usize = 5;
 /// product `H p` give, the objective being quadratic, the exact minimiser along the segment
 /// `x + tau p`, `tau = min(1, -q'p / p'Hp)`, and the new gradient `q + tau H p` without further
 /// products (recomputed exactly at every check). Should `p` not descend, the memory is cleared
-/// and the projected gradient step taken instead. Memory: `2 LBFGS_MEMORY + 5` vectors of `n`
-/// and a free-set mask. The recursion's first pass carries the binding test, the first loop's
-/// last update the scaling by `gamma`, and the projection the second loop's last update, so an
-/// iteration makes `2 LBFGS_MEMORY + 2` passes over `n`-vectors besides the Hessian product.
+/// and the projected gradient step taken instead. Memory: `2 mem + 5` vectors of `n` (`mem`
+/// pairs) and a free-set mask. The recursion's first pass carries the binding test, the first
+/// loop's last update the scaling by `gamma`, and the projection the second loop's last update,
+/// so an iteration makes `2 mem + 2` passes over `n`-vectors besides the Hessian product.
+#[allow(clippy::too_many_arguments)]
 fn projected_lbfgs(
     data: &Data<'_>,
     mut x: Vec<f64>,
+    mem: usize,
     work: &mut Work,
     bounds: &DwellBounds,
     lip: f64,
@@ -1039,7 +1051,6 @@ fn projected_lbfgs(
 ) -> Outcome {
     let n = x.len();
     let rho = data.rho;
-    let mem = LBFGS_MEMORY;
     let mut s_mem = vec![vec![0.0; n]; mem];
     let mut y_mem = vec![vec![0.0; n]; mem];
     let mut inv_sy = vec![0.0; mem];
