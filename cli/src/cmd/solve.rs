@@ -267,9 +267,9 @@ pub struct Args {
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
     /// Correction pairs of the projected L-BFGS, 1 to 100 (default: the job's, else 5). More
-    /// pairs take fewer iterations where the products dominate the iteration (the off-lattice
-    /// mirror of docs/off_lattice.md: 10 pairs, 22% faster) and cost time where the operator is
-    /// cheap per dwell point (FFT-served maps).
+    /// pairs take fewer iterations: faster where a product costs far more than a pass over the
+    /// dwell times (off-lattice stencil products), slower where the operator is cheap per dwell
+    /// point (FFT-served maps); docs/off_lattice.md has the figures.
     #[arg(long, value_name = "PAIRS")]
     pub lbfgs_memory: Option<usize>,
     /// Iteration limit of the solver.

@@ -450,10 +450,10 @@ pub struct Settings {
     /// First-order solver: the iteration ([`FirstOrderMethod`]).
     pub first_order_method: FirstOrderMethod,
     /// Projected L-BFGS: correction pairs kept (1 to [`MAX_LBFGS_MEMORY`]). Each pair costs two
-    /// passes over the dwell vector an iteration and two vectors of memory; more pairs take fewer
-    /// iterations where the products dominate (the off-lattice mirror of `docs/off_lattice.md`:
-    /// 5 -> 10 pairs, 15,131 -> 11,561 iterations, 72.7 -> 56.9 s) and cost time where the
-    /// passes are a large share (the FFT-served random 2e5 problem: 5.9 -> 6.8 s).
+    /// passes over the dwell vector an iteration and two vectors of memory. More pairs take fewer
+    /// iterations, which pays where a product costs far more than those passes (off-lattice
+    /// stencil products) and not where it costs little more (FFT-served maps); measured in
+    /// `docs/off_lattice.md`.
     pub lbfgs_memory: usize,
     /// How `R` is held: assembled, or the matrix-free FFT operator ([`OperatorChoice`]). Read
     /// where the problem is built; the solvers follow the problem they are given.

@@ -746,8 +746,9 @@ mod tests {
     /// The gather's sums against their definition (entry `k` of a row into sum `(k / 4) mod 4`,
     /// lane `k mod 4`; then each lane's four sums pairwise, then the lanes pairwise), bit for
     /// bit, one lane at a time (`Scalar`), four lanes portably (`Scalar256b`), eight (which
-    /// take the one-lane path) and, where the CPU has them, in AVX2 registers. Rows of every length up to 40 in steps of 4, so each
-    /// count of remainder groups is met; `add_scaled` likewise against `out[k] += t v[k]`.
+    /// take the one-lane path) and, where the CPU has them, in AVX2 registers. Rows of every
+    /// length up to 40 in steps of 4, so each count of remainder groups is met; `add_scaled`
+    /// likewise against `out[k] += t v[k]`.
     #[test]
     fn kernels_give_the_definition_in_every_lane_width() {
         let value = |k: usize| ((k * 7919) % 1009) as f64 / 97.0 - 5.0;
