@@ -246,6 +246,7 @@ def solve(
     min_time_tolerance: Optional[float] = None,
     tolerance: Optional[float] = None,
     first_order_method: Optional[str] = None,
+    lbfgs_memory: Optional[int] = None,
     max_iterations: Optional[int] = None,
     solver: Optional[str] = None,
     operator: Optional[str] = None,
@@ -280,7 +281,8 @@ def solve(
       differences, nm^2/s^2), ``min_time`` and ``min_time_tolerance`` (relative).
     * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,
       ``"sparse"``, ``"fft"``, ``"stencil"``, ``"fft-spread"``), ``first_order_method`` (``"lbfgs"``, the default,
-      ``"fista"``, ``"newton-cg"``),
+      ``"fista"``, ``"newton-cg"``), ``lbfgs_memory`` (the L-BFGS's correction pairs, 1 to 100,
+      default 5, as ``--lbfgs-memory``),
       ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous
       dwell.csv).
     * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,
@@ -372,6 +374,7 @@ def solve(
     for key, value in (
         ("min_time_tolerance", min_time_tolerance),
         ("first_order_method", first_order_method),
+        ("lbfgs_memory", lbfgs_memory),
         ("solver", solver),
         ("operator", operator),
     ):

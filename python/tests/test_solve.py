@@ -215,6 +215,26 @@ def test_each_first_order_method_reaches_the_qp_optimum(small_job):
     np.testing.assert_array_equal(default.dwell_s, runs["lbfgs"].dwell_s)
 
 
+def test_lbfgs_memory_changes_the_path_not_the_optimum(small_job):
+    """``lbfgs_memory`` reaches the engine (one pair takes another number of iterations than
+    twenty) and both converge to within 2e-8 of the initial objective of the QP's optimum (the map
+    is nearly removable; 1 pair lands 7e-9 away, 20 pairs 1e-9); out of range it is an input
+    error naming it."""
+    qp = preston.solve(small_job, solver="qp")
+    f_qp = qp.report["objective"]
+    f_0 = 0.5 * qp.report["m"] * qp.report["rms_before_nm"] ** 2
+    runs = {
+        pairs: preston.solve(small_job, solver="first-order", operator="sparse", lbfgs_memory=pairs, tolerance=1e-6)
+        for pairs in (1, 20)
+    }
+    assert runs[1].report["iterations"] != runs[20].report["iterations"]
+    for pairs, r in runs.items():
+        assert r.report["status"] == "converged", (pairs, r.report["status"])
+        assert abs(r.report["objective"] - f_qp) <= 2e-8 * f_0, (pairs, r.report["objective"], f_qp)
+    with pytest.raises(preston.InputError, match="lbfgs_memory"):
+        preston.solve(small_job, solver="first-order", lbfgs_memory=0)
+
+
 def test_phase_stencil_operator_matches_the_assembled_matrix(small_job):
     """The 1 mm raster is off the 0.8 mm map lattice at 4 x 4 positions within a cell. The exact
     phase-stencil operator's plan, evaluated through the assembled contract (``simulate``), leaves
