@@ -4,7 +4,8 @@ use preston::solver::dwell::certificate::{ConvergenceCriterion, GapBoundReason};
 use preston::solver::dwell::precond::DwellLattice;
 use preston::solver::dwell::{
     self, DwellBounds, FeedLimits, FirstOrderMethod, OperatorKind, Preconditioner, Problem,
-    Settings, SolverChoice, Status, DEFAULT_LBFGS_MEMORY, MAX_LBFGS_MEMORY,
+    Settings, SolverChoice, Status, DEFAULT_LBFGS_MEMORY, DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS,
+    MAX_LBFGS_MEMORY,
 };
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::observer::Silent;
@@ -222,9 +223,9 @@ fn lbfgs_reaches_the_qp_optimum_with_any_memory() {
     let qp = dwell::solve(&p, &settings(SolverChoice::Qp), &Silent).unwrap();
     let fq = full_objective(&p, &qp.dwell_s);
     let mut iterations = Vec::new();
-    for memory in [1, DEFAULT_LBFGS_MEMORY, 20] {
+    for memory in [1, DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS, 20] {
         let s = Settings {
-            lbfgs_memory: memory,
+            lbfgs_memory: Some(memory),
             ..first_order(FirstOrderMethod::Lbfgs)
         };
         let fo = dwell::solve(&p, &s, &Silent).unwrap();
@@ -239,18 +240,64 @@ fn lbfgs_reaches_the_qp_optimum_with_any_memory() {
     );
     for memory in [0, MAX_LBFGS_MEMORY + 1] {
         let s = Settings {
-            lbfgs_memory: memory,
+            lbfgs_memory: Some(memory),
             ..Settings::default()
         };
         let e = s.validate().unwrap_err().to_string();
         assert!(e.contains("lbfgs_memory"), "{e}");
     }
     let from_job: Settings = serde_json::from_str(r#"{"lbfgs_memory": 10}"#).unwrap();
-    assert_eq!(from_job.lbfgs_memory, 10);
+    assert_eq!(from_job.lbfgs_memory, Some(10));
+    assert_eq!(Settings::default().lbfgs_memory, None);
     assert_eq!(
         from_job.first_order_tolerance,
         Settings::default().first_order_tolerance
     );
+}
+
+/// Without a memory set, projected L-BFGS keeps `DEFAULT_LBFGS_MEMORY` pairs with the assembled
+/// `R` and `DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS` with the FFT operator (whose products cost about
+/// as much per dwell point as the passes more pairs add): the default's dwell times are those of
+/// the explicit memory, bit for bit, and differ from the other's.
+#[test]
+fn the_default_lbfgs_memory_follows_the_operator() {
+    use preston::solver::dwell::first_order::minimise;
+    use preston::solver::influence::fft::FftOperator;
+    use preston::solver::influence::operator::SparseOperator;
+    let (x, y, z, path, tif) = case(25, 15, 29);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let limits = FeedLimits {
+        v_max_mm_per_min: 3000.0,
+        v_min_mm_per_min: 0.0,
+    };
+    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let sparse = SparseOperator::new(r.csc());
+    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
+    let run = |op: &dyn preston::solver::influence::LinearOperator, memory: Option<usize>| {
+        let s = Settings {
+            lbfgs_memory: memory,
+            first_order_tolerance: 1e-7,
+            ..first_order(FirstOrderMethod::Lbfgs)
+        };
+        minimise(op, &z, &bounds, 0.0, 0.0, &s, None, &Silent).unwrap()
+    };
+    let (cheap, dear) = (
+        Some(DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS),
+        Some(DEFAULT_LBFGS_MEMORY),
+    );
+    for (op, name, default, other) in [
+        (
+            &sparse as &dyn preston::solver::influence::LinearOperator,
+            "sparse",
+            dear,
+            cheap,
+        ),
+        (&fft, "fft", cheap, dear),
+    ] {
+        let implicit = run(op, None);
+        assert_eq!(implicit.dwell_s, run(op, default).dwell_s, "{name}");
+        assert_ne!(implicit.dwell_s, run(op, other).dwell_s, "{name}");
+    }
 }
 
 /// Largest growth of the default stop's excess over the QP's optimum from a removal depth of

@@ -282,7 +282,7 @@ def solve(
     * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,
       ``"sparse"``, ``"fft"``, ``"stencil"``, ``"fft-spread"``), ``first_order_method`` (``"lbfgs"``, the default,
       ``"fista"``, ``"newton-cg"``), ``lbfgs_memory`` (the L-BFGS's correction pairs, 1 to 100,
-      default 5, as ``--lbfgs-memory``),
+      default 10, 5 with the FFT operator, as ``--lbfgs-memory``),
       ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous
       dwell.csv).
     * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,

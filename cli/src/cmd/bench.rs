@@ -42,7 +42,7 @@ pub struct Args {
     /// Iteration of the first-order solver on the generated problems (default lbfgs).
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
-    /// Correction pairs of the projected L-BFGS (default 5).
+    /// Correction pairs of the projected L-BFGS (default 10, or 5 with the FFT operator).
     #[arg(long, value_name = "PAIRS")]
     pub lbfgs_memory: Option<usize>,
     /// Sample job to include (default data/job.toml when it exists; "none" to skip).
@@ -67,7 +67,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         settings.first_order_method = m.into();
     }
     if let Some(pairs) = args.lbfgs_memory {
-        settings.lbfgs_memory = pairs;
+        settings.lbfgs_memory = Some(pairs);
     }
     // The named solvers run on the assembled R (FFT: first-order-fft); `auto` leaves the
     // operator to the policy as `preston solve` does.

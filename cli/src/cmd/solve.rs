@@ -266,7 +266,8 @@ pub struct Args {
     /// Iteration of the first-order solver (default: the job's, else lbfgs).
     #[arg(long, value_enum)]
     pub first_order_method: Option<FirstOrderMethodArg>,
-    /// Correction pairs of the projected L-BFGS, 1 to 100 (default: the job's, else 5). More
+    /// Correction pairs of the projected L-BFGS, 1 to 100 (default: the job's, else 10, or 5
+    /// with the FFT operator). More
     /// pairs take fewer iterations: faster where a product costs far more than a pass over the
     /// dwell times (off-lattice stencil products), slower where the operator is cheap per dwell
     /// point (FFT-served maps); docs/off_lattice.md has the figures.
@@ -422,7 +423,7 @@ impl Args {
             job.solver.first_order_tolerance = t;
         }
         if let Some(pairs) = self.lbfgs_memory {
-            job.solver.lbfgs_memory = pairs;
+            job.solver.lbfgs_memory = Some(pairs);
         }
         if let Some(m) = self.first_order_method {
             job.solver.first_order_method = m.into();

@@ -627,8 +627,14 @@ fn minimise_here(
         },
     };
     let lattice = lattice.filter(|l| l.len() == n);
+    let mem = settings
+        .lbfgs_memory
+        .unwrap_or(if op.products_cheap_per_dwell_point() {
+            super::DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS
+        } else {
+            super::DEFAULT_LBFGS_MEMORY
+        });
     if settings.first_order_method == FirstOrderMethod::Lbfgs {
-        let mem = settings.lbfgs_memory;
         crate::budget::check_f64s(
             "lbfgs_memory",
             &format!(
@@ -663,7 +669,7 @@ fn minimise_here(
         FirstOrderMethod::Lbfgs => projected_lbfgs(
             &data,
             x,
-            settings.lbfgs_memory,
+            mem,
             &mut work,
             bounds,
             lambda_hat * NEWTON_L_SAFETY,

@@ -417,7 +417,10 @@ pub enum SolverKind {
 pub use crate::status::Status;
 
 /// Correction pairs the projected L-BFGS keeps by default ([`Settings::lbfgs_memory`]).
-pub const DEFAULT_LBFGS_MEMORY: usize = 5;
+pub const DEFAULT_LBFGS_MEMORY: usize = 10;
+/// Correction pairs it keeps by default where the products are cheap per dwell point (FFT
+/// operators, [`crate::influence::LinearOperator::products_cheap_per_dwell_point`]).
+pub const DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS: usize = 5;
 /// Most correction pairs [`Settings::lbfgs_memory`] accepts.
 pub const MAX_LBFGS_MEMORY: usize = 100;
 
@@ -451,10 +454,11 @@ pub struct Settings {
     pub first_order_method: FirstOrderMethod,
     /// Projected L-BFGS: correction pairs kept (1 to [`MAX_LBFGS_MEMORY`]). Each pair costs two
     /// passes over the dwell vector an iteration and two vectors of memory. More pairs take fewer
-    /// iterations, which pays where a product costs far more than those passes (off-lattice
-    /// stencil products) and not where it costs little more (FFT-served maps); measured in
-    /// `docs/off_lattice.md`.
-    pub lbfgs_memory: usize,
+    /// iterations, which pays where a product costs far more than those passes (assembled `R`,
+    /// phase stencils) and not where it costs little more (FFT operators). `None` (the default):
+    /// [`DEFAULT_LBFGS_MEMORY`], or [`DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS`] with an FFT
+    /// operator; measured in `docs/off_lattice.md`.
+    pub lbfgs_memory: Option<usize>,
     /// How `R` is held: assembled, or the matrix-free FFT operator ([`OperatorChoice`]). Read
     /// where the problem is built; the solvers follow the problem they are given.
     pub operator: OperatorChoice,
@@ -518,7 +522,7 @@ impl Default for Settings {
             first_order_tolerance: 1e-6,
             first_order_max_iterations: 20_000,
             first_order_method: FirstOrderMethod::default(),
-            lbfgs_memory: DEFAULT_LBFGS_MEMORY,
+            lbfgs_memory: None,
             operator: OperatorChoice::default(),
             preconditioner: Preconditioner::default(),
             spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
@@ -569,14 +573,13 @@ impl Settings {
         if self.max_iterations == 0 {
             return Err(Error::invalid("max_iterations", "must be at least 1"));
         }
-        if !(1..=MAX_LBFGS_MEMORY).contains(&self.lbfgs_memory) {
-            return Err(Error::invalid(
-                "lbfgs_memory",
-                format!(
-                    "must be 1 to {MAX_LBFGS_MEMORY} correction pairs, got {}",
-                    self.lbfgs_memory
-                ),
-            ));
+        if let Some(pairs) = self.lbfgs_memory {
+            if !(1..=MAX_LBFGS_MEMORY).contains(&pairs) {
+                return Err(Error::invalid(
+                    "lbfgs_memory",
+                    format!("must be 1 to {MAX_LBFGS_MEMORY} correction pairs, got {pairs}"),
+                ));
+            }
         }
         if self.time_limit_s.is_nan() || self.time_limit_s <= 0.0 {
             return Err(Error::invalid(

@@ -986,6 +986,10 @@ impl LinearOperator for FftOperator {
         self.map.len()
     }
 
+    fn products_cheap_per_dwell_point(&self) -> bool {
+        true
+    }
+
     fn ncols(&self) -> usize {
         match &self.dwell {
             DwellCells::Lattice(cells) => cells.len(),

@@ -124,6 +124,13 @@ pub trait LinearOperator: Sync {
     fn prefers_normal_products(&self) -> bool {
         false
     }
+    /// Whether a product costs about as little per dwell point as a few passes over a vector of
+    /// dwell times (tens of nanoseconds: FFT convolutions), rather than far more (an assembled
+    /// matrix's or the phase stencils' hundreds of multiply-adds a column). Iterations that keep
+    /// more vectors then lose to their own passes; the projected L-BFGS keeps fewer pairs.
+    fn products_cheap_per_dwell_point(&self) -> bool {
+        false
+    }
     /// Squared norms of the centred columns, `||R_j||^2 - (1' R_j)^2 / m` (the diagonal of
     /// `R^T P R` with `P = I - 11'/m`), used for the Jacobi scaling.
     fn centred_column_norms_sq(&self) -> Vec<f64>;

@@ -516,6 +516,10 @@ impl LinearOperator for SpreadOperator {
         self.m
     }
 
+    fn products_cheap_per_dwell_point(&self) -> bool {
+        true
+    }
+
     fn ncols(&self) -> usize {
         self.stencil.len()
     }
