@@ -255,6 +255,35 @@ fn lbfgs_reaches_the_qp_optimum_with_any_memory() {
     );
 }
 
+/// The map, `R` assembled and as the FFT operator, and the dwell bounds of the 25 x 15 case, its
+/// 1 mm raster at feeds from `v_min` to 3000 mm/min.
+fn sparse_and_fft_case(
+    v_min: f64,
+) -> (
+    InfluenceMatrix,
+    preston::solver::influence::fft::FftOperator,
+    Vec<f64>,
+    DwellBounds,
+) {
+    let (x, y, z, path, tif) = case(25, 15, 29);
+    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
+    let limits = FeedLimits {
+        v_max_mm_per_min: 3000.0,
+        v_min_mm_per_min: v_min,
+    };
+    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let fft = preston::solver::influence::fft::FftOperator::new(
+        &x,
+        &y,
+        path.x_mm(),
+        path.y_mm(),
+        0.5,
+        &tif,
+    )
+    .unwrap();
+    (r, fft, z, bounds)
+}
+
 /// Without a memory set, projected L-BFGS keeps `DEFAULT_LBFGS_MEMORY` pairs with the assembled
 /// `R` and `DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS` with the FFT operator (whose products cost about
 /// as much per dwell point as the passes more pairs add): the default's dwell times are those of
@@ -262,17 +291,9 @@ fn lbfgs_reaches_the_qp_optimum_with_any_memory() {
 #[test]
 fn the_default_lbfgs_memory_follows_the_operator() {
     use preston::solver::dwell::first_order::minimise;
-    use preston::solver::influence::fft::FftOperator;
     use preston::solver::influence::operator::SparseOperator;
-    let (x, y, z, path, tif) = case(25, 15, 29);
-    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
-    let limits = FeedLimits {
-        v_max_mm_per_min: 3000.0,
-        v_min_mm_per_min: 0.0,
-    };
-    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let (r, fft, z, bounds) = sparse_and_fft_case(0.0);
     let sparse = SparseOperator::new(r.csc());
-    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
     let run = |op: &dyn preston::solver::influence::LinearOperator, memory: Option<usize>| {
         let s = Settings {
             lbfgs_memory: memory,
@@ -686,17 +707,9 @@ fn fft_operator_matches_sparse_and_is_adjoint() {
 #[test]
 fn first_order_with_the_fft_operator_matches_the_sparse_one() {
     use preston::solver::dwell::first_order::minimise;
-    use preston::solver::influence::fft::FftOperator;
     use preston::solver::influence::operator::SparseOperator;
-    let (x, y, z, path, tif) = case(25, 15, 29);
-    let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
-    let limits = FeedLimits {
-        v_max_mm_per_min: 3000.0,
-        v_min_mm_per_min: 300.0,
-    };
-    let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
+    let (r, fft, z, bounds) = sparse_and_fft_case(300.0);
     let sparse = SparseOperator::new(r.csc());
-    let fft = FftOperator::new(&x, &y, path.x_mm(), path.y_mm(), 0.5, &tif).unwrap();
     for method in METHODS {
         let s = first_order(method);
         let a = minimise(&sparse, &z, &bounds, 0.0, 0.0, &s, None, &Silent).unwrap();
