@@ -627,24 +627,6 @@ fn minimise_here(
         },
     };
     let lattice = lattice.filter(|l| l.len() == n);
-    let mem = settings
-        .lbfgs_memory
-        .unwrap_or(if op.products_cheap_per_dwell_point() {
-            super::DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS
-        } else {
-            super::DEFAULT_LBFGS_MEMORY
-        });
-    if settings.first_order_method == FirstOrderMethod::Lbfgs {
-        crate::budget::check_f64s(
-            "lbfgs_memory",
-            &format!(
-                "{mem} correction pairs: {} vectors of {n} dwell times",
-                2 * mem + 5
-            ),
-            n as f64,
-            (2 * mem + 5) as f64,
-        )?;
-    }
     let (status, x, it, cert) = match settings.first_order_method {
         FirstOrderMethod::Fista => {
             fista(&data, x, &mut work, bounds, lambda_hat, &limits, observer)
@@ -666,16 +648,34 @@ fn minimise_here(
                 precond.as_mut(),
             )
         }
-        FirstOrderMethod::Lbfgs => projected_lbfgs(
-            &data,
-            x,
-            mem,
-            &mut work,
-            bounds,
-            lambda_hat * NEWTON_L_SAFETY,
-            &limits,
-            observer,
-        ),
+        FirstOrderMethod::Lbfgs => {
+            let mem = settings
+                .lbfgs_memory
+                .unwrap_or(if op.products_cheap_per_dwell_point() {
+                    super::DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS
+                } else {
+                    super::DEFAULT_LBFGS_MEMORY
+                });
+            crate::budget::check_f64s(
+                "lbfgs_memory",
+                &format!(
+                    "{mem} correction pairs: {} vectors of {n} dwell times",
+                    2 * mem + 5
+                ),
+                n as f64,
+                (2 * mem + 5) as f64,
+            )?;
+            projected_lbfgs(
+                &data,
+                x,
+                mem,
+                &mut work,
+                bounds,
+                lambda_hat * NEWTON_L_SAFETY,
+                &limits,
+                observer,
+            )
+        }
     };
     observer.finish(Stage::Solve);
     let dwell_s: Vec<f64> = x.iter().zip(&data.s).map(|(w, s)| w * s).collect();
