@@ -39,8 +39,10 @@ import numpy as np
 
 from . import _preston
 from ._preston import InputError, NotConvergedError, PrestonError, SolverError
+from ._preston import __version__  # the same as `preston --version`
 
 __all__ = [
+    "__version__",
     "solve",
     "read_map",
     "load_job",

@@ -7,6 +7,8 @@ import numpy.typing as npt
 
 F64 = npt.NDArray[np.float64]
 
+__version__: str
+
 class PrestonError(Exception):
     """Base class of every Preston error; the message is Preston's (file, line, field)."""
 

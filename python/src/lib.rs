@@ -734,6 +734,8 @@ fn _raise_numerical() -> PyResult<()> {
 #[pymodule]
 fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
+    // The crates' version: the same as `preston --version` and the wheel's.
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("PrestonError", py.get_type::<PrestonError>())?;
     m.add("InputError", py.get_type::<InputError>())?;
     m.add("SolverError", py.get_type::<SolverError>())?;
