@@ -5,6 +5,7 @@ use preston::solver::machine::gcode::dialect::{Dialect, FeedMode};
 use preston::solver::machine::gcode::motion::{check_stretches, contact_xy, execute, Kinematics};
 use preston::solver::machine::gcode::program::{BlockKind, Program};
 use preston::solver::machine::gcode::write::{write_program, FEED_ROUNDING};
+use preston::solver::machine::profile::{Coolant, WorkOffset};
 use preston::solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
 use preston::solver::machine::{Flat, PartGeometry};
 use preston::solver::path::DwellPath;
@@ -113,7 +114,7 @@ fn round_trip_in_every_dialect_and_feed_mode() {
                 tool_radius_mm: 4.0,
                 tool_axis: ToolAxis::Normal,
                 spindle_rpm: Some(600.0),
-                coolant: true,
+                coolant: Coolant::Flood,
                 ..settings(d, m)
             };
             let nc = NcProgram::plan(&path, &dwell, &sphere, &s).unwrap();
@@ -170,24 +171,28 @@ fn hand_computed_three_point_program() {
     let nc = NcProgram::plan(&path, &[1.0, 0.5, 2.0], &Flat, &NcSettings::default()).unwrap();
     let text = write_program(&nc, &[]).unwrap().text;
     let want = [
-        "N4 G01 Z0.0000 F300.000",
-        "(DWELL 0 1 S AT 0 0)",
-        "N5 G01 X0.0000 Y0.0000 Z0.0000 F120.000",
-        "N6 G01 X1.0000 Y0.0000 Z0.0000 F120.000",
-        "(DWELL 1 0.5 S AT 2 0)",
-        "N7 G01 X2.0000 Y0.0000 Z0.0000 F180.000",
-        "N8 G01 X2.0000 Y0.5000 Z0.0000 F180.000",
-        "(DWELL 2 2 S AT 2 1)",
-        "N9 G01 X2.0000 Y1.0000 Z0.0000 F30.000",
-        "N10 G01 X2.0000 Y1.5000 Z0.0000 F30.000",
+        "N1 G17 G21 G40 G80 G90 G94",
+        "N2 G17 G21 G54 G90 G94",
+        "N3 G00 Z5.0000",
+        "N4 G00 X-1.0000 Y0.0000",
+        "N5 G01 Z0.0000 F300.000",
+        "(DWELL 0 1.000000 S AT 0.0000 0.0000)",
+        "N6 G01 X0.0000 Y0.0000 Z0.0000 F120.000",
+        "N7 G01 X1.0000 Y0.0000 Z0.0000 F120.000",
+        "(DWELL 1 0.5000000 S AT 2.0000 0.0000)",
+        "N8 G01 X2.0000 Y0.0000 Z0.0000 F180.000",
+        "N9 G01 X2.0000 Y0.5000 Z0.0000 F180.000",
+        "(DWELL 2 2.000000 S AT 2.0000 1.0000)",
+        "N10 G01 X2.0000 Y1.0000 Z0.0000 F30.000",
+        "N11 G01 X2.0000 Y1.5000 Z0.0000 F30.000",
         "(END DWELL)",
-        "N11 G00 Z5.0000",
-        "N12 M30",
+        "N12 G00 Z5.0000",
+        "N13 M30",
+        "%",
     ];
     let lines: Vec<&str> = text.lines().collect();
-    let at = lines.iter().position(|l| l.starts_with("N4 ")).unwrap();
-    assert_eq!(&lines[at..at + want.len()], &want[..], "{text}");
-    assert!(lines.contains(&"N2 G00 Z5.0000") && lines.contains(&"N3 G00 X-1.0000 Y0.0000"));
+    let at = lines.iter().position(|l| l.starts_with("N1 ")).unwrap();
+    assert_eq!(&lines[at..], &want[..], "{text}");
     // Read back: 1 + 0.5 + 2 s in the stretches, the plunge 5 mm at 300 mm/min = 1 s.
     let p = Program::parse(&text, Dialect::Iso).unwrap();
     let t = p.programmed_stretch_times_s();
@@ -529,4 +534,171 @@ fn arcs_program_removes_what_the_straight_one_does() {
         rms(&removal[0]) > 1.0 && rel < 1e-3,
         "relative RMS difference {rel}"
     );
+}
+
+/// The rules of each controller's manual that a program must keep, checked on the text alone
+/// (independently of the writer and of the reader):
+/// - ISO 6983 / Fanuc / LinuxCNC: `( )` comments that hold no `(`, `;` or `%` (`;` ends a block
+///   on Fanuc, `%` ends the record on ISO tapes); Sinumerik: `;` comments, no parentheses
+///   anywhere, `%_N_<NAME>_MPF` first (Sinumerik 840D sl programming manual, "Program name");
+/// - Fanuc: `%`, then `O` and four digits, every axis word with a decimal point, at most one M
+///   code per block (the default of parameter 3404), `N` at most five digits;
+/// - every program: the safe-start block first, a work offset, `G94` back in force before the
+///   program end when `G93` was used, the end word last (`M2` on LinuxCNC, `M30` elsewhere).
+fn manual_rules(text: &str, d: Dialect, inverse_time: bool) -> Vec<String> {
+    let mut bad = Vec::new();
+    let lines: Vec<&str> = text.lines().collect();
+    let (first, last) = (lines[0], lines[lines.len() - 1]);
+    match d {
+        Dialect::Sinumerik => {
+            let name = first
+                .strip_prefix("%_N_")
+                .and_then(|r| r.strip_suffix("_MPF"))
+                .unwrap_or("");
+            if name.len() < 2 || !name.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_') {
+                bad.push(format!("first line {first}"));
+            }
+            if text.contains('(') || text.contains(')') {
+                bad.push("parenthesis".into());
+            }
+        }
+        _ => {
+            if first != "%" || last != "%" {
+                bad.push("not % wrapped".into());
+            }
+        }
+    }
+    if d == Dialect::Fanuc {
+        let o = lines[1];
+        if !(o.len() == 5 && o.starts_with('O') && o[1..].chars().all(|c| c.is_ascii_digit())) {
+            bad.push(format!("program number line {o}"));
+        }
+    }
+    let mut code_lines = Vec::new();
+    for l in &lines {
+        if d == Dialect::Sinumerik {
+            if let Some(at) = l.find(';') {
+                code_lines.push(&l[..at]);
+                continue;
+            }
+        } else if let Some(open) = l.find('(') {
+            let close = l.rfind(')').unwrap_or(0);
+            let inner = &l[open + 1..close.max(open + 1)];
+            if close <= open || inner.contains(['(', ';', '%']) {
+                bad.push(format!("comment {l}"));
+            }
+            code_lines.push(&l[..open]);
+            continue;
+        }
+        if l.starts_with('%') {
+            continue;
+        }
+        code_lines.push(l);
+    }
+    let blocks: Vec<Vec<&str>> = code_lines
+        .iter()
+        .map(|l| l.split_whitespace().collect::<Vec<_>>())
+        .filter(|w: &Vec<&str>| !w.is_empty())
+        .collect();
+    let words = |b: &Vec<&str>| -> Vec<String> {
+        b.iter()
+            .filter(|w| !w.starts_with('N') && !w.starts_with('O'))
+            .map(|w| w.to_string())
+            .collect()
+    };
+    if words(&blocks[0]).join(" ") != d.safe_start() {
+        bad.push(format!("first block {:?}", blocks[0]));
+    }
+    if !blocks.iter().any(|b| b.contains(&"G54")) {
+        bad.push("no work offset".into());
+    }
+    let end = d.program_end();
+    if words(blocks.last().unwrap()) != [end] {
+        bad.push(format!("last block {:?}", blocks.last()));
+    }
+    let feed_modes: Vec<&str> = blocks
+        .iter()
+        .flatten()
+        .copied()
+        .filter(|w| *w == "G93" || *w == "G94")
+        .collect();
+    if feed_modes.last() != Some(&"G94") || feed_modes.contains(&"G93") != inverse_time {
+        bad.push(format!("feed modes {feed_modes:?}"));
+    }
+    for b in &blocks {
+        if d == Dialect::Fanuc {
+            if b.iter().filter(|w| w.starts_with('M')).count() > 1 {
+                bad.push(format!("several M codes in {b:?}"));
+            }
+            for w in b {
+                let axis = w.starts_with(['X', 'Y', 'Z', 'B', 'I', 'J']);
+                if axis && !w.contains('.') {
+                    bad.push(format!("no decimal point in {w}"));
+                }
+                if w.starts_with('N') && w.len() > 6 {
+                    bad.push(format!("block number {w}"));
+                }
+            }
+        }
+    }
+    bad
+}
+
+#[test]
+fn every_dialect_keeps_its_manual_rules_and_sane_comment_digits() {
+    let path = serpentine(6, 3, 1.0);
+    let dwell: Vec<f64> = (0..18).map(|j| 0.1 + 0.1 / 3.0 * j as f64).collect();
+    for d in Dialect::ALL {
+        for m in MODES {
+            let s = NcSettings {
+                spindle_rpm: Some(600.4),
+                coolant: Coolant::Mist,
+                ..settings(d, m)
+            };
+            let nc = NcProgram::plan(&path, &dwell, &Flat, &s).unwrap();
+            // A note with every character a comment must not hold.
+            let w = write_program(&nc, &["JOB a;b (c) 5% \u{b0}".into()]).unwrap();
+            let bad = manual_rules(&w.text, d, m == FeedMode::InverseTime);
+            assert!(bad.is_empty(), "{d:?} {m:?}: {bad:?}\n{}", w.text);
+            assert!(w.text.contains("S600 M3") && w.text.contains("M7"));
+            // Numbers in comments: at most 9 decimals and 10 significant digits.
+            for l in w.text.lines().filter(|l| l.contains("DWELL ")) {
+                for tok in l.split([' ', '(', ')', ';']) {
+                    if let Some((int, frac)) = tok.split_once('.') {
+                        let digits = int.trim_start_matches('-').len() + frac.len();
+                        assert!(frac.len() <= 9 && digits <= 10, "{l}");
+                    }
+                }
+            }
+            // The reader takes it back with every marker.
+            let p = Program::parse(&w.text, d).unwrap();
+            assert_eq!(p.stretches.len(), 18);
+        }
+    }
+    // The profile's own start and end blocks, work offset, program number and name.
+    let s = NcSettings {
+        start_blocks: Some(vec!["G17 G21 G40 G49 G80 G90".into(), "T1 M6".into(), "G43 H1".into()]),
+        end_blocks: vec!["G40 G49".into()],
+        work_offset: WorkOffset::G56,
+        program_number: 42,
+        ..settings(Dialect::Fanuc, FeedMode::InverseTime)
+    };
+    s.validate().unwrap();
+    let nc = NcProgram::plan(&path, &dwell, &Flat, &s).unwrap();
+    let text = write_program(&nc, &[]).unwrap().text;
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(&lines[..2], &["%", "O0042"]);
+    let code: Vec<&&str> = lines.iter().filter(|l| l.starts_with('N')).collect();
+    assert_eq!(code[0], &"N1 G17 G21 G40 G49 G80 G90");
+    assert_eq!(code[1], &"N2 T1 M6");
+    assert_eq!(code[3], &"N4 G17 G21 G56 G90 G93");
+    assert!(code[code.len() - 2].ends_with("G40 G49"));
+    let s = NcSettings {
+        program_name: "Mirror_7".into(),
+        ..settings(Dialect::Sinumerik, FeedMode::PerMinute)
+    };
+    let text = write_program(&NcProgram::plan(&path, &dwell, &Flat, &s).unwrap(), &[])
+        .unwrap()
+        .text;
+    assert!(text.starts_with("%_N_MIRROR_7_MPF\n;$PATH=/_N_MPF_DIR\n"), "{text}");
 }

@@ -4,6 +4,7 @@
 //! converts them into library settings and calls the library.
 
 mod cmd;
+mod output;
 mod progress;
 
 use clap::{Parser, Subcommand};
@@ -100,6 +101,47 @@ enum Command {
     Map(cmd::map::Args),
     /// The measure-register-solve-polish loop on a virtual part, or one run on a measured map.
     Iterate(cmd::iterate::Args),
+    /// Shell completions for bash, zsh, fish or PowerShell, on stdout.
+    Completions(CompletionsArgs),
+}
+
+/// Arguments of `preston completions`.
+#[derive(Debug, clap::Args)]
+struct CompletionsArgs {
+    /// The shell.
+    #[arg(value_enum)]
+    shell: ShellArg,
+}
+
+/// Shells with completions.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum ShellArg {
+    /// bash (`preston completions bash > /etc/bash_completion.d/preston`).
+    Bash,
+    /// zsh (`preston completions zsh > "${fpath[1]}/_preston"`).
+    Zsh,
+    /// fish (`preston completions fish > ~/.config/fish/completions/preston.fish`).
+    Fish,
+    /// PowerShell (`preston completions powershell >> $PROFILE`).
+    Powershell,
+}
+
+/// Writes the completions of the whole command tree for `shell` on stdout.
+fn completions(args: CompletionsArgs) -> anyhow::Result<ExitCode> {
+    use clap_complete::Shell;
+    let shell = match args.shell {
+        ShellArg::Bash => Shell::Bash,
+        ShellArg::Zsh => Shell::Zsh,
+        ShellArg::Fish => Shell::Fish,
+        ShellArg::Powershell => Shell::PowerShell,
+    };
+    let mut buf = Vec::new();
+    clap_complete::generate(shell, &mut command_tree(), "preston", &mut buf);
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    out.write_all(&buf)?;
+    out.flush()?;
+    Ok(ExitCode::SUCCESS)
 }
 
 fn main() -> ExitCode {
@@ -125,6 +167,7 @@ fn main() -> ExitCode {
         Command::Iterate(args) => cmd::iterate::run(args),
         Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
+        Command::Completions(args) => completions(args),
     };
     print_debug_counts();
     match result {

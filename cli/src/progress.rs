@@ -12,11 +12,11 @@ pub struct Bars {
 }
 
 impl Bars {
-    /// Bars that draw only when stderr is a terminal.
+    /// Bars that draw only when stderr is a terminal (and `--quiet` is not given).
     pub fn new() -> Self {
         Self {
             bar: Mutex::new(None),
-            enabled: std::io::stderr().is_terminal(),
+            enabled: std::io::stderr().is_terminal() && !crate::output::quiet(),
         }
     }
 

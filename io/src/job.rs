@@ -26,6 +26,10 @@
 //! v_min_mm_per_min = 0.0
 //! a_max_mm_per_s2 = 500.0                # optional: acceleration limit (SCP)
 //! corner_angle_deg = 60.0                # optional: lines split at turns sharper than this
+//! # profile = "../machines/mill3.toml"   # optional: a machine profile file ([machine], [nc])
+//!
+//! [nc]                                   # optional: the machine profile (MachineProfile)
+//! dialect = "fanuc"                      # feed_mode, work_offset, start_blocks, spindle_rpm, ...
 //!
 //! [objective]
 //! rho = 0.0
@@ -45,7 +49,6 @@
 //! ```
 
 use crate::error::{Error, Result};
-use crate::machine::NcSection;
 use crate::metrology::ApertureSpec;
 pub use crate::metrology::MapSource;
 use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
@@ -53,6 +56,7 @@ use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::edge::EdgeSettings;
 use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::compensation::NormalDisplacement;
+use preston_solver::machine::profile::MachineProfile;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::setup::{Choices, TifModel};
 use preston_solver::tif::{GaussianTif, HertzParams};
@@ -81,9 +85,11 @@ pub struct Job {
     /// Solver settings.
     #[serde(default)]
     pub solver: Settings,
-    /// NC output (`preston nc`): tool radius and axis.
+    /// The machine profile of the NC output (`preston nc`, the solve's program check,
+    /// `preston simulate --job`): dialect, feed mode, work offset, start and end blocks,
+    /// spindle and coolant, tool radius and axis ([`MachineProfile`]).
     #[serde(default)]
-    pub nc: NcSection,
+    pub nc: MachineProfile,
     /// Normal-displacement compensation (`preston nc`): material table and load.
     #[serde(default)]
     pub compensation: Option<NormalDisplacement>,
@@ -264,7 +270,7 @@ pub struct DwellSource {
 }
 
 /// Machine limits as written in a job (each may be overridden on the command line).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MachineSection {
     /// Fastest feed, mm/min.
@@ -284,6 +290,21 @@ pub struct MachineSection {
     /// `"squared-speed-then-scp-qp"` (the first, refined by the second).
     #[serde(default)]
     pub accel_method: Option<AccelMethod>,
+    /// A machine profile file (`[machine]` and `[nc]` tables as in a job, relative to the job
+    /// file): its keys apply where the job does not give them ([`Job::load_with_profile`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile: Option<PathBuf>,
+}
+
+/// A machine profile file: the `[machine]` and `[nc]` tables of a job, shared by the jobs that
+/// run on one machine.
+#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ProfileFile {
+    #[serde(default)]
+    machine: MachineSection,
+    #[serde(default)]
+    nc: MachineProfile,
 }
 
 /// Weights of the objective terms.
@@ -297,12 +318,78 @@ pub struct ObjectiveWeights {
 }
 
 impl Job {
-    /// Reads a job file; relative paths in it are resolved against its directory.
+    /// Reads a job file; relative paths in it are resolved against its directory, and the
+    /// machine profile it names (`[machine] profile`) is applied ([`Job::load_with_profile`]).
     pub fn load(path: &Path) -> Result<Self> {
-        let text = crate::limits::read_document(path, "job file")?;
-        let mut job = Self::parse(&text, path)?;
-        job.resolve_paths(path.parent().unwrap_or_else(|| Path::new(".")));
-        Ok(job)
+        Self::load_with_profile(Some(path), None)
+    }
+
+    /// The job in `job` (none: an empty job) on the machine of the profile file `profile`
+    /// (none: the one the job names in `[machine] profile`, if any). A profile file holds
+    /// `[machine]` and `[nc]` tables as a job does; the job's own keys in those tables win over
+    /// the profile's, key by key, and the command line's flags over both. The merged `[nc]` is
+    /// validated here, naming the file at fault.
+    pub fn load_with_profile(job: Option<&Path>, profile: Option<&Path>) -> Result<Self> {
+        let (mut parsed, text) = match job {
+            Some(path) => {
+                let text = crate::limits::read_document(path, "job file")?;
+                let mut parsed = Self::parse(&text, path)?;
+                parsed.resolve_paths(path.parent().unwrap_or_else(|| Path::new(".")));
+                (parsed, text)
+            }
+            None => (Self::default(), String::new()),
+        };
+        let named = parsed.machine.profile.clone().map(|p| match job {
+            Some(j) if p.is_relative() => j.parent().unwrap_or_else(|| Path::new(".")).join(p),
+            _ => p,
+        });
+        let Some(profile) = profile.map(Path::to_path_buf).or(named) else {
+            if let Some(path) = job {
+                parsed.nc.validate().map_err(|e| Error::engine(path, e))?;
+            }
+            return Ok(parsed);
+        };
+        let job_table: toml::Table = text.parse().unwrap_or_default();
+        let ptext = crate::limits::read_document(&profile, "machine profile")?;
+        let job_error = |why: String| Error::Job {
+            file: profile.clone(),
+            why: crate::limits::quote_message(why.trim_end()),
+        };
+        // Typed first, for messages with the line at fault.
+        let _: ProfileFile = toml::from_str(&ptext).map_err(|e| job_error(e.to_string()))?;
+        let mut merged: toml::Table = ptext.parse().map_err(|e: toml::de::Error| job_error(e.to_string()))?;
+        for section in ["machine", "nc"] {
+            if let Some(toml::Value::Table(own)) = job_table.get(section) {
+                let base = merged
+                    .entry(section)
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+                if let toml::Value::Table(base) = base {
+                    for (k, v) in own {
+                        if k != "profile" {
+                            base.insert(k.clone(), v.clone());
+                        }
+                    }
+                }
+            }
+        }
+        let file: ProfileFile = toml::Value::Table(merged)
+            .try_into()
+            .map_err(|e: toml::de::Error| job_error(e.to_string()))?;
+        if file.machine.profile.is_some() {
+            return Err(job_error(
+                "a machine profile may not name another profile ([machine] profile)".into(),
+            ));
+        }
+        parsed.machine = MachineSection {
+            profile: Some(profile.clone()),
+            ..file.machine
+        };
+        parsed.nc = file.nc;
+        parsed
+            .nc
+            .validate()
+            .map_err(|e| Error::engine(job.unwrap_or(&profile), e))?;
+        Ok(parsed)
     }
 
     /// Makes every relative file path of the job (map, TIF, dwell, warm start, surface, polygon
@@ -566,7 +653,7 @@ mod tests {
         .unwrap();
         let a = j.accel_limits().unwrap().unwrap();
         assert_eq!((a.a_max_mm_per_s2, a.corner_angle_deg), (250.0, 45.0));
-        assert_eq!(j.nc.tool_radius_mm, Some(5.0));
+        assert_eq!(j.nc.tool_radius_mm, 5.0);
         let c = j.compensation.unwrap();
         assert_eq!((c.force_n, c.part.e_gpa), (20.0, 70.0));
         assert_eq!(c.grain, NormalDisplacement::default().grain);

@@ -6,9 +6,8 @@ use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use preston_solver::machine::asphere::{write_nc, AsphereJob, AsphereLine, ProfileError};
-use preston_solver::machine::nc::{NcProgram, ToolAxis};
+use preston_solver::machine::nc::NcProgram;
 use preston_solver::path::DwellPath;
-use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// A solved dwell file: the path and a dwell time per point.
@@ -42,22 +41,6 @@ pub fn read_profile_error(path: &Path) -> Result<ProfileError> {
     )?;
     ProfileError::new(t.take(0).unwrap_or_default(), t.take(1).unwrap_or_default())
         .map_err(|e| Error::engine(path, e))
-}
-
-/// The job file's `[nc]` table (each key may be overridden on the command line).
-///
-/// ```toml
-/// [nc]
-/// tool_radius_mm = 5.0
-/// tool_axis = { type = "fixed", b_deg = 10.0 }   # or { type = "normal" }, { type = "vertical" }
-/// ```
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct NcSection {
-    /// Tool radius, mm: tool centre `A = P + r n / |n|`.
-    pub tool_radius_mm: Option<f64>,
-    /// How the `B` word is written (default: vertical tool, no `B`).
-    pub tool_axis: Option<ToolAxis>,
 }
 
 /// Stages the point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` of a program.

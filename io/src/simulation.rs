@@ -205,7 +205,8 @@ pub use preston_solver::setup::default_sample_step_mm;
 #[derive(Debug, Clone)]
 pub struct ProgramSimulated {
     /// Removal, residual and report (the dwell points are the program's marked points, their
-    /// dwell the executed stretch times).
+    /// dwell the executed stretch times; without markers, one point per feed move or pause, its
+    /// executed time).
     pub sim: Simulated,
     /// Planned dwell per marked stretch, s.
     pub planned_dwell_s: Vec<f64>,
@@ -325,7 +326,14 @@ pub fn simulate_program(
         program_file,
         Sweep {
             path: setup.path,
-            dwell_s: executed.stretch_time_s.clone(),
+            dwell_s: if program.stretches.is_empty() {
+                program
+                    .contact_blocks()
+                    .map(|k| executed.profiles[k].time_s)
+                    .collect()
+            } else {
+                executed.stretch_time_s.clone()
+            },
             removal_nm: removal,
             problem,
             label,
@@ -349,11 +357,14 @@ pub fn simulate_program(
 /// Header of `executed_dwell.csv` (a contract).
 pub const EXECUTED_DWELL_HEADER: &str = "x_mm,y_mm,planned_dwell_s,executed_dwell_s";
 
-/// Writes the outputs of [`simulate_program`]: those of [`write_simulation`] plus
-/// `executed_dwell.csv`, all committed together.
+/// Writes the outputs of [`simulate_program`]: those of [`write_simulation`] plus, for a program
+/// with DWELL markers, `executed_dwell.csv`, all committed together.
 pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: bool) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let s = &sim.sim;
+    if sim.check.stretches == 0 {
+        return write_simulation_with(s, out_dir, plots, Vec::new());
+    }
     let executed = stage(&out_dir.join("executed_dwell.csv"), |w: &mut dyn Write| {
         writeln!(w, "{EXECUTED_DWELL_HEADER}")?;
         for k in 0..s.dwell_s.len() {

@@ -5,7 +5,7 @@ use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use anyhow::{bail, Context};
 use preston_io::atomic::commit_all;
 use preston_io::metrology::MapRead;
-use preston_io::writers::stage_map_csv;
+use preston_io::writers::{stage_map_csv, stage_map_npy};
 use preston_solver::map::HeightStats;
 use preston_solver::modal::{self, Basis, FormRemoval};
 use serde::Serialize;
@@ -40,7 +40,7 @@ pub struct ConvertArgs {
     pub input: MapInputArgs,
     #[command(flatten)]
     pub pitch: PitchArg,
-    /// Output CSV x_mm,y_mm,z_nm.
+    /// Output map: CSV x_mm,y_mm,z_nm, or a NumPy grid (heights in nm) for a .npy name.
     #[arg(long, value_name = "map.csv")]
     pub out: PathBuf,
 }
@@ -106,8 +106,24 @@ fn read(map: &Path, input: &MapInputArgs, pitch: PitchArg) -> anyhow::Result<Map
     Ok(r)
 }
 
+/// Writes the map as CSV `x_mm,y_mm,z_nm`, or as a NumPy grid for a `.npy` name (heights in nm;
+/// the pitch and origin, which the file cannot carry, are printed).
 fn write_map(out: &Path, r: &MapRead) -> anyhow::Result<()> {
     let m = &r.map;
+    let npy = out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    if npy {
+        let (staged, pitch, origin) = stage_map_npy(out, m)?;
+        commit_all(vec![staged]).with_context(|| format!("writing {}", out.display()))?;
+        eprintln!(
+            "  {}: heights in nm, pitch {pitch} mm, cell (0, 0) at x {} y {} mm (read it back with --pitch-mm {pitch})",
+            out.display(),
+            origin[0],
+            origin[1]
+        );
+        return Ok(());
+    }
     commit_all(vec![stage_map_csv(out, m.x_mm(), m.y_mm(), m.z_nm())?])
         .with_context(|| format!("writing {}", out.display()))
 }

@@ -8,6 +8,8 @@ use preston_io::surface::read_surface;
 use preston_solver::machine::gcode::dialect::{Dialect, FeedMode};
 use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
 use preston_solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
+use preston_solver::machine::profile::{Coolant, MachineProfile, WorkOffset};
+use crate::output::{print_json, OutputArgs};
 use preston_solver::machine::{Flat, PartGeometry};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -78,10 +80,16 @@ pub struct Args {
     /// Write B following the surface normal, B = atan2(nx, nz) in degrees.
     #[arg(long)]
     pub tool_axis_normal: bool,
-    /// Job file (TOML): [machine] a_max_mm_per_s2 / corner_angle_deg / v_max_mm_per_min, [nc],
-    /// [compensation].
+    /// Job file (TOML): [machine] a_max_mm_per_s2 / corner_angle_deg / v_max_mm_per_min, [nc]
+    /// (the machine profile), [compensation].
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
+    /// Machine profile file ([machine] and [nc] tables, as in a job) shared by the jobs of one
+    /// machine: dialect, feed mode, work offset, start and end blocks, spindle, coolant, program
+    /// number, decimals, tool radius and axis. The job's own keys win over it, the flags over
+    /// both.
+    #[arg(long, value_name = "PROFILE.toml")]
+    pub machine: Option<PathBuf>,
     /// Machine acceleration, mm/s^2: the program is also executed with this limit and the
     /// stretch times reported.
     #[arg(long, value_name = "MM_PER_S2", allow_negative_numbers = true)]
@@ -89,37 +97,28 @@ pub struct Args {
     /// Turn angle (degrees) above which the machine stops at a corner (default 60).
     #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
     pub corner_angle_deg: Option<f64>,
-    /// Controller dialect.
-    #[arg(long, value_enum, default_value = "iso")]
-    pub dialect: DialectArg,
-    /// `per-minute` (G94, F in mm/min) or `inverse-time` (G93, F = 1 / block minutes).
-    #[arg(long, value_enum, default_value = "per-minute")]
-    pub feed_mode: FeedModeArg,
+    /// Controller dialect (default: the machine profile's, else iso).
+    #[arg(long, value_enum)]
+    pub dialect: Option<DialectArg>,
+    /// `per-minute` (G94, F in mm/min) or `inverse-time` (G93, F = 1 / block minutes) (default:
+    /// the machine profile's, else per-minute).
+    #[arg(long, value_enum)]
+    pub feed_mode: Option<FeedModeArg>,
+    /// Work offset selected at the start (default: the machine profile's, else g54).
+    #[arg(long, value_enum)]
+    pub work_offset: Option<WorkOffsetArg>,
     /// Clearance above the highest tool-centre point, mm: rapid there, above the run-in start,
-    /// plunge, and retract at the end.
-    #[arg(
-        long,
-        value_name = "MM",
-        default_value_t = 5.0,
-        allow_negative_numbers = true
-    )]
-    pub clearance_mm: f64,
-    /// Feed of the plunge from the clearance plane, mm/min.
-    #[arg(
-        long,
-        value_name = "MM_PER_MIN",
-        default_value_t = 300.0,
-        allow_negative_numbers = true
-    )]
-    pub plunge_feed_mm_per_min: f64,
-    /// Shortest block the controller runs, ms (its block rate): a shorter block is an error.
-    #[arg(
-        long,
-        value_name = "MS",
-        default_value_t = 2.0,
-        allow_negative_numbers = true
-    )]
-    pub min_block_time_ms: f64,
+    /// plunge, and retract at the end (default: the machine profile's, else 5).
+    #[arg(long, value_name = "MM", allow_negative_numbers = true)]
+    pub clearance_mm: Option<f64>,
+    /// Feed of the plunge from the clearance plane, mm/min (default: the machine profile's,
+    /// else 300).
+    #[arg(long, value_name = "MM_PER_MIN", allow_negative_numbers = true)]
+    pub plunge_feed_mm_per_min: Option<f64>,
+    /// Shortest block the controller runs, ms (its block rate): a shorter block is an error
+    /// (default: the machine profile's, else 2).
+    #[arg(long, value_name = "MS", allow_negative_numbers = true)]
+    pub min_block_time_ms: Option<f64>,
     /// Fastest feed, mm/min (default: job [machine] v_max_mm_per_min): a stretch whose
     /// tool-centre move needs more is programmed at v_max and reported.
     #[arg(
@@ -134,27 +133,108 @@ pub struct Args {
     /// Coolant or slurry on (`M8`) during the program, off (`M9`) at the end.
     #[arg(long)]
     pub coolant: bool,
-    /// Point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (default: the G-code path
-    /// with the extension `.csv`).
+    /// Decimals of the coordinates, 3 to 6 (default: the machine profile's, else 4).
+    #[arg(long, value_name = "N")]
+    pub decimals: Option<usize>,
     /// Write G02/G03 (G17, I J centre offsets) where the tool-centre path is a circular arc.
     #[arg(long)]
     pub arcs: bool,
-    /// With --arcs: largest distance of a dwell point from the arc it is written on, um.
-    #[arg(long, value_name = "UM", default_value_t = 1.0)]
-    pub arc_tolerance_um: f64,
+    /// With --arcs: largest distance of a dwell point from the arc it is written on, um
+    /// (default: the machine profile's arc_tolerance_um, else 1).
+    #[arg(long, value_name = "UM")]
+    pub arc_tolerance_um: Option<f64>,
+    /// Point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (default: the G-code path
+    /// with the extension `.csv`).
     #[arg(long, value_name = "P.csv")]
     pub points_out: Option<PathBuf>,
     /// Output G-code program (its directory is created).
     #[arg(long, value_name = "program.nc")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// Work offset on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum WorkOffsetArg {
+    /// `G54`.
+    G54,
+    /// `G55`.
+    G55,
+    /// `G56`.
+    G56,
+    /// `G57`.
+    G57,
+    /// `G58`.
+    G58,
+    /// `G59`.
+    G59,
+    /// No work-offset word.
+    None,
+}
+
+impl From<WorkOffsetArg> for WorkOffset {
+    fn from(w: WorkOffsetArg) -> Self {
+        match w {
+            WorkOffsetArg::G54 => WorkOffset::G54,
+            WorkOffsetArg::G55 => WorkOffset::G55,
+            WorkOffsetArg::G56 => WorkOffset::G56,
+            WorkOffsetArg::G57 => WorkOffset::G57,
+            WorkOffsetArg::G58 => WorkOffset::G58,
+            WorkOffsetArg::G59 => WorkOffset::G59,
+            WorkOffsetArg::None => WorkOffset::None,
+        }
+    }
+}
+
+/// The machine profile with the flags given over it.
+fn profile_with_flags(args: &Args, job: &Job) -> MachineProfile {
+    let mut p = job.nc.clone();
+    if let Some(r) = args.tool_radius_mm {
+        p.tool_radius_mm = r;
+    }
+    if args.tool_axis_normal {
+        p.tool_axis = ToolAxis::Normal;
+    } else if let Some(b_deg) = args.tool_axis_deg {
+        p.tool_axis = ToolAxis::Fixed { b_deg };
+    }
+    if let Some(d) = args.dialect {
+        p.dialect = d.into();
+    }
+    if let Some(f) = args.feed_mode {
+        p.feed_mode = f.into();
+    }
+    if let Some(w) = args.work_offset {
+        p.work_offset = w.into();
+    }
+    if let Some(c) = args.clearance_mm {
+        p.clearance_mm = c;
+    }
+    if let Some(f) = args.plunge_feed_mm_per_min {
+        p.plunge_feed_mm_per_min = f;
+    }
+    if let Some(t) = args.min_block_time_ms {
+        p.min_block_time_ms = t;
+    }
+    if args.spindle_rpm.is_some() {
+        p.spindle_rpm = args.spindle_rpm;
+    }
+    if args.coolant {
+        p.coolant = Coolant::Flood;
+    }
+    if let Some(d) = args.decimals {
+        p.decimals = d;
+    }
+    if args.arcs {
+        p.arc_tolerance_um = Some(args.arc_tolerance_um.or(p.arc_tolerance_um).unwrap_or(1.0));
+    }
+    p
 }
 
 /// Runs `preston nc`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let job = match &args.job {
-        Some(p) => Job::load(p)?,
-        None => Job::default(),
-    };
+    args.output.apply();
+    let job = Job::load_with_profile(args.job.as_deref(), args.machine.as_deref())?;
     let points_out = args
         .points_out
         .clone()
@@ -165,30 +245,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.out.display()
         );
     }
-    let tool_axis = if args.tool_axis_normal {
-        ToolAxis::Normal
-    } else if let Some(b_deg) = args.tool_axis_deg {
-        ToolAxis::Fixed { b_deg }
-    } else {
-        job.nc.tool_axis.unwrap_or_default()
-    };
+    let profile = profile_with_flags(&args, &job);
+    profile.validate()?;
     let settings = NcSettings {
-        tool_radius_mm: args.tool_radius_mm.or(job.nc.tool_radius_mm).unwrap_or(0.0),
-        tool_axis,
         a_max_mm_per_s2: args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2),
         corner_angle_deg: args
             .corner_angle_deg
             .unwrap_or_else(|| job.corner_angle_deg()),
         compensation: job.compensation.clone(),
-        dialect: args.dialect.into(),
-        feed_mode: args.feed_mode.into(),
-        clearance_mm: args.clearance_mm,
-        plunge_feed_mm_per_min: args.plunge_feed_mm_per_min,
-        min_block_time_ms: args.min_block_time_ms,
         v_max_mm_per_min: args.v_max_mm_per_min.or(job.machine.v_max_mm_per_min),
-        spindle_rpm: args.spindle_rpm,
-        coolant: args.coolant,
-        arc_tolerance_mm: args.arcs.then_some(1e-3 * args.arc_tolerance_um),
+        ..profile.nc_settings()
     };
     settings.validate()?;
     let dwell = read_dwell_times(&args.dwell)?;
@@ -207,6 +273,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(p) = &args.job {
         notes.push(format!("JOB FILE {}", file_name(p)));
     }
+    if let Some(p) = &job.machine.profile {
+        notes.push(format!("MACHINE PROFILE {}", file_name(p)));
+    }
     let check = write_and_check(&program, &notes)
         .with_context(|| format!("writing the program for {}", args.dwell.display()))?;
     for dir in [args.out.parent(), points_out.parent()]
@@ -224,7 +293,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         stage_points_csv(&points_out, &program)?,
     ])?;
     let s = &program.schedule;
-    eprintln!(
+    crate::note!(
         "preston nc: {} points, {} feed blocks ({} dialect, {}), total dwell {:.2} s, max acceleration {:.3} mm/s^2 (solver model)",
         program.points.len(),
         check.written.feed_blocks,
@@ -234,19 +303,47 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         s.max_accel_mm_per_s2
     );
     print_program_check(&check);
-    eprintln!(
+    crate::note!(
         "  wrote {} and {}",
         args.out.display(),
         points_out.display()
     );
+    if args.output.json {
+        print_json(&serde_json::json!({
+            "command": "nc",
+            "program": args.out,
+            "points_out": points_out,
+            "points": program.points.len(),
+            "dialect": settings.dialect,
+            "feed_mode": settings.feed_mode,
+            "total_dwell_s": s.total_dwell_s,
+            "program_check": program_check_json(&check),
+        }))?;
+    }
     Ok(ExitCode::SUCCESS)
+}
+
+/// What the program as written does with the plan, as JSON (`--json`).
+pub fn program_check_json(check: &ProgramCheck) -> serde_json::Value {
+    let w = &check.written;
+    serde_json::json!({
+        "machining_time_s": w.stretch_time_s + w.plunge_time_s,
+        "stretch_time_s": w.stretch_time_s,
+        "plunge_time_s": w.plunge_time_s,
+        "feed_blocks": w.feed_blocks,
+        "arc_blocks": w.arc_blocks,
+        "merged_stretches": w.merged_stretches,
+        "slowed_stretches": w.slowed_stretches,
+        "programmed": check.programmed,
+        "accelerated": check.accelerated,
+    })
 }
 
 /// Prints what the program as written does with the plan (`preston nc` and `preston solve`).
 pub fn print_program_check(check: &ProgramCheck) {
     let w = &check.written;
     let p = &check.programmed;
-    eprintln!(
+    crate::note!(
         "  program as written: machining time {:.2} s ({:.2} s in the dwell stretches for {:.2} s planned, plunge {:.2} s); worst stretch {:.3}% off (point {}), {} of {} more than 5% off",
         w.stretch_time_s + w.plunge_time_s,
         p.executed_total_s,
@@ -258,7 +355,7 @@ pub fn print_program_check(check: &ProgramCheck) {
         p.stretches
     );
     if w.merged_stretches > 0 {
-        eprintln!(
+        crate::note!(
             "  {} stretches written as one block through their point (a half would have been shorter than the block time)",
             w.merged_stretches
         );
@@ -271,7 +368,7 @@ pub fn print_program_check(check: &ProgramCheck) {
         );
     }
     if let Some(a) = &check.accelerated {
-        eprintln!(
+        crate::note!(
             "  executed with the acceleration limit: {:.2} s in the stretches; worst stretch {:.2}% off (point {}), {} of {} more than 5% off",
             a.executed_total_s,
             100.0 * a.max_relative_error,

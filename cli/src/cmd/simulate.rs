@@ -4,6 +4,7 @@
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::DialectArg;
 use super::tif_source::TifArgs;
+use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::simulation::{
@@ -13,6 +14,8 @@ use preston_io::surface::read_surface;
 use preston_solver::dwell::FeedLimits;
 use preston_solver::machine::gcode::motion::Kinematics;
 use preston_solver::simulate::Motion;
+use preston_io::job::{Job, MapSource};
+use preston_io::pipeline::load_tif;
 use preston_solver::tif::Tif;
 use std::path::Path;
 use std::path::PathBuf;
@@ -30,9 +33,18 @@ pub enum MotionArg {
 /// Arguments of `preston simulate`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Error map: CSV `x_mm,y_mm,z_nm` or any format of `preston map convert`.
-    #[arg(long, value_name = "FILE")]
-    pub map: PathBuf,
+    /// Error map: CSV `x_mm,y_mm,z_nm` or any format of `preston map convert` (default: the
+    /// job's [map]).
+    #[arg(long, value_name = "FILE", required_unless_present = "job")]
+    pub map: Option<PathBuf>,
+    /// Job file (TOML): the map, the TIF and the machine ([machine] acceleration and corner
+    /// angle, [nc] dialect and tool radius, [surface]) when the flags do not give them.
+    #[arg(long, value_name = "JOB.toml")]
+    pub job: Option<PathBuf>,
+    /// Machine profile file ([machine] and [nc] tables, as in a job): the dialect, the tool
+    /// radius and the acceleration limit of the machine that runs --program.
+    #[arg(long, value_name = "PROFILE.toml")]
+    pub machine: Option<PathBuf>,
     #[command(flatten)]
     pub map_input: MapInputArgs,
     #[command(flatten)]
@@ -47,9 +59,10 @@ pub struct Args {
         conflicts_with = "program"
     )]
     pub dwell: Option<PathBuf>,
-    /// G-code program (as `preston nc` writes it, any dialect and feed mode): read back, run
-    /// block by block and the removal integrated along the motion; also writes
-    /// executed_dwell.csv.
+    /// G-code program, any G0/G1/G2/G3 program in any dialect and feed mode (G93/G94, G4
+    /// pauses): run block by block as written and the removal integrated along the motion. The
+    /// DWELL markers `preston nc` writes, where present, add the per-point comparison with the
+    /// plan (executed_dwell.csv); without them every feed move and pause is in contact.
     #[arg(long, value_name = "program.nc")]
     pub program: Option<PathBuf>,
     /// With --program: the controller's path acceleration, mm/s^2 (trapezoidal look-ahead);
@@ -61,15 +74,12 @@ pub struct Args {
         allow_negative_numbers = true
     )]
     pub a_max_mm_per_s2: Option<f64>,
-    /// With --program and --a-max-mm-per-s2: turn angle above which the tool stops, degrees.
-    #[arg(
-        long,
-        value_name = "DEG",
-        default_value_t = 60.0,
-        allow_negative_numbers = true
-    )]
-    pub corner_angle_deg: f64,
-    /// With --program: its dialect (default: the one its header names, else iso).
+    /// With --program and an acceleration limit: turn angle above which the tool stops,
+    /// degrees (default: the job's, else 60).
+    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
+    pub corner_angle_deg: Option<f64>,
+    /// With --program: its dialect (default: the machine profile's, else the one its header
+    /// names, else iso).
     #[arg(long, value_enum, requires = "program")]
     pub dialect: Option<DialectArg>,
     /// With --program: largest arc length of a removal sample, mm (default: TIF support
@@ -84,13 +94,9 @@ pub struct Args {
     /// With --program: the part surface JSON, to map tool centres back to contact points.
     #[arg(long, value_name = "S.json", requires = "program")]
     pub surface: Option<PathBuf>,
-    /// With --program and --surface: the tool-centre offset along the normal (tool radius), mm.
-    #[arg(
-        long,
-        value_name = "MM",
-        requires = "surface",
-        allow_negative_numbers = true
-    )]
+    /// With --program and a surface: the tool-centre offset along the normal (tool radius), mm
+    /// (default: the machine profile's [nc] tool_radius_mm).
+    #[arg(long, value_name = "MM", allow_negative_numbers = true)]
     pub tool_radius_mm: Option<f64>,
     /// Motion model.
     #[arg(long, value_enum, default_value = "discrete")]
@@ -107,14 +113,52 @@ pub struct Args {
     /// Output directory for residual.csv and report.json.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// The map, TIF and machine of the flags, with a job's (and a machine profile's) where the
+/// flags give none.
+struct Inputs {
+    map: MapSource,
+    tif: Tif,
+    job: Job,
+}
+
+impl Inputs {
+    fn of(args: &Args) -> anyhow::Result<Self> {
+        let job = if args.job.is_some() || args.machine.is_some() {
+            Job::load_with_profile(args.job.as_deref(), args.machine.as_deref())?
+        } else {
+            Job::default()
+        };
+        let tif = match (&args.job, args.tif.given()) {
+            (Some(path), false) => load_tif(&job, path)?,
+            _ => args.tif.load()?,
+        };
+        let map = match &args.map {
+            Some(file) => args.map_input.source(file.clone(), args.map_pitch.pitch_mm),
+            None => {
+                let mut m = job.map.clone();
+                args.map_input.apply(&mut m);
+                if args.map_pitch.pitch_mm.is_some() {
+                    m.pitch_mm = args.map_pitch.pitch_mm;
+                }
+                m
+            }
+        };
+        Ok(Self { map, tif, job })
+    }
 }
 
 /// Runs `preston simulate`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let tif = args.tif.load()?;
+    args.output.apply();
+    let inputs = Inputs::of(&args)?;
     if let Some(program) = &args.program {
-        return run_program(&args, &tif, program);
+        return run_program(&args, &inputs, program);
     }
+    let tif = inputs.tif;
     let Some(dwell) = &args.dwell else {
         anyhow::bail!("give --dwell (a plan) or --program (a G-code program)");
     };
@@ -129,17 +173,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         v_min_mm_per_min: 0.0,
     });
     let bars = Bars::new();
-    let map = args
-        .map_input
-        .source(args.map.clone(), args.map_pitch.pitch_mm);
-    let sim = simulate(&map, &tif, dwell, motion, limits.as_ref(), &bars)?;
+    let sim = simulate(&inputs.map, &tif, dwell, motion, limits.as_ref(), &bars)?;
     write_simulation(&sim, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.report;
     if let Some(input) = &r.map_input {
         print_input_notes(input);
     }
-    eprintln!(
+    crate::note!(
         "preston simulate ({}): {} map points, {} dwell points; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, total dwell {:.2} s; wrote {}",
         r.solver,
         r.m,
@@ -151,41 +192,50 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.total_dwell_s,
         args.out.display()
     );
+    if args.output.json {
+        print_json(&serde_json::json!({
+            "command": "simulate",
+            "out": args.out,
+            "report": r,
+        }))?;
+    }
     Ok(ExitCode::SUCCESS)
 }
 
 /// `preston simulate --program`: the program as the machine runs it.
-fn run_program(args: &Args, tif: &Tif, program: &Path) -> anyhow::Result<ExitCode> {
-    let kinematics = match args.a_max_mm_per_s2 {
+fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<ExitCode> {
+    let job = &inputs.job;
+    let kinematics = match args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2) {
         Some(a) => {
             if !(a.is_finite() && a > 0.0) {
                 anyhow::bail!("--a-max-mm-per-s2 must be positive, got {a}");
             }
             Kinematics::Trapezoidal {
                 a_max_mm_per_s2: a,
-                corner_angle_deg: args.corner_angle_deg,
+                corner_angle_deg: args
+                    .corner_angle_deg
+                    .unwrap_or_else(|| job.corner_angle_deg()),
             }
         }
         None => Kinematics::ProgrammedFeed,
     };
-    let surface = args.surface.as_deref().map(read_surface).transpose()?;
+    let surface_file = args.surface.clone().or_else(|| job.surface.file.clone());
+    let surface = surface_file.as_deref().map(read_surface).transpose()?;
     let part = surface.as_ref().map(|s| {
         (
             s as &dyn preston_solver::machine::PartGeometry,
-            args.tool_radius_mm.unwrap_or(0.0),
+            args.tool_radius_mm.unwrap_or(job.nc.tool_radius_mm),
         )
     });
     let bars = Bars::new();
+    let profile_dialect = (args.job.is_some() || args.machine.is_some()).then_some(job.nc.dialect);
     let options = ProgramOptions {
-        dialect: args.dialect.map(Into::into),
+        dialect: args.dialect.map(Into::into).or(profile_dialect),
         kinematics,
         sample_step_mm: args.sample_step_mm,
         part,
     };
-    let map = args
-        .map_input
-        .source(args.map.clone(), args.map_pitch.pitch_mm);
-    let sim = simulate_program(&map, tif, program, options, &bars)?;
+    let sim = simulate_program(&inputs.map, &inputs.tif, program, options, &bars)?;
     if let Some(input) = &sim.sim.report.map_input {
         print_input_notes(input);
     }
@@ -193,20 +243,40 @@ fn run_program(args: &Args, tif: &Tif, program: &Path) -> anyhow::Result<ExitCod
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.sim.report;
     let c = &sim.check;
-    eprintln!(
+    crate::note!(
         "preston simulate ({}): {} map points, {} marked stretches, {} removal samples; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm",
         r.solver, r.m, c.stretches, sim.samples, r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm
     );
-    eprintln!(
-        "  executed {:.2} s in the stretches for {:.2} s planned ({:.2} s with the plunge and pauses); worst stretch {:.3}% off (point {}), {} of {} more than 5% off; wrote {}",
-        c.executed_total_s,
-        c.planned_total_s,
-        sim.executed_time_s,
-        100.0 * c.max_relative_error,
-        c.worst_point,
-        c.over_5_percent,
-        c.stretches,
-        args.out.display()
-    );
+    if c.stretches > 0 {
+        crate::note!(
+            "  executed {:.2} s in the stretches for {:.2} s planned ({:.2} s with the plunge and pauses); worst stretch {:.3}% off (point {}), {} of {} more than 5% off; wrote {}",
+            c.executed_total_s,
+            c.planned_total_s,
+            sim.executed_time_s,
+            100.0 * c.max_relative_error,
+            c.worst_point,
+            c.over_5_percent,
+            c.stretches,
+            args.out.display()
+        );
+    } else {
+        crate::note!(
+            "  no DWELL markers: every feed move and pause in contact, {} of them, {:.2} s executed; wrote {}",
+            r.n,
+            sim.executed_time_s,
+            args.out.display()
+        );
+    }
+    if args.output.json {
+        print_json(&serde_json::json!({
+            "command": "simulate",
+            "out": args.out,
+            "program": program,
+            "removal_samples": sim.samples,
+            "executed_time_s": sim.executed_time_s,
+            "stretch_check": (c.stretches > 0).then_some(c),
+            "report": r,
+        }))?;
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -2,8 +2,9 @@
 
 use super::hertz_args::HertzArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
-use super::nc::print_program_check;
+use super::nc::{print_program_check, program_check_json};
 use super::tif_source::TifArgs;
+use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::{Job, TifSource};
@@ -13,7 +14,7 @@ use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, OperatorKind, SolverChoice};
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::surface::TifFrame;
-use preston_solver::machine::gcode::write_and_check;
+use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::path::raster::RasterAxis;
@@ -306,6 +307,8 @@ pub struct Args {
     /// Output directory for dwell.csv, residual.csv and report.json.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub output: OutputArgs,
 }
 
 impl Args {
@@ -512,13 +515,14 @@ fn run_tools(
     job_path: &std::path::Path,
     out: &std::path::Path,
     accept_best: bool,
+    output: OutputArgs,
 ) -> anyhow::Result<ExitCode> {
     let bars = Bars::new();
     let solved = preston_io::tools::solve_tools(job, job_path, &bars)?;
     preston_io::tools::write_tool_outputs(&solved, out)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     let r = &solved.report;
-    eprintln!(
+    crate::note!(
         "preston solve: {} map points, {} tools, {} dwell points in all, {} non-zeros (assembled, stacked)",
         r.m,
         r.tools.len(),
@@ -529,34 +533,48 @@ fn run_tools(
         eprintln!("  warning: {w}");
     }
     for t in &r.tools {
-        eprintln!(
+        crate::note!(
             "  tool {}: {} points, dwell {:.2} s, removal RMS {:.3} nm PV {:.3} nm, feed {:.1} .. {:.1} mm/min",
             t.tool, t.n, t.total_dwell_s, t.removal_rms_nm, t.removal_pv_nm, t.min_feed_mm_per_min, t.max_feed_mm_per_min
         );
     }
-    eprintln!(
+    crate::note!(
         "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm; solver {} ({} iterations, status {}), solve {:.3} s; wrote {}",
         r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.solver, r.iterations, r.status, r.solve_seconds,
         out.display()
     );
-    if !solved.solution.status.is_converged() {
+    let converged = solved.solution.status.is_converged();
+    if !converged {
         eprintln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
         );
-        if !accept_best {
-            return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
-        }
     }
-    Ok(ExitCode::SUCCESS)
+    let code = if converged || accept_best {
+        0
+    } else {
+        EXIT_NOT_CONVERGED
+    };
+    if output.json {
+        print_json(&serde_json::json!({
+            "command": "solve",
+            "exit_code": code,
+            "converged": converged,
+            "out": out,
+            "report": r,
+        }))?;
+    }
+    Ok(ExitCode::from(code))
 }
 
 /// Runs `preston solve`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let plots = args.plots;
+    let output = args.output;
+    output.apply();
     let (job, job_path, out, accept_best) = args.into_job()?;
     if preston_io::tools::is_multi_tool(&job) {
-        return run_tools(&job, &job_path, &out, accept_best);
+        return run_tools(&job, &job_path, &out, accept_best, output);
     }
     let bars = Bars::new();
     let prepared = pipeline::prepare(&job, &job_path, &bars)?;
@@ -571,11 +589,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let notes = pipeline::write_outputs_with_figures(&solved, &out, figures)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     for note in notes {
-        eprintln!("  note: {note}");
+        crate::note!("  note: {note}");
     }
     let r = &solved.report;
     print_input_notes(&solved.prepared.map_input);
-    eprintln!(
+    crate::note!(
         "preston solve: {} map points{}, {} dwell points, {} non-zeros ({}){}",
         r.m,
         if r.edge_points > 0 {
@@ -614,21 +632,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             if r.unreachable_dwell_points > 10 { ", ..." } else { "" }
         );
     }
-    eprintln!(
+    crate::note!(
         "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, piston {:.3} nm",
         r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.piston_nm
     );
-    eprintln!(
+    crate::note!(
         "  total dwell {:.2} s, feed {:.1} .. {:.1} mm/min",
         r.total_dwell_s, r.min_feed_mm_per_min, r.max_feed_mm_per_min
     );
     if let Some(mt) = &r.min_time {
-        eprintln!(
+        crate::note!(
             "  minimum time: {:.2} s instead of {:.2} s at rho = 0 (objective {:.6e} vs {:.6e}, tolerance {})",
             r.total_dwell_s, mt.total_dwell_rho0_s, r.objective, mt.objective_rho0, mt.tolerance
         );
     }
-    eprintln!(
+    crate::note!(
         "  machining time {:.2} s, max acceleration {:.3} mm/s^2",
         r.machining_time_s, r.max_accel_mm_per_s2
     );
@@ -637,7 +655,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.accel_iterations,
         r.rms_feed_limited_only_nm,
     ) {
-        eprintln!(
+        crate::note!(
             "  acceleration limit {a} mm/s^2: {it} {}, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
             match r.accel.as_ref().map(|x| x.method) {
                 Some(AccelMethod::ScpQp) => "SCP iterations",
@@ -656,7 +674,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         (None, Some(why)) => certificate.push(format!("no gap bound: {why}")),
         (None, None) => {}
     }
-    eprintln!(
+    crate::note!(
         "  solver {}{} ({} iterations, status {}{}), build {:.3} s, solve {:.3} s; wrote {}",
         r.solver,
         if certificate.is_empty() {
@@ -673,38 +691,50 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.solve_seconds,
         out.display()
     );
-    program_check(&solved, &job);
-    if !solved.solution().status.is_converged() {
+    let check = program_check(&solved, &job);
+    let converged = solved.solution().status.is_converged();
+    if !converged {
         eprintln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
         );
-        if !accept_best {
-            return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
-        }
     }
-    Ok(ExitCode::SUCCESS)
+    let code = if converged || accept_best {
+        0
+    } else {
+        EXIT_NOT_CONVERGED
+    };
+    if output.json {
+        print_json(&serde_json::json!({
+            "command": "solve",
+            "exit_code": code,
+            "converged": converged,
+            "out": out,
+            "report": r,
+            "program_check": check.as_ref().map(program_check_json),
+        }))?;
+    }
+    Ok(ExitCode::from(code))
 }
 
-/// Plans the default program for the solution (ISO, feeds per minute, the job's surface, tool
-/// radius, feed and acceleration limits), reads it back and prints what the machine would do
-/// with it; a plan no program can deliver is a warning here (`preston nc` refuses it).
-fn program_check(solved: &pipeline::Solved, job: &Job) {
+/// Plans the program for the solution on the job's machine profile (`[nc]`: dialect, feed mode,
+/// tool radius and axis; its surface, feed and acceleration limits), reads it back and prints
+/// what the machine would do with it; a plan no program can deliver is a warning here
+/// (`preston nc` refuses it).
+fn program_check(solved: &pipeline::Solved, job: &Job) -> Option<ProgramCheck> {
     let settings = NcSettings {
-        tool_radius_mm: job.nc.tool_radius_mm.unwrap_or(0.0),
-        tool_axis: job.nc.tool_axis.unwrap_or_default(),
         a_max_mm_per_s2: job.machine.a_max_mm_per_s2,
         corner_angle_deg: job.corner_angle_deg(),
         compensation: job.compensation.clone(),
         v_max_mm_per_min: job.machine.v_max_mm_per_min,
-        ..NcSettings::default()
+        ..job.nc.nc_settings()
     };
     let surface = match &job.surface.file {
         Some(f) => match read_surface(f) {
             Ok(s) => Some(s),
             Err(e) => {
                 eprintln!("  warning: no program check: {e}");
-                return;
+                return None;
             }
         },
         None => None,
@@ -717,7 +747,13 @@ fn program_check(solved: &pipeline::Solved, job: &Job) {
     let checked = NcProgram::plan(p, &solved.solution().dwell_s, geometry, &settings)
         .and_then(|nc| write_and_check(&nc, &[]));
     match checked {
-        Ok(c) => print_program_check(&c),
-        Err(e) => eprintln!("  warning: no G-code program can deliver this plan as it is: {e}"),
+        Ok(c) => {
+            print_program_check(&c);
+            Some(c)
+        }
+        Err(e) => {
+            eprintln!("  warning: no G-code program can deliver this plan as it is: {e}");
+            None
+        }
     }
 }

@@ -37,6 +37,11 @@ impl TifArgs {
         }
     }
 
+    /// Whether the flags name a TIF.
+    pub fn given(&self) -> bool {
+        !self.tif.is_empty() || self.gaussian_sigma_mm.is_some()
+    }
+
     /// The TIF the flags name.
     pub fn load(&self) -> anyhow::Result<Tif> {
         match self.tif.as_slice() {

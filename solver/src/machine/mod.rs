@@ -12,6 +12,7 @@ pub mod gcode;
 pub mod geometry;
 pub mod machinability;
 pub mod nc;
+pub mod profile;
 
 use crate::error::Result;
 

@@ -19,6 +19,9 @@
 use super::compensation::NormalDisplacement;
 use super::feeds::FeedSchedule;
 use super::gcode::dialect::{Dialect, FeedMode};
+use super::profile::{
+    check_block, Coolant, SpindleDirection, WorkOffset, MAX_DECIMALS, MIN_DECIMALS,
+};
 use super::PartGeometry;
 use crate::error::{Error, Result};
 use crate::path::DwellPath;
@@ -72,13 +75,29 @@ pub struct NcSettings {
     /// Fastest feed the machine allows, mm/min: a stretch whose tool-centre move would need more
     /// is programmed at this feed (taking longer than planned, reported); none: no limit.
     pub v_max_mm_per_min: Option<f64>,
-    /// Spindle (tool rotation) speed, rpm: `S.. M3` after the preamble, `M5` at the end.
+    /// Spindle (tool rotation) speed, rpm: `S<rpm> M3` (whole rpm) after the preamble, `M5` at
+    /// the end.
     pub spindle_rpm: Option<f64>,
-    /// Coolant or slurry on (`M8`) during the program, off (`M9`) at the end.
-    pub coolant: bool,
+    /// Coolant or slurry during the program (`M8` or `M7`), off (`M9`) at the end; `true` and
+    /// `false` are read as flood and off.
+    pub coolant: Coolant,
     /// Write `G02`/`G03` where the tool-centre path is a circular arc within this tolerance, mm
     /// ([`super::gcode::write`]); none: straight moves only.
     pub arc_tolerance_mm: Option<f64>,
+    /// Work offset selected after the start blocks.
+    pub work_offset: WorkOffset,
+    /// Blocks written first (none: the dialect's safe-start block, [`Dialect::safe_start`]).
+    pub start_blocks: Option<Vec<String>>,
+    /// Blocks written just before the program end word.
+    pub end_blocks: Vec<String>,
+    /// Spindle direction (`M3` or `M4`) when `spindle_rpm` is set.
+    pub spindle_direction: SpindleDirection,
+    /// Fanuc program number (`O` word), 1 to 9999.
+    pub program_number: u32,
+    /// Sinumerik program name (`%_N_<NAME>_MPF`).
+    pub program_name: String,
+    /// Decimals of X, Y, Z, B, I and J ([`MIN_DECIMALS`] to [`MAX_DECIMALS`]).
+    pub decimals: usize,
 }
 
 impl Default for NcSettings {
@@ -96,8 +115,15 @@ impl Default for NcSettings {
             min_block_time_ms: 2.0,
             v_max_mm_per_min: None,
             spindle_rpm: None,
-            coolant: false,
+            coolant: Coolant::Off,
             arc_tolerance_mm: None,
+            work_offset: WorkOffset::G54,
+            start_blocks: None,
+            end_blocks: Vec::new(),
+            spindle_direction: SpindleDirection::Cw,
+            program_number: 1000,
+            program_name: "PRESTON".into(),
+            decimals: COORD_DECIMALS,
         }
     }
 }
@@ -153,7 +179,59 @@ impl NcSettings {
                 ));
             }
         }
+        if !(MIN_DECIMALS..=MAX_DECIMALS).contains(&self.decimals) {
+            return Err(Error::invalid(
+                "decimals",
+                format!(
+                    "must be {MIN_DECIMALS} to {MAX_DECIMALS}, got {}",
+                    self.decimals
+                ),
+            ));
+        }
+        if !self.work_offset.valid_in(self.dialect) {
+            return Err(Error::invalid(
+                "work_offset",
+                format!(
+                    "{} is not a settable work offset on {} (G54 to G57)",
+                    self.work_offset.word().unwrap_or("none"),
+                    self.dialect.name()
+                ),
+            ));
+        }
+        if !(1..=9999).contains(&self.program_number) {
+            return Err(Error::invalid(
+                "program_number",
+                format!("must be 1 to 9999, got {}", self.program_number),
+            ));
+        }
+        let name = &self.program_name;
+        let ok = name.len() <= 24
+            && name.len() >= 2
+            && name.chars().take(2).all(|c| c.is_ascii_alphabetic())
+            && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+        if !ok {
+            return Err(Error::invalid(
+                "program_name",
+                format!(
+                    "'{name}': two letters, then letters, digits or '_', at most 24 characters"
+                ),
+            ));
+        }
+        for b in self.start_blocks.iter().flatten() {
+            check_block("start_blocks", b, self.dialect)?;
+        }
+        for b in &self.end_blocks {
+            check_block("end_blocks", b, self.dialect)?;
+        }
         Ok(())
+    }
+
+    /// The start blocks as written: the given ones, or the dialect's safe-start block.
+    pub fn start_blocks_or_default(&self) -> Vec<String> {
+        match &self.start_blocks {
+            Some(b) => b.clone(),
+            None => vec![self.dialect.safe_start().to_string()],
+        }
     }
 }
 

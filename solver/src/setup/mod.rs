@@ -76,15 +76,26 @@ pub enum DwellPoints {
 
 impl DwellPoints {
     /// The dwell points of a G-code program as it runs: the contact points of its marked
-    /// stretches (`DWELL` comments, as `preston nc` writes them), in program order. The set-up
-    /// then reports the executed run ([`Setup::run_program`]) on them. A program without
-    /// markers has none, an error.
+    /// stretches (`DWELL` comments, as `preston nc` writes them), in program order; in a program
+    /// without markers, the tool-centre `(x, y)` halfway through each feed move and at each
+    /// pause ([`Program::contact_blocks`]). The set-up then reports the executed run
+    /// ([`Setup::run_program`]) on them. A program with neither has nothing to run, an error.
     pub fn of_program(program: &Program) -> Result<Self> {
         if program.stretches.is_empty() {
-            return Err(Error::invalid(
-                "program",
-                "no DWELL markers: the executed dwell needs the stretches `preston nc` marks",
-            ));
+            let (x, y): (Vec<f64>, Vec<f64>) = program
+                .contact_blocks()
+                .map(|k| {
+                    let p = program.blocks[k].point_at(0.5);
+                    (p[0], p[1])
+                })
+                .unzip();
+            if x.is_empty() {
+                return Err(Error::invalid(
+                    "program",
+                    "no feed moves (G1, G2, G3) and no pauses (G4): nothing touches the part",
+                ));
+            }
+            return Ok(DwellPoints::Given(DwellPath::new(x, y)?));
         }
         let (x, y) = program.stretches.iter().map(|s| (s.x_mm, s.y_mm)).unzip();
         Ok(DwellPoints::Given(DwellPath::new(x, y)?))

@@ -68,21 +68,38 @@ impl Dialect {
             .find(|d| d.name().eq_ignore_ascii_case(name.trim()))
     }
 
-    /// A comment line (or a comment appended to a block) with `text`; characters the dialect's
-    /// comment syntax cannot hold become brackets or spaces.
+    /// A comment line (or a comment appended to a block) with `text`; characters no dialect's
+    /// comment may hold become others: `(` `)` brackets, `;` (the block end of the Fanuc family
+    /// and Sinumerik's comment start, which ends a parenthesised comment for many readers) a
+    /// comma, `%` (the end-of-record character of ISO tapes) `PCT`, and control or non-ASCII
+    /// characters `?`.
     pub fn comment(self, text: &str) -> String {
-        let clean: String = text
-            .chars()
-            .map(|c| match c {
-                '(' => '[',
-                ')' => ']',
-                '\n' | '\r' => ' ',
-                c => c,
-            })
-            .collect();
+        let mut clean = String::with_capacity(text.len() + 8);
+        for c in text.chars() {
+            match c {
+                '(' => clean.push('['),
+                ')' => clean.push(']'),
+                ';' => clean.push(','),
+                '%' => clean.push_str("PCT"),
+                '\n' | '\r' | '\t' => clean.push(' '),
+                c if c.is_ascii_graphic() || c == ' ' => clean.push(c),
+                _ => clean.push('?'),
+            }
+        }
         match self {
             Dialect::Sinumerik => format!("; {clean}"),
             _ => format!("({clean})"),
+        }
+    }
+
+    /// The safe-start block written first unless the machine profile gives its own: plane,
+    /// metric units, cutter compensation off, tool length offset off where the dialect has
+    /// `G49`, canned cycles off where it has `G80`, absolute, feed per minute.
+    pub fn safe_start(self) -> &'static str {
+        match self {
+            Dialect::Iso => "G17 G21 G40 G80 G90 G94",
+            Dialect::Linuxcnc | Dialect::Fanuc => "G17 G21 G40 G49 G80 G90 G94",
+            Dialect::Sinumerik => "G17 G71 G40 G90 G94",
         }
     }
 
@@ -191,6 +208,8 @@ mod tests {
         assert_eq!(Dialect::from_name("bogus"), None);
         assert_eq!(Dialect::Sinumerik.comment("a (b)"), "; a [b]");
         assert_eq!(Dialect::Fanuc.comment("a (b)"), "(a [b])");
+        assert_eq!(Dialect::Fanuc.comment("x; y 5% \u{b0}"), "(x, y 5PCT ?)");
+        assert_eq!(Dialect::Sinumerik.comment("x; y"), "; x, y");
     }
 
     #[test]

@@ -295,7 +295,7 @@ pub fn sample_contact(
 }
 
 /// Executed against planned dwell over the marked stretches.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
 pub struct StretchCheck {
     /// Marked stretches.
     pub stretches: usize,

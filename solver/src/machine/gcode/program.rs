@@ -3,7 +3,7 @@
 //!
 //! The reader follows the subset of ISO 6983 that Preston writes and a shop's edits keep:
 //! `%` and `O` lines, `N` numbers, `( )` and `;` comments, `G0`/`G1` (`G00`/`G01`), `G4` pauses,
-//! `G17`, `G20`/`G21` (`G70`/`G71`, `G700`/`G710`), `G90`/`G91`, `G93`/`G94`, axis words `X Y Z`
+//! `G17`, `G40`, `G43`, `G49`, `G54` to `G59`, `G61`, `G64`, `G80` (no motion), `G20`/`G21` (`G70`/`G71`, `G700`/`G710`), `G90`/`G91`, `G93`/`G94`, axis words `X Y Z`
 //! and one rotary axis `A`, `B` or `C`, `F`, and the `M` and `S` words (ignored). Circular moves
 //! `G2` (clockwise) and `G3` (counter-clockwise, seen from +Z) in the `G17` plane with the centre
 //! as `I J` offsets from the start (incremental in `G90` and `G91`, as on ISO, Fanuc, LinuxCNC and
@@ -196,6 +196,12 @@ impl Program {
             .get(k + 1)
             .map_or(self.contact_end, |s| s.first_block);
         start..end.max(start)
+    }
+
+    /// Indices of the blocks in contact with the part (feed moves and pauses of the contact
+    /// section), in program order.
+    pub fn contact_blocks(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..self.blocks.len()).filter(|&k| self.blocks[k].contact)
     }
 
     /// Time each marked stretch takes at the programmed feeds, s.
@@ -507,7 +513,7 @@ impl State {
                     self.ccw = true;
                 }
                 4 => pause = true,
-                17 | 40 | 49 | 54..=59 | 64 | 61 | 80 => {}
+                17 | 40 | 43 | 49 | 54..=59 | 64 | 61 | 80 => {}
                 20 | 70 | 700 => self.mm_per_unit = 25.4,
                 21 | 71 | 710 => self.mm_per_unit = 1.0,
                 90 => self.absolute = true,

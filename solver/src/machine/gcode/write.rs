@@ -3,22 +3,29 @@
 //! Layout (shown for `iso`; [`super::dialect`] gives the other dialects' words):
 //!
 //! ```text
-//! %
+//! %                                     (Fanuc: then O<program number>; Sinumerik, unwrapped:
+//!                                        %_N_<NAME>_MPF and ;$PATH=/_N_MPF_DIR)
 //! (PRESTON DWELL PROGRAM)  (DIALECT ISO FEED MODE PER-MINUTE)  ... header comments ...
-//! N1 G17 G21 G90 G94                    preamble [S.. M3] [M8]
-//! N2 G00 Z<clearance plane>             up first, wherever the tool is
-//! N3 G00 X<x0> Y<y0> [B<b0>]            above the run-in start
-//! N4 G01 Z<z0> F<plunge feed>           plunge to the run-in start
+//! N1 G17 G21 G40 G80 G90 G94            safe start, or the profile's start blocks
+//! N2 G17 G21 G54 G90 G94                plane, units, work offset, absolute, feed mode (G93)
+//! [N.. S<rpm> M3|M4] [N.. M8|M7]        spindle, coolant: one M word a block
+//! N3 G00 Z<clearance plane>             up first, wherever the tool is
+//! N4 G00 X<x0> Y<y0> [B<b0>]            above the run-in start
+//! N5 G01 Z<z0> F<plunge feed>           plunge to the run-in start
 //! (DWELL 0 <t_0> S AT <x> <y>)          stretch 0: two blocks at one feed
-//! N5 G01 X.. Y.. Z.. [B..] F<f_0>       run-in start -> point 0
-//! N6 G01 X.. Y.. Z.. [B..] F<f_0>       point 0 -> boundary 1
+//! N6 G01 X.. Y.. Z.. [B..] F<f_0>       run-in start -> point 0
+//! N7 G01 X.. Y.. Z.. [B..] F<f_0>       point 0 -> boundary 1
 //! (DWELL 1 <t_1> S AT <x> <y>)
 //! ...
 //! (END DWELL)
 //! Nk G00 Z<clearance plane>             retract
-//! Nk+1 [M9] [M5] M30
+//! [G94] [M9] [M5] [end blocks] M30      feed per minute again after G93; the program end
 //! %
 //! ```
+//!
+//! Comments never hold a character that ends a block or a comment in any dialect
+//! ([`Dialect::comment`]); times in them have 7 significant digits, coordinates the program's
+//! decimals.
 //!
 //! Stretch `j` (boundary `j` -> point `j` -> boundary `j + 1`, lengths `L1`, `L2` from the
 //! coordinates as written) gets `F = 60 (L1 + L2) / t_j` under `G94`, so that both blocks take
@@ -45,7 +52,7 @@ use super::dialect::{Dialect, FeedMode};
 use super::program::{arc_length_mm, ArcMove};
 use crate::error::{Error, Result};
 use crate::machine::fixed;
-use crate::machine::nc::{NcProgram, COORD_DECIMALS};
+use crate::machine::nc::NcProgram;
 
 /// Smallest number of decimals of `F`.
 pub const MIN_FEED_DECIMALS: usize = 3;
@@ -217,19 +224,19 @@ struct Pose {
     words: String,
 }
 
-/// `v` as written with [`COORD_DECIMALS`] and the value it stands for.
-fn as_written(v: f64) -> (String, f64) {
-    let text = fixed(v, COORD_DECIMALS);
+/// `v` as written with `decimals` and the value it stands for.
+fn as_written(v: f64, decimals: usize) -> (String, f64) {
+    let text = fixed(v, decimals);
     let value = text.parse().unwrap_or(v);
     (text, value)
 }
 
 impl Pose {
-    fn new(tool_mm: [f64; 3], b_deg: Option<f64>) -> Self {
-        let [(xs, x), (ys, y), (zs, z)] = tool_mm.map(as_written);
+    fn new(tool_mm: [f64; 3], b_deg: Option<f64>, decimals: usize) -> Self {
+        let [(xs, x), (ys, y), (zs, z)] = tool_mm.map(|v| as_written(v, decimals));
         let mut words = format!("X{xs} Y{ys} Z{zs}");
         let b = b_deg.map(|b| {
-            let (bs, bv) = as_written(b);
+            let (bs, bv) = as_written(b, decimals);
             words.push_str(" B");
             words.push_str(&bs);
             bv
@@ -258,8 +265,8 @@ impl Pose {
 
 /// Whether `p` lies on the segment `a -> b` to the written resolution (half a unit of the
 /// last coordinate decimal, per axis) and the rotary axis moves uniformly.
-fn collinear(a: &Pose, p: &Pose, b: &Pose) -> bool {
-    let tol = 0.5 * 10f64.powi(-(COORD_DECIMALS as i32)) * 3f64.sqrt();
+fn collinear(a: &Pose, p: &Pose, b: &Pose, decimals: usize) -> bool {
+    let tol = 0.5 * 10f64.powi(-(decimals as i32)) * 3f64.sqrt();
     let ab = [
         b.xyz[0] - a.xyz[0],
         b.xyz[1] - a.xyz[1],
@@ -322,10 +329,25 @@ pub fn feed_word(f: f64, cap: Option<f64>) -> Result<(String, f64)> {
     Ok((text, value))
 }
 
+/// A time in a comment: at least 3 decimals and 7 significant digits, at most 9 decimals.
+fn time_text(t: f64) -> String {
+    let digits = if t > 0.0 && t.is_finite() {
+        (6.0 - t.log10().floor()).clamp(3.0, 9.0) as usize
+    } else {
+        3
+    };
+    fixed(t, digits)
+}
+
+/// The spindle speed as an `S` word: whole rpm (Fanuc refuses a decimal point in `S`).
+fn spindle_word(rpm: f64) -> String {
+    format!("{}", rpm.round().max(1.0) as u64)
+}
+
 /// Writes the program (module documentation).
 pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     let s = &program.settings;
-    let (d, fm) = (s.dialect, s.feed_mode);
+    let (d, fm, dec) = (s.dialect, s.feed_mode, s.decimals);
     let pts = &program.points;
     let n = pts.len();
     if n == 0 || program.boundaries.len() != n + 1 {
@@ -334,9 +356,9 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     let bnd: Vec<Pose> = program
         .boundaries
         .iter()
-        .map(|b| Pose::new(b.tool_mm, b.b_deg))
+        .map(|b| Pose::new(b.tool_mm, b.b_deg, dec))
         .collect();
-    let at: Vec<Pose> = pts.iter().map(|p| Pose::new(p.tool_mm, p.b_deg)).collect();
+    let at: Vec<Pose> = pts.iter().map(|p| Pose::new(p.tool_mm, p.b_deg, dec)).collect();
     let lin = d.linear_word();
     let min_block_s = 1e-3 * s.min_block_time_ms;
     let mut body: Vec<String> = Vec::with_capacity(3 * n + 8);
@@ -375,6 +397,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                 bnd[j] = Pose::new(
                     [c[0] + r * ang.cos(), c[1] + r * ang.sin(), at[j].xyz[2]],
                     at[j].b,
+                    dec,
                 );
             }
         }
@@ -387,8 +410,8 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             return None;
         }
         let start = if second { &at[j] } else { &bnd[j] };
-        let (is, iv) = as_written(run.centre_mm[0] - start.xyz[0]);
-        let (js, jv) = as_written(run.centre_mm[1] - start.xyz[1]);
+        let (is, iv) = as_written(run.centre_mm[0] - start.xyz[0], dec);
+        let (js, jv) = as_written(run.centre_mm[1] - start.xyz[1], dec);
         Some((
             ArcMove {
                 centre_mm: [start.xyz[0] + iv, start.xyz[1] + jv],
@@ -400,7 +423,12 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     let (mut f_lo, mut f_hi) = (f64::INFINITY, 0.0f64);
     for (j, p) in pts.iter().enumerate() {
         let t = p.dwell_s;
-        body.push(d.comment(&format!("DWELL {j} {t} S AT {} {}", p.x_mm, p.y_mm)));
+        body.push(d.comment(&format!(
+            "DWELL {j} {} S AT {} {}",
+            time_text(t),
+            fixed(p.x_mm, dec),
+            fixed(p.y_mm, dec)
+        )));
         let halves = [(&bnd[j], &at[j]), (&at[j], &bnd[j + 1])];
         let arcs = [arc_block(j, false), arc_block(j, true)];
         let mut lens = [0.0; 2];
@@ -453,7 +481,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             .fold(f64::INFINITY, f64::min);
         let merged = shortest_s < min_block_s * (1.0 - FEED_ROUNDING)
             && arcs.iter().all(Option::is_none)
-            && collinear(&bnd[j], &at[j], &bnd[j + 1]);
+            && collinear(&bnd[j], &at[j], &bnd[j + 1], dec);
         let (ends, blens, count) = if merged {
             written.merged_stretches += 1;
             let l = bnd[j].length_to(&bnd[j + 1], d);
@@ -525,7 +553,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         .map(|p| p.tool_mm[2])
         .chain(program.boundaries.iter().map(|b| b.tool_mm[2]))
         .fold(f64::NEG_INFINITY, f64::max);
-    let plane = as_written(top + s.clearance_mm).1;
+    let plane = as_written(top + s.clearance_mm, dec).1;
     let start = &bnd[0];
     let drop = plane - start.xyz[2];
     let plunge_word = match fm {
@@ -541,49 +569,65 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         }
     };
     let mut code: Vec<String> = Vec::with_capacity(body.len() + 12);
-    let mut pre = format!("G17 {} G90 {}", d.metric_word(), fm.word());
+    // Safe start (or the profile's start blocks), then plane, units, work offset, absolute and
+    // the feed mode whatever the start blocks left; spindle and coolant one M word a block (the
+    // Fanuc default allows one M code per block).
+    code.extend(s.start_blocks_or_default());
+    let mut modes = format!("G17 {}", d.metric_word());
+    if let Some(w) = s.work_offset.word() {
+        modes.push(' ');
+        modes.push_str(w);
+    }
+    modes.push_str(&format!(" G90 {}", fm.word()));
+    code.push(modes);
     if let Some(rpm) = s.spindle_rpm {
-        pre.push_str(&format!(" S{} M3", fixed(rpm, 1)));
+        code.push(format!(
+            "S{} {}",
+            spindle_word(rpm),
+            s.spindle_direction.word()
+        ));
     }
-    if s.coolant {
-        pre.push_str(" M8");
+    if let Some(m) = s.coolant.word() {
+        code.push(m.to_string());
     }
-    code.push(pre);
     code.push(format!(
         "{} Z{}",
         d.rapid_word(),
-        fixed(plane, COORD_DECIMALS)
+        fixed(plane, dec)
     ));
     let mut above = format!(
         "{} X{} Y{}",
         d.rapid_word(),
-        fixed(start.xyz[0], COORD_DECIMALS),
-        fixed(start.xyz[1], COORD_DECIMALS)
+        fixed(start.xyz[0], dec),
+        fixed(start.xyz[1], dec)
     );
     if let Some(b) = start.b {
-        above.push_str(&format!(" B{}", fixed(b, COORD_DECIMALS)));
+        above.push_str(&format!(" B{}", fixed(b, dec)));
     }
     code.push(above);
     code.push(format!(
         "{lin} Z{} F{plunge_word}",
-        fixed(start.xyz[2], COORD_DECIMALS)
+        fixed(start.xyz[2], dec)
     ));
     code.extend(body);
     code.push(d.comment("END DWELL"));
     code.push(format!(
         "{} Z{}",
         d.rapid_word(),
-        fixed(plane, COORD_DECIMALS)
+        fixed(plane, dec)
     ));
-    let mut end = String::new();
-    if s.coolant {
-        end.push_str("M9 ");
+    // Modal states back to the safe-start state: feed per minute after inverse time.
+    if fm == FeedMode::InverseTime {
+        code.push(FeedMode::PerMinute.word().to_string());
+    }
+    if s.coolant.word().is_some() {
+        code.push("M9".into());
     }
     if s.spindle_rpm.is_some() {
-        end.push_str("M5 ");
+        code.push("M5".into());
     }
-    end.push_str(d.program_end());
-    code.push(end);
+    code.extend(s.end_blocks.iter().cloned());
+    code.push(d.program_end().to_string());
 
     // Header, then the numbered blocks.
     let mut out = String::with_capacity(40 * code.len() + 1024);
@@ -594,8 +638,13 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     if d.percent_wrapped() {
         line("%");
     }
-    if d == Dialect::Fanuc {
-        line("O1000");
+    match d {
+        Dialect::Fanuc => line(&format!("O{:04}", s.program_number)),
+        Dialect::Sinumerik => {
+            line(&format!("%_N_{}_MPF", s.program_name.to_uppercase()));
+            line(";$PATH=/_N_MPF_DIR");
+        }
+        _ => {}
     }
     let sched = &program.schedule;
     let mut header = vec![
@@ -616,7 +665,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     header.push(format!("POINTS {n}"));
     header.push(format!(
         "TOOL RADIUS {} MM, TOOL CENTRE = CONTACT + R * NORMAL",
-        fixed(s.tool_radius_mm, COORD_DECIMALS)
+        fixed(s.tool_radius_mm, dec)
     ));
     if let Some(t) = s.arc_tolerance_mm {
         header.push(format!(
@@ -632,8 +681,8 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         });
         header.push(format!(
             "NORMAL DISPLACEMENT {} .. {} MM",
-            fixed(lo, COORD_DECIMALS),
-            fixed(hi, COORD_DECIMALS)
+            fixed(lo, dec),
+            fixed(hi, dec)
         ));
     }
     header.push(format!("TOTAL DWELL {} S", fixed(sched.total_dwell_s, 3)));
@@ -652,9 +701,13 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     }
     header.push(format!(
         "CLEARANCE PLANE Z {} MM",
-        fixed(plane, COORD_DECIMALS)
+        fixed(plane, dec)
     ));
-    header.push("EACH DWELL COMMENT: POINT, PLANNED S, CONTACT X Y MM; ITS BLOCKS FOLLOW".into());
+    header.push(format!(
+        "WORK OFFSET {}",
+        s.work_offset.word().unwrap_or("AS ACTIVE ON THE CONTROLLER")
+    ));
+    header.push("EACH DWELL COMMENT: POINT, PLANNED S, CONTACT X Y MM, ITS BLOCKS FOLLOW".into());
     for h in &header {
         line(&d.comment(h));
     }
