@@ -513,7 +513,7 @@ fn nc_tool_centre_on_sphere_matches_hand_normals() {
         assert!((p[7] - ds / p[6] * 60.0).abs() < 1e-9 * p[7]);
     }
     assert!(text.starts_with("%\n(PRESTON DWELL PROGRAM)\n(DIALECT ISO"));
-    assert!(text.contains("N1 G17 G21 G90 G94"));
+    assert!(text.contains("N1 G17 G21 G40 G80 G90 G94\nN2 G17 G21 G54 G90 G94\n"));
     assert!(text.trim_end().ends_with("M30\n%") || text.ends_with("M30\n%\n"));
 }
 

@@ -349,9 +349,10 @@ fn dialects_feed_modes_and_program_checks() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("dwell point 20") && e.contains("500 ms"), "{e}");
     assert!(!bad.exists());
-    // A program without dwell markers cannot give executed dwell.
+    // A program with no feed move and no pause touches nothing (a program without dwell
+    // markers is otherwise simulated as written, `shop_cli.rs`).
     let plain_prog = d.path().join("plain.nc");
-    std::fs::write(&plain_prog, "G0 X0 Y0 Z0\nG1 X5 F60\nM30\n").unwrap();
+    std::fs::write(&plain_prog, "G0 X0 Y0 Z0\nG0 X5\nM30\n").unwrap();
     let mut a = vec![
         "simulate",
         "--map",
@@ -365,5 +366,5 @@ fn dialects_feed_modes_and_program_checks() {
     a.extend_from_slice(&GAUSSIAN);
     let o = preston(&a);
     assert_eq!(o.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("DWELL markers"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("nothing touches the part"));
 }
