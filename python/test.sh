@@ -13,7 +13,9 @@ fi
 # The CLI the tests compare against.
 cargo build --release -p preston-cli
 rm -rf target/wheels
-.venv/bin/maturin build --release --manifest-path python/Cargo.toml --out target/wheels
-.venv/bin/python -m pip install --quiet --force-reinstall --no-deps target/wheels/preston-*.whl
+# A wheel for this host (pyproject.toml at the repository root; the release wheels for glibc
+# 2.17, manylinux2014, are built by scripts/build-wheels.sh with zig).
+.venv/bin/maturin build --release --compatibility linux --out target/wheels
+.venv/bin/python -m pip install --quiet --force-reinstall --no-deps target/wheels/preston_dwell-*.whl
 # From the repository root, so that the installed wheel (not python/preston) is imported.
 PRESTON_BIN="$PWD/target/release/preston" .venv/bin/python -m pytest -q python/tests "$@"

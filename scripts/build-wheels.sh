@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Builds the release distributions of the Python package `preston-dwell` (import name `preston`)
+# into target/dist: the sdist and an abi3 wheel for CPython 3.9+ on Linux x86_64 tagged
+# manylinux2014 (glibc 2.17: RHEL/CentOS 7 and every newer distribution), linked by zig (the
+# `ziglang` package from PyPI) so that the host's glibc does not matter; then checks the wheel's
+# tag and external libraries with auditwheel, and installs it into a fresh virtual environment
+# with no Rust toolchain on PATH to import it and compare `preston.__version__` with
+# `preston --version`. Needs python3 (>= 3.9) with venv and pip, and cargo.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY="${PYTHON:-python3}"
+VENV=target/build-wheels-venv
+if [ ! -x "$VENV/bin/python" ]; then
+    "$PY" -m venv "$VENV"
+fi
+"$VENV/bin/python" -m pip install --quiet --upgrade pip
+"$VENV/bin/python" -m pip install --quiet "maturin>=1.9,<2" ziglang auditwheel
+rm -rf target/dist
+# maturin finds zig through `python -m ziglang` of the interpreter on PATH.
+PATH="$PWD/$VENV/bin:$PATH" CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target/zig}" \
+    "$VENV/bin/maturin" build --release --zig --compatibility manylinux2014 --out target/dist
+"$VENV/bin/maturin" sdist --out target/dist
+"$VENV/bin/auditwheel" show target/dist/preston_dwell-*.whl
+# A clean environment, no Rust: only /usr/bin and /bin on PATH.
+rm -rf target/clean-venv
+"$PY" -m venv target/clean-venv
+target/clean-venv/bin/python -m pip install --quiet target/dist/preston_dwell-*.whl
+cargo build --release -p preston-cli
+cli_version="$(target/release/preston --version | awk '{print $2}')"
+env -i PATH=/usr/bin:/bin HOME="$HOME" target/clean-venv/bin/python - "$cli_version" data/job.toml <<'PY'
+import shutil, sys
+import preston
+assert shutil.which("cargo") is None and shutil.which("rustc") is None, "Rust on PATH"
+assert preston.__version__ == sys.argv[1], (preston.__version__, sys.argv[1])
+r = preston.solve(sys.argv[2])
+print(f"preston {preston.__version__}: sample job RMS {r.report['rms_before_nm']:.2f} -> "
+      f"{r.report['rms_after_nm']:.2f} nm, status {r.report['status']}")
+PY
