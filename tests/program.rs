@@ -5,8 +5,8 @@ use preston::solver::machine::gcode::dialect::{Dialect, FeedMode};
 use preston::solver::machine::gcode::motion::{check_stretches, contact_xy, execute, Kinematics};
 use preston::solver::machine::gcode::program::{BlockKind, Program};
 use preston::solver::machine::gcode::write::{write_program, FEED_ROUNDING};
-use preston::solver::machine::profile::{Coolant, WorkOffset};
 use preston::solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
+use preston::solver::machine::profile::{Coolant, WorkOffset};
 use preston::solver::machine::{Flat, PartGeometry};
 use preston::solver::path::DwellPath;
 use preston::solver::surface::{Conic, Surface};
@@ -37,7 +37,12 @@ fn assert_delivers(path: &DwellPath, dwell_s: &[f64], geometry: &dyn PartGeometr
         assert_eq!(m.point, k);
         // The marker's dwell has 7 significant digits (at most 9 decimals).
         let written = (m.planned_dwell_s - dwell_s[k]).abs();
-        assert!(written <= 5e-7 * dwell_s[k] + 5e-10, "{} vs {}", m.planned_dwell_s, dwell_s[k]);
+        assert!(
+            written <= 5e-7 * dwell_s[k] + 5e-10,
+            "{} vs {}",
+            m.planned_dwell_s,
+            dwell_s[k]
+        );
         assert!(
             (t - dwell_s[k]).abs() <= STRETCH_TOL * dwell_s[k],
             "{:?} {:?}: stretch {k}: {t} s for {} s",
@@ -557,7 +562,11 @@ fn manual_rules(text: &str, d: Dialect, inverse_time: bool) -> Vec<String> {
                 .strip_prefix("%_N_")
                 .and_then(|r| r.strip_suffix("_MPF"))
                 .unwrap_or("");
-            if name.len() < 2 || !name.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_') {
+            if name.len() < 2
+                || !name
+                    .chars()
+                    .all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_')
+            {
                 bad.push(format!("first line {first}"));
             }
             if text.contains('(') || text.contains(')') {
@@ -680,7 +689,11 @@ fn every_dialect_keeps_its_manual_rules_and_sane_comment_digits() {
     }
     // The profile's own start and end blocks, work offset, program number and name.
     let s = NcSettings {
-        start_blocks: Some(vec!["G17 G21 G40 G49 G80 G90".into(), "T1 M6".into(), "G43 H1".into()]),
+        start_blocks: Some(vec![
+            "G17 G21 G40 G49 G80 G90".into(),
+            "T1 M6".into(),
+            "G43 H1".into(),
+        ]),
         end_blocks: vec!["G40 G49".into()],
         work_offset: WorkOffset::G56,
         program_number: 42,
@@ -703,5 +716,8 @@ fn every_dialect_keeps_its_manual_rules_and_sane_comment_digits() {
     let text = write_program(&NcProgram::plan(&path, &dwell, &Flat, &s).unwrap(), &[])
         .unwrap()
         .text;
-    assert!(text.starts_with("%_N_MIRROR_7_MPF\n;$PATH=/_N_MPF_DIR\n"), "{text}");
+    assert!(
+        text.starts_with("%_N_MIRROR_7_MPF\n;$PATH=/_N_MPF_DIR\n"),
+        "{text}"
+    );
 }

@@ -136,7 +136,10 @@ fn a_hand_written_program_with_arcs_and_inverse_time_simulates_as_written() {
     let moves = reference_moves();
     let total: f64 = moves.iter().map(|m| m.1).sum();
     let executed = summary["executed_time_s"].as_f64().unwrap();
-    assert!((executed - total).abs() < 1e-9 * total, "{executed} vs {total}");
+    assert!(
+        (executed - total).abs() < 1e-9 * total,
+        "{executed} vs {total}"
+    );
     assert!(summary["stretch_check"].is_null());
     assert!(!out.join("executed_dwell.csv").exists());
     let c = csv_columns(&out.join("residual.csv"), &["x_mm", "y_mm", "removal_nm"]);
@@ -164,7 +167,14 @@ fn a_hand_written_program_with_arcs_and_inverse_time_simulates_as_written() {
     );
     let out2 = d.path().join("sim2");
     ok(&preston(&[
-        "simulate", "--job", &job, "--program", &prog, "--out", s(&out2), "--quiet",
+        "simulate",
+        "--job",
+        &job,
+        "--program",
+        &prog,
+        "--out",
+        s(&out2),
+        "--quiet",
     ]));
     let c2 = csv_columns(&out2.join("residual.csv"), &["removal_nm"]);
     assert_eq!(c2[0], c[2]);
@@ -252,7 +262,14 @@ fn a_machine_profile_is_shared_and_the_job_and_flags_override_it() {
     );
     let prog = d.path().join("p.nc");
     ok(&preston(&[
-        "nc", "--dwell", &dwell, "--job", &job, "--out", s(&prog), "--quiet",
+        "nc",
+        "--dwell",
+        &dwell,
+        "--job",
+        &job,
+        "--out",
+        s(&prog),
+        "--quiet",
     ]));
     let text = std::fs::read_to_string(&prog).unwrap();
     let lines: Vec<&str> = text.lines().collect();
@@ -285,9 +302,16 @@ fn a_machine_profile_is_shared_and_the_job_and_flags_override_it() {
     ]));
     let text = std::fs::read_to_string(&prog2).unwrap();
     assert!(text.starts_with("%_N_PRESTON_MPF\n"), "{text}");
-    assert!(text.contains("G17 G71 G54 G90 G93") && text.contains("G94\n"), "{text}");
+    assert!(
+        text.contains("G17 G71 G54 G90 G93") && text.contains("G94\n"),
+        "{text}"
+    );
     // A bad profile is refused before anything is written, naming the file and the field.
-    write(d.path(), "bad.toml", "[nc]\ndialect = 'sinumerik'\nwork_offset = 'g59'\n");
+    write(
+        d.path(),
+        "bad.toml",
+        "[nc]\ndialect = 'sinumerik'\nwork_offset = 'g59'\n",
+    );
     let o = preston(&[
         "nc",
         "--dwell",
@@ -299,7 +323,10 @@ fn a_machine_profile_is_shared_and_the_job_and_flags_override_it() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("bad.toml") && err.contains("work_offset"), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("work_offset"),
+        "{err}"
+    );
     assert!(!d.path().join("r.nc").exists());
 }
 
@@ -309,7 +336,10 @@ fn completions_generate_for_every_shell() {
         let o = preston(&["completions", shell]);
         ok(&o);
         let text = String::from_utf8(o.stdout).unwrap();
-        assert!(text.contains("preston") && text.contains("simulate"), "{shell}");
+        assert!(
+            text.contains("preston") && text.contains("simulate"),
+            "{shell}"
+        );
     }
     assert_eq!(preston(&["completions", "tcsh"]).status.code(), Some(2));
 }
@@ -320,26 +350,54 @@ fn maps_are_written_as_npy_for_npy_names_and_other_extensions_are_refused() {
     let mut t = String::from("x_mm,y_mm,z_nm\n");
     for j in 0..3 {
         for i in 0..4 {
-            t.push_str(&format!("{},{},{}\n", 10.0 + 0.5 * i as f64, -2.0 + 0.5 * j as f64, i * 10 + j));
+            t.push_str(&format!(
+                "{},{},{}\n",
+                10.0 + 0.5 * i as f64,
+                -2.0 + 0.5 * j as f64,
+                i * 10 + j
+            ));
         }
     }
     let map = write_arg(d.path(), "m.csv", &t);
     let npy = d.path().join("m.npy");
-    ok(&preston(&["map", "convert", "--map", &map, "--out", s(&npy)]));
+    ok(&preston(&[
+        "map",
+        "convert",
+        "--map",
+        &map,
+        "--out",
+        s(&npy),
+    ]));
     let bytes = std::fs::read(&npy).unwrap();
     assert!(bytes.starts_with(b"\x93NUMPY"));
     assert_eq!(bytes.len() % 64, (12 * 8) % 64);
     let back = d.path().join("back.csv");
     ok(&preston(&[
-        "map", "convert", "--map", s(&npy), "--pitch-mm", "0.5", "--out", s(&back),
+        "map",
+        "convert",
+        "--map",
+        s(&npy),
+        "--pitch-mm",
+        "0.5",
+        "--out",
+        s(&back),
     ]));
     let a = csv_columns(&back, &["z_nm"]);
     let mut got = a[0].clone();
     got.sort_by(f64::total_cmp);
-    let mut want: Vec<f64> = (0..4).flat_map(|i| (0..3).map(move |j| (i * 10 + j) as f64)).collect();
+    let mut want: Vec<f64> = (0..4)
+        .flat_map(|i| (0..3).map(move |j| (i * 10 + j) as f64))
+        .collect();
     want.sort_by(f64::total_cmp);
     assert_eq!(got, want);
-    let o = preston(&["map", "convert", "--map", &map, "--out", s(&d.path().join("m.xyz"))]);
+    let o = preston(&[
+        "map",
+        "convert",
+        "--map",
+        &map,
+        "--out",
+        s(&d.path().join("m.xyz")),
+    ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains(".csv"), "{err}");

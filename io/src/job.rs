@@ -357,7 +357,9 @@ impl Job {
         };
         // Typed first, for messages with the line at fault.
         let _: ProfileFile = toml::from_str(&ptext).map_err(|e| job_error(e.to_string()))?;
-        let mut merged: toml::Table = ptext.parse().map_err(|e: toml::de::Error| job_error(e.to_string()))?;
+        let mut merged: toml::Table = ptext
+            .parse()
+            .map_err(|e: toml::de::Error| job_error(e.to_string()))?;
         for section in ["machine", "nc"] {
             if let Some(toml::Value::Table(own)) = job_table.get(section) {
                 let base = merged

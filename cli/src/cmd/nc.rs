@@ -1,5 +1,6 @@
 //! `preston nc`: G-code and a point list for CAM from a solved dwell file.
 
+use crate::output::{print_json, OutputArgs};
 use anyhow::{bail, Context};
 use preston_io::atomic::{commit_all, stage};
 use preston_io::job::Job;
@@ -9,7 +10,6 @@ use preston_solver::machine::gcode::dialect::{Dialect, FeedMode};
 use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
 use preston_solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
 use preston_solver::machine::profile::{Coolant, MachineProfile, WorkOffset};
-use crate::output::{print_json, OutputArgs};
 use preston_solver::machine::{Flat, PartGeometry};
 use std::io::Write;
 use std::path::{Path, PathBuf};

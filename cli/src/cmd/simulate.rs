@@ -7,6 +7,8 @@ use super::tif_source::TifArgs;
 use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
 use anyhow::Context;
+use preston_io::job::{Job, MapSource};
+use preston_io::pipeline::load_tif;
 use preston_io::simulation::{
     simulate, simulate_program, write_program_simulation, write_simulation, ProgramOptions,
 };
@@ -14,8 +16,6 @@ use preston_io::surface::read_surface;
 use preston_solver::dwell::FeedLimits;
 use preston_solver::machine::gcode::motion::Kinematics;
 use preston_solver::simulate::Motion;
-use preston_io::job::{Job, MapSource};
-use preston_io::pipeline::load_tif;
 use preston_solver::tif::Tif;
 use std::path::Path;
 use std::path::PathBuf;

@@ -483,7 +483,10 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("G01 X1.5000 Y2.0000 Z5.0000 F600.000\n"));
-        assert!(text.contains("(DWELL 1 0.1000000 S AT 1.0000 2.0000)"), "{text}");
+        assert!(
+            text.contains("(DWELL 1 0.1000000 S AT 1.0000 2.0000)"),
+            "{text}"
+        );
         assert!(text.trim_end().ends_with("M30\n%"));
     }
 }

@@ -279,9 +279,8 @@ pub fn check_block(field: &str, block: &str, dialect: Dialect) -> Result<()> {
     // Followed by a positioning move: when the reader stops at the block (a program end), the
     // move is not read.
     let probe = format!("{block}\nG0 X0\n");
-    let read = Program::parse(&probe, dialect).map_err(|e| {
-        Error::invalid(field, format!("'{block}' cannot be read back: {e}"))
-    })?;
+    let read = Program::parse(&probe, dialect)
+        .map_err(|e| Error::invalid(field, format!("'{block}' cannot be read back: {e}")))?;
     match read.blocks.len() {
         1 => Ok(()),
         0 => bad("ends the program (M2/M30)".into()),
@@ -311,7 +310,10 @@ mod tests {
         assert_eq!(p.coolant, Coolant::Flood);
         assert_eq!(p.work_offset, WorkOffset::G55);
         let s = p.nc_settings();
-        assert_eq!((s.dialect, s.feed_mode, s.decimals), (Dialect::Fanuc, FeedMode::InverseTime, 3));
+        assert_eq!(
+            (s.dialect, s.feed_mode, s.decimals),
+            (Dialect::Fanuc, FeedMode::InverseTime, 3)
+        );
         for bad in [
             "decimals = 9",
             "program_number = 0",

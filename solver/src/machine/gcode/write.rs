@@ -358,7 +358,10 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
         .iter()
         .map(|b| Pose::new(b.tool_mm, b.b_deg, dec))
         .collect();
-    let at: Vec<Pose> = pts.iter().map(|p| Pose::new(p.tool_mm, p.b_deg, dec)).collect();
+    let at: Vec<Pose> = pts
+        .iter()
+        .map(|p| Pose::new(p.tool_mm, p.b_deg, dec))
+        .collect();
     let lin = d.linear_word();
     let min_block_s = 1e-3 * s.min_block_time_ms;
     let mut body: Vec<String> = Vec::with_capacity(3 * n + 8);
@@ -590,11 +593,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     if let Some(m) = s.coolant.word() {
         code.push(m.to_string());
     }
-    code.push(format!(
-        "{} Z{}",
-        d.rapid_word(),
-        fixed(plane, dec)
-    ));
+    code.push(format!("{} Z{}", d.rapid_word(), fixed(plane, dec)));
     let mut above = format!(
         "{} X{} Y{}",
         d.rapid_word(),
@@ -611,11 +610,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
     ));
     code.extend(body);
     code.push(d.comment("END DWELL"));
-    code.push(format!(
-        "{} Z{}",
-        d.rapid_word(),
-        fixed(plane, dec)
-    ));
+    code.push(format!("{} Z{}", d.rapid_word(), fixed(plane, dec)));
     // Modal states back to the safe-start state: feed per minute after inverse time.
     if fm == FeedMode::InverseTime {
         code.push(FeedMode::PerMinute.word().to_string());
@@ -699,13 +694,12 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             fixed(f_hi, 3)
         ));
     }
-    header.push(format!(
-        "CLEARANCE PLANE Z {} MM",
-        fixed(plane, dec)
-    ));
+    header.push(format!("CLEARANCE PLANE Z {} MM", fixed(plane, dec)));
     header.push(format!(
         "WORK OFFSET {}",
-        s.work_offset.word().unwrap_or("AS ACTIVE ON THE CONTROLLER")
+        s.work_offset
+            .word()
+            .unwrap_or("AS ACTIVE ON THE CONTROLLER")
     ));
     header.push("EACH DWELL COMMENT: POINT, PLANNED S, CONTACT X Y MM, ITS BLOCKS FOLLOW".into());
     for h in &header {
