@@ -59,7 +59,7 @@ fn reference_moves() -> Vec<Move> {
     };
     vec![
         // Plunge 5 mm at 300 mm/min at (-6, -4).
-        (line((-6.0, -4.0), (-6.0, -4.0)), 60.0 * 5.0 / 300.0),
+        (line((-6.0, -4.0), (-6.0, -4.0)), 1.0), // 60 * 5 / 300 s
         // 8 mm at 240 mm/min.
         (line((-6.0, -4.0), (2.0, -4.0)), 60.0 * 8.0 / 240.0),
         // Quarter circle about (2, 0), radius 4, from -90 to 0 degrees, at 120 mm/min.
