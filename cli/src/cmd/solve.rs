@@ -180,6 +180,10 @@ pub struct Args {
     /// Job file (TOML) holding all inputs; flags below override it.
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
+    /// Machine profile file ([machine] and [nc] tables, as in a job): feed and acceleration
+    /// limits and the program the plan is checked with; the job's own keys win over it.
+    #[arg(long, value_name = "PROFILE.toml")]
+    pub machine: Option<PathBuf>,
     /// Error map: CSV `x_mm,y_mm,z_nm` or any format of `preston map convert`.
     #[arg(long, value_name = "FILE")]
     pub map: Option<PathBuf>,
@@ -314,10 +318,11 @@ pub struct Args {
 impl Args {
     /// The job with every flag applied over the job file.
     fn into_job(self) -> anyhow::Result<(Job, PathBuf, PathBuf, bool)> {
-        let (mut job, job_path) = match &self.job {
-            Some(p) => (Job::load(p)?, p.clone()),
-            None => (Job::default(), PathBuf::from("<command line>")),
-        };
+        let mut job = Job::load_with_profile(self.job.as_deref(), self.machine.as_deref())?;
+        let job_path = self
+            .job
+            .clone()
+            .unwrap_or_else(|| PathBuf::from("<command line>"));
         if let Some(m) = self.map {
             job.map.file = Some(m);
         }
