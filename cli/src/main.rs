@@ -75,6 +75,8 @@ fn apply_limits(cli: &Cli) -> anyhow::Result<()> {
     Ok(())
 }
 
+// Parsed once per run: the size of the largest variant does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Compute dwell times and feeds for a map, a TIF and a dwell path.

@@ -155,7 +155,12 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
         // The markers carry the point to the program's 4 decimals and the dwell to 7
         // significant digits.
         assert!((e[0] - row[0]).abs() <= 0.5e-4 && (e[1] - row[1]).abs() <= 0.5e-4);
-        assert!((e[2] - row[3]).abs() <= 5e-7 * row[3] + 5e-10, "{} vs {}", e[2], row[3]);
+        assert!(
+            (e[2] - row[3]).abs() <= 5e-7 * row[3] + 5e-10,
+            "{} vs {}",
+            e[2],
+            row[3]
+        );
         assert!((e[3] - e[2]).abs() <= 0.005 * e[2] + 1e-3);
     }
 }
