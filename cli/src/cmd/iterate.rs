@@ -210,9 +210,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     write_loop(&outcome, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
-    eprintln!("iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm");
+    crate::errln!("iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm");
     for r in &outcome.records {
-        eprintln!(
+        crate::errln!(
             "{},{:.3},{:.3},{:.3},{:.3},{:.2},{}",
             r.iteration,
             r.pv_nm,
@@ -225,14 +225,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 .unwrap_or_default()
         );
     }
-    eprintln!(
+    crate::errln!(
         "preston iterate: spec {}; wrote {}",
         if outcome.met_spec { "met" } else { "not met" },
         args.out.display()
     );
     if !outcome.not_converged.is_empty() {
         for f in &outcome.not_converged {
-            eprintln!(
+            crate::errln!(
                 "  warning: iteration {}: the {} did not converge ({})",
                 f.iteration,
                 f.step.name(),

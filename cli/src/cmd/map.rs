@@ -144,8 +144,8 @@ fn convert(a: ConvertArgs, detrend: bool) -> anyhow::Result<ExitCode> {
         pv_nm: s.pv_nm,
         removed: r.input.removed.as_ref(),
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    eprintln!(
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::errln!(
         "preston map {}: {} points, RMS {:.4} nm, PV {:.4} nm; wrote {}",
         if detrend { "detrend" } else { "convert" },
         r.map.len(),
@@ -205,6 +205,6 @@ fn fit(a: FitArgs) -> anyhow::Result<ExitCode> {
         rms_nm: s.rms_nm,
         pv_nm: s.pv_nm,
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(ExitCode::SUCCESS)
 }

@@ -122,16 +122,16 @@ pub struct PitchArg {
 /// Prints how a map was read (unit notes, dropped points, removed terms) on stderr.
 pub fn print_input_notes(input: &MapInput) {
     for n in &input.notes {
-        eprintln!("  note: {n}");
+        crate::errln!("  note: {n}");
     }
     if input.invalid_points > 0 {
-        eprintln!(
+        crate::errln!(
             "  note: {} points dropped (NaN, empty or no-data height)",
             input.invalid_points
         );
     }
     if input.outside_aperture > 0 {
-        eprintln!(
+        crate::errln!(
             "  note: {} points outside the aperture dropped",
             input.outside_aperture
         );
@@ -142,7 +142,7 @@ pub fn print_input_notes(input: &MapInput) {
             .iter()
             .map(|t| format!("Z{} {:.4} nm", t.noll, t.coefficient_nm))
             .collect();
-        eprintln!(
+        crate::errln!(
             "  note: removed (Noll, normalisation radius {:.3} mm): {}",
             r.norm_radius_mm,
             terms.join(", ")

@@ -100,7 +100,7 @@ pub struct Args {
     #[arg(
         long,
         value_name = "MM",
-        default_value_t = 5.0,
+        default_value_t = NcSettings::default().clearance_mm,
         allow_negative_numbers = true
     )]
     pub clearance_mm: f64,
@@ -108,7 +108,7 @@ pub struct Args {
     #[arg(
         long,
         value_name = "MM_PER_MIN",
-        default_value_t = 300.0,
+        default_value_t = NcSettings::default().plunge_feed_mm_per_min,
         allow_negative_numbers = true
     )]
     pub plunge_feed_mm_per_min: f64,
@@ -116,7 +116,7 @@ pub struct Args {
     #[arg(
         long,
         value_name = "MS",
-        default_value_t = 2.0,
+        default_value_t = NcSettings::default().min_block_time_ms,
         allow_negative_numbers = true
     )]
     pub min_block_time_ms: f64,
@@ -134,14 +134,14 @@ pub struct Args {
     /// Coolant or slurry on (`M8`) during the program, off (`M9`) at the end.
     #[arg(long)]
     pub coolant: bool,
-    /// Point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (default: the G-code path
-    /// with the extension `.csv`).
     /// Write G02/G03 (G17, I J centre offsets) where the tool-centre path is a circular arc.
     #[arg(long)]
     pub arcs: bool,
     /// With --arcs: largest distance of a dwell point from the arc it is written on, um.
     #[arg(long, value_name = "UM", default_value_t = 1.0)]
     pub arc_tolerance_um: f64,
+    /// Point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (default: the G-code path
+    /// with the extension `.csv`).
     #[arg(long, value_name = "P.csv")]
     pub points_out: Option<PathBuf>,
     /// Output G-code program (its directory is created).
@@ -224,7 +224,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         stage_points_csv(&points_out, &program)?,
     ])?;
     let s = &program.schedule;
-    eprintln!(
+    crate::errln!(
         "preston nc: {} points, {} feed blocks ({} dialect, {}), total dwell {:.2} s, max acceleration {:.3} mm/s^2 (solver model)",
         program.points.len(),
         check.written.feed_blocks,
@@ -234,7 +234,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         s.max_accel_mm_per_s2
     );
     print_program_check(&check);
-    eprintln!(
+    crate::errln!(
         "  wrote {} and {}",
         args.out.display(),
         points_out.display()
@@ -246,7 +246,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 pub fn print_program_check(check: &ProgramCheck) {
     let w = &check.written;
     let p = &check.programmed;
-    eprintln!(
+    crate::errln!(
         "  program as written: machining time {:.2} s ({:.2} s in the dwell stretches for {:.2} s planned, plunge {:.2} s); worst stretch {:.3}% off (point {}), {} of {} more than 5% off",
         w.stretch_time_s + w.plunge_time_s,
         p.executed_total_s,
@@ -258,20 +258,20 @@ pub fn print_program_check(check: &ProgramCheck) {
         p.stretches
     );
     if w.merged_stretches > 0 {
-        eprintln!(
+        crate::errln!(
             "  {} stretches written as one block through their point (a half would have been shorter than the block time)",
             w.merged_stretches
         );
     }
     if w.slowed_stretches > 0 {
-        eprintln!(
+        crate::errln!(
             "  warning: {} stretches need more than v_max on the tool-centre path and are programmed at v_max (up to {:.2}% longer than planned)",
             w.slowed_stretches,
             100.0 * (w.max_slowdown - 1.0)
         );
     }
     if let Some(a) = &check.accelerated {
-        eprintln!(
+        crate::errln!(
             "  executed with the acceleration limit: {:.2} s in the stretches; worst stretch {:.2}% off (point {}), {} of {} more than 5% off",
             a.executed_total_s,
             100.0 * a.max_relative_error,

@@ -139,7 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(input) = &r.map_input {
         print_input_notes(input);
     }
-    eprintln!(
+    crate::errln!(
         "preston simulate ({}): {} map points, {} dwell points; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, total dwell {:.2} s; wrote {}",
         r.solver,
         r.m,
@@ -193,11 +193,11 @@ fn run_program(args: &Args, tif: &Tif, program: &Path) -> anyhow::Result<ExitCod
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.sim.report;
     let c = &sim.check;
-    eprintln!(
+    crate::errln!(
         "preston simulate ({}): {} map points, {} marked stretches, {} removal samples; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm",
         r.solver, r.m, c.stretches, sim.samples, r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm
     );
-    eprintln!(
+    crate::errln!(
         "  executed {:.2} s in the stretches for {:.2} s planned ({:.2} s with the plunge and pauses); worst stretch {:.3}% off (point {}), {} of {} more than 5% off; wrote {}",
         c.executed_total_s,
         c.planned_total_s,

@@ -237,7 +237,7 @@ pub struct Args {
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
     pub corner_angle_deg: Option<f64>,
-    /// How the dwell area beyond the map is modelled (default: the job's [edge], else gaussian).
+    /// How the dwell area beyond the map is modelled (default: the job's [edge], else none).
     #[arg(long, value_enum)]
     pub edge: Option<EdgeArg>,
     /// Width of the edge band beyond the map, mm (default: the TIF's nominal radius).
@@ -518,7 +518,7 @@ fn run_tools(
     preston_io::tools::write_tool_outputs(&solved, out)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     let r = &solved.report;
-    eprintln!(
+    crate::errln!(
         "preston solve: {} map points, {} tools, {} dwell points in all, {} non-zeros (assembled, stacked)",
         r.m,
         r.tools.len(),
@@ -526,21 +526,21 @@ fn run_tools(
         r.nnz
     );
     for w in &r.warnings {
-        eprintln!("  warning: {w}");
+        crate::errln!("  warning: {w}");
     }
     for t in &r.tools {
-        eprintln!(
+        crate::errln!(
             "  tool {}: {} points, dwell {:.2} s, removal RMS {:.3} nm PV {:.3} nm, feed {:.1} .. {:.1} mm/min",
             t.tool, t.n, t.total_dwell_s, t.removal_rms_nm, t.removal_pv_nm, t.min_feed_mm_per_min, t.max_feed_mm_per_min
         );
     }
-    eprintln!(
+    crate::errln!(
         "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm; solver {} ({} iterations, status {}), solve {:.3} s; wrote {}",
         r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.solver, r.iterations, r.status, r.solve_seconds,
         out.display()
     );
     if !solved.solution.status.is_converged() {
-        eprintln!(
+        crate::errln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
         );
@@ -571,11 +571,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let notes = pipeline::write_outputs_with_figures(&solved, &out, figures)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     for note in notes {
-        eprintln!("  note: {note}");
+        crate::errln!("  note: {note}");
     }
     let r = &solved.report;
     print_input_notes(&solved.prepared.map_input);
-    eprintln!(
+    crate::errln!(
         "preston solve: {} map points{}, {} dwell points, {} non-zeros ({}){}",
         r.m,
         if r.edge_points > 0 {
@@ -598,7 +598,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     );
     for w in &r.warnings {
-        eprintln!("  warning: {w}");
+        crate::errln!("  warning: {w}");
     }
     if r.unreachable_dwell_points > 0 {
         let shown: Vec<String> = r
@@ -607,28 +607,28 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .take(10)
             .map(|k| k.to_string())
             .collect();
-        eprintln!(
+        crate::errln!(
             "  warning: {} dwell points have no map point in the tool's reach; their dwell is at its lower bound (indices {}{}; all listed in report.json)",
             r.unreachable_dwell_points,
             shown.join(", "),
             if r.unreachable_dwell_points > 10 { ", ..." } else { "" }
         );
     }
-    eprintln!(
+    crate::errln!(
         "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, piston {:.3} nm",
         r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.piston_nm
     );
-    eprintln!(
+    crate::errln!(
         "  total dwell {:.2} s, feed {:.1} .. {:.1} mm/min",
         r.total_dwell_s, r.min_feed_mm_per_min, r.max_feed_mm_per_min
     );
     if let Some(mt) = &r.min_time {
-        eprintln!(
+        crate::errln!(
             "  minimum time: {:.2} s instead of {:.2} s at rho = 0 (objective {:.6e} vs {:.6e}, tolerance {})",
             r.total_dwell_s, mt.total_dwell_rho0_s, r.objective, mt.objective_rho0, mt.tolerance
         );
     }
-    eprintln!(
+    crate::errln!(
         "  machining time {:.2} s, max acceleration {:.3} mm/s^2",
         r.machining_time_s, r.max_accel_mm_per_s2
     );
@@ -637,7 +637,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.accel_iterations,
         r.rms_feed_limited_only_nm,
     ) {
-        eprintln!(
+        crate::errln!(
             "  acceleration limit {a} mm/s^2: {it} {}, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
             match r.accel.as_ref().map(|x| x.method) {
                 Some(AccelMethod::ScpQp) => "SCP iterations",
@@ -656,7 +656,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         (None, Some(why)) => certificate.push(format!("no gap bound: {why}")),
         (None, None) => {}
     }
-    eprintln!(
+    crate::errln!(
         "  solver {}{} ({} iterations, status {}{}), build {:.3} s, solve {:.3} s; wrote {}",
         r.solver,
         if certificate.is_empty() {
@@ -675,7 +675,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     );
     program_check(&solved, &job);
     if !solved.solution().status.is_converged() {
-        eprintln!(
+        crate::errln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
         );
@@ -703,7 +703,7 @@ fn program_check(solved: &pipeline::Solved, job: &Job) {
         Some(f) => match read_surface(f) {
             Ok(s) => Some(s),
             Err(e) => {
-                eprintln!("  warning: no program check: {e}");
+                crate::errln!("  warning: no program check: {e}");
                 return;
             }
         },
@@ -718,6 +718,6 @@ fn program_check(solved: &pipeline::Solved, job: &Job) {
         .and_then(|nc| write_and_check(&nc, &[]));
     match checked {
         Ok(c) => print_program_check(&c),
-        Err(e) => eprintln!("  warning: no G-code program can deliver this plan as it is: {e}"),
+        Err(e) => crate::errln!("  warning: no G-code program can deliver this plan as it is: {e}"),
     }
 }

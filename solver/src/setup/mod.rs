@@ -273,6 +273,12 @@ impl Choices {
                     a_max_mm_per_s2: a,
                     corner_angle_deg,
                     method: self.accel_method,
+                    // The solver's iteration limits bound the limited stage too: the SCP's
+                    // QP solves and the squared-speed method's gradient steps.
+                    max_iterations: AccelLimits::default()
+                        .max_iterations
+                        .min(self.settings.max_iterations),
+                    max_gradient_steps: self.settings.first_order_max_iterations,
                     ..AccelLimits::default()
                 };
                 limits.validate().at(SetupInput::Job)?;
