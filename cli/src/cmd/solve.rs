@@ -560,6 +560,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let bars = Bars::new();
     let prepared = pipeline::prepare(&job, &job_path, &bars)?;
+    // The inputs' warnings come before a solve that may run for minutes.
+    for w in &prepared.warnings {
+        crate::errln!("  warning: {w}");
+    }
+    let early_warnings = prepared.warnings.len();
     let solved = pipeline::solve(prepared, &job, &bars)?;
     let figures = plots.then(|| {
         let axis = match job.dwell.raster_along {
@@ -597,7 +602,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             String::new()
         }
     );
-    for w in &r.warnings {
+    for w in r.warnings.iter().skip(early_warnings) {
         crate::errln!("  warning: {w}");
     }
     if r.unreachable_dwell_points > 0 {
