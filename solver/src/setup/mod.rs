@@ -432,16 +432,27 @@ pub struct OperatorError {
     pub rms_after_exact_nm: f64,
 }
 
+/// Relative difference of the residual RMS the approximate operator predicts from the exact
+/// `R`'s above which a warning is given: the operator's error, small against the removal, can
+/// still dominate the residual that is left.
+pub const RESIDUAL_MISMATCH_WARNING: f64 = 0.05;
+
 impl OperatorError {
-    /// Whether the measured error exceeds the tolerance the operator was built to.
+    /// Whether the measured error exceeds the tolerance the operator was built to, or misstates
+    /// the residual RMS by more than [`RESIDUAL_MISMATCH_WARNING`] of the exact one.
     pub fn exceeds_tolerance(&self) -> bool {
+        let mismatch = (self.rms_after_operator_nm - self.rms_after_exact_nm).abs();
         self.relative_removal_error > self.tolerance
+            || mismatch > RESIDUAL_MISMATCH_WARNING * self.rms_after_exact_nm
     }
 
     /// The warning to give when [`OperatorError::exceeds_tolerance`].
     pub fn warning(&self) -> String {
         format!(
-            "the spreading operator's measured error on the returned dwell is {:.2e} (tolerance              {:.0e}): the residual it predicts, RMS {:.3} nm, is {:.3} nm with the exact R (the              figure reported); a smaller spread_tolerance, or operator = \"sparse\", plans with              the exact R",
+            "the spreading operator's measured error on the returned dwell is {:.2e} of the \
+             removal (tolerance {:.0e}): the residual it predicts, RMS {:.4} nm, is {:.4} nm with \
+             the exact R (the figure reported); a smaller spread_tolerance, or operator = \
+             \"sparse\", plans with the exact R",
             self.relative_removal_error,
             self.tolerance,
             self.rms_after_operator_nm,
