@@ -871,8 +871,19 @@ impl Setup {
         }
         let approximation = self.exact_removal(problem, &solution.dwell_s, observer)?;
         if let Some(a) = &approximation {
-            // The report gives the exact residual of the dwell returned.
+            // The report gives the exact residual of the dwell returned, and where the problem
+            // has no rows beyond the map, its piston and objective.
             removal_nm.clone_from(&a.exact_removal_nm);
+            if problem.m() == m && m > 0 {
+                let d: Vec<f64> = removal_nm
+                    .iter()
+                    .zip(self.map.z_nm())
+                    .map(|(h, z)| h - z)
+                    .collect();
+                let piston = d.iter().sum::<f64>() / m as f64;
+                solution.piston_nm = piston;
+                solution.objective = 0.5 * d.iter().map(|v| (v - piston).powi(2)).sum::<f64>();
+            }
         }
         let approximation = approximation.map(|a| a.error);
         observer.setup_step(SetupStep::FeedSchedule);
