@@ -370,6 +370,7 @@ pub fn contact_xy(
 mod tests {
     use super::*;
     use crate::machine::gcode::dialect::Dialect;
+    use crate::machine::gcode::program::StretchMark;
 
     const TOL: f64 = 1e-12;
 
