@@ -272,7 +272,10 @@ mod tests {
         assert_says(
             "solve",
             "tolerance",
-            &format!("defaults {:e} and {:e}", s.tolerance, s.first_order_tolerance),
+            &format!(
+                "defaults {:e} and {:e}",
+                s.tolerance, s.first_order_tolerance
+            ),
         );
         assert_says(
             "solve",
@@ -282,9 +285,7 @@ mod tests {
         assert_says(
             "solve",
             "lbfgs-memory",
-            &format!(
-                "else {DEFAULT_LBFGS_MEMORY}, or {DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS}"
-            ),
+            &format!("else {DEFAULT_LBFGS_MEMORY}, or {DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS}"),
         );
         assert_says(
             "solve",
@@ -307,7 +308,11 @@ mod tests {
             "corner-angle-deg",
             &format!("(default {})", nc.corner_angle_deg),
         );
-        assert_says("nc", "clearance-mm", &format!("[default: {}]", nc.clearance_mm));
+        assert_says(
+            "nc",
+            "clearance-mm",
+            &format!("[default: {}]", nc.clearance_mm),
+        );
         assert_says(
             "nc",
             "plunge-feed-mm-per-min",

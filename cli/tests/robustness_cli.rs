@@ -377,10 +377,17 @@ fn a_kill_injected_in_the_commit_leaves_whole_files() {
         c.output().unwrap()
     };
     let first = run(&with_pitch("1"), None);
-    assert!(first.status.success(), "{}", String::from_utf8_lossy(&first.stderr));
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
     let names = ["dwell.csv", "residual.csv", "report.json"];
     let snapshot = || -> Vec<Vec<u8>> {
-        names.iter().map(|n| std::fs::read(out.join(n)).unwrap()).collect()
+        names
+            .iter()
+            .map(|n| std::fs::read(out.join(n)).unwrap())
+            .collect()
     };
     for kill_at in 0..names.len() {
         let before = snapshot();
@@ -388,7 +395,11 @@ fn a_kill_injected_in_the_commit_leaves_whole_files() {
         assert!(!o.status.success(), "the injected kill did not happen");
         assert_complete(&out);
         if kill_at == 0 {
-            assert_eq!(snapshot(), before, "a kill before the first rename changed an output");
+            assert_eq!(
+                snapshot(),
+                before,
+                "a kill before the first rename changed an output"
+            );
         }
         // Restore the first run's outputs for the next step.
         let o = run(&with_pitch("1"), None);

@@ -164,7 +164,10 @@ fn max_accel(w: &Written) -> f64 {
         let (bx, by) = (x[j + 1] - x[j], y[j + 1] - y[j]);
         let (la, lb) = (ax.hypot(ay), bx.hypot(by));
         if la > 0.0 && lb > 0.0 {
-            ((ax * bx + ay * by) / (la * lb)).clamp(-1.0, 1.0).acos().to_degrees()
+            ((ax * bx + ay * by) / (la * lb))
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees()
         } else {
             0.0
         }
@@ -197,10 +200,10 @@ fn check_exit_zero(out: &Path, tif: &Gauss, v_max: f64, a_max: Option<f64>) {
     }
     // ds and the feed formula, recomputed from the path.
     let ds = ds_of(&w.x, &w.y);
-    for j in 0..ds.len() {
-        assert!((ds[j] - w.ds[j]).abs() <= 1e-9 * ds[j].max(1.0), "ds at {j}");
-        let f = if ds[j] > 0.0 && w.dwell[j] > 0.0 {
-            ds[j] / w.dwell[j] * 60.0
+    for (j, &d) in ds.iter().enumerate() {
+        assert!((d - w.ds[j]).abs() <= 1e-9 * d.max(1.0), "ds at {j}");
+        let f = if d > 0.0 && w.dwell[j] > 0.0 {
+            d / w.dwell[j] * 60.0
         } else {
             0.0
         };
@@ -209,7 +212,10 @@ fn check_exit_zero(out: &Path, tif: &Gauss, v_max: f64, a_max: Option<f64>) {
             "feed at {j}: {} written, {f} recomputed",
             w.feed[j]
         );
-        assert!(f <= v_max * (1.0 + LIMIT_REL), "feed {f} > v_max {v_max} at {j}");
+        assert!(
+            f <= v_max * (1.0 + LIMIT_REL),
+            "feed {f} > v_max {v_max} at {j}"
+        );
         assert!(w.dwell[j] >= 0.0);
     }
     if let Some(a) = a_max {
@@ -280,7 +286,11 @@ fn jobs() -> impl Strategy<Value = Job> {
                     a_max,
                     operator: op,
                     // The sequential QP needs the assembled R.
-                    accel_method: if op == "fft-spread" { "squared-speed" } else { am },
+                    accel_method: if op == "fft-spread" {
+                        "squared-speed"
+                    } else {
+                        am
+                    },
                 }
             },
         )
@@ -381,7 +391,9 @@ fn the_spreading_operator_reports_its_measured_error_and_the_exact_residual() {
     assert!(matches!(o.status.code(), Some(0 | 3)), "{err}");
     let r = report(&out);
     let e = &r["operator_error"];
-    let measured = e["relative_removal_error"].as_f64().expect("operator_error");
+    let measured = e["relative_removal_error"]
+        .as_f64()
+        .expect("operator_error");
     assert_eq!(e["tolerance"].as_f64(), Some(1e-2));
     let w = read_written(&out);
     let exact = exact_rms_nm(&w, &tif);
@@ -424,12 +436,21 @@ fn inputs_that_cannot_be_meant_are_refused() {
         let out = d.path().join(format!("far_{op}"));
         let mut args: Vec<String> = vec!["--map".into(), s(&map).into()];
         args.extend(tif.args());
-        args.extend(["--dwell".into(), s(&far).into(), "--v-max".into(), "3000".into()]);
+        args.extend([
+            "--dwell".into(),
+            s(&far).into(),
+            "--v-max".into(),
+            "3000".into(),
+        ]);
         args.extend(["--operator".into(), op.into()]);
         let refs: Vec<&str> = args.iter().map(String::as_str).collect();
         let o = solve(&refs, &out);
         assert_eq!(o.status.code(), Some(2), "{op}: {}", stderr(&o));
-        assert!(stderr(&o).contains("none of the 30 dwell points"), "{}", stderr(&o));
+        assert!(
+            stderr(&o).contains("none of the 30 dwell points"),
+            "{}",
+            stderr(&o)
+        );
         assert!(!out.join("report.json").exists());
     }
     // A measured TIF written in metres: a footprint of micrometres.
@@ -444,11 +465,23 @@ fn inputs_that_cannot_be_meant_are_refused() {
     let tif_m = write(d.path(), "tif_m.csv", &tif_m);
     let out = d.path().join("metres");
     let o = solve(
-        &["--map", s(&map), "--tif", s(&tif_m), "--raster-pitch-mm", "1", "--v-max", "3000"],
+        &[
+            "--map",
+            s(&map),
+            "--tif",
+            s(&tif_m),
+            "--raster-pitch-mm",
+            "1",
+            "--v-max",
+            "3000",
+        ],
         &out,
     );
     let err = stderr(&o);
-    assert!(err.contains("narrower") || err.contains("none of the"), "{err}");
+    assert!(
+        err.contains("narrower") || err.contains("none of the"),
+        "{err}"
+    );
     assert_ne!(o.status.code(), Some(101), "{err}");
 }
 
@@ -529,7 +562,15 @@ fn closed_pipes_end_the_printing_not_the_run() {
         ),
         (
             [
-                "tif", "gaussian", "--sigma-mm", "1", "--peak-nm-per-s", "10", "--pitch-mm", "0.25", "--out",
+                "tif",
+                "gaussian",
+                "--sigma-mm",
+                "1",
+                "--peak-nm-per-s",
+                "10",
+                "--pitch-mm",
+                "0.25",
+                "--out",
                 s(&tif_out),
             ]
             .map(String::from)

@@ -180,7 +180,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         match l.source {
             LockSource::Weak => crate::errln!(
                 "  warning: motion {} held: {}; its installation error is not recovered",
-                l.label, l.reason
+                l.label,
+                l.reason
             ),
             LockSource::User => crate::errln!("  locked {} at zero", l.label),
             LockSource::Bound => crate::errln!("  {} held at its prior bound", l.label),
@@ -189,7 +190,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if !reg.status.is_converged() {
         crate::errln!(
             "  warning: stopped before converging (status {}, {} iterations)",
-            reg.status, reg.iterations
+            reg.status,
+            reg.iterations
         );
         return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
     }

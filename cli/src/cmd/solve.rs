@@ -621,11 +621,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     crate::errln!(
         "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, piston {:.3} nm",
-        r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.piston_nm
+        r.rms_before_nm,
+        r.rms_after_nm,
+        r.pv_before_nm,
+        r.pv_after_nm,
+        r.piston_nm
     );
     crate::errln!(
         "  total dwell {:.2} s, feed {:.1} .. {:.1} mm/min",
-        r.total_dwell_s, r.min_feed_mm_per_min, r.max_feed_mm_per_min
+        r.total_dwell_s,
+        r.min_feed_mm_per_min,
+        r.max_feed_mm_per_min
     );
     if let Some(mt) = &r.min_time {
         crate::errln!(
@@ -635,7 +641,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     crate::errln!(
         "  machining time {:.2} s, max acceleration {:.3} mm/s^2",
-        r.machining_time_s, r.max_accel_mm_per_s2
+        r.machining_time_s,
+        r.max_accel_mm_per_s2
     );
     if let (Some(a), Some(it), Some(rms0)) = (
         r.a_max_mm_per_s2,

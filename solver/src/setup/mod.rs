@@ -920,7 +920,9 @@ impl Setup {
         dwell_s: &[f64],
         observer: &dyn Observer,
     ) -> Result<Option<Exact>> {
-        if problem.operator_kind() != crate::influence::operator::OperatorKind::FftSpread || self.surface.is_some() {
+        if problem.operator_kind() != crate::influence::operator::OperatorKind::FftSpread
+            || self.surface.is_some()
+        {
             return Ok(None);
         }
         let m = self.map.len();

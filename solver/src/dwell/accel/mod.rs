@@ -467,8 +467,7 @@ pub(crate) fn solve_validated(
     // The status speaks for the dwell times returned: a result whose acceleration, recomputed
     // from the dwell times as every report does, exceeds the limit beyond the constraint
     // tolerance is not converged, whatever the method's own stopping test said.
-    let status = if status.is_converged() && kin.violation(&best_t) > limits.constraint_tolerance
-    {
+    let status = if status.is_converged() && kin.violation(&best_t) > limits.constraint_tolerance {
         Status::Stalled
     } else {
         status
