@@ -4,6 +4,7 @@
 //! converts them into library settings and calls the library.
 
 mod cmd;
+mod out;
 mod output;
 mod progress;
 
@@ -153,7 +154,7 @@ fn main() -> ExitCode {
         Err(e) => e.exit(),
     };
     if let Err(e) = apply_limits(&cli) {
-        eprintln!("error: {}", message(&e));
+        crate::errln!("error: {}", message(&e));
         return ExitCode::from(2);
     }
     let result = match cli.command {
@@ -178,7 +179,7 @@ fn main() -> ExitCode {
             if is_broken_pipe(&e) {
                 return ExitCode::SUCCESS;
             }
-            eprintln!("error: {}", message(&e));
+            crate::errln!("error: {}", message(&e));
             ExitCode::from(2)
         }
     }
@@ -208,7 +209,7 @@ fn print_debug_counts() {
         .iter()
         .map(|(c, n)| format!("{}={n}", c.name()))
         .collect();
-    eprintln!("debug counts: {}", counts.join(" "));
+    crate::errln!("debug counts: {}", counts.join(" "));
 }
 
 /// A closed pipe (for example `preston ... | head`) is not an error.
@@ -246,5 +247,130 @@ mod tests {
         let mut checked = 0;
         walk(&super::command_tree(), "preston", &mut checked);
         assert!(checked > 100, "only {checked} options seen");
+    }
+
+    /// The help text of `--flag` of `preston <sub>`, with its default where clap shows one.
+    fn help_of(sub: &str, flag: &str) -> String {
+        let tree = super::command_tree();
+        let cmd = tree
+            .find_subcommand(sub)
+            .unwrap_or_else(|| panic!("no subcommand {sub}"));
+        let arg = cmd
+            .get_arguments()
+            .find(|a| a.get_long() == Some(flag))
+            .unwrap_or_else(|| panic!("preston {sub} has no --{flag}"));
+        let help = arg.get_help().map(|h| h.to_string()).unwrap_or_default();
+        let defaults: Vec<String> = arg
+            .get_default_values()
+            .iter()
+            .map(|v| v.to_string_lossy().into_owned())
+            .collect();
+        format!("{help} [default: {}]", defaults.join(","))
+    }
+
+    /// The kebab-case name a choice has in job files and on the command line.
+    fn name_of<T: serde::Serialize>(value: T) -> String {
+        match serde_json::to_value(value) {
+            Ok(serde_json::Value::String(s)) => s,
+            other => panic!("not a unit enum: {other:?}"),
+        }
+    }
+
+    fn assert_says(sub: &str, flag: &str, expected: &str) {
+        let help = help_of(sub, flag);
+        assert!(
+            help.contains(expected),
+            "preston {sub} --{flag}: help {help:?} does not say {expected:?}"
+        );
+    }
+
+    /// Every default the help states agrees with the library's `Default` value: the defaults
+    /// written as prose (options whose absence means the job's value) are read back from the
+    /// help text, those clap shows are derived from the library's `Default` impls.
+    #[test]
+    fn help_states_the_library_defaults() {
+        use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
+        use preston_solver::dwell::{
+            FirstOrderMethod, OperatorChoice, Settings, SolverChoice, DEFAULT_LBFGS_MEMORY,
+            DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS,
+        };
+        use preston_solver::edge::EdgeMethod;
+        use preston_solver::machine::nc::NcSettings;
+        let s = Settings::default();
+        assert_says(
+            "solve",
+            "edge",
+            &format!("else {})", name_of(EdgeMethod::default())),
+        );
+        assert_says(
+            "solve",
+            "accel-method",
+            &format!("{} (default;", name_of(AccelMethod::default())),
+        );
+        let corner = AccelLimits::default().corner_angle_deg;
+        assert_says("solve", "corner-angle-deg", &format!("(default {corner})"));
+        assert_says(
+            "solve",
+            "min-time-tolerance",
+            &format!("(default {})", s.min_time_tolerance),
+        );
+        assert_says(
+            "solve",
+            "tolerance",
+            &format!(
+                "defaults {:e} and {:e}",
+                s.tolerance, s.first_order_tolerance
+            ),
+        );
+        assert_says(
+            "solve",
+            "first-order-method",
+            &format!("else {})", name_of(FirstOrderMethod::default())),
+        );
+        assert_says(
+            "solve",
+            "lbfgs-memory",
+            &format!("else {DEFAULT_LBFGS_MEMORY}, or {DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS}"),
+        );
+        assert_says(
+            "solve",
+            "solver",
+            &format!("else {})", name_of(SolverChoice::default())),
+        );
+        assert_says(
+            "solve",
+            "operator",
+            &format!("else {})", name_of(OperatorChoice::default())),
+        );
+        assert_says(
+            "solve",
+            "spread-tolerance",
+            &format!("else {:e})", s.spread_tolerance),
+        );
+        let nc = NcSettings::default();
+        assert_says(
+            "nc",
+            "corner-angle-deg",
+            &format!("(default {})", nc.corner_angle_deg),
+        );
+        assert_says(
+            "nc",
+            "clearance-mm",
+            &format!("[default: {}]", nc.clearance_mm),
+        );
+        assert_says(
+            "nc",
+            "plunge-feed-mm-per-min",
+            &format!("[default: {}]", nc.plunge_feed_mm_per_min),
+        );
+        assert_says(
+            "nc",
+            "min-block-time-ms",
+            &format!("[default: {}]", nc.min_block_time_ms),
+        );
+        // Each flag's text is its own: the point list's text is not on --arcs.
+        assert_says("nc", "arcs", "G02/G03");
+        assert!(!help_of("nc", "arcs").contains("Point list"));
+        assert_says("nc", "points-out", "Point list");
     }
 }

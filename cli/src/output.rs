@@ -35,7 +35,7 @@ pub fn quiet() -> bool {
 macro_rules! note {
     ($($t:tt)*) => {
         if !$crate::output::quiet() {
-            eprintln!($($t)*);
+            $crate::errln!($($t)*);
         }
     };
 }

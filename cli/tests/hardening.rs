@@ -374,6 +374,15 @@ fn wrong_delimiters_and_duplicate_tif_nodes_are_named() {
         &["semicolons", "comma-separated"],
     );
     assert!(!err.contains("convert"), "{err}");
+    // A whitespace-separated file given as CSV is told to read it as XYZ, not to convert units.
+    for sep in [" ", "\t", "  "] {
+        let spaced = write(d.path(), "spaced.csv", &smooth_map().replace(',', sep));
+        let err = refused(
+            &capped(&solve_args(s(&spaced), &["--raster-pitch-mm", "1"], s(&o))),
+            &["--map-format xyz"],
+        );
+        assert!(!err.contains("convert"), "{err}");
+    }
     // The same with a comma header but semicolons in the rows.
     let mixed = write(
         d.path(),

@@ -278,9 +278,10 @@ fn results_do_not_depend_on_the_thread_count() {
 }
 
 /// Each file written by `preston solve` is whole: `report.json` parses, and each CSV has a final
-/// newline and the header's number of fields on every row. (The three files are renamed one
-/// after another, so a kill between two renames may leave an old and a new file side by side;
-/// each of them is still whole.)
+/// newline and the header's number of fields on every row. (The outputs are staged whole and
+/// then renamed one after another: a kill before the first rename leaves the old outputs, one
+/// between two renames an old and a new file side by side, each of them whole;
+/// `a_kill_injected_in_the_commit_leaves_whole_files` injects both.)
 fn assert_complete(out: &Path) {
     report(out);
     for f in ["dwell.csv", "residual.csv"] {
@@ -338,5 +339,75 @@ fn a_killed_solve_leaves_no_partial_output() {
                 || (name.starts_with('.') && name.ends_with(".tmp")),
             "unexpected file {name}"
         );
+    }
+}
+
+/// A kill injected at each step of the commit (`PRESTON_KILL_AT_COMMIT`): after staging and
+/// before any rename, the previous run's outputs are left byte for byte and no temporary is
+/// visible under an output's name; between renames, each output is whole (the old or the new
+/// one); the next run removes the dead run's temporaries and commits all of its outputs.
+#[test]
+fn a_kill_injected_in_the_commit_leaves_whole_files() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("out");
+    let map = write_arg(d.path(), "m.csv", &smooth_map("\n"));
+    let base = [
+        "--map",
+        &map,
+        "--gaussian-sigma-mm",
+        "1",
+        "--gaussian-peak-nm-per-s",
+        "10",
+        "--gaussian-truncation-mm",
+        "3",
+        "--v-max",
+        "3000",
+    ];
+    let with_pitch = |p: &str| {
+        let mut a = base.to_vec();
+        a.extend(["--raster-pitch-mm", p]);
+        a.iter().map(|s| s.to_string()).collect::<Vec<String>>()
+    };
+    let run = |args: &[String], kill_at: Option<usize>| {
+        let mut c = preston_cmd();
+        c.arg("solve").args(args).arg("--out").arg(&out);
+        if let Some(k) = kill_at {
+            c.env("PRESTON_KILL_AT_COMMIT", k.to_string());
+        }
+        c.output().unwrap()
+    };
+    let first = run(&with_pitch("1"), None);
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
+    let names = ["dwell.csv", "residual.csv", "report.json"];
+    let snapshot = || -> Vec<Vec<u8>> {
+        names
+            .iter()
+            .map(|n| std::fs::read(out.join(n)).unwrap())
+            .collect()
+    };
+    for kill_at in 0..names.len() {
+        let before = snapshot();
+        let o = run(&with_pitch("0.7"), Some(kill_at));
+        assert!(!o.status.success(), "the injected kill did not happen");
+        assert_complete(&out);
+        if kill_at == 0 {
+            assert_eq!(
+                snapshot(),
+                before,
+                "a kill before the first rename changed an output"
+            );
+        }
+        // Restore the first run's outputs for the next step.
+        let o = run(&with_pitch("1"), None);
+        assert!(o.status.success());
+    }
+    // The dead runs' temporaries are gone after the next commit.
+    for e in std::fs::read_dir(&out).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().to_string();
+        assert!(names.contains(&name.as_str()), "left behind: {name}");
     }
 }

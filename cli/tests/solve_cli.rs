@@ -180,7 +180,7 @@ fn bad_input_fails_cleanly() {
     expect_failure(&["--job", &job], &["job.toml", "speed"]);
 }
 
-/// The sample job as shipped (Gerchberg-Papoulis edge extension) run at 2000 mm/s^2: no dwell point
+/// The sample job as shipped (Gerchberg-Papoulis edge extension, its own acceleration limit): no dwell point
 /// outside the map's extent holds more than twice the 95th percentile of the dwell on the map,
 /// the acceleration stays within the limit and the program executed at that limit reproduces
 /// the planned RMS within 10%; `--edge none` on the same job breaks the first target.
@@ -211,7 +211,7 @@ fn sample_job_edge_and_machinability_targets() {
                 [v[cx], v[cy], v[ct]]
             })
             .collect();
-        (r, rows)
+        (r, rows, out)
     };
     // The map's extent: x 0 .. 118.08 mm, y 0 .. 8 mm (0.32 mm grid), read from the map itself.
     let map = std::fs::read_to_string(data("mirror_error_118x8mm.csv")).unwrap();
@@ -235,7 +235,40 @@ fn sample_job_edge_and_machinability_targets() {
             .fold(0.0, f64::max);
         off / p95
     };
-    let (r, rows) = run(&["--a-max-mm-per-s2", "2000"]);
+    let (r, rows, out) = run(&[]);
+    // The limit is the job's own, as shipped.
+    let job_text = std::fs::read_to_string(data("job.toml")).unwrap();
+    let job_a_max: f64 = job_text
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("a_max_mm_per_s2"))
+        .and_then(|v| v.trim().trim_start_matches('=').trim().parse().ok())
+        .expect("the sample job sets a_max_mm_per_s2");
+    assert_eq!(r["a_max_mm_per_s2"].as_f64(), Some(job_a_max));
+    // The planned residual is what R applied to the written dwell.csv leaves: `preston
+    // simulate` of the same map, TIF and dwell file gives the same RMS.
+    let sim = out.path().join("simulated");
+    let o = preston_cmd()
+        .args(["simulate", "--map"])
+        .arg(data("mirror_error_118x8mm.csv"))
+        .arg("--tif")
+        .arg(data("tif_fluid_jet_10mm.csv"))
+        .arg("--dwell")
+        .arg(out.path().join("dwell.csv"))
+        .arg("--out")
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let simulated: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sim.join("report.json")).unwrap()).unwrap();
+    let (planned, applied) = (
+        r["rms_after_nm"].as_f64().unwrap(),
+        simulated["rms_after_nm"].as_f64().unwrap(),
+    );
+    assert!(
+        (planned - applied).abs() <= 1e-9 * planned,
+        "planned RMS {planned} nm, R applied to dwell.csv {applied} nm"
+    );
     assert_eq!(r["edge"], "gerchberg-papoulis");
     assert!(r["edge_points"].as_u64().unwrap() > 0);
     assert_eq!(r["m"], 9672);
@@ -252,7 +285,7 @@ fn sample_job_edge_and_machinability_targets() {
         "executed / planned RMS = {executed}"
     );
 
-    let (r, rows) = run(&["--edge", "none"]);
+    let (r, rows, _) = run(&["--edge", "none"]);
     assert_eq!(r["edge_points"], 0);
     let ratio = spike_ratio(&rows);
     assert!(ratio > 2.0, "without edge handling the ratio is {ratio}");

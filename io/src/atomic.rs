@@ -115,11 +115,24 @@ pub fn commit_all(staged: Vec<Staged>) -> Result<()> {
             ));
         }
     }
-    for s in staged {
+    for (done, s) in staged.into_iter().enumerate() {
+        injected_kill(done);
         s.commit()?;
     }
     drop(locks);
     Ok(())
+}
+
+/// Test hook: with `PRESTON_KILL_AT_COMMIT=N` in the environment the process aborts (as a kill
+/// would end it) when `N` files of a commit have been renamed into place: 0 is after every
+/// output is staged and before the first rename. Lets tests inject the failure where they mean
+/// it instead of hoping a timed kill lands there.
+fn injected_kill(done: usize) {
+    if let Some(n) = std::env::var_os("PRESTON_KILL_AT_COMMIT") {
+        if n.to_str().and_then(|v| v.trim().parse::<usize>().ok()) == Some(done) {
+            std::process::abort();
+        }
+    }
 }
 
 fn dir_of(path: &Path) -> PathBuf {

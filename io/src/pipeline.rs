@@ -318,6 +318,10 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
     report.map_input = Some(prepared.map_input.clone());
     report.set_machine(&outcome.schedule, outcome.accel.as_ref());
     report.set_map_coverage(prepared.map(), prepared.path(), &solution.dwell_s);
+    report.operator_error = outcome.approximation;
+    if let Some(a) = outcome.approximation.filter(|a| a.exceeds_tolerance()) {
+        report.warnings.push(a.warning());
+    }
     match &outcome.executed {
         Some(Ok(e)) => {
             let planned = report.rms_after_nm;

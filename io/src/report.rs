@@ -135,6 +135,10 @@ pub struct Report {
     /// that limit and its removal integrated along the motion, against the plan.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub executed: Option<ExecutedReport>,
+    /// With an approximate (spreading) operator: its measured error on the returned dwell and
+    /// the residual it predicted; `rms_after_nm` above is the exact `R`'s.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub operator_error: Option<preston_solver::setup::OperatorError>,
 }
 
 /// The plan as the machine executes it at an acceleration limit (`preston simulate --program
@@ -433,6 +437,7 @@ impl Report {
             max_neighbour_feed_ratio: max_neighbour_feed_ratio(feeds),
             dwell_outside_map_s: None,
             executed: None,
+            operator_error: None,
         }
     }
 

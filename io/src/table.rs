@@ -311,7 +311,13 @@ fn csv_error(path: &Path, e: &csv::Error) -> Error {
 /// Suggests a present column with the same quantity and another unit (`x_um` for `x_mm`).
 fn hint_for(wanted: &str, names: &[String]) -> String {
     if let [only] = names {
-        for (d, name) in [(';', "semicolons"), ('\t', "tabs"), ('|', "bars")] {
+        if only.split_whitespace().count() > 1 {
+            return "; the header is separated by spaces or tabs, not commas: a height map in \
+                    whitespace-separated columns is read with `--map-format xyz` (`format = \
+                    \"xyz\"` under [map]); Preston's other tables are comma-separated"
+                .to_string();
+        }
+        for (d, name) in [(';', "semicolons"), ('|', "bars")] {
             if only.contains(d) {
                 return format!(
                     "; the header is separated by {name}, not commas: Preston's CSV is \

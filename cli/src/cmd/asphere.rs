@@ -150,7 +150,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let (f_lo, f_hi) = lines.iter().fold((f64::INFINITY, 0.0f64), |(a, b), l| {
         (a.min(l.f_mm_per_min), b.max(l.f_mm_per_min))
     });
-    eprintln!(
+    crate::errln!(
         "preston asphere: {} lines, n_min {:.3} rpm, feed {:.3} .. {:.3} mm/min{}; wrote {}",
         lines.len(),
         n_min_rpm,

@@ -93,7 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(job) = job {
         for &s in &solvers {
             let row = bench::run_job(&job, s)?;
-            eprint!("{}", bench::format_table(std::slice::from_ref(&row)));
+            crate::err!("{}", bench::format_table(std::slice::from_ref(&row)));
             rows.push(row);
         }
     }
@@ -107,18 +107,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             } else {
                 bench::run_generated(n, s, &settings)?
             };
-            eprint!("{}", bench::format_table(std::slice::from_ref(&row)));
+            crate::err!("{}", bench::format_table(std::slice::from_ref(&row)));
             rows.push(row);
         }
     }
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&rows)?);
+        crate::outln!("{}", serde_json::to_string_pretty(&rows)?);
     } else {
-        print!("{}", bench::format_table(&rows));
+        crate::out!("{}", bench::format_table(&rows));
     }
     let unconverged = rows.iter().filter(|r| !r.status.is_converged()).count();
     if unconverged > 0 {
-        eprintln!(
+        crate::errln!(
             "  warning: {unconverged} of {} solves did not converge",
             rows.len()
         );

@@ -82,16 +82,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         )?);
     }
     commit_all(staged)?;
-    println!("{}", serde_json::to_string_pretty(&FitSummary::of(&fit))?);
-    eprintln!(
+    crate::outln!("{}", serde_json::to_string_pretty(&FitSummary::of(&fit))?);
+    crate::errln!(
         "preston fit: {} points, order {}, RMS {:.3} nm, PV {:.3} nm, condition {:.3e}",
-        fit.points, args.order, fit.rms_nm, fit.pv_nm, fit.condition_number
+        fit.points,
+        args.order,
+        fit.rms_nm,
+        fit.pv_nm,
+        fit.condition_number
     );
     if !fit.status.is_converged() {
-        eprintln!(
+        crate::errln!(
             "  warning: the conic fit stopped before converging (status {}, {} iterations); \
              outputs hold the last iterate",
-            fit.status, fit.iterations
+            fit.status,
+            fit.iterations
         );
         return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
     }

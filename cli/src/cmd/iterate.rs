@@ -241,13 +241,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     write_loop(&outcome, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
-    eprintln!(
+    crate::note!(
         "iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm,\
          rate_factor_estimate,uncorrectable_rms_nm"
     );
     let opt = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_default();
     for r in &outcome.records {
-        eprintln!(
+        crate::note!(
             "{},{:.3},{:.3},{:.3},{:.3},{:.2},{},{},{}",
             r.iteration,
             r.pv_nm,
@@ -266,12 +266,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .rev()
         .find_map(|r| r.uncorrectable_rms_nm)
     {
-        eprintln!(
+        crate::note!(
             "  floor: {floor:.3} nm RMS of the measured error is outside the TIF's correctable \
              band (measurement noise and finer structure)"
         );
     }
-    eprintln!(
+    crate::note!(
         "preston iterate: stopped because {}; spec {}; wrote {}",
         outcome.stop.describe(),
         if outcome.met_spec { "met" } else { "not met" },
@@ -279,7 +279,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     );
     if !outcome.not_converged.is_empty() {
         for f in &outcome.not_converged {
-            eprintln!(
+            crate::errln!(
                 "  warning: iteration {}: the {} did not converge ({})",
                 f.iteration,
                 f.step.name(),

@@ -116,7 +116,7 @@ fn write_map(out: &Path, r: &MapRead) -> anyhow::Result<()> {
     if npy {
         let (staged, pitch, origin) = stage_map_npy(out, m)?;
         commit_all(vec![staged]).with_context(|| format!("writing {}", out.display()))?;
-        eprintln!(
+        crate::errln!(
             "  {}: heights in nm, pitch {pitch} mm, cell (0, 0) at x {} y {} mm (read it back with --pitch-mm {pitch})",
             out.display(),
             origin[0],
@@ -160,8 +160,8 @@ fn convert(a: ConvertArgs, detrend: bool) -> anyhow::Result<ExitCode> {
         pv_nm: s.pv_nm,
         removed: r.input.removed.as_ref(),
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    eprintln!(
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::errln!(
         "preston map {}: {} points, RMS {:.4} nm, PV {:.4} nm; wrote {}",
         if detrend { "detrend" } else { "convert" },
         r.map.len(),
@@ -221,6 +221,6 @@ fn fit(a: FitArgs) -> anyhow::Result<ExitCode> {
         rms_nm: s.rms_nm,
         pv_nm: s.pv_nm,
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(ExitCode::SUCCESS)
 }

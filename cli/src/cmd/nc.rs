@@ -361,7 +361,7 @@ pub fn print_program_check(check: &ProgramCheck) {
         );
     }
     if w.slowed_stretches > 0 {
-        eprintln!(
+        crate::errln!(
             "  warning: {} stretches need more than v_max on the tool-centre path and are programmed at v_max (up to {:.2}% longer than planned)",
             w.slowed_stretches,
             100.0 * (w.max_slowdown - 1.0)

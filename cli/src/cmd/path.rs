@@ -465,7 +465,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             )
         }
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    eprintln!("preston path: wrote {}", out.display());
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::errln!("preston path: wrote {}", out.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -146,7 +146,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = tf.rotation_arcsec;
     let t = tf.translation_um;
-    eprintln!(
+    crate::errln!(
         "preston register: {} points, {} iterations; rotation [{:.3}, {:.3}, {:.3}] arcsec, \
          translation [{:.3}, {:.3}, {:.3}] um, form error RMS {:.3} nm; wrote {}",
         tf.points,
@@ -161,7 +161,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         args.out.display()
     );
     let sg = tf.dof_sigma;
-    eprintln!(
+    crate::errln!(
         "  sigma [{:.3}, {:.3}, {:.3}] arcsec, [{:.3}, {:.3}, {:.3}] um; information eigenvalues \
          {:.3e} .. {:.3e}, condition number {}",
         sg[0],
@@ -178,18 +178,20 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     );
     for l in &tf.locked {
         match l.source {
-            LockSource::Weak => eprintln!(
+            LockSource::Weak => crate::errln!(
                 "  warning: motion {} held: {}; its installation error is not recovered",
-                l.label, l.reason
+                l.label,
+                l.reason
             ),
-            LockSource::User => eprintln!("  locked {} at zero", l.label),
-            LockSource::Bound => eprintln!("  {} held at its prior bound", l.label),
+            LockSource::User => crate::errln!("  locked {} at zero", l.label),
+            LockSource::Bound => crate::errln!("  {} held at its prior bound", l.label),
         }
     }
     if !reg.status.is_converged() {
-        eprintln!(
+        crate::errln!(
             "  warning: stopped before converging (status {}, {} iterations)",
-            reg.status, reg.iterations
+            reg.status,
+            reg.iterations
         );
         return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
     }

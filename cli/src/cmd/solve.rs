@@ -242,7 +242,7 @@ pub struct Args {
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
     pub corner_angle_deg: Option<f64>,
-    /// How the dwell area beyond the map is modelled (default: the job's [edge], else gaussian).
+    /// How the dwell area beyond the map is modelled (default: the job's [edge], else none).
     #[arg(long, value_enum)]
     pub edge: Option<EdgeArg>,
     /// Width of the edge band beyond the map, mm (default: the TIF's nominal radius).
@@ -535,7 +535,7 @@ fn run_tools(
         r.nnz
     );
     for w in &r.warnings {
-        eprintln!("  warning: {w}");
+        crate::errln!("  warning: {w}");
     }
     for t in &r.tools {
         crate::note!(
@@ -550,7 +550,7 @@ fn run_tools(
     );
     let converged = solved.solution.status.is_converged();
     if !converged {
-        eprintln!(
+        crate::errln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
         );
@@ -583,6 +583,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let bars = Bars::new();
     let prepared = pipeline::prepare(&job, &job_path, &bars)?;
+    // The inputs' warnings come before a solve that may run for minutes.
+    for w in &prepared.warnings {
+        crate::errln!("  warning: {w}");
+    }
+    let early_warnings = prepared.warnings.len();
     let solved = pipeline::solve(prepared, &job, &bars)?;
     let figures = plots.then(|| {
         let axis = match job.dwell.raster_along {
@@ -620,8 +625,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             String::new()
         }
     );
-    for w in &r.warnings {
-        eprintln!("  warning: {w}");
+    for w in r.warnings.iter().skip(early_warnings) {
+        crate::errln!("  warning: {w}");
     }
     if r.unreachable_dwell_points > 0 {
         let shown: Vec<String> = r
@@ -630,7 +635,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .take(10)
             .map(|k| k.to_string())
             .collect();
-        eprintln!(
+        crate::errln!(
             "  warning: {} dwell points have no map point in the tool's reach; their dwell is at its lower bound (indices {}{}; all listed in report.json)",
             r.unreachable_dwell_points,
             shown.join(", "),
@@ -706,7 +711,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let check = program_check(&solved, &job);
     let converged = solved.solution().status.is_converged();
     if !converged {
-        eprintln!(
+        crate::errln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
             r.status
         );
@@ -745,7 +750,7 @@ fn program_check(solved: &pipeline::Solved, job: &Job) -> Option<ProgramCheck> {
         Some(f) => match read_surface(f) {
             Ok(s) => Some(s),
             Err(e) => {
-                eprintln!("  warning: no program check: {e}");
+                crate::errln!("  warning: no program check: {e}");
                 return None;
             }
         },
@@ -764,7 +769,7 @@ fn program_check(solved: &pipeline::Solved, job: &Job) -> Option<ProgramCheck> {
             Some(c)
         }
         Err(e) => {
-            eprintln!("  warning: no G-code program can deliver this plan as it is: {e}");
+            crate::errln!("  warning: no G-code program can deliver this plan as it is: {e}");
             None
         }
     }

@@ -120,6 +120,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         ],
     )?
     .commit()?;
-    eprintln!("preston surface: {n} points; wrote {}", args.out.display());
+    crate::errln!("preston surface: {n} points; wrote {}", args.out.display());
     Ok(ExitCode::SUCCESS)
 }

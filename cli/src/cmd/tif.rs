@@ -266,8 +266,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         bail!("the TIF has no positive rate (check K, speed and force)");
     }
     write_grid(&out, &grid)?;
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    eprintln!("preston tif: {nx} x {ny} grid; wrote {}", out.display());
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::errln!("preston tif: {nx} x {ny} grid; wrote {}", out.display());
     Ok(ExitCode::SUCCESS)
 }
 

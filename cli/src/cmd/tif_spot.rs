@@ -139,8 +139,8 @@ pub fn run(a: SpotArgs) -> anyhow::Result<ExitCode> {
         ny,
         pitch_mm: g.pitch_mm().0,
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    eprintln!(
+    crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
+    crate::errln!(
         "preston tif spot: {nx} x {ny} grid, peak {:.4} nm/s, FWHM {:.4} mm; wrote {}",
         summary.peak_rate_nm_per_s,
         summary.fwhm_mm,

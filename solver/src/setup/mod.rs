@@ -18,6 +18,7 @@
 //! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
 
 mod off_lattice;
+pub mod plausible;
 pub mod tools;
 
 use crate::dwell::accel::{self, AccelLimits, AccelMethod, AccelReport};
@@ -284,6 +285,12 @@ impl Choices {
                     a_max_mm_per_s2: a,
                     corner_angle_deg,
                     method: self.accel_method,
+                    // The solver's iteration limits bound the limited stage too: the SCP's
+                    // QP solves and the squared-speed method's gradient steps.
+                    max_iterations: AccelLimits::default()
+                        .max_iterations
+                        .min(self.settings.max_iterations),
+                    max_gradient_steps: self.settings.first_order_max_iterations,
                     ..AccelLimits::default()
                 };
                 limits.validate().at(SetupInput::Job)?;
@@ -417,6 +424,69 @@ pub struct Outcome {
     /// With an acceleration limit on a flat part: the default program executed at that limit,
     /// or why no program can deliver the plan.
     pub executed: Option<std::result::Result<Executed, Error>>,
+    /// With an approximate operator: its measured error on the returned dwell (the removal
+    /// above is the exact `R`'s).
+    pub approximation: Option<OperatorError>,
+}
+
+/// The measured error of an approximate operator on the dwell a solve returned.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct OperatorError {
+    /// `||R~ t - R t|| / ||R t||` at the measured map points, `R~` the operator the solve used,
+    /// `R` the exact one.
+    pub relative_removal_error: f64,
+    /// The error the operator was built to (`spread_tolerance`).
+    pub tolerance: f64,
+    /// RMS of the residual the solve saw (with `R~`), nm.
+    pub rms_after_operator_nm: f64,
+    /// RMS of the residual of the exact `R` on the same dwell, nm (the one reported).
+    pub rms_after_exact_nm: f64,
+}
+
+/// Relative difference of the residual RMS the approximate operator predicts from the exact
+/// `R`'s above which a warning is given: the operator's error, small against the removal, can
+/// still dominate the residual that is left.
+pub const RESIDUAL_MISMATCH_WARNING: f64 = 0.05;
+
+impl OperatorError {
+    /// Whether the measured error exceeds the tolerance the operator was built to, or misstates
+    /// the residual RMS by more than [`RESIDUAL_MISMATCH_WARNING`] of the exact one.
+    pub fn exceeds_tolerance(&self) -> bool {
+        let mismatch = (self.rms_after_operator_nm - self.rms_after_exact_nm).abs();
+        self.relative_removal_error > self.tolerance
+            || mismatch > RESIDUAL_MISMATCH_WARNING * self.rms_after_exact_nm
+    }
+
+    /// The warning to give when [`OperatorError::exceeds_tolerance`].
+    pub fn warning(&self) -> String {
+        format!(
+            "the spreading operator's measured error on the returned dwell is {:.2e} of the \
+             removal (tolerance {:.0e}): the residual it predicts, RMS {:.4} nm, is {:.4} nm with \
+             the exact R (the figure reported); a smaller spread_tolerance, or operator = \
+             \"sparse\", plans with the exact R",
+            self.relative_removal_error,
+            self.tolerance,
+            self.rms_after_operator_nm,
+            self.rms_after_exact_nm
+        )
+    }
+}
+
+/// The exact removal and the operator's error on it.
+struct Exact {
+    exact_removal_nm: Vec<f64>,
+    error: OperatorError,
+}
+
+/// Whether every figure of a solve is finite and within physical range (a dwell of more than
+/// 10^12 s, a piston or removal of more than 10^12 nm is a run-away iteration).
+fn solution_is_finite(solution: &Solution, removal_nm: &[f64]) -> bool {
+    const RUNAWAY: f64 = 1e12;
+    let ok = |v: f64| v.is_finite() && v.abs() < RUNAWAY;
+    ok(solution.piston_nm)
+        && solution.objective.is_finite()
+        && solution.dwell_s.iter().all(|&t| ok(t))
+        && removal_nm.iter().all(|&h| ok(h))
 }
 
 impl Outcome {
@@ -715,7 +785,7 @@ impl Setup {
     pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Built> {
         observer.setup_step(SetupStep::BuildProblem);
         let (rows, edge_points) = self.rows()?;
-        let mut warnings = Vec::new();
+        let mut warnings = plausible::size_warnings(&self.map, &self.tif);
         let fft = match self.operator_plan(&rows, &mut warnings)? {
             OperatorPlan::Assembled => None,
             OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
@@ -753,6 +823,12 @@ impl Setup {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
         })
         .at(SetupInput::Job)?;
+        let empty = problem.empty_columns().len();
+        if let Some(why) = plausible::no_dwell_point_reaches_the_map(empty, problem.n(), &self.tif)
+        {
+            return Err(Error::invalid("dwell path", why)).at(SetupInput::None);
+        }
+        warnings.extend(plausible::unreachable_share_warning(empty, problem.n()));
         Ok(Built {
             problem,
             edge_points,
@@ -799,6 +875,28 @@ impl Setup {
         };
         let mut removal_nm = removal_all;
         removal_nm.truncate(m);
+        let mut solution = solution;
+        // A solve that ran away (a non-finite or astronomically large figure) is no answer.
+        if !solution_is_finite(&solution, &removal_nm) {
+            solution.status = Status::NumericalError;
+        }
+        let approximation = self.exact_removal(problem, &solution.dwell_s, observer)?;
+        if let Some(a) = &approximation {
+            // The report gives the exact residual of the dwell returned, and where the problem
+            // has no rows beyond the map, its piston and objective.
+            removal_nm.clone_from(&a.exact_removal_nm);
+            if problem.m() == m && m > 0 {
+                let d: Vec<f64> = removal_nm
+                    .iter()
+                    .zip(self.map.z_nm())
+                    .map(|(h, z)| h - z)
+                    .collect();
+                let piston = d.iter().sum::<f64>() / m as f64;
+                solution.piston_nm = piston;
+                solution.objective = 0.5 * d.iter().map(|v| (v - piston).powi(2)).sum::<f64>();
+            }
+        }
+        let approximation = approximation.map(|a| a.error);
         observer.setup_step(SetupStep::FeedSchedule);
         let feeds = feeds_mm_per_min(&self.ds_mm, &solution.dwell_s);
         let schedule = FeedSchedule::new(
@@ -820,7 +918,50 @@ impl Setup {
             schedule,
             accel,
             executed,
+            approximation,
         })
+    }
+
+    /// With an approximate operator (the spreading operator): the removal of `dwell_s` by the
+    /// exact `R` (summed directly, [`crate::influence::direct`]) at the measured map points and
+    /// the operator's measured error on it. `None` for the exact operators.
+    fn exact_removal(
+        &self,
+        problem: &Problem,
+        dwell_s: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<Option<Exact>> {
+        if problem.operator_kind() != crate::influence::operator::OperatorKind::FftSpread
+            || self.surface.is_some()
+        {
+            return Ok(None);
+        }
+        let m = self.map.len();
+        let mut approx = problem.removal_nm(dwell_s)?;
+        approx.truncate(m);
+        let exact = crate::influence::direct::removal_nm(
+            self.map.x_mm(),
+            self.map.y_mm(),
+            self.path.x_mm(),
+            self.path.y_mm(),
+            dwell_s,
+            &self.tif,
+            observer,
+        )?;
+        let norm = |v: &mut dyn Iterator<Item = f64>| v.map(|x| x * x).sum::<f64>().sqrt();
+        let diff = norm(&mut approx.iter().zip(&exact).map(|(a, e)| a - e));
+        let size = norm(&mut exact.iter().copied());
+        let rms = |h: &[f64]| HeightStats::of(&centred_residual_nm(self.map.z_nm(), h)).rms_nm;
+        let error = OperatorError {
+            relative_removal_error: if size > 0.0 { diff / size } else { 0.0 },
+            tolerance: self.settings.spread_tolerance,
+            rms_after_operator_nm: rms(&approx),
+            rms_after_exact_nm: rms(&exact),
+        };
+        Ok(Some(Exact {
+            exact_removal_nm: exact,
+            error,
+        }))
     }
 
     /// The removal `R t` of given dwell times `dwell_s` at the measured map points, nm (edge
@@ -1108,5 +1249,16 @@ mod tests {
             feeds_mm_per_min(&setup.ds_mm, &o.solution.dwell_s)
         );
         assert!(o.solution.status.is_converged());
+    }
+
+    /// Feeds against hand values: 1 mm in 0.1 s is 10 mm/s, 600 mm/min; 2 mm in 0.5 s is
+    /// 240 mm/min; no feed where the spacing or the dwell is zero.
+    #[test]
+    fn feeds_are_spacing_over_dwell_in_mm_per_min() {
+        let f = feeds_mm_per_min(&[1.0, 2.0, 0.0, 1.5, 0.3], &[0.1, 0.5, 1.0, 0.0, 0.006]);
+        let expected = [600.0, 240.0, 0.0, 0.0, 3000.0];
+        for (got, want) in f.iter().zip(expected) {
+            assert!((got - want).abs() <= 1e-12 * want.max(1.0), "{f:?}");
+        }
     }
 }

@@ -405,7 +405,11 @@ pub(crate) fn solve_validated(
                 let r = scp(problem, &kin, start, limits, settings, observer)?;
                 scp_iterations = r.iterations;
                 qp_iterations += r.qp_iterations;
-                (r.dwell_s, r.status, SolverKind::Qp)
+                (
+                    onto_the_limit(&kin, &reachable, r.dwell_s, bounds),
+                    r.status,
+                    SolverKind::Qp,
+                )
             }
             AccelMethod::SquaredSpeed | AccelMethod::SquaredSpeedThenScpQp => {
                 let speed_limits = speed::SpeedLimits {
@@ -447,7 +451,11 @@ pub(crate) fn solve_validated(
                     let polished = scp(problem, &kin, r.dwell_s, limits, settings, observer)?;
                     scp_iterations = polished.iterations;
                     qp_iterations += polished.qp_iterations;
-                    (polished.dwell_s, polished.status, SolverKind::Qp)
+                    (
+                        onto_the_limit(&kin, &reachable, polished.dwell_s, bounds),
+                        polished.status,
+                        SolverKind::Qp,
+                    )
                 } else {
                     kkt_residual = Some(r.kkt_residual);
                     (r.dwell_s, r.status, SolverKind::FirstOrder)
@@ -456,6 +464,14 @@ pub(crate) fn solve_validated(
         }
     };
 
+    // The status speaks for the dwell times returned: a result whose acceleration, recomputed
+    // from the dwell times as every report does, exceeds the limit beyond the constraint
+    // tolerance is not converged, whatever the method's own stopping test said.
+    let status = if status.is_converged() && kin.violation(&best_t) > limits.constraint_tolerance {
+        Status::Stalled
+    } else {
+        status
+    };
     let eval = problem.evaluate(&best_t)?;
     let ref_eval_obj = reference.objective;
     let m = problem.m() as f64;
@@ -666,6 +682,23 @@ fn forward_reachable(
 
 /// Backward pass: `u_j` nearest to the target inside the reachable interval and within `cap` of
 /// `u_{j+1}`; returns dwell times `t_j = ds_j / sqrt(u_j)`.
+/// The SCP's result moved onto the limit itself: the SCP accepts an iterate whose acceleration
+/// exceeds `a_max` by up to the constraint tolerance (its linearisation is exact only at the
+/// iterate), so the squared speeds of an iterate that exceeds it at all are clamped into the
+/// constraint, as [`feasible_start`] does, and the limit holds as reported. An iterate that
+/// meets the limit is returned unchanged.
+fn onto_the_limit(
+    kin: &Kinematics,
+    reach: &[(f64, f64)],
+    t: Vec<f64>,
+    bounds: &DwellBounds,
+) -> Vec<f64> {
+    if kin.violation(&t) <= 0.0 {
+        return t;
+    }
+    feasible_start(kin, reach, &t, bounds)
+}
+
 fn feasible_start(
     kin: &Kinematics,
     reach: &[(f64, f64)],
@@ -843,6 +876,45 @@ mod tests {
         assert!(out.solution.objective >= free.objective * (1.0 - 1e-6));
         assert_eq!(out.solution.status, Status::Converged, "{:?}", out.report);
         assert!(problem.bounds().max_violation_s(&out.solution.dwell_s) < 1e-12);
+    }
+
+    /// Relative rounding allowed on a limit a method reports as held: the recomputed acceleration
+    /// `|v_{j+1}^2 - v_j^2| / (2 s_j)` of dwell times `t = ds / sqrt(u)` differs from the `u` the
+    /// method held by a few ulps.
+    const LIMIT_ROUNDING: f64 = 1e-9;
+
+    /// Every method that reports the limit held holds it in the dwell times it returns, not only
+    /// within the SCP's acceptance tolerance (1%), over limits from loose to binding.
+    #[test]
+    fn every_method_holds_the_limit_it_reports() {
+        let (problem, path) = trench_problem(false);
+        let settings = Settings::default();
+        let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
+        let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
+        for method in [
+            AccelMethod::ScpQp,
+            AccelMethod::SquaredSpeed,
+            AccelMethod::SquaredSpeedThenScpQp,
+        ] {
+            for fraction in [0.05, 0.2, 0.5, 0.9] {
+                let a_max = fraction * a_free;
+                let out = solve(
+                    &problem,
+                    &path,
+                    &with_method(a_max, method),
+                    &settings,
+                    &Silent,
+                )
+                .unwrap();
+                let a = max_acceleration_mm_per_s2(&path, &out.solution.dwell_s, 60.0);
+                assert!(
+                    a <= a_max * (1.0 + LIMIT_ROUNDING),
+                    "{method:?} at {fraction} of the free acceleration: {a} > {a_max}"
+                );
+                assert!((out.report.max_accel_mm_per_s2 - a).abs() <= 1e-12 * a_max);
+                assert!(out.solution.status.is_converged(), "{:?}", out.report);
+            }
+        }
     }
 
     /// The squared-speed method's objective may exceed the SCP reference's by this fraction (the

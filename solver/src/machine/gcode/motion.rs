@@ -370,8 +370,45 @@ pub fn contact_xy(
 mod tests {
     use super::*;
     use crate::machine::gcode::dialect::Dialect;
+    use crate::machine::gcode::program::StretchMark;
 
     const TOL: f64 = 1e-12;
+
+    /// The stretch statistics against a hand count: executed times 0%, 4.9%, 5.1%, 30%, 49% and
+    /// 60% off their plan (over and under) are 4 stretches more than 5% off, the worst 60%.
+    #[test]
+    fn stretch_statistics_count_the_stretches_more_than_5_percent_off() {
+        let planned = [10.0, 2.0, 4.0, 1.0, 5.0, 0.5, 0.0];
+        let executed = [10.0, 2.098, 3.796, 1.3, 2.55, 0.8, 0.1];
+        let program = Program {
+            dialect: Dialect::Iso,
+            blocks: Vec::new(),
+            stretches: planned
+                .iter()
+                .enumerate()
+                .map(|(k, &t)| StretchMark {
+                    point: 10 + k,
+                    x_mm: 0.0,
+                    y_mm: 0.0,
+                    planned_dwell_s: t,
+                    first_block: 0,
+                })
+                .collect(),
+            contact_end: 0,
+        };
+        let run = Executed {
+            profiles: Vec::new(),
+            stretch_time_s: executed.to_vec(),
+            total_time_s: executed.iter().sum(),
+        };
+        let c = check_stretches(&program, &run);
+        assert_eq!(c.stretches, 7);
+        assert_eq!(c.over_5_percent, 4, "{c:?}");
+        assert_eq!(c.worst_point, 15);
+        assert!((c.max_relative_error - 0.6).abs() < 1e-12, "{c:?}");
+        assert!((c.planned_total_s - planned.iter().sum::<f64>()).abs() < TOL);
+        assert!((c.executed_total_s - executed.iter().sum::<f64>()).abs() < TOL);
+    }
 
     fn line_program(text: &str) -> Program {
         Program::parse(text, Dialect::Iso).unwrap()
