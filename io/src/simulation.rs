@@ -490,10 +490,67 @@ pub fn write_loop(outcome: &LoopOutcome, out_dir: &Path, plots: bool) -> Result<
             run.measured.z_nm(),
         )?);
     }
+    // The figures are drawn for the page in every run, and written as files with `plots`.
+    let figures = stage_loop_plots(outcome, out_dir)?;
+    staged.push(stage_loop_page(outcome, out_dir, &figures)?);
     if plots {
-        staged.extend(stage_loop_plots(outcome, out_dir)?);
+        staged.extend(figures);
     }
     commit_all(staged)
+}
+
+/// Stages `report.html` of a loop: the convergence table, the inner steps that did not converge
+/// and the figures embedded ([`crate::html::loop_page`]).
+fn stage_loop_page(outcome: &LoopOutcome, out_dir: &Path, figures: &[Staged]) -> Result<Staged> {
+    let rows: Vec<crate::html::LoopRow> = outcome
+        .records
+        .iter()
+        .map(|r| crate::html::LoopRow {
+            iteration: r.iteration,
+            pv_nm: r.pv_nm,
+            rms_nm: r.rms_nm,
+            time_s: r.time_s,
+            predicted_rms_nm: r.predicted_rms_nm,
+        })
+        .collect();
+    let failures: Vec<String> = outcome
+        .not_converged
+        .iter()
+        .map(|f| {
+            format!(
+                "iteration {}: {:?} ended {} ({})",
+                f.iteration, f.step, f.status, f.detail
+            )
+        })
+        .collect();
+    let mut embedded = Vec::new();
+    for f in figures {
+        let name = f
+            .dest()
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        embedded.push(crate::html::Figure::from_staged(
+            f,
+            crate::figures::caption(&name),
+        )?);
+    }
+    let provenance = crate::html::Provenance {
+        command: Some(crate::html::Provenance::command_line()),
+        ..Default::default()
+    };
+    let page = crate::html::loop_page(
+        "Preston polishing loop",
+        &rows,
+        outcome.met_spec,
+        &failures,
+        &crate::html::PageExtras {
+            provenance: Some(&provenance),
+            figures: &embedded,
+            notes: &[],
+        },
+    );
+    crate::html::stage_html(&out_dir.join("report.html"), &page)
 }
 
 fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>> {
