@@ -158,3 +158,59 @@ fn psd_2d_of_the_sample_agrees_with_an_independent_estimate() {
     assert_eq!(aheader, preston_io::figures::PSD_AZIMUTHAL_HEADER);
     assert!(arows.len() > 5 && arows.iter().all(|r| r[1] >= 0.0 && r[3] >= 1.0));
 }
+
+/// `simulate --program --plots` of the sample's program: the maps, the PSDs and the planned
+/// against the executed dwell per point.
+#[test]
+fn simulate_program_plots_show_the_psd_and_the_dwell_as_executed() {
+    let out = tempfile::tempdir().unwrap();
+    let solved = out.path().join("solve");
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .arg("--out")
+        .arg(&solved)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let prog = out.path().join("p.nc");
+    let o = preston_cmd()
+        .arg("nc")
+        .arg("--dwell")
+        .arg(solved.join("dwell.csv"))
+        .arg("--out")
+        .arg(&prog)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let sim = out.path().join("sim");
+    let o = preston_cmd()
+        .arg("simulate")
+        .arg("--map")
+        .arg(data("mirror_error_118x8mm.csv"))
+        .arg("--tif")
+        .arg(data("tif_fluid_jet_10mm.csv"))
+        .arg("--program")
+        .arg(&prog)
+        .arg("--plots")
+        .arg("--out")
+        .arg(&sim)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in [
+        "residual.png",
+        "psd.png",
+        "psd.csv",
+        "psd_2d.csv",
+        "psd_azimuthal.csv",
+        "dwell_planned_vs_executed.png",
+        "executed_dwell.csv",
+    ] {
+        assert!(sim.join(f).is_file(), "{f} missing");
+    }
+    assert_eq!(
+        common::png_size(&sim.join("dwell_planned_vs_executed.png")),
+        (1200, 600)
+    );
+}

@@ -964,6 +964,63 @@ pub fn stage_spectrum_plot(
     })
 }
 
+/// Plots curves of `(x, y)` points on linear axes named `x_desc` and `y_desc`: for example the
+/// planned and the executed dwell per point of a program.
+pub fn stage_series_plot(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    curves: &[Curve<'_>],
+) -> Result<Staged> {
+    let xs: Vec<f64> = curves
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|p| p.0))
+        .collect();
+    let ys: Vec<f64> = curves
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|p| p.1))
+        .collect();
+    let (x0, x1) = value_range(&xs).ok_or_else(|| Error::Empty {
+        file: path.to_path_buf(),
+        why: "nothing to plot".into(),
+    })?;
+    let (y0, y1) = value_range(&ys).unwrap_or((0.0, 1.0));
+    let (y0, y1) = (y0.min(0.0), y1 + 0.05 * (y1 - y0.min(0.0)));
+    stage_png_sized(path, (1200, 600), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| plot_error(path, e))?;
+        let (dx, dy) = (tick_decimals(x0, x1, 10), tick_decimals(y0, y1, 8));
+        chart
+            .configure_mesh()
+            .light_line_style(TRANSPARENT)
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .x_labels(10)
+            .y_labels(8)
+            .x_label_formatter(&|v| tick_label(*v, dx))
+            .y_label_formatter(&|v| tick_label(*v, dy))
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(|e| plot_error(path, e))?;
+        let palette = [BLUE, RED, GREEN, MAGENTA, BLACK];
+        for (k, (label, pts)) in curves.iter().enumerate() {
+            let colour = palette[k % palette.len()];
+            chart
+                .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(1)))
+                .map_err(|e| plot_error(path, e))?
+                .label(*label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
+        }
+        draw_legend(&mut chart, path)
+    })
+}
+
 /// One curve of a convergence plot: label and `(iteration, value)` points.
 pub type Curve<'a> = (&'a str, Vec<(f64, f64)>);
 

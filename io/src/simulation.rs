@@ -368,11 +368,43 @@ pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: b
         }
         Ok(())
     })?;
-    write_simulation_with(s, out_dir, plots, vec![executed])
+    let mut extra = vec![executed];
+    if plots {
+        let index = |v: &[f64]| -> Vec<(f64, f64)> {
+            v.iter().enumerate().map(|(k, t)| (k as f64, *t)).collect()
+        };
+        extra.push(crate::plots::stage_series_plot(
+            &out_dir.join("dwell_planned_vs_executed.png"),
+            &format!(
+                "Dwell per point: planned {:.1} s, executed {:.1} s in the stretches",
+                sim.planned_dwell_s.iter().sum::<f64>(),
+                s.dwell_s.iter().sum::<f64>()
+            ),
+            "dwell point (path order)",
+            "dwell (s)",
+            &[
+                ("planned", index(&sim.planned_dwell_s)),
+                ("executed", index(&s.dwell_s)),
+                (
+                    "executed - planned",
+                    index(
+                        &s.dwell_s
+                            .iter()
+                            .zip(&sim.planned_dwell_s)
+                            .map(|(e, p)| e - p)
+                            .collect::<Vec<_>>(),
+                    ),
+                ),
+            ],
+        )?);
+    }
+    write_simulation_with(s, out_dir, plots, extra)
 }
 
 /// Writes `residual.csv` and `report.json` of a simulation into `out_dir`; with `plots`, also
-/// `error_before.png`, `removal.png` and `residual.png`.
+/// `error_before.png`, `removal.png`, `residual.png` and the PSDs of
+/// [`crate::figures::stage_psd_figures`] (along x), and for a program
+/// `dwell_planned_vs_executed.png`.
 pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<()> {
     write_simulation_with(sim, out_dir, plots, Vec::new())
 }
@@ -424,6 +456,17 @@ fn write_simulation_with(
             y,
             &residual,
         )?);
+        // A map off a lattice has no PSD; the other figures are written all the same.
+        let (psd, _left_out) = crate::figures::stage_psd_figures(
+            out_dir,
+            x,
+            y,
+            sim.map.z_nm(),
+            &residual,
+            preston_solver::psd::LineAxis::X,
+            None,
+        )?;
+        staged.extend(psd);
     }
     commit_all(staged)
 }
