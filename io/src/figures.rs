@@ -235,7 +235,17 @@ pub fn stage_psd_figures(
                 marker,
             )?);
         }
-        (Err(e), _) | (_, Err(e)) => notes.push(format!("no 2-D PSD: {e}")),
+        // The reason is the 1-D PSD's when both are left out: one note.
+        (Err(e), _) | (_, Err(e)) if notes.is_empty() => notes.push(format!("no 2-D PSD: {e}")),
+        _ => {
+            if let Some(n) = notes.first_mut() {
+                *n = n.replacen(
+                    "no psd.png / psd.csv",
+                    "no psd.png / psd.csv (nor the 2-D PSDs)",
+                    1,
+                );
+            }
+        }
     }
     Ok((staged, notes))
 }
