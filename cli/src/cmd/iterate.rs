@@ -14,7 +14,9 @@ use preston_solver::iterate::{
     LOOP_SOLVE_TOLERANCE,
 };
 use preston_solver::map::BoundingBox;
-use preston_solver::registration::{RegisterSettings, WEAK_EIGENVALUE_REL};
+use preston_solver::registration::{
+    RegisterSettings, INSTALLATION_RANGE_DEG, INSTALLATION_RANGE_MM,
+};
 use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -113,10 +115,13 @@ pub struct Args {
     /// Seed of the noise generators.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
-    /// Registration: eigen-directions of the information matrix with relative eigenvalue below
-    /// this are locked (see `preston register`).
-    #[arg(long, default_value_t = WEAK_EIGENVALUE_REL)]
-    pub weak_eigenvalue: f64,
+    /// Registration: range of the installation error's translations, mm (a motion whose
+    /// standard deviation exceeds it is held; see `preston register`).
+    #[arg(long, value_name = "MM", default_value_t = INSTALLATION_RANGE_MM)]
+    pub installation_range_mm: f64,
+    /// Registration: range of the installation error's rotations, degrees.
+    #[arg(long, value_name = "DEG", default_value_t = INSTALLATION_RANGE_DEG)]
+    pub installation_range_deg: f64,
     /// Write PNG plots next to the CSVs.
     #[arg(long)]
     pub plots: bool,
@@ -173,7 +178,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         },
         seed: args.seed,
         register: RegisterSettings {
-            weak_eigenvalue_rel: args.weak_eigenvalue,
+            installation_range_mm: args.installation_range_mm,
+            installation_range_deg: args.installation_range_deg,
             ..RegisterSettings::default()
         },
         solver: Settings {
