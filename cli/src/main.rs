@@ -81,7 +81,7 @@ fn apply_limits(cli: &Cli) -> anyhow::Result<()> {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Compute dwell times and feeds for a map, a TIF and a dwell path.
-    Solve(cmd::solve::Args),
+    Solve(Box<cmd::solve::Args>),
     /// Fit an XY-polynomial surface to measured points (x_mm,y_mm,z_mm).
     Fit(cmd::fit::Args),
     /// Register measured points to a design surface (ICP): transform and form error map.
@@ -158,7 +158,7 @@ fn main() -> ExitCode {
         return ExitCode::from(2);
     }
     let result = match cli.command {
-        Command::Solve(args) => cmd::solve::run(args),
+        Command::Solve(args) => cmd::solve::run(*args),
         Command::Fit(args) => cmd::fit::run(args),
         Command::Register(args) => cmd::register::run(args),
         Command::Surface(args) => cmd::surface::run(args),

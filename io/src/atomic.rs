@@ -34,6 +34,16 @@ pub struct Staged {
 }
 
 impl Staged {
+    /// Where the file goes on commit.
+    pub fn dest(&self) -> &Path {
+        &self.dest
+    }
+
+    /// The staged content, read back from the temporary file.
+    pub fn read_back(&self) -> Result<Vec<u8>> {
+        std::fs::read(self.temp.path()).map_err(|e| Error::io(&self.dest, e))
+    }
+
     /// Renames the temporary file over its destination.
     pub fn commit(self) -> Result<()> {
         let dest = self.dest;

@@ -1,12 +1,17 @@
 //! The figure set of a solve (`preston solve --plots`): maps of the error, the predicted removal,
-//! the residual, the dwell and the feed, the TIF, the path, and the 1-D PSD of error and residual
-//! along the raster direction (`psd.png`, `psd.csv`), where the raster pitch's ripple shows.
+//! the residual, the dwell and the feed, the TIF, the path, and the PSDs of error and residual:
+//! 1-D along the raster direction (`psd.png`, `psd.csv`), where the raster pitch's ripple shows,
+//! 2-D (`psd_2d.png`, `psd_2d.csv`) and its azimuthal average (`psd_azimuthal.png`,
+//! `psd_azimuthal.csv`), see [`preston_solver::psd`].
 
 use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
-use crate::plots::{stage_map_plot, stage_path_plot, stage_psd_plot};
+use crate::plots::{
+    stage_grid_plot, stage_map_plot, stage_map_plot_with, stage_path_plot, stage_psd_plot,
+    stage_spectrum_plot, ColorLimits,
+};
 use crate::report::centred_residual_nm;
-use preston_solver::psd::{line_psd, LineAxis, LinePsd};
+use preston_solver::psd::{area_psd, line_psd, AreaPsd, LineAxis, LinePsd};
 use preston_solver::setup::{Outcome, Setup};
 use preston_solver::tif::InfluenceFunction;
 use std::io::Write;
@@ -14,6 +19,42 @@ use std::path::Path;
 
 /// Header of `psd.csv`.
 pub const PSD_HEADER: &str = "frequency_per_mm,error_psd_nm2_mm,residual_psd_nm2_mm";
+
+/// Header of `psd_2d.csv`: one row per lattice frequency.
+pub const PSD_2D_HEADER: &str = "fx_per_mm,fy_per_mm,error_psd_nm2_mm2,residual_psd_nm2_mm2";
+
+/// Header of `psd_azimuthal.csv`.
+pub const PSD_AZIMUTHAL_HEADER: &str =
+    "frequency_per_mm,error_psd_nm2_mm2,residual_psd_nm2_mm2,frequencies_averaged";
+
+/// How the figures are drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FigureStyle {
+    /// Colour range of the height-error maps (the error before and the residual); the other
+    /// maps use robust percentiles.
+    pub color_limits: ColorLimits,
+}
+
+/// The caption of a figure by its file name, for the report page.
+pub fn caption(name: &str) -> &'static str {
+    match name.rsplit_once('.').map_or(name, |(stem, _)| stem) {
+        "error_before" => "Surface error before polishing (nm)",
+        "removal" => "Predicted removal (nm)",
+        "residual" => "Predicted residual, piston removed (nm)",
+        "dwell" => "Dwell time per dwell point (s)",
+        "feed" => "Feed per dwell point (mm/min)",
+        "tif" => "Tool influence function (nm/s)",
+        "path" => "Dwell path, start marked",
+        "psd" => "1-D PSD along the raster direction, raster pitch marked",
+        "psd_2d" => "2-D PSD of the residual, log10 of nm^2 mm^2",
+        "psd_azimuthal" => "Azimuthally averaged 2-D PSD",
+        "dwell_planned_vs_executed" => "Planned and executed dwell per point",
+        "executed_dwell" => "Executed dwell per point (s)",
+        "convergence" => "Form error per iteration",
+        "final_error" => "Measured form error after the last run (nm)",
+        _ => "",
+    }
+}
 
 /// Samples per side of the TIF plot's grid.
 const TIF_SAMPLES: usize = 121;
@@ -28,6 +69,25 @@ pub fn stage_solve_figures(
     axis: LineAxis,
     raster_pitch_mm: Option<f64>,
 ) -> Result<(Vec<Staged>, Vec<String>)> {
+    stage_solve_figures_with(
+        setup,
+        outcome,
+        out_dir,
+        axis,
+        raster_pitch_mm,
+        &FigureStyle::default(),
+    )
+}
+
+/// [`stage_solve_figures`] drawn in `style`.
+pub fn stage_solve_figures_with(
+    setup: &Setup,
+    outcome: &Outcome,
+    out_dir: &Path,
+    axis: LineAxis,
+    raster_pitch_mm: Option<f64>,
+    style: &FigureStyle,
+) -> Result<(Vec<Staged>, Vec<String>)> {
     let map = &setup.map;
     let (mx, my, z) = (map.x_mm(), map.y_mm(), map.z_nm());
     let residual = centred_residual_nm(z, &outcome.removal_nm);
@@ -35,13 +95,14 @@ pub fn stage_solve_figures(
     let dwell = &outcome.solution.dwell_s;
     let feeds = &outcome.feeds_mm_per_min;
     let mut staged = vec![
-        stage_map_plot(
+        stage_map_plot_with(
             &out_dir.join("error_before.png"),
             "Surface error before",
             "nm",
             mx,
             my,
             z,
+            style.color_limits,
         )?,
         stage_map_plot(
             &out_dir.join("removal.png"),
@@ -51,13 +112,14 @@ pub fn stage_solve_figures(
             my,
             &outcome.removal_nm,
         )?,
-        stage_map_plot(
+        stage_map_plot_with(
             &out_dir.join("residual.png"),
             "Residual (piston removed)",
             "nm",
             mx,
             my,
             &residual,
+            style.color_limits,
         )?,
         stage_map_plot(&out_dir.join("dwell.png"), "Dwell time", "s", px, py, dwell)?,
         stage_map_plot(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, feeds)?,
@@ -84,8 +146,26 @@ pub fn stage_solve_figures(
             &tv,
         )?);
     }
+    let (psd, notes) = stage_psd_figures(out_dir, mx, my, z, &residual, axis, raster_pitch_mm)?;
+    staged.extend(psd);
+    Ok((staged, notes))
+}
+
+/// Stages the PSD figures and tables of a map `z` and its residual at `(x, y)`: the 1-D PSD along
+/// `axis` (`raster_pitch_mm` marked), the 2-D PSD and its azimuthal average. Returns the staged
+/// files and notes on those left out (a PSD needs the map on a lattice).
+pub fn stage_psd_figures(
+    out_dir: &Path,
+    x: &[f64],
+    y: &[f64],
+    z: &[f64],
+    residual: &[f64],
+    axis: LineAxis,
+    raster_pitch_mm: Option<f64>,
+) -> Result<(Vec<Staged>, Vec<String>)> {
+    let mut staged = Vec::new();
     let mut notes = Vec::new();
-    match (line_psd(mx, my, z, axis), line_psd(mx, my, &residual, axis)) {
+    match (line_psd(x, y, z, axis), line_psd(x, y, residual, axis)) {
         (Ok(before), Ok(after)) => {
             staged.push(stage_psd_csv(&out_dir.join("psd.csv"), &before, &after)?);
             let marker = raster_pitch_mm
@@ -112,7 +192,101 @@ pub fn stage_solve_figures(
         }
         (Err(e), _) | (_, Err(e)) => notes.push(format!("no psd.png / psd.csv: {e}")),
     }
+    match (area_psd(x, y, z), area_psd(x, y, residual)) {
+        (Ok(before), Ok(after)) => {
+            staged.push(stage_area_psd_csv(
+                &out_dir.join("psd_2d.csv"),
+                &before,
+                &after,
+            )?);
+            staged.push(stage_grid_plot(
+                &out_dir.join("psd_2d.png"),
+                "2-D PSD of the residual (log10 of nm^2 mm^2)",
+                "log10 PSD",
+                &after.fx_per_mm,
+                &after.fy_per_mm,
+                &log_area_psd(&after),
+                ("fx (1/mm)", "fy (1/mm)"),
+            )?);
+            let (ab, aa) = (before.azimuthal(), after.azimuthal());
+            staged.push(stage(&out_dir.join("psd_azimuthal.csv"), |w| {
+                writeln!(w, "{PSD_AZIMUTHAL_HEADER}")?;
+                for k in 0..ab.frequency_per_mm.len() {
+                    writeln!(
+                        w,
+                        "{},{},{},{}",
+                        ab.frequency_per_mm[k], ab.psd_nm2_mm2[k], aa.psd_nm2_mm2[k], ab.cells[k]
+                    )?;
+                }
+                Ok(())
+            })?);
+            let marker = raster_pitch_mm
+                .filter(|p| *p > 0.0)
+                .map(|p| (1.0 / p, "raster pitch"));
+            staged.push(stage_spectrum_plot(
+                &out_dir.join("psd_azimuthal.png"),
+                "Azimuthally averaged 2-D PSD",
+                "PSD (nm^2 mm^2)",
+                &ab.frequency_per_mm,
+                &[
+                    ("error before", &ab.psd_nm2_mm2),
+                    ("residual", &aa.psd_nm2_mm2),
+                ],
+                marker,
+            )?);
+        }
+        // The reason is the 1-D PSD's when both are left out: one note.
+        (Err(e), _) | (_, Err(e)) if notes.is_empty() => notes.push(format!("no 2-D PSD: {e}")),
+        _ => {
+            if let Some(n) = notes.first_mut() {
+                *n = n.replacen(
+                    "no psd.png / psd.csv",
+                    "no psd.png / psd.csv (nor the 2-D PSDs)",
+                    1,
+                );
+            }
+        }
+    }
     Ok((staged, notes))
+}
+
+/// `log10` of the 2-D PSD (values at or below `1e-12` of the peak floored there), the zero
+/// frequency (the removed mean) left blank.
+fn log_area_psd(p: &AreaPsd) -> Vec<f64> {
+    let peak = p.psd_nm2_mm2.iter().copied().fold(0.0, f64::max);
+    let floor = (peak * 1e-12).max(f64::MIN_POSITIVE);
+    let nx = p.fx_per_mm.len();
+    let mut v = Vec::with_capacity(p.psd_nm2_mm2.len());
+    for (l, y) in p.fy_per_mm.iter().enumerate() {
+        for (k, x) in p.fx_per_mm.iter().enumerate() {
+            v.push(if *x == 0.0 && *y == 0.0 {
+                f64::NAN
+            } else {
+                p.psd_nm2_mm2[l * nx + k].max(floor).log10()
+            });
+        }
+    }
+    v
+}
+
+/// Stages `psd_2d.csv`: every lattice frequency (1/mm) with the 2-D PSD (nm^2 mm^2) of the error
+/// and the residual.
+fn stage_area_psd_csv(path: &Path, before: &AreaPsd, after: &AreaPsd) -> Result<Staged> {
+    let nx = before.fx_per_mm.len();
+    stage(path, |w: &mut dyn Write| {
+        writeln!(w, "{PSD_2D_HEADER}")?;
+        for (l, fy) in before.fy_per_mm.iter().enumerate() {
+            for (k, fx) in before.fx_per_mm.iter().enumerate() {
+                writeln!(
+                    w,
+                    "{fx},{fy},{},{}",
+                    before.psd_nm2_mm2[l * nx + k],
+                    after.psd_nm2_mm2[l * nx + k]
+                )?;
+            }
+        }
+        Ok(())
+    })
 }
 
 /// Stages `psd.csv`: frequency (1/mm) and the PSD (nm^2 mm) of the error and the residual.

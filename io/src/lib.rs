@@ -6,8 +6,10 @@
 
 pub mod atomic;
 pub mod bench;
+pub mod digest;
 pub mod error;
 pub mod figures;
+pub mod html;
 pub mod machine;
 pub mod metrology;
 pub mod readers;

@@ -357,22 +357,59 @@ pub fn write_outputs_with_figures(
     out_dir: &Path,
     figures: Option<(LineAxis, Option<f64>)>,
 ) -> Result<Vec<String>> {
+    write_solve_outputs(
+        solved,
+        out_dir,
+        &OutputOptions {
+            figures,
+            plots: figures.is_some(),
+            ..OutputOptions::default()
+        },
+    )
+}
+
+/// What a solve writes beside `dwell.csv`, `residual.csv` and `report.json`.
+#[derive(Debug, Clone, Default)]
+pub struct OutputOptions {
+    /// The raster direction and pitch of the figures (their PSD's axis and marker); figures are
+    /// drawn when `plots` or `html` asks for them.
+    pub figures: Option<(LineAxis, Option<f64>)>,
+    /// Write the figure files (PNG) and the PSD tables.
+    pub plots: bool,
+    /// Write `report.html` ([`crate::html`]) with this provenance, the figures embedded.
+    pub html: Option<crate::html::Provenance>,
+    /// How the figures are drawn.
+    pub style: crate::figures::FigureStyle,
+}
+
+/// Writes a solve's outputs as `options` asks: all staged first and committed together (the
+/// page, when asked, embeds the figures whether or not their files are written). Returns notes
+/// on figures left out.
+pub fn write_solve_outputs(
+    solved: &Solved,
+    out_dir: &Path,
+    options: &OutputOptions,
+) -> Result<Vec<String>> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
-    let (mut staged, notes) = match figures {
-        Some((axis, pitch)) => crate::figures::stage_solve_figures(
+    let draw = options.plots || options.html.is_some();
+    let axis = options.figures.unwrap_or((LineAxis::X, None));
+    let (figures, notes) = if draw {
+        crate::figures::stage_solve_figures_with(
             &solved.prepared.setup,
             &solved.outcome,
             out_dir,
-            axis,
-            pitch,
-        )?,
-        None => (Vec::new(), Vec::new()),
+            axis.0,
+            axis.1,
+            &options.style,
+        )?
+    } else {
+        (Vec::new(), Vec::new())
     };
     let p = &solved.prepared;
     let (map, path) = (p.map(), p.path());
     let o = &solved.outcome;
     let residual = centred_residual_nm(map.z_nm(), &o.removal_nm);
-    staged.extend([
+    let mut staged = vec![
         stage_dwell_csv(
             &out_dir.join("dwell.csv"),
             path.x_mm(),
@@ -390,7 +427,37 @@ pub fn write_outputs_with_figures(
             &residual,
         )?,
         stage_report(&out_dir.join("report.json"), &solved.report)?,
-    ]);
+    ];
+    if let Some(provenance) = &options.html {
+        let html_path = out_dir.join("report.html");
+        let mut embedded = Vec::new();
+        for f in &figures {
+            let name = f
+                .dest()
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned());
+            if let Some(name) = name.filter(|n| n.ends_with(".png") || n.ends_with(".svg")) {
+                embedded.push(crate::html::Figure::from_staged(
+                    f,
+                    crate::figures::caption(&name),
+                )?);
+            }
+        }
+        let json = crate::html::report_json(&solved.report, &html_path)?;
+        let page = crate::html::report_page(
+            "Preston job report",
+            &json,
+            &crate::html::PageExtras {
+                provenance: Some(provenance),
+                figures: &embedded,
+                notes: &notes,
+            },
+        );
+        staged.push(crate::html::stage_html(&html_path, &page)?);
+    }
+    if options.plots {
+        staged.extend(figures);
+    }
     commit_all(staged)?;
     Ok(notes)
 }

@@ -8,6 +8,7 @@
 
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
 use std::path::Path;
@@ -99,14 +100,20 @@ const RIGHT_PX: u32 = 36;
 const BAR_AREA_PX: u32 = 76;
 /// Tallest data area, pixels (near-square parts).
 const MAX_DATA_HEIGHT_PX: u32 = 720;
-/// Shortest data area, pixels (very thin strips stay readable; the aspect is then kept by
-/// narrowing the width instead).
-const MIN_DATA_HEIGHT_PX: u32 = 40;
+/// Most elongated data area drawn (long side over short side): a part more elongated than this
+/// is drawn at this aspect, its short axis stretched (the title says by how much), so that a
+/// strip stays strip-shaped but its short axis is readable.
+pub const MAX_DRAWN_ASPECT: f64 = 6.0;
 /// Colour of pixels inside the plot frame that no data point covers (outside the aperture).
 const NO_DATA: RGBColor = RGBColor(200, 200, 200);
+/// Colour of points below the colour range.
+pub const UNDER_RANGE: RGBColor = RGBColor(0, 0, 0);
+/// Colour of points above the colour range.
+pub const OVER_RANGE: RGBColor = RGBColor(255, 0, 255);
 
-/// Where a map plot puts its data: equal mm per pixel on both axes, the part's long axis across
-/// the width (a part taller than wide is turned a quarter turn clockwise: `y` across, `x` down).
+/// Where a map plot puts its data: the part's long axis across the width (a part taller than wide
+/// is turned a quarter turn clockwise: `y` across, `x` down), equal mm per pixel on both axes up
+/// to an aspect of [`MAX_DRAWN_ASPECT`], the short axis stretched beyond it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapLayout {
     /// Canvas size, pixels.
@@ -117,6 +124,8 @@ pub struct MapLayout {
     pub data_size_px: (u32, u32),
     /// True when the plot shows `y` across and `x` down.
     pub rotated: bool,
+    /// Pixels per mm down over pixels per mm across: 1 at equal scale, more for a stretched strip.
+    pub stretch: f64,
 }
 
 impl MapLayout {
@@ -128,29 +137,160 @@ impl MapLayout {
         } else {
             (width_mm, height_mm)
         };
+        let drawn_down = down.max(across / MAX_DRAWN_ASPECT);
         let max_w = MAP_WIDTH_PX - Y_LABELS_PX - RIGHT_PX;
         let mut w = max_w as f64;
-        let mut h = w * down / across;
+        let mut h = w * drawn_down / across;
         if h > MAX_DATA_HEIGHT_PX as f64 {
             h = MAX_DATA_HEIGHT_PX as f64;
-            w = h * across / down;
-        }
-        if h < MIN_DATA_HEIGHT_PX as f64 {
-            // Thinner than this, keep the aspect by the height alone (the width then exceeds
-            // the canvas and the canvas grows with it).
-            h = MIN_DATA_HEIGHT_PX as f64;
-            w = h * across / down;
+            w = h * across / drawn_down;
         }
         let (w, h) = (w.round().max(1.0) as u32, h.round().max(1.0) as u32);
         MapLayout {
-            canvas_px: (
-                (Y_LABELS_PX + w + RIGHT_PX).max(MAP_WIDTH_PX),
-                TITLE_PX + h + X_LABELS_PX + BAR_AREA_PX,
-            ),
+            canvas_px: (MAP_WIDTH_PX, TITLE_PX + h + X_LABELS_PX + BAR_AREA_PX),
             data_origin_px: (Y_LABELS_PX, TITLE_PX),
             data_size_px: (w, h),
             rotated,
+            stretch: drawn_down / down,
         }
+    }
+
+    /// A note for the title when the short axis is stretched, e.g. ` (y stretched 2.4x)`.
+    fn stretch_note(&self) -> String {
+        if self.stretch > 1.0 + 1e-9 {
+            format!(
+                " ({} stretched {:.1}x)",
+                if self.rotated { "x" } else { "y" },
+                self.stretch
+            )
+        } else {
+            String::new()
+        }
+    }
+}
+
+/// How a map's colours span its values.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum ColorLimits {
+    /// Robust percentiles: signed data `+-` the 99th percentile of `|v|`, one-signed data the
+    /// 0.5th to the 99.5th percentile; points outside are drawn in [`UNDER_RANGE`] and
+    /// [`OVER_RANGE`] and counted under the colour bar.
+    #[default]
+    Robust,
+    /// The values' whole range.
+    Full,
+    /// Given limits, in the map's unit (`lo < hi`).
+    Fixed {
+        /// Lower limit.
+        lo: f64,
+        /// Upper limit.
+        hi: f64,
+    },
+}
+
+impl std::str::FromStr for ColorLimits {
+    type Err = String;
+
+    /// `robust`, `full`, or `LO,HI` (numbers, `LO < HI`).
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.trim() {
+            "robust" => return Ok(ColorLimits::Robust),
+            "full" => return Ok(ColorLimits::Full),
+            _ => {}
+        }
+        let bad = || format!("`{s}`: give LO,HI (two numbers, LO < HI), `robust` or `full`");
+        let (a, b) = s.split_once(',').ok_or_else(bad)?;
+        let lo: f64 = a.trim().parse().map_err(|_| bad())?;
+        let hi: f64 = b.trim().parse().map_err(|_| bad())?;
+        if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+            return Err(bad());
+        }
+        Ok(ColorLimits::Fixed { lo, hi })
+    }
+}
+
+/// Value at quantile `q` (0..1) of sorted `v` (nearest rank).
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    let k = ((sorted.len() as f64 - 1.0) * q).round() as usize;
+    sorted[k.min(sorted.len() - 1)]
+}
+
+/// The colour range of `v` under `limits` and the scale it gets: signed data (or signed given
+/// limits) the diverging scale symmetric about zero, one-signed data viridis.
+fn colour_range(v: &[f64], limits: ColorLimits) -> (Scale, f64, f64) {
+    let (lo, hi) = value_range(v).unwrap_or((0.0, 1.0));
+    match limits {
+        ColorLimits::Fixed { lo, hi } => (Scale::for_values(lo, hi), lo, hi),
+        ColorLimits::Full => {
+            let scale = Scale::for_values(lo, hi);
+            let (a, b) = scale.range(lo, hi);
+            (scale, a, b)
+        }
+        ColorLimits::Robust => {
+            let scale = Scale::for_values(lo, hi);
+            let full = scale.range(lo, hi);
+            let mut sorted: Vec<f64> = match scale {
+                Scale::Diverging => v
+                    .iter()
+                    .filter(|x| x.is_finite())
+                    .map(|x| x.abs())
+                    .collect(),
+                Scale::Sequential => v.iter().copied().filter(|x| x.is_finite()).collect(),
+            };
+            if sorted.is_empty() {
+                return (scale, full.0, full.1);
+            }
+            sorted.sort_by(f64::total_cmp);
+            let (a, b) = match scale {
+                Scale::Diverging => {
+                    let a = quantile(&sorted, 0.99);
+                    (-a, a)
+                }
+                Scale::Sequential => (quantile(&sorted, 0.005), quantile(&sorted, 0.995)),
+            };
+            if b > a {
+                (scale, a, b)
+            } else {
+                (scale, full.0, full.1)
+            }
+        }
+    }
+}
+
+/// Points of `v` below and above `[lo, hi]`.
+fn outside_counts(v: &[f64], lo: f64, hi: f64) -> (usize, usize) {
+    v.iter().fold((0, 0), |(a, b), &x| {
+        (a + usize::from(x < lo), b + usize::from(x > hi))
+    })
+}
+
+/// Decimals that print every tick of `lo..hi` (at most `n` ticks, as the mesh places them)
+/// exactly, the same for all: `0, 20, 40` or `0.0, 0.5, 1.0`, never `0` beside `100.0`.
+fn tick_decimals(lo: f64, hi: f64, n: usize) -> usize {
+    use plotters::coord::ranged1d::{BoldPoints, Ranged};
+    use plotters::coord::types::RangedCoordf64;
+    let (a, b) = if lo <= hi { (lo, hi) } else { (hi, lo) };
+    let ticks = RangedCoordf64::from(a..b).key_points(BoldPoints(n));
+    (0..=6)
+        .find(|&d| {
+            let f = 10f64.powi(d as i32);
+            ticks
+                .iter()
+                .all(|t| ((t * f) - (t * f).round()).abs() < 1e-6 * (t * f).abs().max(1.0))
+        })
+        .unwrap_or(6)
+}
+
+/// Tick label of `v` with `decimals`; `-0` printed as `0`.
+fn tick_label(v: f64, decimals: usize) -> String {
+    let s = format!("{v:.decimals$}");
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        s.trim_start_matches('-').to_string()
+    } else {
+        s
     }
 }
 
@@ -325,10 +465,12 @@ fn sig(v: f64) -> String {
     }
 }
 
-/// Plots scattered values `v` at `(x, y)` (mm) as an image at equal mm per pixel on both axes
-/// (each pixel takes the value of the point in its cell, see [`MapLayout`]), with PV and RMS (or
-/// the range) in the title and a colour bar labelled `unit` below. Signed data get a diverging
-/// scale centred on zero, one-signed data viridis.
+/// Plots scattered values `v` at `(x, y)` (mm) as an image (each pixel takes the value of the
+/// point in its cell, see [`MapLayout`]), with PV and RMS (or the range) in the title and a
+/// colour bar labelled `unit` below. Signed data get a diverging scale centred on zero,
+/// one-signed data viridis. Heights (`unit` `nm`) get colours over robust percentiles
+/// ([`ColorLimits::Robust`]), where edge spikes would set the whole range; other quantities (dwell,
+/// feed, TIF), whose extremes matter, their whole range.
 pub fn plot_map(
     path: &Path,
     title: &str,
@@ -349,6 +491,24 @@ pub fn stage_map_plot(
     y: &[f64],
     v: &[f64],
 ) -> Result<Staged> {
+    let limits = if unit == "nm" {
+        ColorLimits::Robust
+    } else {
+        ColorLimits::Full
+    };
+    stage_map_plot_with(path, title, unit, x, y, v, limits)
+}
+
+/// [`stage_map_plot`] with the colour range chosen by `limits`.
+pub fn stage_map_plot_with(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    x: &[f64],
+    y: &[f64],
+    v: &[f64],
+    limits: ColorLimits,
+) -> Result<Staged> {
     let n = x.len().min(y.len()).min(v.len());
     let (x, y, v) = (&x[..n], &y[..n], &v[..n]);
     let (x0, x1) = value_range(x).ok_or_else(|| Error::Empty {
@@ -356,14 +516,13 @@ pub fn stage_map_plot(
         why: "nothing to plot".into(),
     })?;
     let (y0, y1) = value_range(y).unwrap_or((x0, x1));
-    let (lo, hi) = value_range(v).unwrap_or((0.0, 1.0));
-    let scale = Scale::for_values(lo, hi);
-    let (lo, hi) = scale.range(lo, hi);
+    let (scale, lo, hi) = colour_range(v, limits);
+    let outside = outside_counts(v, lo, hi);
     let cells = CellIndex::new(x, y, v, (x0, x1, y0, y1));
     let half = 0.5 * cells.cell_mm;
     let (ex0, ex1, ey0, ey1) = (x0 - half, x1 + half, y0 - half, y1 + half);
     let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
-    let heading = titled(title, unit, v);
+    let heading = titled(title, unit, v) + &layout.stretch_note();
     stage_png_sized(path, layout.canvas_px, |root| {
         root.draw(&Text::new(
             heading.as_str(),
@@ -374,14 +533,11 @@ pub fn stage_map_plot(
         let (top, bar) = root.split_vertically(layout.canvas_px.1 - BAR_AREA_PX);
         let (_, body) = top.split_vertically(TITLE_PX);
         let right = layout.canvas_px.0 - Y_LABELS_PX - layout.data_size_px.0;
-        let builder = |b: &mut ChartBuilder<'_, '_, BitMapBackend<'_>>| {
-            b.margin_right(right)
-                .margin_left(LEFT_PX)
-                .x_label_area_size(X_LABELS_PX)
-                .y_label_area_size(Y_LABELS_PX - LEFT_PX);
-        };
         let mut cb = ChartBuilder::on(&body);
-        builder(&mut cb);
+        cb.margin_right(right)
+            .margin_left(LEFT_PX)
+            .x_label_area_size(X_LABELS_PX)
+            .y_label_area_size(Y_LABELS_PX - LEFT_PX);
         // Across and down in plot terms; a rotated plot shows y across and x downwards.
         let (across, down, across_name, down_name) = if layout.rotated {
             ((ey0, ey1), (ex1, ex0), "y (mm)", "x (mm)")
@@ -391,17 +547,15 @@ pub fn stage_map_plot(
         let mut chart = cb
             .build_cartesian_2d(across.0..across.1, down.0..down.1)
             .map_err(|e| plot_error(path, e))?;
-        chart
-            .configure_mesh()
-            .disable_mesh()
-            .set_all_tick_mark_size(0)
-            .x_desc(across_name)
-            .y_desc(down_name)
-            .x_labels(8)
-            .y_labels(if layout.data_size_px.1 < 120 { 3 } else { 8 })
-            .label_style(("sans-serif", 14))
-            .draw()
-            .map_err(|e| plot_error(path, e))?;
+        map_mesh(
+            &mut chart,
+            path,
+            layout,
+            across,
+            down,
+            across_name,
+            down_name,
+        )?;
         let (xr, yr) = chart.plotting_area().get_pixel_range();
         let (w, h) = ((xr.end - xr.start).max(1), (yr.end - yr.start).max(1));
         for py in 0..h {
@@ -411,6 +565,8 @@ pub fn stage_map_plot(
                 let d = down.1 + (down.0 - down.1) * (py as f64 + 0.5) / h as f64;
                 let (qx, qy) = if layout.rotated { (d, a) } else { (a, d) };
                 let colour = match cells.at(qx, qy) {
+                    Some(i) if v[i] < lo => UNDER_RANGE,
+                    Some(i) if v[i] > hi => OVER_RANGE,
                     Some(i) => scale.colour(v[i], lo, hi),
                     None => NO_DATA,
                 };
@@ -418,52 +574,225 @@ pub fn stage_map_plot(
                     .map_err(|e| plot_error(path, e))?;
             }
         }
-        colour_bar(path, &bar, unit, lo, hi, scale, layout)
+        colour_bar(path, &bar, unit, (lo, hi), scale, layout, outside, n)
     })
 }
 
-fn colour_bar(
+/// The axes of a map plot: clean tick labels (one number format per axis), none at the lower
+/// left corner where the two axes' first labels would collide.
+fn map_mesh<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
     path: &Path,
-    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    layout: MapLayout,
+    across: (f64, f64),
+    down: (f64, f64),
+    across_name: &str,
+    down_name: &str,
+) -> Result<()> {
+    let n_across = 8;
+    let n_down = if layout.data_size_px.1 < 120 { 3 } else { 6 };
+    let dx = tick_decimals(across.0, across.1, n_across);
+    let dy = tick_decimals(down.0, down.1, n_down);
+    // A down label within this many pixels of the bottom edge is left out.
+    let corner_px = 14.0;
+    let per_px = (down.1 - down.0).abs() / layout.data_size_px.1.max(1) as f64;
+    let bottom = down.0;
+    let fx = move |v: &f64| tick_label(*v, dx);
+    let fy = move |v: &f64| {
+        if (v - bottom).abs() < corner_px * per_px {
+            String::new()
+        } else {
+            tick_label(*v, dy)
+        }
+    };
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .set_all_tick_mark_size(0)
+        .x_desc(across_name)
+        .y_desc(down_name)
+        .x_labels(n_across)
+        .y_labels(n_down)
+        .x_label_formatter(&fx)
+        .y_label_formatter(&fy)
+        .label_style(("sans-serif", 14))
+        .draw()
+        .map_err(|e| plot_error(path, e))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn colour_bar<DB: DrawingBackend>(
+    path: &Path,
+    area: &DrawingArea<DB, plotters::coord::Shift>,
     unit: &str,
-    lo: f64,
-    hi: f64,
+    (lo, hi): (f64, f64),
     scale: Scale,
     layout: MapLayout,
+    (below, above): (usize, usize),
+    total: usize,
 ) -> Result<()> {
     let bar_w = layout.data_size_px.0.min(600);
     let right = layout.canvas_px.0 - Y_LABELS_PX - bar_w;
+    let span = hi - lo;
+    // Room at both ends for the out-of-range swatches.
+    let ext = 0.06 * span;
     let mut chart = ChartBuilder::on(area)
         .margin_top(14)
         .margin_right(right)
         .margin_left(LEFT_PX)
         .x_label_area_size(44)
         .y_label_area_size(Y_LABELS_PX - LEFT_PX)
-        .build_cartesian_2d(lo..hi, 0.0..1.0)
+        .build_cartesian_2d(lo - ext..hi + ext, 0.0..1.0)
         .map_err(|e| plot_error(path, e))?;
+    let decimals = tick_decimals(lo, hi, 6);
+    let inside = 100.0 * (total - below - above) as f64 / total.max(1) as f64;
+    let mut desc = format!("{unit}; colour range {} to {} {unit}", sig(lo), sig(hi));
+    if below + above > 0 {
+        desc.push_str(&format!(
+            ", {inside:.1}% of points inside ({below} below in black, {above} above in magenta)"
+        ));
+    }
     chart
         .configure_mesh()
         .disable_mesh()
         .set_all_tick_mark_size(0)
         .disable_y_axis()
         .x_labels(6)
-        .x_label_formatter(&|v| sig(*v))
-        .x_desc(unit)
+        .x_label_formatter(&|v| {
+            if *v < lo - 1e-12 * span || *v > hi + 1e-12 * span {
+                String::new()
+            } else {
+                tick_label(*v, decimals)
+            }
+        })
+        .x_desc(desc)
         .label_style(("sans-serif", 13))
         .draw()
         .map_err(|e| plot_error(path, e))?;
     let steps = 300;
     chart
         .draw_series((0..steps).map(|k| {
-            let a = lo + (hi - lo) * k as f64 / steps as f64;
-            let b = lo + (hi - lo) * (k + 1) as f64 / steps as f64;
+            let a = lo + span * k as f64 / steps as f64;
+            let b = lo + span * (k + 1) as f64 / steps as f64;
             Rectangle::new(
                 [(a, 0.0), (b, 1.0)],
                 scale.colour(0.5 * (a + b), lo, hi).filled(),
             )
         }))
         .map_err(|e| plot_error(path, e))?;
+    let mut ends = Vec::new();
+    if below > 0 {
+        ends.push(Polygon::new(
+            vec![(lo, 0.0), (lo, 1.0), (lo - ext, 0.5)],
+            UNDER_RANGE.filled(),
+        ));
+    }
+    if above > 0 {
+        ends.push(Polygon::new(
+            vec![(hi, 0.0), (hi, 1.0), (hi + ext, 0.5)],
+            OVER_RANGE.filled(),
+        ));
+    }
+    chart.draw_series(ends).map_err(|e| plot_error(path, e))?;
     Ok(())
+}
+
+/// Plots values on a regular grid (`v[l * nx + k]` at `(x_axis[k], y_axis[l])`, both axes
+/// ascending and evenly spaced) as cells in viridis over their whole finite range, with the axes
+/// named `names` and a colour bar labelled `unit`: for example a 2-D PSD over `(fx, fy)`.
+pub fn stage_grid_plot(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    x_axis: &[f64],
+    y_axis: &[f64],
+    v: &[f64],
+    names: (&str, &str),
+) -> Result<Staged> {
+    let (nx, ny) = (x_axis.len(), y_axis.len());
+    let empty = || Error::Empty {
+        file: path.to_path_buf(),
+        why: "nothing to plot".into(),
+    };
+    if nx < 2 || ny < 2 || v.len() != nx * ny {
+        return Err(empty());
+    }
+    let (dx, dy) = (x_axis[1] - x_axis[0], y_axis[1] - y_axis[0]);
+    let (ex0, ex1) = (x_axis[0] - 0.5 * dx, x_axis[nx - 1] + 0.5 * dx);
+    let (ey0, ey1) = (y_axis[0] - 0.5 * dy, y_axis[ny - 1] + 0.5 * dy);
+    let (lo, hi) = value_range(v).ok_or_else(empty)?;
+    let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
+    let layout = MapLayout {
+        rotated: false,
+        ..layout
+    };
+    let layout = if layout.data_size_px.0 < layout.data_size_px.1 {
+        MapLayout::for_extent(ey1 - ey0, ex1 - ex0)
+    } else {
+        layout
+    };
+    stage_png_sized(path, layout.canvas_px, |root| {
+        root.draw(&Text::new(
+            title,
+            (layout.data_origin_px.0 as i32, 10),
+            ("sans-serif", 22).into_font(),
+        ))
+        .map_err(|e| plot_error(path, e))?;
+        let (top, bar) = root.split_vertically(layout.canvas_px.1 - BAR_AREA_PX);
+        let (_, body) = top.split_vertically(TITLE_PX);
+        let right = layout.canvas_px.0 - Y_LABELS_PX - layout.data_size_px.0;
+        let mut chart = ChartBuilder::on(&body)
+            .margin_right(right)
+            .margin_left(LEFT_PX)
+            .x_label_area_size(X_LABELS_PX)
+            .y_label_area_size(Y_LABELS_PX - LEFT_PX)
+            .build_cartesian_2d(ex0..ex1, ey0..ey1)
+            .map_err(|e| plot_error(path, e))?;
+        let layout_axes = MapLayout {
+            rotated: false,
+            ..layout
+        };
+        map_mesh(
+            &mut chart,
+            path,
+            layout_axes,
+            (ex0, ex1),
+            (ey0, ey1),
+            names.0,
+            names.1,
+        )?;
+        chart
+            .draw_series((0..ny).flat_map(|l| {
+                (0..nx).map(move |k| {
+                    let (cx, cy) = (x_axis[k], y_axis[l]);
+                    let val = v[l * nx + k];
+                    let colour = if val.is_finite() {
+                        Scale::Sequential.colour(val, lo, hi)
+                    } else {
+                        NO_DATA
+                    };
+                    Rectangle::new(
+                        [
+                            (cx - 0.5 * dx, cy - 0.5 * dy),
+                            (cx + 0.5 * dx, cy + 0.5 * dy),
+                        ],
+                        colour.filled(),
+                    )
+                })
+            }))
+            .map_err(|e| plot_error(path, e))?;
+        let total = v.iter().filter(|a| a.is_finite()).count();
+        colour_bar(
+            path,
+            &bar,
+            unit,
+            (lo, hi),
+            Scale::Sequential,
+            layout,
+            (0, 0),
+            total,
+        )
+    })
 }
 
 /// Plots a tool path (mm) as a polyline with its start marked, at equal mm per pixel on both
@@ -484,7 +813,7 @@ pub fn stage_path_plot(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result
     let (ex0, ex1, ey0, ey1) = (x0 - pad, x1 + pad, y0 - pad, y1 + pad);
     let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
     let canvas = (layout.canvas_px.0, layout.canvas_px.1 - BAR_AREA_PX);
-    let heading = format!("{title}: {n} points");
+    let heading = format!("{title}: {n} points{}", layout.stretch_note());
     stage_png_sized(path, canvas, |root| {
         root.draw(&Text::new(
             heading.as_str(),
@@ -506,16 +835,15 @@ pub fn stage_path_plot(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result
             .y_label_area_size(Y_LABELS_PX - LEFT_PX)
             .build_cartesian_2d(across.0..across.1, down.0..down.1)
             .map_err(|e| plot_error(path, e))?;
-        chart
-            .configure_mesh()
-            .x_desc(across_name)
-            .y_desc(down_name)
-            .x_labels(8)
-            .y_labels(if layout.data_size_px.1 < 120 { 3 } else { 8 })
-            .set_all_tick_mark_size(0)
-            .label_style(("sans-serif", 14))
-            .draw()
-            .map_err(|e| plot_error(path, e))?;
+        map_mesh(
+            &mut chart,
+            path,
+            layout,
+            across,
+            down,
+            across_name,
+            down_name,
+        )?;
         let at = |i: usize| {
             if layout.rotated {
                 (y[i], x[i])
@@ -548,6 +876,26 @@ pub fn stage_psd_plot(
     curves: &[PsdCurve<'_>],
     marker_per_mm: Option<(f64, &str)>,
 ) -> Result<Staged> {
+    stage_spectrum_plot(
+        path,
+        title,
+        "PSD (nm^2 mm)",
+        frequency_per_mm,
+        curves,
+        marker_per_mm,
+    )
+}
+
+/// [`stage_psd_plot`] with the value axis named `y_desc` (for example the azimuthal average of a
+/// 2-D PSD, nm^2 mm^2).
+pub fn stage_spectrum_plot(
+    path: &Path,
+    title: &str,
+    y_desc: &str,
+    frequency_per_mm: &[f64],
+    curves: &[PsdCurve<'_>],
+    marker_per_mm: Option<(f64, &str)>,
+) -> Result<Staged> {
     let keep: Vec<usize> = (0..frequency_per_mm.len())
         .filter(|&k| frequency_per_mm[k] > 0.0 && frequency_per_mm[k].is_finite())
         .collect();
@@ -574,7 +922,7 @@ pub fn stage_psd_plot(
             .configure_mesh()
             .light_line_style(TRANSPARENT)
             .x_desc("spatial frequency (1/mm)")
-            .y_desc("PSD (nm^2 mm)")
+            .y_desc(y_desc)
             .x_labels(8)
             .x_label_formatter(&|v| format!("{}", (v * 1e3).round() / 1e3))
             .y_label_formatter(&|v| format!("{v:.0e}"))
@@ -606,7 +954,68 @@ pub fn stage_psd_plot(
                 ))
                 .map_err(|e| plot_error(path, e))?
                 .label(label)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], grey));
+                .legend(move |(x, y)| {
+                    EmptyElement::at((x, y))
+                        + PathElement::new(vec![(0, 0), (6, 0)], grey.stroke_width(2))
+                        + PathElement::new(vec![(10, 0), (16, 0)], grey.stroke_width(2))
+                });
+        }
+        draw_legend(&mut chart, path)
+    })
+}
+
+/// Plots curves of `(x, y)` points on linear axes named `x_desc` and `y_desc`: for example the
+/// planned and the executed dwell per point of a program.
+pub fn stage_series_plot(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    curves: &[Curve<'_>],
+) -> Result<Staged> {
+    let xs: Vec<f64> = curves
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|p| p.0))
+        .collect();
+    let ys: Vec<f64> = curves
+        .iter()
+        .flat_map(|(_, c)| c.iter().map(|p| p.1))
+        .collect();
+    let (x0, x1) = value_range(&xs).ok_or_else(|| Error::Empty {
+        file: path.to_path_buf(),
+        why: "nothing to plot".into(),
+    })?;
+    let (y0, y1) = value_range(&ys).unwrap_or((0.0, 1.0));
+    let (y0, y1) = (y0.min(0.0), y1 + 0.05 * (y1 - y0.min(0.0)));
+    stage_png_sized(path, (1200, 600), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| plot_error(path, e))?;
+        let (dx, dy) = (tick_decimals(x0, x1, 10), tick_decimals(y0, y1, 8));
+        chart
+            .configure_mesh()
+            .light_line_style(TRANSPARENT)
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .x_labels(10)
+            .y_labels(8)
+            .x_label_formatter(&|v| tick_label(*v, dx))
+            .y_label_formatter(&|v| tick_label(*v, dy))
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(|e| plot_error(path, e))?;
+        let palette = [BLUE, RED, GREEN, MAGENTA, BLACK];
+        for (k, (label, pts)) in curves.iter().enumerate() {
+            let colour = palette[k % palette.len()];
+            chart
+                .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(1)))
+                .map_err(|e| plot_error(path, e))?
+                .label(*label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
         }
         draw_legend(&mut chart, path)
     })
@@ -811,8 +1220,8 @@ mod tests {
         (p[0], p[1], p[2])
     }
 
-    /// Equal mm per pixel: the data area of the strip has the part's aspect (the long axis across
-    /// the width), every pixel in it is data (no white grid lines, no gaps), and a part taller than
+    /// The data area of the strip is strip-shaped at the largest drawn aspect (the long axis
+    /// across the width), every pixel in it is data (no white grid lines, no gaps), and a part taller than
     /// wide gets the same layout turned a quarter turn.
     #[test]
     fn map_plots_keep_the_aspect_and_fill_the_data_area() {
@@ -825,10 +1234,19 @@ mod tests {
         assert_eq!((w, h), layout.canvas_px);
         let (dw, dh) = layout.data_size_px;
         let aspect = dw as f64 / dh as f64;
+        // The strip (14:1) is drawn at the largest aspect, its y axis stretched to match.
         assert!(
-            (aspect / (118.0 / 8.0) - 1.0).abs() < ASPECT_REL_TOL,
+            (aspect / MAX_DRAWN_ASPECT - 1.0).abs() < ASPECT_REL_TOL,
             "aspect {aspect}"
         );
+        assert!(
+            (layout.stretch * MAX_DRAWN_ASPECT / (119.04 / 8.32) - 1.0).abs() < 1e-9,
+            "stretch {}",
+            layout.stretch
+        );
+        assert!(dh >= 140, "data area {dh} px tall");
+        // A square part is drawn at equal scale.
+        assert_eq!(MapLayout::for_extent(30.0, 30.0).stretch, 1.0);
         let (ox, oy) = layout.data_origin_px;
         for r in oy..oy + dh {
             for c in ox..ox + dw {
@@ -844,6 +1262,59 @@ mod tests {
         let tall = MapLayout::for_extent(8.32, 119.04);
         assert!(tall.rotated && !layout.rotated);
         assert_eq!(tall.data_size_px, layout.data_size_px);
+    }
+
+    /// Edge spikes on under 1% of the points do not set the colour range: the robust range
+    /// holds at least 99% of the points, the spikes are drawn in the out-of-range colours, and
+    /// the whole range or given limits are there on request.
+    #[test]
+    fn robust_colour_limits_ignore_spikes_and_mark_them() {
+        let (x, y, mut v) = strip();
+        let n = v.len();
+        for k in (0..n).step_by(125) {
+            v[k] = if k % 250 == 0 { 150.0 } else { -150.0 };
+        }
+        let (scale, lo, hi) = colour_range(&v, ColorLimits::Robust);
+        assert_eq!(scale, Scale::Diverging);
+        assert_eq!(lo, -hi);
+        assert!(hi < 40.0, "{hi}");
+        let (below, above) = outside_counts(&v, lo, hi);
+        assert!(below > 0 && above > 0);
+        assert!((below + above) as f64 <= 0.01 * n as f64 + 1.0);
+        assert_eq!(colour_range(&v, ColorLimits::Full).2, 150.0);
+        let fixed: ColorLimits = "-50,50".parse().unwrap();
+        assert_eq!(
+            fixed,
+            ColorLimits::Fixed {
+                lo: -50.0,
+                hi: 50.0
+            }
+        );
+        assert_eq!(colour_range(&v, fixed).1, -50.0);
+        for bad in ["50,-50", "a,1", "5", "1,inf"] {
+            assert!(bad.parse::<ColorLimits>().is_err(), "{bad}");
+        }
+        // The spikes show in their colours on the image, and only a few pixels have them.
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("spikes.png");
+        plot_map(&f, "residual", "nm", &x, &y, &v).unwrap();
+        let (_, _, px, bpp) = decode(&f);
+        let count = |c: RGBColor| px.chunks(bpp).filter(|p| rgb(p) == (c.0, c.1, c.2)).count();
+        let (under, over) = (count(UNDER_RANGE), count(OVER_RANGE));
+        assert!(over > 0 && under > 0, "{under} {over}");
+        assert!(over + under < px.len() / bpp / 20);
+    }
+
+    /// Tick labels of one axis share one number format, and `-0` prints as `0`.
+    #[test]
+    fn tick_labels_share_one_format() {
+        assert_eq!(tick_decimals(-0.16, 118.88, 8), 0);
+        assert_eq!(tick_decimals(-0.16, 8.16, 3), 0);
+        assert_eq!(tick_decimals(0.0, 1.0, 6), 1);
+        assert_eq!(tick_decimals(-56.0, 56.0, 6), 0);
+        assert_eq!(tick_label(-0.0, 1), "0.0");
+        assert_eq!(tick_label(2.5, 1), "2.5");
+        assert_eq!(tick_label(100.0, 0), "100");
     }
 
     /// The title carries the PV and RMS that `report.json` computes from the same values.

@@ -379,11 +379,43 @@ pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: b
         }
         Ok(())
     })?;
-    write_simulation_with(s, out_dir, plots, vec![executed])
+    let mut extra = vec![executed];
+    if plots {
+        let index = |v: &[f64]| -> Vec<(f64, f64)> {
+            v.iter().enumerate().map(|(k, t)| (k as f64, *t)).collect()
+        };
+        extra.push(crate::plots::stage_series_plot(
+            &out_dir.join("dwell_planned_vs_executed.png"),
+            &format!(
+                "Dwell per point: planned {:.1} s, executed {:.1} s in the stretches",
+                sim.planned_dwell_s.iter().sum::<f64>(),
+                s.dwell_s.iter().sum::<f64>()
+            ),
+            "dwell point (path order)",
+            "dwell (s)",
+            &[
+                ("planned", index(&sim.planned_dwell_s)),
+                ("executed", index(&s.dwell_s)),
+                (
+                    "executed - planned",
+                    index(
+                        &s.dwell_s
+                            .iter()
+                            .zip(&sim.planned_dwell_s)
+                            .map(|(e, p)| e - p)
+                            .collect::<Vec<_>>(),
+                    ),
+                ),
+            ],
+        )?);
+    }
+    write_simulation_with(s, out_dir, plots, extra)
 }
 
 /// Writes `residual.csv` and `report.json` of a simulation into `out_dir`; with `plots`, also
-/// `error_before.png`, `removal.png` and `residual.png`.
+/// `error_before.png`, `removal.png`, `residual.png` and the PSDs of
+/// [`crate::figures::stage_psd_figures`] (along x), and for a program
+/// `dwell_planned_vs_executed.png`.
 pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<()> {
     write_simulation_with(sim, out_dir, plots, Vec::new())
 }
@@ -435,6 +467,17 @@ fn write_simulation_with(
             y,
             &residual,
         )?);
+        // A map off a lattice has no PSD; the other figures are written all the same.
+        let (psd, _left_out) = crate::figures::stage_psd_figures(
+            out_dir,
+            x,
+            y,
+            sim.map.z_nm(),
+            &residual,
+            preston_solver::psd::LineAxis::X,
+            None,
+        )?;
+        staged.extend(psd);
     }
     commit_all(staged)
 }
@@ -509,10 +552,67 @@ pub fn write_loop(outcome: &LoopOutcome, out_dir: &Path, plots: bool) -> Result<
             run.measured.z_nm(),
         )?);
     }
+    // The figures are drawn for the page in every run, and written as files with `plots`.
+    let figures = stage_loop_plots(outcome, out_dir)?;
+    staged.push(stage_loop_page(outcome, out_dir, &figures)?);
     if plots {
-        staged.extend(stage_loop_plots(outcome, out_dir)?);
+        staged.extend(figures);
     }
     commit_all(staged)
+}
+
+/// Stages `report.html` of a loop: the convergence table, the inner steps that did not converge
+/// and the figures embedded ([`crate::html::loop_page`]).
+fn stage_loop_page(outcome: &LoopOutcome, out_dir: &Path, figures: &[Staged]) -> Result<Staged> {
+    let rows: Vec<crate::html::LoopRow> = outcome
+        .records
+        .iter()
+        .map(|r| crate::html::LoopRow {
+            iteration: r.iteration,
+            pv_nm: r.pv_nm,
+            rms_nm: r.rms_nm,
+            time_s: r.time_s,
+            predicted_rms_nm: r.predicted_rms_nm,
+        })
+        .collect();
+    let failures: Vec<String> = outcome
+        .not_converged
+        .iter()
+        .map(|f| {
+            format!(
+                "iteration {}: {:?} ended {} ({})",
+                f.iteration, f.step, f.status, f.detail
+            )
+        })
+        .collect();
+    let mut embedded = Vec::new();
+    for f in figures {
+        let name = f
+            .dest()
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        embedded.push(crate::html::Figure::from_staged(
+            f,
+            crate::figures::caption(&name),
+        )?);
+    }
+    let provenance = crate::html::Provenance {
+        command: Some(crate::html::Provenance::command_line()),
+        ..Default::default()
+    };
+    let page = crate::html::loop_page(
+        "Preston polishing loop",
+        &rows,
+        outcome.met_spec,
+        &failures,
+        &crate::html::PageExtras {
+            provenance: Some(&provenance),
+            figures: &embedded,
+            notes: &[],
+        },
+    );
+    crate::html::stage_html(&out_dir.join("report.html"), &page)
 }
 
 fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>> {

@@ -23,9 +23,14 @@ mm/min.
 * :func:`batch` / :func:`grid` -- many solves (job dicts, job files, a parameter grid over one
   job) on a ``dask.distributed`` cluster, outputs written atomically per job.
 
-Errors are raised as :class:`PrestonError` subclasses carrying Preston's message (the file, line
-and field at fault): :class:`InputError` (bad input), :class:`SolverError` (numerical failure),
-:class:`NotConvergedError` (only when ``require_converged=True``).
+Errors are raised as :class:`PrestonError` subclasses carrying Preston's message (the keyword,
+file, line or field at fault): :class:`InputError` (bad input; also a ``ValueError``),
+:class:`InputFileError` (a file that cannot be read or written; also an ``OSError``, and
+:class:`InputFileNotFoundError` a ``FileNotFoundError``), :class:`SolverError` (numerical
+failure), :class:`NotConvergedError` (only when ``require_converged=True``).
+
+A worked example from a measured map to the program, the plots and the report:
+``docs/tutorial.py``.
 """
 
 from __future__ import annotations
@@ -33,12 +38,19 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Callable, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from . import _preston
-from ._preston import InputError, NotConvergedError, PrestonError, SolverError
+from ._preston import (
+    InputError,
+    InputFileError,
+    InputFileNotFoundError,
+    NotConvergedError,
+    PrestonError,
+    SolverError,
+)
 from ._preston import __version__  # the same as `preston --version`
 
 __all__ = [
@@ -71,7 +83,11 @@ __all__ = [
     "SolveResult",
     "PrestonError",
     "InputError",
+    "InputFileError",
+    "InputFileNotFoundError",
     "SolverError",
+    "influence_matrix",
+    "Grid",
     "NotConvergedError",
 ]
 
@@ -80,6 +96,40 @@ ArrayLike = Any
 
 #: The options of a job's ``[map]`` table that :func:`read_map` and ``map_options`` accept.
 MAP_OPTIONS = ("format", "columns", "units", "pitch_mm", "aperture", "remove")
+
+
+class Grid(NamedTuple):
+    """Values of a map on its lattice: ``values[j, i]`` at ``(x_mm[i], y_mm[j])``, NaN where the
+    lattice has no point (outside the aperture or dropped)."""
+
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    values: np.ndarray
+
+
+def _grid(x: np.ndarray, y: np.ndarray, v: np.ndarray, name: str) -> Grid:
+    """``v`` at the points ``(x, y)`` on their lattice (the smallest step between distinct
+    coordinates, within 1e-6 of it)."""
+    x, y, v = (np.asarray(a, dtype=np.float64) for a in (x, y, v))
+    if x.size < 2:
+        raise InputError(f"{name}: fewer than two points, no lattice")
+
+    def axis(c: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        u = np.unique(c)
+        if u.size == 1:
+            return u, np.zeros(c.size, dtype=np.int64)
+        step = np.min(np.diff(u))
+        k = np.rint((c - u[0]) / step)
+        if np.max(np.abs((c - u[0]) / step - k)) > 1e-6 or k.max() + 1 > 16 * c.size:
+            raise InputError(f"{name}: the points are not on a lattice")
+        n = int(k.max()) + 1
+        return u[0] + step * np.arange(n), k.astype(np.int64)
+
+    xs, ix = axis(x)
+    ys, iy = axis(y)
+    g = np.full((ys.size, xs.size), np.nan)
+    g[iy, ix] = v
+    return Grid(xs, ys, g)
 
 
 class SolveResult:
@@ -97,6 +147,9 @@ class SolveResult:
     * ``report`` -- dict with the keys of ``report.json`` (RMS/PV before and after in nm, total
       dwell s, machining time s, solver, status, iterations, warnings, ...).
     * ``status`` (str), ``converged`` (bool) -- the solver's status.
+
+    Where the map is on a lattice, :meth:`grid` gives any map quantity as a 2-D array with its x
+    and y axes (``error_grid``, ``removal_grid`` and ``residual_grid`` for the usual three).
     """
 
     __slots__ = (
@@ -132,13 +185,58 @@ class SolveResult:
         self.status = native.status
         self.converged = native.converged
 
-    def write(self, out_dir: PathLike, *, plots: bool = False) -> List[str]:
+    def grid(self, values: str = "residual_nm") -> Grid:
+        """The map quantity ``values`` (``"z_nm"``, ``"removal_nm"`` or ``"residual_nm"``) on the
+        map's lattice: a :class:`Grid` ``(x_mm, y_mm, values)`` with ``values[j, i]`` at
+        ``(x_mm[i], y_mm[j])``, NaN where the lattice has no point. A map off a lattice raises
+        :class:`InputError`."""
+        if values not in ("z_nm", "removal_nm", "residual_nm"):
+            raise InputError(
+                f"values={values!r}: one of 'z_nm', 'removal_nm', 'residual_nm'"
+            )
+        return _grid(self.map_x_mm, self.map_y_mm, getattr(self, values), "map")
+
+    @property
+    def error_grid(self) -> Grid:
+        """The error map on its lattice (:meth:`grid` of ``z_nm``)."""
+        return self.grid("z_nm")
+
+    @property
+    def removal_grid(self) -> Grid:
+        """The predicted removal on the map's lattice."""
+        return self.grid("removal_nm")
+
+    @property
+    def residual_grid(self) -> Grid:
+        """The residual (mean removed) on the map's lattice."""
+        return self.grid("residual_nm")
+
+    def write(
+        self,
+        out_dir: PathLike,
+        *,
+        plots: bool = False,
+        report: bool = False,
+        color_limits: Optional[Union[str, Tuple[float, float]]] = None,
+    ) -> List[str]:
         """Writes ``dwell.csv``, ``residual.csv`` and ``report.json`` (the CLI's files) into
-        ``out_dir``, created if needed, and with ``plots=True`` the figures and ``psd.csv`` of
-        ``preston solve --plots`` (see :meth:`write_plots`). Everything is staged first and
-        committed together: all the files appear, whole, or none. Returns the notes on figures
-        left out (a PSD needs the map on a lattice)."""
-        return list(self._native.write(os.fspath(out_dir), plots))
+        ``out_dir``, created if needed; with ``plots=True`` the figures and PSD tables of
+        ``preston solve --plots`` (see :meth:`write_plots`); with ``report=True``
+        ``report.html`` (``preston solve --report``: one self-contained page with the inputs,
+        result, machine summary, warnings and figures). ``color_limits``: ``"robust"`` (the
+        default), ``"full"`` or ``(lo, hi)`` in nm for the error and residual maps, as
+        ``--color-limits``. Everything is staged first and committed together: all the files
+        appear, whole, or none. Returns the notes on figures left out (a PSD needs the map on a
+        lattice)."""
+        if color_limits is not None and not isinstance(color_limits, str):
+            try:
+                lo, hi = color_limits
+                color_limits = f"{float(lo)},{float(hi)}"
+            except (TypeError, ValueError):
+                raise InputError(
+                    f"color_limits={color_limits!r}: 'robust', 'full' or (lo, hi) in nm"
+                ) from None
+        return list(self._native.write(os.fspath(out_dir), plots, report, color_limits))
 
     def write_plots(
         self, out_dir: PathLike, *, along: Optional[str] = None
@@ -224,6 +322,180 @@ def _abs(p: PathLike) -> str:
     return os.path.abspath(os.fspath(p))
 
 
+def _job_of(
+    job: Optional[Union[PathLike, Mapping[str, Any]]],
+    *,
+    map: Optional[PathLike] = None,
+    map_xyz: Optional[ArrayLike] = None,
+    map_options: Optional[Mapping[str, Any]] = None,
+    tif: Optional[PathLike] = None,
+    tif_xyr: Optional[ArrayLike] = None,
+    gaussian: Optional[Mapping[str, float]] = None,
+    dwell: Optional[PathLike] = None,
+    dwell_xy: Optional[ArrayLike] = None,
+    raster_pitch_mm: Optional[float] = None,
+    raster_along: Optional[str] = None,
+    v_max: Optional[float] = None,
+    v_min: Optional[float] = None,
+    a_max: Optional[float] = None,
+    accel_method: Optional[str] = None,
+    corner_angle_deg: Optional[float] = None,
+    rho: Optional[float] = None,
+    lambda_: Optional[float] = None,
+    min_time: Optional[bool] = None,
+    min_time_tolerance: Optional[float] = None,
+    tolerance: Optional[float] = None,
+    first_order_method: Optional[str] = None,
+    lbfgs_memory: Optional[int] = None,
+    max_iterations: Optional[int] = None,
+    solver: Optional[str] = None,
+    operator: Optional[str] = None,
+    warm_start: Optional[PathLike] = None,
+    surface: Optional[PathLike] = None,
+    tif_frame: Optional[str] = None,
+    edge: Optional[str] = None,
+    edge_width_mm: Optional[float] = None,
+) -> Tuple[dict, str, dict]:
+    """The job of :func:`solve`'s arguments: the job dict, its name and the arrays."""
+    j = load_job(job) if job is not None else load_job({})
+    name = os.fspath(job) if isinstance(job, (str, os.PathLike)) else "<python>"
+    sections = ("map", "tif", "dwell", "machine", "objective", "solver", "surface")
+    for s in sections:
+        if j.get(s) is None:
+            j[s] = {}
+    m, t, d, mach, obj, sol, surf = (j[s] for s in sections)
+
+    if map is not None and map_xyz is not None:
+        raise InputError("give map= (a file) or map_xyz= (an array), not both")
+    if map is not None:
+        m["file"] = _abs(map)
+    if map_options:
+        unknown = sorted(set(map_options) - set(MAP_OPTIONS))
+        if unknown:
+            raise InputError(f"map_options: unknown {unknown} (known: {', '.join(MAP_OPTIONS)})")
+        m.update(_map_options(map_options))
+    arrays: dict = {}
+    if map_xyz is not None:
+        if m.get("aperture") or m.get("remove"):
+            raise InputError(
+                "map_xyz: aperture and remove apply to a map file; read it with "
+                "preston.read_map(path, aperture=..., remove=...) and pass the result"
+            )
+        m["file"] = None
+        arrays["map_xyz"] = _columns(map_xyz, 3, "map_xyz")
+
+    if sum(x is not None for x in (tif, tif_xyr, gaussian)) > 1:
+        raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    if tif is not None:
+        j["tif"] = {"file": _abs(tif), "gaussian": None}
+    elif gaussian is not None:
+        j["tif"] = {"file": None, "gaussian": _gaussian(gaussian)}
+    elif tif_xyr is not None:
+        j["tif"] = {"file": None, "gaussian": None}
+        arrays["tif_xyr"] = _columns(tif_xyr, 3, "tif_xyr")
+
+    if sum(x is not None for x in (dwell, dwell_xy, raster_pitch_mm)) > 1:
+        raise InputError("give one of dwell=, dwell_xy=, raster_pitch_mm=")
+    if dwell is not None:
+        d["file"], d["raster_pitch_mm"] = _abs(dwell), None
+    elif dwell_xy is not None:
+        d["file"], d["raster_pitch_mm"] = None, None
+        arrays["dwell_xy"] = _columns(dwell_xy, 2, "dwell_xy")
+    elif raster_pitch_mm is not None:
+        d["file"], d["raster_pitch_mm"] = None, raster_pitch_mm
+    if raster_along is not None:
+        d["raster_along"] = raster_along
+    if warm_start is not None:
+        d["warm_start"] = _abs(warm_start)
+
+    for key, value in (
+        ("v_max_mm_per_min", v_max),
+        ("v_min_mm_per_min", v_min),
+        ("a_max_mm_per_s2", a_max),
+        ("accel_method", accel_method),
+        ("corner_angle_deg", corner_angle_deg),
+    ):
+        if value is not None:
+            mach[key] = value
+    if rho is not None:
+        obj["rho"] = rho
+    if lambda_ is not None:
+        obj["lambda"] = lambda_
+    if min_time:
+        sol["min_time"] = True
+    for key, value in (
+        ("min_time_tolerance", min_time_tolerance),
+        ("first_order_method", first_order_method),
+        ("lbfgs_memory", lbfgs_memory),
+        ("solver", solver),
+        ("operator", operator),
+    ):
+        if value is not None:
+            sol[key] = value
+    if tolerance is not None:
+        sol["tolerance"] = sol["first_order_tolerance"] = tolerance
+    if max_iterations is not None:
+        sol["max_iterations"] = sol["first_order_max_iterations"] = max_iterations
+    if surface is not None:
+        surf["file"] = _abs(surface)
+    if tif_frame is not None:
+        surf["tif_frame"] = tif_frame
+    if edge is not None or edge_width_mm is not None:
+        e = j.get("edge") or {}
+        if edge is not None:
+            e["method"] = edge
+        if edge_width_mm is not None:
+            e["width_mm"] = edge_width_mm
+        j["edge"] = e
+
+    return j, name, arrays
+
+
+def _gaussian(g: Mapping[str, Any]) -> dict:
+    """A Gaussian TIF dict with the CLI's default truncation (3 sigma) filled in."""
+    try:
+        out = dict(g)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"gaussian={g!r}: a dict of sigma_mm, peak_rate_nm_per_s "
+            "(and optionally truncation_radius_mm)"
+        ) from None
+    if out.get("truncation_radius_mm") is None and isinstance(out.get("sigma_mm"), (int, float)):
+        out["truncation_radius_mm"] = 3.0 * float(out["sigma_mm"])
+    return out
+
+
+def influence_matrix(
+    job: Optional[Union[PathLike, Mapping[str, Any]]] = None, **kwargs: Any
+) -> "scipy.sparse.csc_matrix":  # noqa: F821
+    """The influence matrix ``R`` (nm/s per dwell point) of the problem :func:`solve` would
+    build from the same arguments (``job`` and the keywords of :func:`solve` for the map, TIF,
+    dwell points and edge), as a ``scipy.sparse.csc_matrix`` of shape ``(m, n)``: row ``i`` is
+    map point ``i`` (``result.map_x_mm[i]``), column ``j`` dwell point ``j`` in path order, so the
+    predicted removal of dwell times ``t`` (s) is ``R @ t`` (nm). Rows of an edge extension
+    (``edge=``) come after the ``m`` map rows and are left out. For your own optimiser: minimise
+    ``|R t - z - c|`` over ``t >= 0`` and the piston ``c``.
+
+    The matrix is always assembled (whatever ``operator=`` says); needs scipy."""
+    try:
+        import scipy.sparse as sp
+    except ImportError as e:  # pragma: no cover - scipy is a test requirement
+        raise ImportError("preston.influence_matrix needs scipy (pip install scipy)") from e
+    allowed = set(_SOLVE_KEYWORDS)
+    unknown = sorted(set(kwargs) - allowed)
+    if unknown:
+        raise InputError(f"influence_matrix: unknown keyword(s) {unknown}")
+    j, name, arrays = _job_of(job, **kwargs)
+    m, rows, cols, indptr, indices, data, _points = _preston.influence_matrix(
+        _dumps(j), name, **arrays
+    )
+    r = sp.csc_matrix(
+        (np.asarray(data), np.asarray(indices, dtype=np.int64), np.asarray(indptr, dtype=np.int64)),
+        shape=(rows, cols),
+    )
+    return r[:m, :] if rows > m else r
+
+
 def solve(
     job: Optional[Union[PathLike, Mapping[str, Any]]] = None,
     *,
@@ -307,97 +579,39 @@ def solve(
     a status (``result.converged`` is False), not an error, unless ``require_converged=True``
     (then :class:`NotConvergedError`).
     """
-    j = load_job(job) if job is not None else load_job({})
-    name = os.fspath(job) if isinstance(job, (str, os.PathLike)) else "<python>"
-    sections = ("map", "tif", "dwell", "machine", "objective", "solver", "surface")
-    for s in sections:
-        if j.get(s) is None:
-            j[s] = {}
-    m, t, d, mach, obj, sol, surf = (j[s] for s in sections)
-
-    if map is not None and map_xyz is not None:
-        raise InputError("give map= (a file) or map_xyz= (an array), not both")
-    if map is not None:
-        m["file"] = _abs(map)
-    if map_options:
-        unknown = sorted(set(map_options) - set(MAP_OPTIONS))
-        if unknown:
-            raise InputError(f"map_options: unknown {unknown} (known: {', '.join(MAP_OPTIONS)})")
-        m.update(_map_options(map_options))
-    arrays: dict = {}
-    if map_xyz is not None:
-        if m.get("aperture") or m.get("remove"):
-            raise InputError(
-                "map_xyz: aperture and remove apply to a map file; read it with "
-                "preston.read_map(path, aperture=..., remove=...) and pass the result"
-            )
-        m["file"] = None
-        arrays["map_xyz"] = _columns(map_xyz, 3, "map_xyz")
-
-    if sum(x is not None for x in (tif, tif_xyr, gaussian)) > 1:
-        raise InputError("give one of tif=, tif_xyr=, gaussian=")
-    if tif is not None:
-        j["tif"] = {"file": _abs(tif), "gaussian": None}
-    elif gaussian is not None:
-        j["tif"] = {"file": None, "gaussian": dict(gaussian)}
-    elif tif_xyr is not None:
-        j["tif"] = {"file": None, "gaussian": None}
-        arrays["tif_xyr"] = _columns(tif_xyr, 3, "tif_xyr")
-
-    if sum(x is not None for x in (dwell, dwell_xy, raster_pitch_mm)) > 1:
-        raise InputError("give one of dwell=, dwell_xy=, raster_pitch_mm=")
-    if dwell is not None:
-        d["file"], d["raster_pitch_mm"] = _abs(dwell), None
-    elif dwell_xy is not None:
-        d["file"], d["raster_pitch_mm"] = None, None
-        arrays["dwell_xy"] = _columns(dwell_xy, 2, "dwell_xy")
-    elif raster_pitch_mm is not None:
-        d["file"], d["raster_pitch_mm"] = None, raster_pitch_mm
-    if raster_along is not None:
-        d["raster_along"] = raster_along
-    if warm_start is not None:
-        d["warm_start"] = _abs(warm_start)
-
-    for key, value in (
-        ("v_max_mm_per_min", v_max),
-        ("v_min_mm_per_min", v_min),
-        ("a_max_mm_per_s2", a_max),
-        ("accel_method", accel_method),
-        ("corner_angle_deg", corner_angle_deg),
-    ):
-        if value is not None:
-            mach[key] = value
-    if rho is not None:
-        obj["rho"] = rho
-    if lambda_ is not None:
-        obj["lambda"] = lambda_
-    if min_time:
-        sol["min_time"] = True
-    for key, value in (
-        ("min_time_tolerance", min_time_tolerance),
-        ("first_order_method", first_order_method),
-        ("lbfgs_memory", lbfgs_memory),
-        ("solver", solver),
-        ("operator", operator),
-    ):
-        if value is not None:
-            sol[key] = value
-    if tolerance is not None:
-        sol["tolerance"] = sol["first_order_tolerance"] = tolerance
-    if max_iterations is not None:
-        sol["max_iterations"] = sol["first_order_max_iterations"] = max_iterations
-    if surface is not None:
-        surf["file"] = _abs(surface)
-    if tif_frame is not None:
-        surf["tif_frame"] = tif_frame
-    if edge is not None or edge_width_mm is not None:
-        e = j.get("edge") or {}
-        if edge is not None:
-            e["method"] = edge
-        if edge_width_mm is not None:
-            e["width_mm"] = edge_width_mm
-        j["edge"] = e
-
+    j, name, arrays = _job_of(
+        job,
+        map=map,
+        map_xyz=map_xyz,
+        map_options=map_options,
+        tif=tif,
+        tif_xyr=tif_xyr,
+        gaussian=gaussian,
+        dwell=dwell,
+        dwell_xy=dwell_xy,
+        raster_pitch_mm=raster_pitch_mm,
+        raster_along=raster_along,
+        v_max=v_max,
+        v_min=v_min,
+        a_max=a_max,
+        accel_method=accel_method,
+        corner_angle_deg=corner_angle_deg,
+        rho=rho,
+        lambda_=lambda_,
+        min_time=min_time,
+        min_time_tolerance=min_time_tolerance,
+        tolerance=tolerance,
+        first_order_method=first_order_method,
+        lbfgs_memory=lbfgs_memory,
+        max_iterations=max_iterations,
+        solver=solver,
+        operator=operator,
+        warm_start=warm_start,
+        surface=surface,
+        tif_frame=tif_frame,
+        edge=edge,
+        edge_width_mm=edge_width_mm,
+    )
     native = _preston.solve(_dumps(j), name, progress=progress, threads=threads, **arrays)
     result = SolveResult(native)
     if require_converged and not result.converged:
@@ -406,6 +620,40 @@ def solve(
             f"{result.report.get('iterations')} iterations)"
         )
     return result
+
+
+_SOLVE_KEYWORDS = (
+    "map",
+    "map_xyz",
+    "map_options",
+    "tif",
+    "tif_xyr",
+    "gaussian",
+    "dwell",
+    "dwell_xy",
+    "raster_pitch_mm",
+    "raster_along",
+    "v_max",
+    "v_min",
+    "a_max",
+    "accel_method",
+    "corner_angle_deg",
+    "rho",
+    "lambda_",
+    "min_time",
+    "min_time_tolerance",
+    "tolerance",
+    "first_order_method",
+    "lbfgs_memory",
+    "max_iterations",
+    "solver",
+    "operator",
+    "warm_start",
+    "surface",
+    "tif_frame",
+    "edge",
+    "edge_width_mm",
+)
 
 
 def _map_options(options: Mapping[str, Any]) -> dict:
@@ -470,7 +718,8 @@ def simulate(
         raise InputError(f"dwell_s: expected a 1-D array, got shape {t.shape}")
     if sum(x is not None for x in (tif, tif_xyr, gaussian)) != 1:
         raise InputError("give one of tif=, tif_xyr=, gaussian=")
-    tif_json = _dumps({"file": _abs(tif) if tif is not None else None, "gaussian": gaussian})
+    g = _gaussian(gaussian) if gaussian is not None else None
+    tif_json = _dumps({"file": _abs(tif) if tif is not None else None, "gaussian": g})
     xyr = _columns(tif_xyr, 3, "tif_xyr") if tif_xyr is not None else None
     removal = _preston.simulate(
         np.ascontiguousarray(m[:, :2]), pts, t, tif_json, xyr, samples_per_point, progress
@@ -522,6 +771,7 @@ def nc(
     *,
     surface: Optional[PathLike] = None,
     notes: Sequence[str] = (),
+    out: Optional[PathLike] = None,
     **settings: Any,
 ) -> str:
     """The G-code program of ``preston nc`` for a dwell plan, as text.
@@ -534,7 +784,9 @@ def nc(
     (``"iso"``, ``"sinumerik"``, ...), ``feed_mode``, ``clearance_mm``,
     ``plunge_feed_mm_per_min``, ``min_block_time_ms``, ``spindle_rpm``, ``coolant``,
     ``compensation``. The program is read back and checked against the plan before it is
-    returned; a plan no program can deliver raises :class:`InputError` naming the point."""
+    returned; a plan no program can deliver raises :class:`InputError` naming the point. With
+    ``out`` the program is also written to that file (whole or not at all), as ``preston nc
+    --out``; :func:`simulate_program` takes either the text or the file."""
     pts = _columns(dwell_xy, 2, "dwell_xy")
     t = np.ascontiguousarray(dwell_s, dtype=np.float64)
     if t.ndim != 1:
@@ -542,7 +794,23 @@ def nc(
     text, _blocks = _preston.nc(
         pts, t, _dumps(settings), _abs(surface) if surface is not None else None, list(notes)
     )
+    if out is not None:
+        _write_text_atomic(os.fspath(out), text)
     return text
+
+
+def _write_text_atomic(path: str, text: str) -> None:
+    """Writes ``text`` to ``path`` through a temporary file in its directory, renamed into place."""
+    import tempfile
+
+    directory = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", dir=directory)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise InputFileError(f"{path}: {e.strerror or e}") from None
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)

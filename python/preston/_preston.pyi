@@ -12,8 +12,14 @@ __version__: str
 class PrestonError(Exception):
     """Base class of every Preston error; the message is Preston's (file, line, field)."""
 
-class InputError(PrestonError):
-    """Bad input: unreadable file, malformed map/TIF/job, invalid option or array."""
+class InputError(PrestonError, ValueError):
+    """Bad input: malformed map/TIF/job, invalid keyword, option or array."""
+
+class InputFileError(InputError, OSError):
+    """A file that cannot be opened, read or written."""
+
+class InputFileNotFoundError(InputFileError, FileNotFoundError):
+    """A file that does not exist."""
 
 class SolverError(PrestonError):
     """The engine failed numerically."""
@@ -76,6 +82,13 @@ def check_job(job_json: str, base_dir: Optional[str] = None, job_name: str = "<j
 def read_map(source_json: str) -> Tuple[F64, F64, F64, str]:
     """A map read with a ``[map]`` table's options: ``(x_mm, y_mm, z_nm, how_read_json)``."""
 
+def influence_matrix(
+    job_json: str,
+    job_name: str = "<python>",
+    map_xyz: Optional[np.ndarray] = None,
+    tif_xyr: Optional[np.ndarray] = None,
+    dwell_xy: Optional[np.ndarray] = None,
+) -> Tuple[int, int, int, List[int], List[int], np.ndarray, List[np.ndarray]]: ...
 def solve(
     job_json: str,
     job_name: str = "<python>",

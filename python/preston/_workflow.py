@@ -346,7 +346,7 @@ def register(
 
 def simulate_program(
     map: PathLike,
-    program: PathLike,
+    program: Union[PathLike, str],
     *,
     tif: Optional[PathLike] = None,
     tif_xyr: Optional[ArrayLike] = None,
@@ -361,7 +361,8 @@ def simulate_program(
     progress: Optional[Callable[[dict], Any]] = None,
 ) -> dict:
     """The removal a G-code program produces as the machine runs it (``preston simulate
-    --program``): the program (a file, e.g. from ``preston nc`` or :func:`preston.nc`) read back in
+    --program``): the program (a file, e.g. from ``preston nc``, or the text :func:`preston.nc`
+    returns: a string holding a newline is taken as the program's text) read back in
     its ``dialect`` (default: the one its header names), executed at the programmed feed or, with
     ``a_max_mm_per_s2`` (mm/s^2), with acceleration-limited look-ahead stopping at turns above
     ``corner_angle_deg``; the TIF (``tif`` file, ``tif_xyr`` grid samples or ``gaussian``)
@@ -375,10 +376,34 @@ def simulate_program(
     against planned dwell over the marked stretches: ``stretches``, ``planned_total_s``,
     ``executed_total_s``, ``max_relative_error``, ``worst_point``, ``over_5_percent``,
     ``executed_time_s``, ``samples``)."""
-    from . import MAP_OPTIONS, _abs, _map_options
+    from . import MAP_OPTIONS, _abs, _gaussian, _map_options
 
+    if isinstance(program, str) and "\n" in program:
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="preston-") as d:
+            path = os.path.join(d, "program.nc")
+            with open(path, "w", encoding="utf-8") as f:
+                f.write(program)
+            return simulate_program(
+                map,
+                path,
+                tif=tif,
+                tif_xyr=tif_xyr,
+                gaussian=gaussian,
+                a_max_mm_per_s2=a_max_mm_per_s2,
+                corner_angle_deg=corner_angle_deg,
+                dialect=dialect,
+                sample_step_mm=sample_step_mm,
+                surface=surface,
+                tool_radius_mm=tool_radius_mm,
+                map_options=map_options,
+                progress=progress,
+            )
     if sum(x is not None for x in (tif, tif_xyr, gaussian)) != 1:
         raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    if gaussian is not None:
+        gaussian = _gaussian(gaussian)
     opts = dict(map_options or {})
     unknown = sorted(set(opts) - set(MAP_OPTIONS))
     if unknown:

@@ -61,7 +61,14 @@ pub(crate) fn write_figures(
         names.push("tif.png");
     }
     if notes.is_empty() {
-        names.extend(["psd.csv", "psd.png"]);
+        names.extend([
+            "psd.csv",
+            "psd.png",
+            "psd_2d.csv",
+            "psd_2d.png",
+            "psd_azimuthal.csv",
+            "psd_azimuthal.png",
+        ]);
     }
     Ok((names.iter().map(|n| out_dir.join(n)).collect(), notes))
 }

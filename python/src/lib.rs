@@ -30,9 +30,11 @@ use preston_solver::simulate::{removal_nm, Motion};
 use preston_solver::surface::Surface;
 use preston_solver::tif::{GridTif, Tif};
 use pyo3::create_exception;
-use pyo3::exceptions::PyException;
+use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
 use pyo3::types::PyDict;
+use pyo3::types::{PyTuple, PyType};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -44,12 +46,80 @@ create_exception!(
     PyException,
     "Base class of every error Preston raises; the message is Preston's (file, line, field)."
 );
-create_exception!(
-    preston,
-    InputError,
-    PrestonError,
-    "Bad input: a file that cannot be read, a malformed map/TIF/job, an invalid option or array."
-);
+/// The Python types of the input errors, made at import (they subclass Python's builtins as well
+/// as [`PrestonError`], which a `create_exception!` type cannot).
+static INPUT_TYPES: PyOnceLock<[Py<PyType>; 3]> = PyOnceLock::new();
+
+/// `InputError(PrestonError, ValueError)`, `InputFileError(InputError, OSError)` and
+/// `InputFileNotFoundError(InputFileError, FileNotFoundError)`.
+fn make_input_types(py: Python<'_>) -> PyResult<[Py<PyType>; 3]> {
+    let builtins = py.import("builtins")?;
+    let type_ = builtins.getattr("type")?;
+    let make = |name: &str, bases: Bound<'_, PyTuple>, doc: &str| -> PyResult<Py<PyType>> {
+        let dict = PyDict::new(py);
+        dict.set_item("__module__", "preston")?;
+        dict.set_item("__doc__", doc)?;
+        Ok(type_
+            .call1((name, bases, dict))?
+            .cast_into::<PyType>()?
+            .unbind())
+    };
+    let input = make(
+        "InputError",
+        PyTuple::new(
+            py,
+            [
+                py.get_type::<PrestonError>().into_any(),
+                py.get_type::<PyValueError>().into_any(),
+            ],
+        )?,
+        "Bad input: a malformed map/TIF/job, an invalid option, keyword or array. A ValueError.",
+    )?;
+    let file = make(
+        "InputFileError",
+        PyTuple::new(
+            py,
+            [
+                input.bind(py).clone().into_any(),
+                py.get_type::<PyOSError>().into_any(),
+            ],
+        )?,
+        "A file that cannot be opened, read or written. An InputError and an OSError.",
+    )?;
+    let missing = make(
+        "InputFileNotFoundError",
+        PyTuple::new(
+            py,
+            [
+                file.bind(py).clone().into_any(),
+                py.get_type::<PyFileNotFoundError>().into_any(),
+            ],
+        )?,
+        "A file that does not exist. An InputFileError and a FileNotFoundError.",
+    )?;
+    Ok([input, file, missing])
+}
+
+/// Raises the input errors ([`make_input_types`]).
+pub(crate) struct InputError;
+
+impl InputError {
+    /// `InputError(msg)`.
+    pub(crate) fn new_err(msg: impl Into<String>) -> PyErr {
+        input_err(0, msg.into())
+    }
+}
+
+/// The input error of kind `k` (0 input, 1 file, 2 missing file) with `msg`.
+fn input_err(k: usize, msg: String) -> PyErr {
+    Python::attach(
+        |py| match INPUT_TYPES.get_or_try_init(py, || make_input_types(py)) {
+            Ok(types) => PyErr::from_type(types[k].bind(py).clone(), msg),
+            Err(e) => e,
+        },
+    )
+}
+
 create_exception!(
     preston,
     SolverError,
@@ -73,10 +143,140 @@ pub(crate) fn to_py(e: preston_io::Error) -> PyErr {
         } | preston_io::Error::Solver(preston_solver::Error::Numerical { .. })
     );
     if numerical {
-        SolverError::new_err(e.to_string())
-    } else {
-        InputError::new_err(e.to_string())
+        return SolverError::new_err(e.to_string());
     }
+    match &e {
+        preston_io::Error::Io { source, .. } => {
+            let k = if source.kind() == std::io::ErrorKind::NotFound {
+                2
+            } else {
+                1
+            };
+            input_err(k, e.to_string())
+        }
+        _ => InputError::new_err(e.to_string()),
+    }
+}
+
+/// A job's JSON as Python gave it, the error in Python's terms: the keyword of `solve` (or the
+/// job key) at fault and serde's message without its position in the internal JSON.
+pub(crate) fn json_error_in_python_terms(json: &str, e: &serde_json::Error) -> String {
+    let mut msg = e.to_string();
+    if let Some(k) = msg.rfind(" at line ") {
+        msg.truncate(k);
+    }
+    let offset = json
+        .split_inclusive('\n')
+        .take(e.line().saturating_sub(1))
+        .map(str::len)
+        .sum::<usize>()
+        + e.column().saturating_sub(1);
+    let mut path = key_path_at(json, offset);
+    // An unknown field is named by the message; its path is the object's plus the field.
+    if let Some(field) = msg
+        .strip_prefix("unknown field `")
+        .and_then(|r| r.split('`').next())
+    {
+        if path.last().map(String::as_str) != Some(field) {
+            path.push(field.to_string());
+        }
+    }
+    let dotted = path.join(".");
+    match python_keyword(&dotted) {
+        Some(kw) => format!("{kw}: {msg} (job key {dotted})"),
+        None if dotted.is_empty() => msg,
+        None => format!("key {dotted}: {msg}"),
+    }
+}
+
+/// The keyword of `preston.solve` a job key comes from, where there is one.
+fn python_keyword(dotted: &str) -> Option<String> {
+    const KEYS: [(&str, &str); 16] = [
+        ("machine.v_max_mm_per_min", "v_max"),
+        ("machine.v_min_mm_per_min", "v_min"),
+        ("machine.a_max_mm_per_s2", "a_max"),
+        ("machine.accel_method", "accel_method"),
+        ("machine.corner_angle_deg", "corner_angle_deg"),
+        ("objective.rho", "rho"),
+        ("objective.lambda", "lambda_"),
+        ("dwell.raster_pitch_mm", "raster_pitch_mm"),
+        ("dwell.raster_along", "raster_along"),
+        ("edge.method", "edge"),
+        ("edge.width_mm", "edge_width_mm"),
+        ("surface.tif_frame", "tif_frame"),
+        ("solver.first_order_tolerance", "tolerance"),
+        ("solver.first_order_max_iterations", "max_iterations"),
+        ("solver.min_time", "min_time"),
+        ("tif.file", "tif"),
+    ];
+    if let Some((_, kw)) = KEYS.iter().find(|(k, _)| *k == dotted) {
+        return Some(format!("{kw}="));
+    }
+    if let Some(rest) = dotted.strip_prefix("tif.gaussian.") {
+        return Some(format!("gaussian['{rest}']"));
+    }
+    if dotted == "tif.gaussian" {
+        return Some("gaussian=".into());
+    }
+    if let Some(rest) = dotted.strip_prefix("map.") {
+        return Some(format!("map_options['{rest}']"));
+    }
+    if let Some(rest) = dotted.strip_prefix("solver.") {
+        return Some(format!("{rest}="));
+    }
+    None
+}
+
+/// The keys leading to byte `offset` of a JSON text (`["tif", "gaussian", "peak"]`); array
+/// elements appear as their index.
+fn key_path_at(json: &str, offset: usize) -> Vec<String> {
+    enum Frame {
+        Object(Option<String>),
+        Array(usize),
+    }
+    let bytes = json.as_bytes();
+    let mut stack: Vec<Frame> = Vec::new();
+    let mut i = 0;
+    let mut last_string: Option<String> = None;
+    while i < bytes.len() && i < offset {
+        match bytes[i] {
+            b'"' => {
+                let start = i + 1;
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    if bytes[i] == b'\\' {
+                        i += 1;
+                    }
+                    i += 1;
+                }
+                last_string = json.get(start..i.min(json.len())).map(str::to_string);
+            }
+            b':' => {
+                if let Some(Frame::Object(key)) = stack.last_mut() {
+                    *key = last_string.take();
+                }
+            }
+            b'{' => stack.push(Frame::Object(None)),
+            b'[' => stack.push(Frame::Array(0)),
+            b'}' | b']' => {
+                stack.pop();
+            }
+            b',' => match stack.last_mut() {
+                Some(Frame::Array(k)) => *k += 1,
+                Some(Frame::Object(key)) => *key = None,
+                None => {}
+            },
+            _ => {}
+        }
+        i += 1;
+    }
+    stack
+        .into_iter()
+        .filter_map(|f| match f {
+            Frame::Object(k) => k,
+            Frame::Array(k) => Some(k.to_string()),
+        })
+        .collect()
 }
 
 /// An engine error on data named `what` (an array argument) as a Python exception.
@@ -126,10 +326,12 @@ pub(crate) fn columns(
 
 fn parse_job(job_json: &str, job_name: &str) -> PyResult<Job> {
     serde_json::from_str(job_json).map_err(|e| {
-        to_py(preston_io::Error::Job {
-            file: PathBuf::from(job_name),
-            why: e.to_string(),
-        })
+        let why = json_error_in_python_terms(job_json, &e);
+        if job_name == "<python>" {
+            InputError::new_err(why)
+        } else {
+            InputError::new_err(format!("{job_name}: {why}"))
+        }
     })
 }
 
@@ -243,6 +445,10 @@ impl Observer for PyProgress {
 #[pyclass(module = "preston._preston", frozen)]
 pub struct SolveResult {
     solved: Solved,
+    /// The job as solved (its files and settings for the report's provenance).
+    job: Job,
+    /// The job file (or `<python>`).
+    job_path: PathBuf,
     feeds: Vec<f64>,
     residual: Vec<f64>,
     /// The job's raster direction (`[dwell] raster_along`): the PSD's line direction.
@@ -329,15 +535,42 @@ impl SolveResult {
     /// Writes dwell.csv, residual.csv and report.json into `out_dir` (created if needed) and,
     /// with `plots`, the figures and psd.csv of `preston solve --plots`; everything is staged
     /// first and committed together (all files or none). Returns the notes on figures left out.
-    #[pyo3(signature = (out_dir, plots=false))]
-    fn write(&self, py: Python<'_>, out_dir: PathBuf, plots: bool) -> PyResult<Vec<String>> {
-        let figures = plots.then(|| {
-            (
+    /// With `report`, also report.html (`preston solve --report`); `color_limits` (`"robust"`,
+    /// `"full"` or `"LO,HI"` in nm) sets the colour range of the error and residual maps.
+    #[pyo3(signature = (out_dir, plots=false, report=false, color_limits=None))]
+    fn write(
+        &self,
+        py: Python<'_>,
+        out_dir: PathBuf,
+        plots: bool,
+        report: bool,
+        color_limits: Option<&str>,
+    ) -> PyResult<Vec<String>> {
+        let color_limits = match color_limits {
+            Some(c) => c
+                .parse::<preston_io::plots::ColorLimits>()
+                .map_err(|e| InputError::new_err(format!("color_limits: {e}")))?,
+            None => preston_io::plots::ColorLimits::default(),
+        };
+        let options = pipeline::OutputOptions {
+            figures: Some((
                 figures::line_axis_of(self.raster_along),
                 self.raster_pitch_mm,
-            )
-        });
-        py.detach(|| pipeline::write_outputs_with_figures(&self.solved, &out_dir, figures))
+            )),
+            plots,
+            html: report.then(|| {
+                preston_io::html::Provenance::of_job(
+                    &self.job,
+                    &self.job_path,
+                    Some(format!(
+                        "preston.solve (Python package {})",
+                        env!("CARGO_PKG_VERSION")
+                    )),
+                )
+            }),
+            style: preston_io::figures::FigureStyle { color_limits },
+        };
+        py.detach(|| pipeline::write_solve_outputs(&self.solved, &out_dir, &options))
             .map_err(to_py)
     }
     /// Writes the figures of `preston solve --plots` into `out_dir` (created if needed): maps of
@@ -436,15 +669,14 @@ struct ArrayInputs {
     dwell: Option<Vec<Vec<f64>>>,
 }
 
-/// Reads what the job names and takes the rest from the arrays, then prepares and solves.
-fn run_solve(
+/// Reads what the job names and takes the rest from the arrays, then builds the problem.
+fn prepare_arrays(
     job: &Job,
     job_path: &Path,
     arrays: ArrayInputs,
     observer: &dyn Observer,
-) -> preston_io::Result<Solved> {
+) -> preston_io::Result<pipeline::Prepared> {
     let started = Instant::now();
-    let map_from_array = arrays.map.is_some();
     let map = match arrays.map {
         Some(c) => {
             let [x, y, z]: [Vec<f64>; 3] = c
@@ -493,13 +725,80 @@ fn run_solve(
         (None, Some(f), None) => Some(read_dwell(f)?),
         _ => None,
     };
-    let prepared =
-        pipeline::prepare_inputs(job, job_path, Inputs { map, tif, dwell }, started, observer)?;
+    pipeline::prepare_inputs(job, job_path, Inputs { map, tif, dwell }, started, observer)
+}
+
+/// Reads what the job names and takes the rest from the arrays, then prepares and solves.
+fn run_solve(
+    job: &Job,
+    job_path: &Path,
+    arrays: ArrayInputs,
+    observer: &dyn Observer,
+) -> preston_io::Result<Solved> {
+    let map_from_array = arrays.map.is_some();
+    let prepared = prepare_arrays(job, job_path, arrays, observer)?;
     let mut solved = pipeline::solve(prepared, job, observer)?;
     if map_from_array {
         solved.report.map_input = None;
     }
     Ok(solved)
+}
+
+/// The assembled influence matrix `R` of a job (the problem `solve` would build, `R` assembled
+/// whatever operator the job names), in compressed sparse column form: `(rows of the map, rows,
+/// columns, column offsets, row indices, values)` (the map's rows first, then the edge
+/// extension's), with the dwell points and the map points.
+#[pyfunction]
+#[pyo3(signature = (job_json, job_name="<python>", map_xyz=None, tif_xyr=None, dwell_xy=None))]
+#[allow(clippy::type_complexity)]
+fn influence_matrix<'py>(
+    py: Python<'py>,
+    job_json: &str,
+    job_name: &str,
+    map_xyz: Option<PyReadonlyArray2<'_, f64>>,
+    tif_xyr: Option<PyReadonlyArray2<'_, f64>>,
+    dwell_xy: Option<PyReadonlyArray2<'_, f64>>,
+) -> PyResult<(
+    usize,
+    usize,
+    usize,
+    Vec<usize>,
+    Vec<usize>,
+    Array<'py>,
+    [Array<'py>; 4],
+)> {
+    let mut job = parse_job(job_json, job_name)?;
+    job.solver.operator = preston_solver::dwell::OperatorChoice::Sparse;
+    let arrays = ArrayInputs {
+        map: map_xyz.map(|a| columns(&a, "map_xyz", 3)).transpose()?,
+        tif: tif_xyr.map(|a| columns(&a, "tif_xyr", 3)).transpose()?,
+        dwell: dwell_xy.map(|a| columns(&a, "dwell_xy", 2)).transpose()?,
+    };
+    let job_path = PathBuf::from(job_name);
+    let prepared = py
+        .detach(|| prepare_arrays(&job, &job_path, arrays, &Silent))
+        .map_err(to_py)?;
+    let r = prepared.problem.operator().matrix().ok_or_else(|| {
+        InputError::new_err(
+            "this job's R is not assembled (a curvature-dependent or off-lattice operator)",
+        )
+    })?;
+    let csc = r.csc();
+    let (map, path) = (prepared.map(), prepared.path());
+    Ok((
+        map.len(),
+        r.nrows(),
+        r.ncols(),
+        csc.col_offsets().to_vec(),
+        csc.row_indices().to_vec(),
+        array(py, csc.values()),
+        [
+            array(py, path.x_mm()),
+            array(py, path.y_mm()),
+            array(py, map.x_mm()),
+            array(py, map.y_mm()),
+        ],
+    ))
 }
 
 /// Solves a job (JSON, the job file's structure) with optional arrays in place of its map
@@ -550,6 +849,8 @@ fn solve(
         residual,
         raster_along: job.dwell.raster_along,
         raster_pitch_mm: job.dwell.raster_pitch_mm,
+        job,
+        job_path,
     })
 }
 
@@ -561,8 +862,9 @@ pub(crate) fn tif_of(tif_json: &str, tif_xyr: Option<Vec<Vec<f64>>>) -> PyResult
             .map_err(|e| engine_to_py("tif_xyr", e));
     }
     let job = Job {
-        tif: serde_json::from_str(tif_json)
-            .map_err(|e| InputError::new_err(format!("tif: {e}")))?,
+        tif: serde_json::from_str(tif_json).map_err(|e| {
+            InputError::new_err(format!("tif: {}", json_error_in_python_terms(tif_json, &e)))
+        })?,
         ..Job::default()
     };
     pipeline::load_tif(&job, Path::new("tif")).map_err(to_py)
@@ -737,7 +1039,10 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // The crates' version: the same as `preston --version` and the wheel's.
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("PrestonError", py.get_type::<PrestonError>())?;
-    m.add("InputError", py.get_type::<InputError>())?;
+    let [input, file, missing] = INPUT_TYPES.get_or_try_init(py, || make_input_types(py))?;
+    m.add("InputError", input.bind(py))?;
+    m.add("InputFileError", file.bind(py))?;
+    m.add("InputFileNotFoundError", missing.bind(py))?;
     m.add("SolverError", py.get_type::<SolverError>())?;
     m.add("NotConvergedError", py.get_type::<NotConvergedError>())?;
     m.add_class::<SolveResult>()?;
@@ -745,6 +1050,7 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(check_job, m)?)?;
     m.add_function(wrap_pyfunction!(read_map, m)?)?;
     m.add_function(wrap_pyfunction!(solve, m)?)?;
+    m.add_function(wrap_pyfunction!(influence_matrix, m)?)?;
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
     m.add_function(wrap_pyfunction!(raster, m)?)?;
     m.add_function(wrap_pyfunction!(fit, m)?)?;

@@ -29,7 +29,12 @@ use std::path::{Path, PathBuf};
 
 /// JSON text as a settings struct, the error naming `what`.
 fn settings<T: serde::de::DeserializeOwned>(text: &str, what: &str) -> PyResult<T> {
-    serde_json::from_str(text).map_err(|e| InputError::new_err(format!("{what}: {e}")))
+    serde_json::from_str(text).map_err(|e| {
+        InputError::new_err(format!(
+            "{what}: {}",
+            crate::json_error_in_python_terms(text, &e)
+        ))
+    })
 }
 
 /// A design surface from its JSON (what `preston fit --out` writes), validated.

@@ -52,7 +52,8 @@ def test_grid_batch_equals_one_by_one(client, small_job, tmp_path):
     for a, b in zip(rows[0:8:2], rows[2:8:2]):
         assert b["total_dwell_s"] <= a["total_dwell_s"] * (1 + 1e-9)
     broken = rows[8]
-    assert not broken["ok"] and broken["error_type"] == "InputError"
+    # A missing file: the InputError that is also a FileNotFoundError.
+    assert not broken["ok"] and broken["error_type"] == "InputFileNotFoundError"
     assert "missing_map.csv" in broken["error"]
     assert sorted(os.listdir(out)) == [f"sweep-{i:03d}" for i in range(8)]  # no temporary dirs
 

@@ -299,9 +299,18 @@ pub struct Args {
     #[arg(long)]
     pub accept_best_iterate: bool,
     /// Also write PNG figures (error_before, removal, residual, dwell, feed, tif, path) and the
-    /// PSD of error and residual along the raster direction (psd.png, psd.csv).
+    /// PSDs of error and residual: along the raster direction (psd.png, psd.csv), 2-D
+    /// (psd_2d.png, psd_2d.csv) and azimuthally averaged (psd_azimuthal.png, psd_azimuthal.csv).
     #[arg(long)]
     pub plots: bool,
+    /// Also write report.html: one self-contained page with the inputs and their SHA-256, the
+    /// result, the machine summary, the warnings and the figures embedded.
+    #[arg(long)]
+    pub report: bool,
+    /// Colour range of the error and residual maps: LO,HI in nm, `robust` (default: +- the 99th
+    /// percentile of |z|, points outside marked) or `full`.
+    #[arg(long, value_name = "LO,HI", allow_hyphen_values = true)]
+    pub color_limits: Option<preston_io::plots::ColorLimits>,
     /// Design surface JSON of a curved part: the TIF acts in each dwell point's tangent plane.
     #[arg(long, value_name = "S.json")]
     pub surface: Option<PathBuf>,
@@ -577,6 +586,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let plots = args.plots;
     let output = args.output;
     output.apply();
+    let html = args.report;
+    let style = preston_io::figures::FigureStyle {
+        color_limits: args.color_limits.unwrap_or_default(),
+    };
     let (job, job_path, out, accept_best) = args.into_job()?;
     if preston_io::tools::is_multi_tool(&job) {
         return run_tools(&job, &job_path, &out, accept_best, output);
@@ -589,14 +602,23 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let early_warnings = prepared.warnings.len();
     let solved = pipeline::solve(prepared, &job, &bars)?;
-    let figures = plots.then(|| {
-        let axis = match job.dwell.raster_along {
-            RasterAxis::X => LineAxis::X,
-            RasterAxis::Y => LineAxis::Y,
-        };
-        (axis, job.dwell.raster_pitch_mm)
-    });
-    let notes = pipeline::write_outputs_with_figures(&solved, &out, figures)
+    let axis = match job.dwell.raster_along {
+        RasterAxis::X => LineAxis::X,
+        RasterAxis::Y => LineAxis::Y,
+    };
+    let options = pipeline::OutputOptions {
+        figures: Some((axis, job.dwell.raster_pitch_mm)),
+        plots,
+        html: html.then(|| {
+            preston_io::html::Provenance::of_job(
+                &job,
+                &job_path,
+                Some(preston_io::html::Provenance::command_line()),
+            )
+        }),
+        style,
+    };
+    let notes = pipeline::write_solve_outputs(&solved, &out, &options)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     for note in notes {
         crate::note!("  note: {note}");

@@ -1,0 +1,244 @@
+//! `preston solve --report`: `report.html`, one self-contained page whose numbers are those of
+//! `report.json`, with every figure embedded and the inputs' hashes; the sample's residual plot
+//! keeps almost all points inside its colour range.
+
+mod common;
+
+use common::{data, preston_cmd};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Relative tolerance of a number as displayed (five significant digits) against its exact value.
+const DISPLAY_REL_TOL: f64 = 1e-4;
+
+/// Every `data-key="K" data-value="V">SHOWN<` of the page, in order.
+fn numbers(html: &str) -> Vec<(String, String, String)> {
+    let mut out = Vec::new();
+    let mut rest = html;
+    while let Some(k) = rest.find("data-key=\"") {
+        rest = &rest[k + 10..];
+        let key_end = rest.find('"').unwrap();
+        let key = rest[..key_end].to_string();
+        let after = &rest[key_end + 1..];
+        if let Some(v) = after.strip_prefix(" data-value=\"") {
+            let value_end = v.find('"').unwrap();
+            let value = v[..value_end].to_string();
+            let shown_start = v.find('>').unwrap() + 1;
+            let shown_end = v[shown_start..].find('<').unwrap() + shown_start;
+            out.push((key, value, v[shown_start..shown_end].to_string()));
+        }
+    }
+    out
+}
+
+/// `report.json`'s value at a dotted key.
+fn at<'a>(json: &'a serde_json::Value, key: &str) -> Option<&'a serde_json::Value> {
+    json.pointer(&format!("/{}", key.replace('.', "/")))
+}
+
+#[test]
+fn report_html_holds_the_numbers_of_report_json_and_every_figure() {
+    let out = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--plots", "--report", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let html = std::fs::read_to_string(out.path().join("report.html")).unwrap();
+    let json = common::report(out.path());
+    let found = numbers(&html);
+    assert!(found.len() > 40, "{} numbers", found.len());
+    let mut seen = BTreeMap::new();
+    for (key, value, shown) in &found {
+        let expected = at(&json, key).unwrap_or_else(|| panic!("{key} not in report.json"));
+        let exact: f64 = value.parse().unwrap();
+        assert_eq!(Some(exact), expected.as_f64(), "{key}");
+        let displayed: f64 = shown.parse().unwrap();
+        assert!(
+            (displayed - exact).abs() <= DISPLAY_REL_TOL * exact.abs(),
+            "{key}: shown {shown}, exact {exact}"
+        );
+        seen.insert(key.clone(), exact);
+    }
+    // The figures a metrologist looks for first, and every number of report.json.
+    for key in [
+        "pv_before_nm",
+        "rms_before_nm",
+        "pv_after_nm",
+        "rms_after_nm",
+        "total_dwell_s",
+        "machining_time_s",
+        "executed.rms_after_nm",
+        "executed.pv_after_nm",
+        "executed.stretch_time_s",
+    ] {
+        assert!(seen.contains_key(key), "{key} missing from the page");
+    }
+    fn leaves(prefix: String, v: &serde_json::Value, out: &mut Vec<String>) {
+        match v {
+            serde_json::Value::Object(m) => {
+                for (k, x) in m {
+                    let p = if prefix.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{prefix}.{k}")
+                    };
+                    leaves(p, x, out);
+                }
+            }
+            serde_json::Value::Number(_) => out.push(prefix),
+            _ => {}
+        }
+    }
+    let mut all = Vec::new();
+    leaves(String::new(), &json, &mut all);
+    for key in all {
+        assert!(
+            seen.contains_key(&key),
+            "{key} of report.json not on the page"
+        );
+    }
+    // Self-contained: every figure written is embedded byte for byte, nothing is linked.
+    for name in [
+        "error_before.png",
+        "removal.png",
+        "residual.png",
+        "dwell.png",
+        "feed.png",
+        "tif.png",
+        "path.png",
+        "psd.png",
+        "psd_2d.png",
+        "psd_azimuthal.png",
+    ] {
+        let bytes = std::fs::read(out.path().join(name)).unwrap();
+        let embedded = format!(
+            "src=\"data:image/png;base64,{}\"",
+            preston_io::digest::base64(&bytes)
+        );
+        assert!(html.contains(&embedded), "{name} not embedded");
+    }
+    assert!(!html.contains("src=\"http") && !html.contains("href=\"http"));
+    // Provenance: the inputs with their SHA-256, the aperture and the removed terms.
+    for input in [
+        "mirror_error_118x8mm.csv",
+        "tif_fluid_jet_10mm.csv",
+        "job.toml",
+    ] {
+        let (hash, _) = preston_io::digest::sha256_file(&data(input)).unwrap();
+        assert!(html.contains(&hash), "{input}'s hash missing");
+    }
+    for label in [
+        "clear aperture",
+        "form terms removed",
+        "map units",
+        "Warnings",
+    ] {
+        assert!(html.contains(label), "{label} missing");
+    }
+    // Written atomically with the rest: no temporary left, and without --report no page.
+    let names: Vec<String> = std::fs::read_dir(out.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    assert!(names.iter().all(|n| !n.starts_with('.')), "{names:?}");
+}
+
+/// The report page without --plots still embeds the figures, and writes no figure file.
+#[test]
+fn report_without_plots_embeds_figures_but_writes_none() {
+    let out = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--report", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let html = std::fs::read_to_string(out.path().join("report.html")).unwrap();
+    assert!(html.matches("data:image/png;base64,").count() >= 8);
+    let mut names: Vec<String> = std::fs::read_dir(out.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["dwell.csv", "report.html", "report.json", "residual.csv"]
+    );
+}
+
+/// Pixels of the residual map's data area, and of those the ones in the out-of-range colours.
+fn out_of_range_share(png_path: &Path) -> f64 {
+    let decoder = png::Decoder::new(std::fs::File::open(png_path).unwrap());
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    let bpp = info.color_type.samples();
+    let layout = preston_io::plots::MapLayout::for_extent(118.72 + 0.32, 8.0 + 0.32);
+    let (ox, oy) = layout.data_origin_px;
+    let (dw, dh) = layout.data_size_px;
+    let (mut outside, mut total) = (0usize, 0usize);
+    let (u, o) = (
+        preston_io::plots::UNDER_RANGE,
+        preston_io::plots::OVER_RANGE,
+    );
+    for r in oy + 1..oy + dh - 1 {
+        for c in ox + 1..ox + dw - 1 {
+            let k = (r * info.width + c) as usize * bpp;
+            let p = (buf[k], buf[k + 1], buf[k + 2]);
+            total += 1;
+            if p == (u.0, u.1, u.2) || p == (o.0, o.1, o.2) {
+                outside += 1;
+            }
+        }
+    }
+    outside as f64 / total as f64
+}
+
+/// The sample's residual: at least 95% of the map inside the colour range (the edge spikes
+/// marked, not setting the scale), the range written under the colour bar's unit; given limits
+/// are taken as given.
+#[test]
+fn residual_colours_span_the_bulk_of_the_sample() {
+    let out = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--plots", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let share = out_of_range_share(&out.path().join("residual.png"));
+    assert!(
+        share > 0.0 && share < 0.05,
+        "{share} of the pixels out of range"
+    );
+    // Given limits far inside the data: most of the map is out of range.
+    let tight = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--plots", "--color-limits", "-1,1", "--out"])
+        .arg(tight.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let share = out_of_range_share(&tight.path().join("residual.png"));
+    assert!(share > 0.5, "{share}");
+    // Bad limits are refused before anything runs.
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--color-limits", "5,1", "--out"])
+        .arg(tight.path().join("never"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(!tight.path().join("never").exists());
+}

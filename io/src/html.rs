@@ -1,0 +1,703 @@
+//! `report.html`: one self-contained page a metrologist can hand on. It gathers the inputs and
+//! their provenance (files with size and SHA-256, the map's units, aperture and removed form
+//! terms, the job's settings), the result and the plan's machine figures, the executed program,
+//! the sensitivity (when `report.json` carries one), every warning, and the figures, embedded as
+//! base64 PNG (or inline SVG) so the page needs no other file.
+//!
+//! Every number of `report.json` appears in the page in a cell `data-key="PATH"
+//! data-value="NUMBER"`, `PATH` the dotted key in `report.json` and `NUMBER` its JSON text
+//! unchanged; the cell shows it rounded to five significant digits. Tests (and anyone checking a
+//! page) read the numbers back from those attributes. A short script marks, once the page has
+//! loaded, how many of its images decoded (`data-images-loaded` and `data-images-total` on
+//! `<body>`), for checks in a headless browser.
+
+use crate::atomic::{stage, Staged};
+use crate::digest::{base64, sha256_file};
+use crate::error::{Error, Result};
+use crate::job::Job;
+use serde_json::Value;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// A figure embedded in the page.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Figure {
+    /// The file name the figure has (or would have) next to the page, e.g. `residual.png`.
+    pub name: String,
+    /// The caption under it.
+    pub caption: String,
+    /// The image: PNG or SVG bytes (by the name's extension).
+    pub bytes: Vec<u8>,
+}
+
+impl Figure {
+    /// The figure staged for `staged`'s destination, read back from its temporary file.
+    pub fn from_staged(staged: &Staged, caption: &str) -> Result<Self> {
+        let dest = staged.dest();
+        Ok(Figure {
+            name: dest
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            caption: caption.to_string(),
+            bytes: staged.read_back()?,
+        })
+    }
+
+    fn is_svg(&self) -> bool {
+        self.name.ends_with(".svg")
+    }
+}
+
+/// One input file of a job: its role (`map`, `tif`, ...) and path.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InputFile {
+    /// What the file is to the job.
+    pub role: String,
+    /// Where it was read from.
+    pub path: PathBuf,
+}
+
+/// Where a report's inputs came from.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Provenance {
+    /// The command line that produced the outputs.
+    pub command: Option<String>,
+    /// The input files, the job file first when there is one.
+    pub inputs: Vec<InputFile>,
+    /// The job's settings as resolved (flags applied), as JSON.
+    pub settings: Option<Value>,
+}
+
+impl Provenance {
+    /// The provenance of `job` (read from `job_path` when that file exists): every file it
+    /// names, and its settings.
+    pub fn of_job(job: &Job, job_path: &Path, command: Option<String>) -> Self {
+        let mut inputs = Vec::new();
+        if job_path.is_file() {
+            inputs.push(InputFile {
+                role: "job".into(),
+                path: job_path.to_path_buf(),
+            });
+        }
+        let named = [
+            ("map", &job.map.file),
+            ("tif", &job.tif.file),
+            ("dwell points", &job.dwell.file),
+            ("warm start", &job.dwell.warm_start),
+            ("surface", &job.surface.file),
+        ];
+        for (role, file) in named {
+            if let Some(p) = file {
+                inputs.push(InputFile {
+                    role: role.into(),
+                    path: p.clone(),
+                });
+            }
+        }
+        for (k, tool) in job.tool.iter().enumerate() {
+            let v = serde_json::to_value(tool).unwrap_or(Value::Null);
+            for key in ["tif", "dwell"] {
+                if let Some(Value::String(p)) = v.get(key).and_then(|t| t.get("file")) {
+                    inputs.push(InputFile {
+                        role: format!("tool {} {key}", k + 1),
+                        path: PathBuf::from(p),
+                    });
+                }
+            }
+        }
+        Provenance {
+            command,
+            inputs,
+            settings: serde_json::to_value(job).ok(),
+        }
+    }
+
+    /// The command line of this process, arguments quoted where they need it.
+    pub fn command_line() -> String {
+        std::env::args()
+            .map(|a| {
+                if a.is_empty() || a.contains(|c: char| c.is_whitespace() || c == '\'') {
+                    format!("'{}'", a.replace('\'', "'\\''"))
+                } else {
+                    a
+                }
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
+}
+
+/// Escapes `s` for HTML text and attribute values.
+pub fn escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// Five significant digits, without an exponent for everyday magnitudes; integers as they are.
+pub fn display_number(v: f64) -> String {
+    if !v.is_finite() {
+        return format!("{v}");
+    }
+    if v.fract() == 0.0 && v.abs() < 1e15 {
+        return format!("{v:.0}");
+    }
+    let a = v.abs();
+    if (1e-3..1e6).contains(&a) {
+        let decimals = (4 - a.log10().floor() as i32).clamp(0, 7) as usize;
+        format!("{v:.decimals$}")
+    } else {
+        format!("{v:.4e}")
+    }
+}
+
+/// The unit a report key's suffix names (`_nm`, `_s`, `_mm_per_min`, ...), for the unit column.
+fn unit_of(key: &str) -> &'static str {
+    let last = key.rsplit('.').next().unwrap_or(key);
+    const SUFFIXES: [(&str, &str); 12] = [
+        ("_mm_per_min", "mm/min"),
+        ("_mm_per_s2", "mm/s²"),
+        ("_nm_per_s", "nm/s"),
+        ("_nm2_mm2", "nm² mm²"),
+        ("_nm2_mm", "nm² mm"),
+        ("_per_mm", "1/mm"),
+        ("_nm2", "nm²"),
+        ("_nm", "nm"),
+        ("_mm", "mm"),
+        ("_seconds", "s"),
+        ("_s", "s"),
+        ("_deg", "°"),
+    ];
+    SUFFIXES
+        .iter()
+        .find(|(s, _)| last.ends_with(s))
+        .map_or("", |(_, u)| u)
+}
+
+/// Every leaf of `v` under `prefix` as (dotted key, value); arrays longer than `MAX_ARRAY` are
+/// one leaf (shown as a count).
+fn flatten(prefix: &str, v: &Value, out: &mut Vec<(String, Value)>) {
+    const MAX_ARRAY: usize = 12;
+    let key = |k: &str| {
+        if prefix.is_empty() {
+            k.to_string()
+        } else {
+            format!("{prefix}.{k}")
+        }
+    };
+    match v {
+        Value::Object(map) => {
+            for (k, x) in map {
+                flatten(&key(k), x, out);
+            }
+        }
+        Value::Array(a) if a.len() <= MAX_ARRAY && !a.is_empty() => {
+            for (k, x) in a.iter().enumerate() {
+                flatten(&key(&k.to_string()), x, out);
+            }
+        }
+        other => out.push((prefix.to_string(), other.clone())),
+    }
+}
+
+/// A table cell holding `value` (the key's data attributes on numbers).
+fn value_cell(key: &str, value: &Value) -> String {
+    match value {
+        Value::Number(n) => {
+            let shown = n.as_f64().map_or_else(|| n.to_string(), display_number);
+            format!(
+                "<td class=\"num\" data-key=\"{}\" data-value=\"{}\">{}</td>",
+                escape(key),
+                escape(&n.to_string()),
+                escape(&shown)
+            )
+        }
+        Value::String(s) => format!("<td data-key=\"{}\">{}</td>", escape(key), escape(s)),
+        Value::Null => "<td class=\"none\">none</td>".to_string(),
+        Value::Bool(b) => format!("<td>{b}</td>"),
+        Value::Array(a) => format!("<td>{} values (see report.json)</td>", a.len()),
+        Value::Object(_) => "<td>(object)</td>".to_string(),
+    }
+}
+
+/// A two- or three-column table of `rows` (label, key, value).
+fn table(out: &mut String, rows: &[(String, String, Value)]) {
+    out.push_str("<table>\n<tr><th>quantity</th><th>value</th><th>unit</th></tr>\n");
+    for (label, key, value) in rows {
+        let _ = writeln!(
+            out,
+            "<tr><th scope=\"row\">{}</th>{}<td class=\"unit\">{}</td></tr>",
+            escape(label),
+            value_cell(key, value),
+            unit_of(key)
+        );
+    }
+    out.push_str("</table>\n");
+}
+
+/// Rows for `keys` (key, label) of `json` that are present.
+fn rows_of(json: &Value, keys: &[(&str, &str)]) -> Vec<(String, String, Value)> {
+    keys.iter()
+        .filter_map(|(k, label)| {
+            let v = json.pointer(&format!("/{}", k.replace('.', "/")))?;
+            Some((label.to_string(), k.to_string(), v.clone()))
+        })
+        .collect()
+}
+
+/// Rows for every leaf of `json` under `key`, labelled by their key.
+fn leaf_rows(json: &Value, key: &str) -> Vec<(String, String, Value)> {
+    let mut leaves = Vec::new();
+    if let Some(v) = json.get(key) {
+        flatten(key, v, &mut leaves);
+    }
+    leaves.into_iter().map(|(k, v)| (k.clone(), k, v)).collect()
+}
+
+const STYLE: &str = "body{font-family:'DejaVu Sans',Arial,sans-serif;margin:2em auto;max-width:70em;\
+padding:0 1em;color:#222}h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.25em;border-bottom:1px solid #bbb;\
+margin-top:1.6em}table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.2em .6em;\
+text-align:left;vertical-align:top}th[scope=row]{font-weight:normal;background:#f4f4f4}td.num{text-align:right;\
+font-variant-numeric:tabular-nums}td.unit{color:#555}td.hash{font-family:monospace;font-size:.85em;\
+word-break:break-all}.cards{display:flex;flex-wrap:wrap;gap:.8em}.card{border:1px solid #ccc;border-radius:4px;\
+padding:.5em .8em;min-width:11em}.card .big{font-size:1.4em}.warn{color:#8a3b00}figure{margin:1em 0}\
+figure img{max-width:100%;height:auto;border:1px solid #eee}figure svg{max-width:100%;height:auto}\
+figcaption{color:#444;font-size:.9em}pre{background:#f7f7f7;padding:.6em;overflow-x:auto;font-size:.85em}\
+@media print{figure{break-inside:avoid}}";
+
+const SCRIPT: &str = "window.addEventListener('load',function(){var im=document.images,k=0;\
+for(var i=0;i<im.length;i++){if(im[i].complete&&im[i].naturalWidth>0)k++;}\
+document.body.setAttribute('data-images-loaded',String(k));\
+document.body.setAttribute('data-images-total',String(im.length));});";
+
+/// What a page shows beyond `report.json`.
+#[derive(Debug, Clone, Default)]
+pub struct PageExtras<'a> {
+    /// Where the inputs came from.
+    pub provenance: Option<&'a Provenance>,
+    /// The figures.
+    pub figures: &'a [Figure],
+    /// Notes (figures left out and the like), listed with the warnings.
+    pub notes: &'a [String],
+}
+
+fn head(out: &mut String, title: &str) {
+    let _ = write!(
+        out,
+        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n\
+         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n\
+         <meta name=\"generator\" content=\"preston {}\">\n<title>{}</title>\n<style>{STYLE}</style>\n\
+         <script>{SCRIPT}</script>\n</head>\n<body>\n",
+        env!("CARGO_PKG_VERSION"),
+        escape(title)
+    );
+}
+
+fn provenance_section(out: &mut String, p: &Provenance, report: &Value) {
+    out.push_str("<h2 id=\"inputs\">Inputs and provenance</h2>\n");
+    if let Some(c) = &p.command {
+        let _ = writeln!(out, "<p>Command:</p><pre>{}</pre>", escape(c));
+    }
+    if !p.inputs.is_empty() {
+        out.push_str(
+            "<table>\n<tr><th>input</th><th>file</th><th>bytes</th><th>SHA-256</th></tr>\n",
+        );
+        for f in &p.inputs {
+            let (hash, size) = match sha256_file(&f.path) {
+                Ok((h, n)) => (h, n.to_string()),
+                Err(e) => (format!("unreadable: {e}"), String::new()),
+            };
+            let _ = writeln!(
+                out,
+                "<tr><th scope=\"row\">{}</th><td>{}</td><td class=\"num\">{}</td>\
+                 <td class=\"hash\" data-file=\"{}\">{}</td></tr>",
+                escape(&f.role),
+                escape(&f.path.display().to_string()),
+                size,
+                escape(&f.path.display().to_string()),
+                escape(&hash)
+            );
+        }
+        out.push_str("</table>\n");
+    }
+    let map_source = p.settings.as_ref().and_then(|s| s.get("map"));
+    let text = |v: Option<&Value>| match v {
+        None | Some(Value::Null) => None,
+        Some(Value::String(s)) => Some(s.clone()),
+        Some(other) => Some(other.to_string()),
+    };
+    let mut rows: Vec<(String, String)> = Vec::new();
+    if let Some(mi) = report.get("map_input") {
+        if let Some(f) = text(mi.get("format")) {
+            rows.push(("map format".into(), f));
+        }
+    }
+    let units = text(map_source.and_then(|m| m.get("units")))
+        .unwrap_or_else(|| "from the file's header, else x, y in mm and z in nm".into());
+    rows.push(("map units".into(), units));
+    let aperture = text(map_source.and_then(|m| m.get("aperture")))
+        .unwrap_or_else(|| "none (every valid point)".into());
+    rows.push(("clear aperture".into(), aperture));
+    let removed = match report.pointer("/map_input/removed") {
+        Some(Value::Object(r)) => {
+            let mut parts = Vec::new();
+            for (k, v) in r {
+                parts.push(format!("{k}: {v}"));
+            }
+            parts.join("; ")
+        }
+        _ => {
+            let asked = map_source.and_then(|m| m.get("remove"));
+            match asked {
+                Some(Value::Array(a)) if !a.is_empty() => a
+                    .iter()
+                    .filter_map(|t| t.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                _ => "none".into(),
+            }
+        }
+    };
+    rows.push(("form terms removed".into(), removed));
+    out.push_str("<table>\n");
+    for (k, v) in rows {
+        let _ = writeln!(
+            out,
+            "<tr><th scope=\"row\">{}</th><td>{}</td></tr>",
+            escape(&k),
+            escape(&v)
+        );
+    }
+    out.push_str("</table>\n");
+    let mut map_rows = leaf_rows(report, "map_input");
+    map_rows.retain(|(k, _, _)| !k.starts_with("map_input.notes"));
+    if !map_rows.is_empty() {
+        out.push_str("<p>How the map was read:</p>\n");
+        table(out, &map_rows);
+    }
+    if let Some(s) = &p.settings {
+        let pretty = serde_json::to_string_pretty(s).unwrap_or_default();
+        let _ = writeln!(
+            out,
+            "<details><summary>The job's settings as run (flags applied)</summary><pre>{}</pre></details>",
+            escape(&pretty)
+        );
+    }
+}
+
+fn figures_section(out: &mut String, figures: &[Figure]) {
+    if figures.is_empty() {
+        return;
+    }
+    out.push_str("<h2 id=\"figures\">Figures</h2>\n");
+    for f in figures {
+        let alt = escape(&f.caption);
+        if f.is_svg() {
+            // The SVG as an image (not inline markup): its ids cannot collide with the page's.
+            let _ = writeln!(
+                out,
+                "<figure><img alt=\"{alt}\" src=\"data:image/svg+xml;base64,{}\"><figcaption>{} ({})</figcaption></figure>",
+                base64(&f.bytes),
+                alt,
+                escape(&f.name)
+            );
+        } else {
+            let _ = writeln!(
+                out,
+                "<figure><img alt=\"{alt}\" src=\"data:image/png;base64,{}\"><figcaption>{} ({})</figcaption></figure>",
+                base64(&f.bytes),
+                alt,
+                escape(&f.name)
+            );
+        }
+    }
+}
+
+fn warnings_section(out: &mut String, warnings: &[String]) {
+    out.push_str("<h2 id=\"warnings\">Warnings</h2>\n");
+    if warnings.is_empty() {
+        out.push_str("<p>None.</p>\n");
+    } else {
+        out.push_str("<ul class=\"warn\">\n");
+        for w in warnings {
+            let _ = writeln!(out, "<li>{}</li>", escape(w));
+        }
+        out.push_str("</ul>\n");
+    }
+}
+
+fn card(out: &mut String, label: &str, json: &Value, key: &str) {
+    let Some(v) = json.pointer(&format!("/{}", key.replace('.', "/"))) else {
+        return;
+    };
+    let cell = value_cell(key, v).replacen("<td", "<div class=\"big\"", 1);
+    let cell = cell.trim_end_matches("</td>").to_string() + "</div>";
+    let _ = writeln!(
+        out,
+        "<div class=\"card\"><div>{}</div>{} <span class=\"unit\">{}</span></div>",
+        escape(label),
+        cell,
+        unit_of(key)
+    );
+}
+
+/// Keys of the result section.
+const RESULT_KEYS: [(&str, &str); 13] = [
+    ("rms_before_nm", "RMS of the error before"),
+    ("pv_before_nm", "PV of the error before"),
+    ("rms_after_nm", "RMS of the predicted residual"),
+    ("pv_after_nm", "PV of the predicted residual"),
+    ("piston_nm", "piston (uniform extra removal)"),
+    ("total_dwell_s", "total dwell"),
+    ("objective", "objective 0.5 |R t - z - c|²"),
+    ("solver", "solver"),
+    ("status", "status"),
+    ("converged_by", "converged by"),
+    ("iterations", "iterations"),
+    ("objective_gap_bound", "proven objective gap bound"),
+    ("kkt_residual", "KKT residual"),
+];
+
+/// Keys of the plan-and-machine section.
+const PLAN_KEYS: [(&str, &str); 19] = [
+    ("m", "measurement points"),
+    ("skipped_rows", "map points skipped (empty or NaN)"),
+    ("n", "dwell points"),
+    ("nnz", "non-zeros of R"),
+    ("operator", "how R was applied"),
+    ("edge", "edge model"),
+    ("edge_points", "edge extension points"),
+    ("min_feed_mm_per_min", "slowest feed"),
+    ("max_feed_mm_per_min", "fastest feed"),
+    ("machining_time_s", "machining time"),
+    ("a_max_mm_per_s2", "acceleration limit"),
+    ("max_accel_mm_per_s2", "largest acceleration"),
+    ("accel_iterations", "acceleration-limit iterations"),
+    (
+        "rms_feed_limited_only_nm",
+        "RMS without the acceleration limit",
+    ),
+    ("max_neighbour_feed_ratio", "largest neighbour feed ratio"),
+    ("dwell_outside_map_s", "dwell outside the map"),
+    ("unreachable_dwell_points", "unreachable dwell points"),
+    ("build_seconds", "build time"),
+    ("solve_seconds", "solve time"),
+];
+
+/// The page of a solve (or a simulation): `report` is `report.json`'s content as JSON.
+pub fn report_page(title: &str, report: &Value, extras: &PageExtras<'_>) -> String {
+    let mut out = String::with_capacity(1 << 20);
+    head(&mut out, title);
+    let _ = writeln!(out, "<h1>{}</h1>", escape(title));
+    let _ = writeln!(
+        out,
+        "<p>Written by preston {}. Every number below is the one in <code>report.json</code> \
+         (rounded for display; the exact value is in the cell's <code>data-value</code>).</p>",
+        env!("CARGO_PKG_VERSION")
+    );
+    out.push_str("<div class=\"cards\">\n");
+    card(&mut out, "PV before", report, "pv_before_nm");
+    card(&mut out, "RMS before", report, "rms_before_nm");
+    card(&mut out, "PV after (predicted)", report, "pv_after_nm");
+    card(&mut out, "RMS after (predicted)", report, "rms_after_nm");
+    card(&mut out, "PV as executed", report, "executed.pv_after_nm");
+    card(&mut out, "RMS as executed", report, "executed.rms_after_nm");
+    card(&mut out, "total dwell", report, "total_dwell_s");
+    card(&mut out, "machining time", report, "machining_time_s");
+    out.push_str("</div>\n");
+    if let Some(p) = extras.provenance {
+        provenance_section(&mut out, p, report);
+    }
+    out.push_str("<h2 id=\"result\">Result</h2>\n");
+    table(&mut out, &rows_of(report, &RESULT_KEYS));
+    out.push_str("<h2 id=\"plan\">Plan and machine</h2>\n");
+    table(&mut out, &rows_of(report, &PLAN_KEYS));
+    out.push_str("<h2 id=\"executed\">Executed program</h2>\n");
+    match report.get("executed") {
+        Some(Value::Object(_)) => {
+            out.push_str(
+                "<p>The default program (ISO, G94) run at the acceleration limit, its removal \
+                 integrated along the motion:</p>\n",
+            );
+            table(&mut out, &leaf_rows(report, "executed"));
+        }
+        _ => out.push_str(
+            "<p>Not computed: the executed program is simulated with an acceleration limit on a \
+             flat part (<code>[machine] a_max_mm_per_s2</code>).</p>\n",
+        ),
+    }
+    if let Some(Value::Object(_)) = report.get("sensitivity") {
+        out.push_str("<h2 id=\"sensitivity\">Sensitivity</h2>\n");
+        table(&mut out, &leaf_rows(report, "sensitivity"));
+    }
+    let mut warnings: Vec<String> = report
+        .get("warnings")
+        .and_then(|w| w.as_array())
+        .map(|a| {
+            a.iter()
+                .filter_map(|s| s.as_str().map(str::to_string))
+                .collect()
+        })
+        .unwrap_or_default();
+    if let Some(Value::Array(notes)) = report.pointer("/map_input/notes") {
+        warnings.extend(
+            notes
+                .iter()
+                .filter_map(|s| s.as_str().map(|s| format!("map: {s}"))),
+        );
+    }
+    if let Some(n) = report
+        .get("unreachable_dwell_points")
+        .and_then(Value::as_u64)
+        .filter(|n| *n > 0)
+    {
+        warnings.push(format!(
+            "{n} dwell points have no map point in the tool's reach (their dwell is at its lower \
+             bound; indices in report.json)"
+        ));
+    }
+    if let Some(s) = report.get("status").and_then(Value::as_str) {
+        if !matches!(s, "converged" | "simulated") {
+            warnings.push(format!(
+                "the solver stopped with status {s}: the outputs hold its best iterate"
+            ));
+        }
+    }
+    warnings.extend(extras.notes.iter().cloned());
+    warnings_section(&mut out, &warnings);
+    figures_section(&mut out, extras.figures);
+    out.push_str("<h2 id=\"all\">Every field of report.json</h2>\n");
+    let mut leaves = Vec::new();
+    flatten("", report, &mut leaves);
+    let rows: Vec<_> = leaves.into_iter().map(|(k, v)| (k.clone(), k, v)).collect();
+    table(&mut out, &rows);
+    out.push_str("</body>\n</html>\n");
+    out
+}
+
+/// One row of a polishing loop's table: the measured error before run `iteration`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopRow {
+    /// The iteration.
+    pub iteration: usize,
+    /// PV of the measured error, nm.
+    pub pv_nm: f64,
+    /// RMS of the measured error, nm.
+    pub rms_nm: f64,
+    /// Polishing time of the run, s.
+    pub time_s: f64,
+    /// RMS the solver predicted for the run, nm.
+    pub predicted_rms_nm: Option<f64>,
+}
+
+/// The page of a polishing loop (`preston iterate`): the convergence table, the inner steps that
+/// did not converge, the warnings and the figures.
+pub fn loop_page(
+    title: &str,
+    rows: &[LoopRow],
+    met_spec: bool,
+    failures: &[String],
+    extras: &PageExtras<'_>,
+) -> String {
+    let mut out = String::with_capacity(1 << 20);
+    head(&mut out, title);
+    let _ = writeln!(out, "<h1>{}</h1>", escape(title));
+    let _ = writeln!(
+        out,
+        "<p>Written by preston {}. The numbers are those of <code>convergence.csv</code>.</p>",
+        env!("CARGO_PKG_VERSION")
+    );
+    let _ = writeln!(
+        out,
+        "<p>Specification {}.</p>",
+        if met_spec { "met" } else { "not met" }
+    );
+    if let Some(p) = extras.provenance {
+        provenance_section(&mut out, p, &Value::Null);
+    }
+    out.push_str("<h2 id=\"convergence\">Convergence</h2>\n<table>\n<tr><th>iteration</th><th>PV (nm)</th><th>RMS (nm)</th><th>run time (s)</th><th>predicted RMS (nm)</th></tr>\n");
+    for r in rows {
+        let num = |key: &str, v: f64| {
+            value_cell(
+                &format!("convergence.{}.{key}", r.iteration),
+                &serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number),
+            )
+        };
+        let _ = writeln!(
+            out,
+            "<tr><td class=\"num\">{}</td>{}{}{}{}</tr>",
+            r.iteration,
+            num("pv_nm", r.pv_nm),
+            num("rms_nm", r.rms_nm),
+            num("time_s", r.time_s),
+            r.predicted_rms_nm
+                .map_or_else(|| "<td></td>".to_string(), |v| num("predicted_rms_nm", v))
+        );
+    }
+    out.push_str("</table>\n");
+    let mut warnings: Vec<String> = failures.to_vec();
+    warnings.extend(extras.notes.iter().cloned());
+    warnings_section(&mut out, &warnings);
+    figures_section(&mut out, extras.figures);
+    out.push_str("</body>\n</html>\n");
+    out
+}
+
+/// Stages `html` for `path` (committed together with the other outputs).
+pub fn stage_html(path: &Path, html: &str) -> Result<Staged> {
+    stage(path, |w| w.write_all(html.as_bytes()))
+}
+
+/// `report.json`'s content as JSON.
+pub fn report_json(report: &crate::report::Report, path: &Path) -> Result<Value> {
+    serde_json::to_value(report)
+        .map_err(|e| Error::io(path, std::io::Error::other(format!("report as JSON: {e}"))))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn numbers_keep_five_significant_digits() {
+        assert_eq!(display_number(12.3456789), "12.346");
+        assert_eq!(display_number(0.0123456), "0.012346");
+        assert_eq!(display_number(1234.0), "1234");
+        assert_eq!(display_number(3.0e-7), "3.0000e-7");
+        assert_eq!(display_number(-56.25), "-56.250");
+    }
+
+    #[test]
+    fn every_number_gets_its_key_and_exact_text() {
+        let report = serde_json::json!({
+            "rms_after_nm": 1.25e-3, "pv_after_nm": 7.5, "status": "converged",
+            "executed": {"rms_after_nm": 2.5, "pv_after_nm": 9.0},
+            "sensitivity": {"tif_rate_plus_5_percent": {"rms_after_nm": 3.5}},
+            "warnings": ["a <warning>"]
+        });
+        let page = report_page("t", &report, &PageExtras::default());
+        for (k, v) in [
+            ("rms_after_nm", "0.00125"),
+            ("executed.rms_after_nm", "2.5"),
+            ("sensitivity.tif_rate_plus_5_percent.rms_after_nm", "3.5"),
+        ] {
+            assert!(
+                page.contains(&format!("data-key=\"{k}\" data-value=\"{v}\"")),
+                "{k}"
+            );
+        }
+        assert!(page.contains("id=\"sensitivity\""));
+        assert!(page.contains("a &lt;warning&gt;"));
+        assert!(!page.contains("<warning>"));
+    }
+}
