@@ -6,7 +6,7 @@ use crate::job::{DwellInput, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
-use crate::report::{centred_residual_nm, ExecutedReport, Report};
+use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{Problem, Solution};
@@ -318,6 +318,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
     report.map_input = Some(prepared.map_input.clone());
     report.set_machine(&outcome.schedule, outcome.accel.as_ref());
     report.set_map_coverage(prepared.map(), prepared.path(), &solution.dwell_s);
+    report.influence = Some(prepared.setup.influence_model());
     match &outcome.executed {
         Some(Ok(e)) => {
             let planned = report.rms_after_nm;
@@ -329,7 +330,15 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
                 stretch_time_s: e.run.check.executed_total_s,
                 max_stretch_error: e.run.check.max_relative_error,
                 stretches_over_5_percent: e.run.check.over_5_percent,
+                correction_passes: e.correction_passes,
             });
+            // The plan's prediction is the program as executed; the model's residual is kept.
+            report.model = Some(ResidualFigures {
+                rms_nm: report.rms_after_nm,
+                pv_nm: report.pv_after_nm,
+            });
+            report.rms_after_nm = e.after.rms_nm;
+            report.pv_after_nm = e.after.pv_nm;
         }
         Some(Err(e)) => report
             .warnings

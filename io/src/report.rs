@@ -4,6 +4,7 @@ use preston_solver::dwell::accel::AccelReport;
 use preston_solver::dwell::certificate::ConvergenceCriterion;
 use preston_solver::dwell::{MinTimeReport, OperatorKind, Problem, Solution, SolverKind, Status};
 use preston_solver::edge::EdgeMethod;
+use preston_solver::influence::InfluenceModel;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
 use preston_solver::map::{HeightMap, HeightStats};
@@ -135,6 +136,44 @@ pub struct Report {
     /// that limit and its removal integrated along the motion, against the plan.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub executed: Option<ExecutedReport>,
+    /// How the plan modelled the tool at a dwell point: `swept` (the TIF averaged along the
+    /// point's stretch of path, as the program runs it) or `point`. Absent for simulations.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub influence: Option<InfluenceModel>,
+    /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`
+    /// are the program's as executed at the acceleration limit. Absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub model: Option<ResidualFigures>,
+    /// Executed residual of the plan under the model errors a shop meets: the TIF 3% wider or
+    /// narrower (volume kept), its rate 3% higher, the tool 0.05 mm off in x or y. Absent
+    /// without an acceleration limit (nothing is executed).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub sensitivity: Option<Sensitivity>,
+}
+
+/// RMS and PV of a residual (piston removed), nm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ResidualFigures {
+    /// RMS about the mean, nm.
+    pub rms_nm: f64,
+    /// Peak to valley, nm.
+    pub pv_nm: f64,
+}
+
+/// The executed residual under each model-error scenario
+/// ([`preston_solver::setup::Scenario`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Sensitivity {
+    /// The TIF 3% wider, its volume kept.
+    pub tif_wider_3pct: ResidualFigures,
+    /// The TIF 3% narrower, its volume kept.
+    pub tif_narrower_3pct: ResidualFigures,
+    /// The removal rate 3% higher.
+    pub rate_plus_3pct: ResidualFigures,
+    /// The tool 0.05 mm off in +x.
+    pub offset_x_0p05mm: ResidualFigures,
+    /// The tool 0.05 mm off in +y.
+    pub offset_y_0p05mm: ResidualFigures,
 }
 
 /// The plan as the machine executes it at an acceleration limit (`preston simulate --program
@@ -155,6 +194,10 @@ pub struct ExecutedReport {
     pub max_stretch_error: f64,
     /// Stretches more than 5% off their dwell.
     pub stretches_over_5_percent: usize,
+    /// Correction passes against the executed program kept (`accel_method =
+    /// "correction-passes"`; 0 otherwise).
+    #[serde(default)]
+    pub correction_passes: usize,
 }
 
 pub use preston_solver::setup::{centred_residual_nm, feeds_mm_per_min};
@@ -433,6 +476,9 @@ impl Report {
             max_neighbour_feed_ratio: max_neighbour_feed_ratio(feeds),
             dwell_outside_map_s: None,
             executed: None,
+            influence: None,
+            model: None,
+            sensitivity: None,
         }
     }
 

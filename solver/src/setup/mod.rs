@@ -32,7 +32,7 @@ use crate::error::{Error, Result};
 use crate::influence::curvature::assemble_curvature_dependent;
 use crate::influence::fft::FftOperator;
 use crate::influence::surface::{assemble_on_surface, TifFrame};
-use crate::influence::InfluenceMatrix;
+use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches, SweptTif};
 use crate::machine::feeds::FeedSchedule;
 use crate::machine::gcode::motion::Kinematics;
 use crate::machine::gcode::program::Program;
@@ -235,6 +235,7 @@ impl Choices {
             lambda: 0.0,
             settings: Settings {
                 operator: OperatorChoice::Sparse,
+                influence: InfluenceModel::Point,
                 ..Settings::default()
             },
             edge: EdgeSettings {
@@ -353,6 +354,9 @@ pub struct Setup {
     pub edge: EdgeSettings,
     /// The warm start, checked against the dwell points.
     pub warm_start_s: Option<Vec<f64>>,
+    /// With the swept influence model in the plane: every dwell point's stretch sampled for the
+    /// assembled `R`, and the kernel the lattice operators share ([`crate::influence::swept`]).
+    pub swept: Option<(Stretches, SweptTif<Tif>)>,
 }
 
 /// How `R` is held for a problem.
@@ -388,7 +392,15 @@ pub struct Executed {
     pub after: HeightStats,
     /// The executed run.
     pub run: ProgramRun,
+    /// Correction passes kept ([`AccelMethod::CorrectionPasses`]; 0 for the other methods).
+    pub correction_passes: usize,
 }
+
+/// Most correction passes against the executed program.
+pub const MAX_CORRECTION_PASSES: usize = 4;
+
+/// Smallest relative fall of the executed RMS for which a correction pass is kept.
+pub const PASS_GAIN: f64 = 1e-3;
 
 /// A finished solve: everything downstream needs, computed once.
 #[derive(Debug, Clone)]
@@ -533,7 +545,19 @@ impl Setup {
                 .at(SetupInput::WarmStart);
             }
         }
+        // The swept model in the plane: a given plan evaluated (no feed limits) keeps the point
+        // model, whose `R t` simulate's discrete motion is.
+        let swept = match (choices.settings.influence, &surface, &choices.feed) {
+            (InfluenceModel::Swept, None, Some(_)) => {
+                let stretches = Stretches::of_path(&path, default_sample_step_mm(&tif))
+                    .at(SetupInput::Dwell)?;
+                let kernel = SweptTif::new(tif.clone(), stretches.dominant().0);
+                Some((stretches, kernel))
+            }
+            _ => None,
+        };
         Ok(Self {
+            swept,
             map,
             tif,
             tif_model: choices.tif_model,
@@ -579,6 +603,25 @@ impl Setup {
         )
         .at(SetupInput::Map)?;
         Ok((rows, edge_points))
+    }
+
+    /// The influence model the plan uses: swept where the set-up built it (a solve in the plane
+    /// with a shift-invariant TIF), the point model otherwise.
+    pub fn influence_model(&self) -> InfluenceModel {
+        if self.swept.is_some() {
+            InfluenceModel::Swept
+        } else {
+            InfluenceModel::Point
+        }
+    }
+
+    /// The shift-invariant kernel of the lattice operators: the TIF swept along the stretch most
+    /// dwell points share (swept model), or the TIF itself (point model).
+    pub(crate) fn lattice_kernel(&self) -> &dyn InfluenceFunction {
+        match &self.swept {
+            Some((_, kernel)) => kernel,
+            None => &self.tif,
+        }
     }
 
     /// What keeps the FFT operator from serving this set-up, if anything.
@@ -685,6 +728,15 @@ impl Setup {
     fn assemble(&self, rows: &HeightMap, observer: &dyn Observer) -> SetupResult<InfluenceMatrix> {
         let (mx, my, px, py) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
         match (&self.surface, &self.tif_model) {
+            (None, TifModel::ShiftInvariant) if self.swept.is_some() => {
+                let stretches = self.swept.as_ref().map(|s| &s.0);
+                match stretches {
+                    Some(st) => assemble_swept(mx, my, &self.path, st, &self.tif, observer)
+                        .at(SetupInput::None),
+                    None => InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer)
+                        .at(SetupInput::None),
+                }
+            }
             (None, _) => {
                 InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer).at(SetupInput::None)
             }
@@ -705,6 +757,15 @@ impl Setup {
         observer.setup_step(SetupStep::BuildProblem);
         let (rows, edge_points) = self.rows()?;
         let mut warnings = Vec::new();
+        if self.settings.influence == InfluenceModel::Swept
+            && self.swept.is_none()
+            && self.feed.is_some()
+        {
+            warnings.push(
+                "influence swept: not built on a curved part (tangent frame) or with a                  curvature-dependent TIF; the plan uses the point model"
+                    .to_string(),
+            );
+        }
         let fft = match self.operator_plan(&rows, &mut warnings)? {
             OperatorPlan::Assembled => None,
             OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
@@ -713,7 +774,7 @@ impl Setup {
                 self.path.x_mm(),
                 self.path.y_mm(),
                 pitch_mm,
-                &self.tif,
+                self.lattice_kernel(),
             ) {
                 Ok(op) => Some(op),
                 Err(e) if self.settings.operator == OperatorChoice::Fft => {
@@ -786,6 +847,17 @@ impl Setup {
                 (s, removal, None)
             }
         };
+        let (solution, removal_all, executed) = match (&self.accel, &self.surface) {
+            (Some(l), None) => {
+                let first = self.executed_at_limit(&solution.dwell_s, l.a_max_mm_per_s2, observer);
+                if l.method == AccelMethod::CorrectionPasses {
+                    self.correction_passes(problem, l, solution, removal_all, first, observer)?
+                } else {
+                    (solution, removal_all, Some(first))
+                }
+            }
+            _ => (solution, removal_all, None),
+        };
         let mut removal_nm = removal_all;
         removal_nm.truncate(m);
         observer.setup_step(SetupStep::FeedSchedule);
@@ -796,12 +868,6 @@ impl Setup {
             self.accel.as_ref().map(|l| l.a_max_mm_per_s2),
             self.corner_angle_deg,
         )?;
-        let executed = match (&self.accel, &self.surface) {
-            (Some(l), None) => {
-                Some(self.executed_at_limit(&solution.dwell_s, l.a_max_mm_per_s2, observer))
-            }
-            _ => None,
-        };
         Ok(Outcome {
             solution,
             removal_nm,
@@ -810,6 +876,58 @@ impl Setup {
             accel,
             executed,
         })
+    }
+
+    /// Correction passes against the executed program ([`AccelMethod::CorrectionPasses`]):
+    /// from `solution` (removal `removal_all` over every row, executed run `first`), each pass
+    /// re-solves the feed-limited problem for the target less the executed removal's departure
+    /// from the plan's on the measured map, `z_i - (h_exec_i - (R t)_i)`, warm-started from the
+    /// last dwell times, and executes the result; a pass is kept while the executed RMS falls by
+    /// more than [`PASS_GAIN`], at most [`MAX_CORRECTION_PASSES`] passes.
+    #[allow(clippy::type_complexity)]
+    fn correction_passes(
+        &self,
+        problem: &Problem,
+        limits: &AccelLimits,
+        solution: Solution,
+        removal_all: Vec<f64>,
+        first: Result<Executed>,
+        observer: &dyn Observer,
+    ) -> Result<(Solution, Vec<f64>, Option<Result<Executed>>)> {
+        let mut current = match first {
+            Ok(e) => e,
+            Err(e) => return Ok((solution, removal_all, Some(Err(e)))),
+        };
+        let (mut solution, mut removal_all) = (solution, removal_all);
+        let m = self.map.len();
+        for _ in 0..MAX_CORRECTION_PASSES {
+            let mut target = problem.z_nm().to_vec();
+            for (i, z) in target.iter_mut().enumerate().take(m) {
+                *z -= current.run.removal_nm[i] - removal_all[i];
+            }
+            let pass = problem.with_target_nm(target)?;
+            let s = dwell::solve_validated(
+                &pass,
+                &self.settings,
+                observer,
+                Some(&solution.dwell_s),
+            )?;
+            // A pass whose plan cannot be written as a program is not kept.
+            let Ok(e) = self.executed_at_limit(&s.dwell_s, limits.a_max_mm_per_s2, observer)
+            else {
+                break;
+            };
+            if e.after.rms_nm >= current.after.rms_nm * (1.0 - PASS_GAIN) {
+                break;
+            }
+            removal_all = problem.removal_nm(&s.dwell_s)?;
+            solution = s;
+            current = Executed {
+                correction_passes: current.correction_passes + 1,
+                ..e
+            };
+        }
+        Ok((solution, removal_all, Some(Ok(current))))
     }
 
     /// The removal `R t` of given dwell times `dwell_s` at the measured map points, nm (edge
@@ -894,6 +1012,7 @@ impl Setup {
             a_max_mm_per_s2,
             after,
             run,
+            correction_passes: 0,
         })
     }
 }
