@@ -199,10 +199,7 @@ pub struct SweptTif<T: InfluenceFunction> {
 impl<T: InfluenceFunction> SweptTif<T> {
     /// `inner` averaged over `samples` (`(dx_mm, dy_mm, weight)`).
     pub fn new(inner: T, samples: Vec<[f64; 3]>) -> Self {
-        let reach_mm = samples
-            .iter()
-            .map(|s| s[0].hypot(s[1]))
-            .fold(0.0, f64::max);
+        let reach_mm = samples.iter().map(|s| s[0].hypot(s[1])).fold(0.0, f64::max);
         Self {
             inner,
             samples,
@@ -329,7 +326,8 @@ mod tests {
         let col = r.removal_nm(&[0.0, 1.0, 0.0]).unwrap();
         let s2 = sigma * std::f64::consts::SQRT_2;
         for (i, (&x, &y)) in mx.iter().zip(&my).enumerate() {
-            let exact = peak * (-y * y / (2.0 * sigma * sigma)).exp()
+            let exact = peak
+                * (-y * y / (2.0 * sigma * sigma)).exp()
                 * (std::f64::consts::PI / 2.0).sqrt()
                 * sigma
                 / seg
@@ -378,9 +376,8 @@ mod tests {
             y_min_mm: 0.0,
             y_max_mm: 2.0,
         };
-        let path =
-            crate::path::raster::serpentine(&bbox, 1.0, crate::path::raster::RasterAxis::X)
-                .unwrap();
+        let path = crate::path::raster::serpentine(&bbox, 1.0, crate::path::raster::RasterAxis::X)
+            .unwrap();
         let st = Stretches::of_path(&path, 0.1).unwrap();
         let (samples, count) = st.dominant();
         // 3 lines of 6 points: 4 interior points each, and the path's two ends, whose stretch is

@@ -256,11 +256,18 @@ impl Setup {
             return Ok(None);
         }
         let tolerance = self.settings.spread_tolerance;
-        let chosen =
-            match SpreadOperator::oversampling_for(mx, my, dx, dy, pitch, self.lattice_kernel(), tolerance) {
-                Ok(c) => c,
-                Err(e) => return refusal(forced, "fft-spread", NotServed::Cannot(e.to_string())),
-            };
+        let chosen = match SpreadOperator::oversampling_for(
+            mx,
+            my,
+            dx,
+            dy,
+            pitch,
+            self.lattice_kernel(),
+            tolerance,
+        ) {
+            Ok(c) => c,
+            Err(e) => return refusal(forced, "fft-spread", NotServed::Cannot(e.to_string())),
+        };
         let Some((s, error)) = chosen else {
             return refusal(
                 forced,
