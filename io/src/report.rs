@@ -144,11 +144,6 @@ pub struct Report {
     /// are the program's as executed at the acceleration limit. Absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub model: Option<ResidualFigures>,
-    /// Executed residual of the plan under the model errors a shop meets: the TIF 3% wider or
-    /// narrower (volume kept), its rate 3% higher, the tool 0.05 mm off in x or y. Absent
-    /// without an acceleration limit (nothing is executed).
-    #[serde(skip_serializing_if = "Option::is_none", default)]
-    pub sensitivity: Option<Sensitivity>,
 }
 
 /// RMS and PV of a residual (piston removed), nm.
@@ -158,22 +153,6 @@ pub struct ResidualFigures {
     pub rms_nm: f64,
     /// Peak to valley, nm.
     pub pv_nm: f64,
-}
-
-/// The executed residual under each model-error scenario
-/// ([`preston_solver::setup::Scenario`]).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Sensitivity {
-    /// The TIF 3% wider, its volume kept.
-    pub tif_wider_3pct: ResidualFigures,
-    /// The TIF 3% narrower, its volume kept.
-    pub tif_narrower_3pct: ResidualFigures,
-    /// The removal rate 3% higher.
-    pub rate_plus_3pct: ResidualFigures,
-    /// The tool 0.05 mm off in +x.
-    pub offset_x_0p05mm: ResidualFigures,
-    /// The tool 0.05 mm off in +y.
-    pub offset_y_0p05mm: ResidualFigures,
 }
 
 /// The plan as the machine executes it at an acceleration limit (`preston simulate --program
@@ -478,7 +457,6 @@ impl Report {
             executed: None,
             influence: None,
             model: None,
-            sensitivity: None,
         }
     }
 
