@@ -1,11 +1,11 @@
-//! The shipped sample job as a shop checks it: solved, written as a program by `preston nc` and run
+//! The sample part job (`data/job_part.toml`) as a shop checks it: solved, written as a program by `preston nc` and run
 //! by `preston simulate --program` at the job's acceleration limit with look-ahead. The part it
 //! gives is pinned (`docs/part_quality.md`).
 
 mod common;
 use common::*;
 
-/// Largest executed residual RMS of the shipped job, nm.
+/// Largest executed residual RMS of the job, nm.
 const EXECUTED_RMS_MAX_NM: f64 = 0.5;
 /// Largest executed residual PV, nm.
 const EXECUTED_PV_MAX_NM: f64 = 6.0;
@@ -17,10 +17,10 @@ const POINT_DWELL_MAX_S: f64 = 120.0;
 const PLANNED_VS_EXECUTED: f64 = 0.03;
 
 #[test]
-fn the_shipped_sample_job_delivers_its_part_as_executed() {
+fn the_sample_part_job_delivers_its_part_as_executed() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("sample");
-    let job = data_arg("job.toml");
+    let job = data_arg("job_part.toml");
     ok(&preston(&["solve", "--job", &job, "--out", s(&out)]));
     let r = report(&out);
     assert_eq!(r["influence"], "swept");

@@ -141,7 +141,8 @@ pub struct Report {
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub influence: Option<InfluenceModel>,
     /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`
-    /// are the program's as executed at the acceleration limit. Absent otherwise.
+    /// are the program's as executed at the acceleration limit (`accel_method =
+    /// "correction-passes"`). Absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub model: Option<ResidualFigures>,
 }

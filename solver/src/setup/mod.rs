@@ -1275,9 +1275,11 @@ mod tests {
             along: RasterAxis::X,
         };
         let mut c = choices();
+        c.settings.influence = InfluenceModel::Swept;
         c.settings.operator = OperatorChoice::Sparse;
         let assembled = Setup::resolve(c.check(&Silent).unwrap(), d.clone(), &Silent).unwrap();
         let mut c = choices();
+        c.settings.influence = InfluenceModel::Swept;
         c.settings.operator = OperatorChoice::Fft;
         let lattice = Setup::resolve(c.check(&Silent).unwrap(), d, &Silent).unwrap();
         let pa = assembled.problem(&Silent).unwrap().problem;
@@ -1318,6 +1320,7 @@ mod tests {
         d.map = grid_map_21(|x, y| 40.0 + 20.0 * (0.9 * x).sin() * (0.6 * y).cos());
         let run = |method: AccelMethod| {
             let mut c = choices();
+            c.settings.influence = InfluenceModel::Swept;
             c.a_max_mm_per_s2 = Some(50.0);
             c.accel_method = method;
             c.feed = Some(FeedLimits {
@@ -1337,6 +1340,7 @@ mod tests {
         };
         // The feed-limited optimum (no limit in the plan), executed at the limit.
         let mut c = choices();
+        c.settings.influence = InfluenceModel::Swept;
         c.feed = Some(FeedLimits {
             v_max_mm_per_min: 3000.0,
             v_min_mm_per_min: 1.0,
