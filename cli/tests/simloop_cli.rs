@@ -151,7 +151,9 @@ fn virtual_loop_converges_and_writes_table_and_plots() {
     let rows: Vec<Vec<f64>> = lines
         .map(|l| l.split(',').take(6).map(|c| c.parse().unwrap()).collect())
         .collect();
-    assert_eq!(rows.len(), 4);
+    // Three runs at most; the loop stops earlier once a run cannot gain 0.05 nm.
+    assert!((2..=4).contains(&rows.len()), "{rows:?}");
+    let last = rows.len() - 1;
     // The registered form error starts near the generated 50 nm RMS (the installation error of
     // tens of micrometres is taken out) and decreases run after run.
     assert!((rows[0][2] - 50.0).abs() < 25.0, "{rows:?}");
@@ -162,8 +164,8 @@ fn virtual_loop_converges_and_writes_table_and_plots() {
         );
     }
     assert!(rows[1][2] < 0.2 * rows[0][2], "{rows:?}");
-    assert!(rows[3][2] < DISTURBANCE_FLOOR_NM, "{rows:?}");
-    assert!(rows[0][5] > 0.0 && rows[3][5] == 0.0);
+    assert!(rows[last][2] < DISTURBANCE_FLOOR_NM, "{rows:?}");
+    assert!(rows[0][5] > 0.0 && rows[last][5] == 0.0);
     assert_eq!(
         png_size(&out.join("convergence.png")),
         preston_io::plots::PLOT_SIZE_PX
@@ -255,14 +257,93 @@ fn undisturbed_freeform_loop_meets_its_predictions() {
                 .collect()
         })
         .collect();
-    assert_eq!(rows.len(), 3);
+    assert!(rows.len() >= 2, "{rows:?}");
     for w in rows.windows(2) {
         let predicted = w[0][6];
+        if predicted.is_nan() {
+            continue;
+        }
         assert!(
             w[1][2] <= 2.0 * predicted + 0.01,
             "measured {} after a predicted {predicted}: {rows:?}",
             w[1][2]
         );
     }
-    assert!(rows[2][2] < 0.1, "{rows:?}");
+    assert!(rows[rows.len() - 1][2] < 0.1, "{rows:?}");
+}
+
+/// The loop under ordinary disturbances (5 % rate error per run, 20 um positioning noise, 1 nm
+/// of measurement noise, an installation error): it plans only the correctable band, learns the
+/// rate from each run, spends less as the error falls and stops at the floor of the measurement
+/// noise. From run 2 on the measured RMS never rises by more than 0.05 nm, it ends within 1.3x
+/// of the noise floor, no later run dwells longer than the first, the last prediction is within
+/// a factor 1.5 of what is then measured, and the rate learned from run 0 is the rate it had.
+#[test]
+fn disturbed_loop_converges_to_the_noise_floor_and_learns_the_rate() {
+    let d = tempfile::tempdir().unwrap();
+    let surface = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/design_freeform.json");
+    let noise_nm = 1.0;
+    for seed in ["7", "3"] {
+        let out = d.path().join(format!("loop{seed}"));
+        let o = preston(&[
+            "iterate",
+            "--surface",
+            s(&surface),
+            "--gaussian-sigma-mm",
+            "2.5",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--tif-rate-error",
+            "0.05",
+            "--positioning-noise-mm",
+            "0.02",
+            "--noise-nm",
+            "1",
+            "--rotation-arcsec=20,-10,5",
+            "--translation-um=3,-2,5",
+            "--iterations",
+            "5",
+            "--seed",
+            seed,
+            "--form-error-seed",
+            seed,
+            "--out",
+            s(&out),
+        ]);
+        ok(&o);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("floor:"), "{err}");
+        let table = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
+        let mut lines = table.lines();
+        let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+        let rows: Vec<Vec<f64>> = lines
+            .map(|l| {
+                l.split(',')
+                    .map(|c| c.parse().unwrap_or(f64::NAN))
+                    .collect()
+            })
+            .collect();
+        let (rms, time, pred) = (col("rms_nm"), col("time_s"), col("predicted_rms_nm"));
+        let last = rows.len() - 1;
+        for k in 2..rows.len() {
+            assert!(rows[k][rms] <= rows[k - 1][rms] + 0.05, "{rows:?}");
+        }
+        assert!(rows[last][rms] <= 1.3 * noise_nm, "{rows:?}");
+        for r in &rows[1..] {
+            assert!(r[time] <= rows[0][time], "{rows:?}");
+        }
+        let ran: Vec<usize> = (0..last).filter(|&k| rows[k][time] > 0.0).collect();
+        let k = *ran.last().unwrap();
+        let ratio = rows[k + 1][rms] / rows[k][pred];
+        assert!((1.0 / 1.5..=1.5).contains(&ratio), "{rows:?}");
+        // The factor the second run was planned with is the first run's actual rate.
+        let actual = 1.0 + rows[0][col("tif_rate_error")];
+        let learned = rows[1][col("rate_factor_estimate")];
+        assert!((learned - actual).abs() < 0.005, "{learned} vs {actual}");
+        assert!(
+            rows[last][col("uncorrectable_rms_nm")] >= 0.9 * noise_nm,
+            "{rows:?}"
+        );
+    }
 }

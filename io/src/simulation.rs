@@ -431,16 +431,21 @@ fn write_simulation_with(
 /// Header of `convergence.csv` (a contract: checks outside the project read it).
 pub const CONVERGENCE_HEADER: &str = "iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s";
 
-/// Stages `convergence.csv`: one row per measurement, then the solver's prediction and the TIF
-/// rate error applied as extra columns.
+/// Stages `convergence.csv`: one row per measurement, then as extra columns the prediction of
+/// the next measurement, the TIF rate error applied, the rate factor the run was planned with and
+/// its relative uncertainty, and the RMS of the measured error outside the correctable band.
 pub fn stage_convergence_csv(path: &Path, records: &[IterationRecord]) -> Result<Staged> {
     stage(path, |w: &mut dyn Write| {
-        writeln!(w, "{CONVERGENCE_HEADER},predicted_rms_nm,tif_rate_error")?;
+        writeln!(
+            w,
+            "{CONVERGENCE_HEADER},predicted_rms_nm,tif_rate_error,rate_factor_estimate,\
+             rate_factor_sigma,uncorrectable_rms_nm"
+        )?;
         for r in records {
             let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
             writeln!(
                 w,
-                "{},{},{},{},{},{},{},{}",
+                "{},{},{},{},{},{},{},{},{},{},{}",
                 r.iteration,
                 r.pv_nm,
                 r.rms_nm,
@@ -448,7 +453,10 @@ pub fn stage_convergence_csv(path: &Path, records: &[IterationRecord]) -> Result
                 r.mean_abs_nm,
                 r.time_s,
                 opt(r.predicted_rms_nm),
-                opt(r.tif_rate_error)
+                opt(r.tif_rate_error),
+                opt(r.rate_factor_estimate),
+                opt(r.rate_factor_sigma),
+                opt(r.uncorrectable_rms_nm)
             )?;
         }
         Ok(())

@@ -6,7 +6,7 @@ use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use crate::writers::stage_json;
 use preston_solver::fit::FitResult;
-use preston_solver::registration::{LockedMotion, Registration};
+use preston_solver::registration::{LockedMotion, RegisterSettings, Registration};
 use preston_solver::status::Status;
 use preston_solver::surface::{Surface, XyTerm};
 use serde::{Deserialize, Serialize};
@@ -145,13 +145,22 @@ pub struct TransformFile {
     pub condition_number: Option<f64>,
     /// Standard deviation of `[rx, ry, rz]` (arcsec) and `[tx, ty, tz]` (um); 0 for held motions.
     pub dof_sigma: [f64; 6],
-    /// Motions held fixed: user locks, weak eigen-directions, DOFs at a prior bound.
+    /// Motions held fixed: user locks, motions the data do not determine within the installation
+    /// range, DOFs at a prior bound; each with its `reason`.
     pub locked: Vec<LockedMotion>,
+    /// Share of the form error each DOF `[rx, ry, rz, tx, ty, tz]` takes or could take, 0..1
+    /// (see [`Registration::form_correlation`]).
+    pub form_correlation: [f64; 6],
+    /// The installation ranges the registration compared each motion's standard deviation with:
+    /// translations (mm) and rotations (degrees).
+    pub installation_range_mm: f64,
+    /// Range of the rotations, degrees.
+    pub installation_range_deg: f64,
 }
 
 impl TransformFile {
     /// The file content for a registration.
-    pub fn of(reg: &Registration, probe_radius_mm: f64) -> Self {
+    pub fn of(reg: &Registration, settings: &RegisterSettings) -> Self {
         Self {
             matrix: reg.matrix(),
             rotation_arcsec: reg.rotation_arcsec(),
@@ -161,11 +170,14 @@ impl TransformFile {
             converged: reg.status.is_converged(),
             status: reg.status,
             points: reg.form_error_nm.len(),
-            probe_radius_mm,
+            probe_radius_mm: settings.probe_radius_mm,
             information_eigenvalues: reg.information_eigenvalues,
             condition_number: reg.condition_number,
             dof_sigma: reg.dof_sigma,
             locked: reg.locked.clone(),
+            form_correlation: reg.form_correlation,
+            installation_range_mm: settings.installation_range_mm,
+            installation_range_deg: settings.installation_range_deg,
         }
     }
 }

@@ -290,14 +290,17 @@ def register(
     lock: Sequence[str] = (),
     max_rotation_arcsec: Optional[float] = None,
     max_translation_um: Optional[float] = None,
-    weak_eigenvalue: float = 1e-5,
+    installation_range_mm: float = 0.5,
+    installation_range_deg: float = 0.2,
 ) -> dict:
     """Installation error (ICP) and form error of measured points on a design surface
     (``preston register``): the rigid transform ``M`` with ``p_design = M p_measured`` by
     Gauss-Newton, optionally Huber-weighted (``robust="huber"``, threshold ``huber_k`` robust
     standard deviations), with DOFs held at zero (``lock``: names among rx, ry, rz, tx, ty, tz),
     prior bounds (arcsec, um) and contact-probe compensation (``probe_radius_mm``: the points are
-    tip centres).
+    tip centres). A motion whose standard deviation (from the residual's scatter) exceeds the
+    installation range along it (``installation_range_mm``, ``installation_range_deg``) is held
+    and listed in ``transform["locked"]`` with its reason.
 
     ``surface``: a surface JSON file or the dict :func:`preston.fit` returns. ``points_xyz``:
     ``(N, 3)`` or ``(x, y, z)``, all in mm. Motions the points and the surface leave undetermined
@@ -323,7 +326,8 @@ def register(
         "robust": rob,
         "probe_radius_mm": float(probe_radius_mm),
         "lock": [d in lock for d in _DOFS],
-        "weak_eigenvalue_rel": float(weak_eigenvalue),
+        "installation_range_mm": float(installation_range_mm),
+        "installation_range_deg": float(installation_range_deg),
         "max_rotation_arcsec": max_rotation_arcsec,
         "max_translation_um": max_translation_um,
     }
@@ -437,7 +441,8 @@ def iterate(
     tif_rate_error: float = 0.0,
     positioning_noise_mm: float = 0.0,
     seed: int = 7,
-    weak_eigenvalue: float = 1e-5,
+    installation_range_mm: float = 0.5,
+    installation_range_deg: float = 0.2,
     progress: Optional[Callable[[dict], Any]] = None,
     threads: Optional[int] = None,
 ) -> dict:
@@ -478,7 +483,10 @@ def iterate(
         "lambda": lambda_,
         "disturbances": {"tif_rate_error": tif_rate_error, "positioning_noise_mm": positioning_noise_mm},
         "seed": int(seed),
-        "register": {"weak_eigenvalue_rel": weak_eigenvalue},
+        "register": {
+            "installation_range_mm": float(installation_range_mm),
+            "installation_range_deg": float(installation_range_deg),
+        },
         "solver": {"tolerance": tolerance, "first_order_tolerance": tolerance, "solver": solver},
     }
     if len(rotation_arcsec) != 3 or len(translation_um) != 3:

@@ -17,7 +17,7 @@ use preston_solver::observer::{Observer, Silent};
 use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings};
 use preston_solver::path::random::{random_unicursal, RandomPathSettings};
 use preston_solver::path::spiral::archimedes;
-use preston_solver::registration::{register as icp, RegisterSettings, UNDETERMINED_REL};
+use preston_solver::registration::{register as icp, RegisterSettings};
 use preston_solver::surface::Surface;
 use preston_solver::tif::bonnet::{BonnetParams, BonnetTif};
 use preston_solver::tif::hertz::{sample_on_grid, HertzParams, HertzTif};
@@ -402,17 +402,9 @@ pub(crate) fn register<'py>(
     let reg = py
         .detach(|| icp(&surface, &pts, &set))
         .map_err(|e| engine_to_py("points_xyz", e))?;
-    let undetermined = reg.undetermined();
-    if !undetermined.is_empty() {
-        return Err(InputError::new_err(format!(
-            "points_xyz: the points and the design surface do not determine these motions \
-             (information matrix rank-deficient, relative eigenvalue below {UNDETERMINED_REL:e}): \
-             {}; hold them with lock= (for points on a plane design: lock=[\"rz\", \"tx\", \"ty\"]) \
-             or measure where the surface is curved",
-            undetermined.join("; ")
-        )));
-    }
-    let tf = TransformFile::of(&reg, set.probe_radius_mm);
+    reg.refuse_undetermined("lock=[...]")
+        .map_err(|e| engine_to_py("points_xyz", e))?;
+    let tf = TransformFile::of(&reg, &set);
     let tf = serde_json::to_string(&tf).map_err(|e| InputError::new_err(e.to_string()))?;
     let fx: Vec<f64> = reg.design_xy_mm.iter().map(|p| p[0]).collect();
     let fy: Vec<f64> = reg.design_xy_mm.iter().map(|p| p[1]).collect();

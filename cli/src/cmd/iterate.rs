@@ -9,12 +9,15 @@ use anyhow::{bail, Context};
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FeedLimits, Settings};
+use preston_solver::iterate::{band::BAND_MIN_GAIN, CorrectableBand, MIN_GAIN_NM};
 use preston_solver::iterate::{
     plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
     LOOP_SOLVE_TOLERANCE,
 };
 use preston_solver::map::BoundingBox;
-use preston_solver::registration::{RegisterSettings, WEAK_EIGENVALUE_REL};
+use preston_solver::registration::{
+    RegisterSettings, INSTALLATION_RANGE_DEG, INSTALLATION_RANGE_MM,
+};
 use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -113,10 +116,27 @@ pub struct Args {
     /// Seed of the noise generators.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
-    /// Registration: eigen-directions of the information matrix with relative eigenvalue below
-    /// this are locked (see `preston register`).
-    #[arg(long, default_value_t = WEAK_EIGENVALUE_REL)]
-    pub weak_eigenvalue: f64,
+    /// Registration: range of the installation error's translations, mm (a motion whose
+    /// standard deviation exceeds it is held; see `preston register`).
+    #[arg(long, value_name = "MM", default_value_t = INSTALLATION_RANGE_MM)]
+    pub installation_range_mm: f64,
+    /// Registration: range of the installation error's rotations, degrees.
+    #[arg(long, value_name = "DEG", default_value_t = INSTALLATION_RANGE_DEG)]
+    pub installation_range_deg: f64,
+    /// Plan against the whole measured map instead of its correctable band (the smooth part up
+    /// to where the TIF's transfer function falls to --band-gain).
+    #[arg(long)]
+    pub no_band: bool,
+    /// Transfer-function gain of the TIF at the cap of the correctable band, in (0, 1); within
+    /// it the data choose the band (Bayesian information criterion).
+    #[arg(long, value_name = "G", default_value_t = BAND_MIN_GAIN)]
+    pub band_gain: f64,
+    /// Rate factor of the first run (a rate learned on earlier parts), times the TIF's rate.
+    #[arg(long, default_value_t = 1.0)]
+    pub rate_factor: f64,
+    /// Stop when the next run is predicted to lower the measured RMS by less than this, nm.
+    #[arg(long, default_value_t = MIN_GAIN_NM)]
+    pub min_gain_nm: f64,
     /// Write PNG plots next to the CSVs.
     #[arg(long)]
     pub plots: bool,
@@ -172,8 +192,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             positioning_noise_mm: args.positioning_noise_mm,
         },
         seed: args.seed,
+        band: if args.no_band {
+            CorrectableBand::All
+        } else {
+            CorrectableBand::Tif {
+                min_gain: args.band_gain,
+            }
+        },
+        rate_factor: args.rate_factor,
+        min_gain_nm: args.min_gain_nm,
+        rate_uncertainty: LoopSettings::default().rate_uncertainty,
         register: RegisterSettings {
-            weak_eigenvalue_rel: args.weak_eigenvalue,
+            installation_range_mm: args.installation_range_mm,
+            installation_range_deg: args.installation_range_deg,
             ..RegisterSettings::default()
         },
         solver: Settings {
@@ -210,23 +241,39 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     write_loop(&outcome, &args.out, args.plots)
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
-    eprintln!("iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm");
+    eprintln!(
+        "iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm,\
+         rate_factor_estimate,uncorrectable_rms_nm"
+    );
+    let opt = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_default();
     for r in &outcome.records {
         eprintln!(
-            "{},{:.3},{:.3},{:.3},{:.3},{:.2},{}",
+            "{},{:.3},{:.3},{:.3},{:.3},{:.2},{},{},{}",
             r.iteration,
             r.pv_nm,
             r.rms_nm,
             r.max_abs_nm,
             r.mean_abs_nm,
             r.time_s,
-            r.predicted_rms_nm
-                .map(|v| format!("{v:.3}"))
-                .unwrap_or_default()
+            opt(r.predicted_rms_nm),
+            opt(r.rate_factor_estimate),
+            opt(r.uncorrectable_rms_nm)
+        );
+    }
+    if let Some(floor) = outcome
+        .records
+        .iter()
+        .rev()
+        .find_map(|r| r.uncorrectable_rms_nm)
+    {
+        eprintln!(
+            "  floor: {floor:.3} nm RMS of the measured error is outside the TIF's correctable \
+             band (measurement noise and finer structure)"
         );
     }
     eprintln!(
-        "preston iterate: spec {}; wrote {}",
+        "preston iterate: stopped because {}; spec {}; wrote {}",
+        outcome.stop.describe(),
         if outcome.met_spec { "met" } else { "not met" },
         args.out.display()
     );

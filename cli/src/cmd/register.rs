@@ -5,7 +5,8 @@ use preston_io::atomic::commit_all;
 use preston_io::surface::{read_points, read_surface, stage_columns_csv, TransformFile};
 use preston_io::writers::{stage_json, stage_map_csv};
 use preston_solver::registration::{
-    register, Dof, LockSource, RegisterSettings, Robust, UNDETERMINED_REL, WEAK_EIGENVALUE_REL,
+    register, Dof, LockSource, RegisterSettings, Robust, INSTALLATION_RANGE_DEG,
+    INSTALLATION_RANGE_MM,
 };
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -81,10 +82,13 @@ pub struct Args {
     /// Prior bound on each translation component, um.
     #[arg(long, value_name = "T")]
     pub max_translation_um: Option<f64>,
-    /// Eigen-directions of the information matrix with relative eigenvalue below this are
-    /// locked (0: only numerically zero ones).
-    #[arg(long, default_value_t = WEAK_EIGENVALUE_REL)]
-    pub weak_eigenvalue: f64,
+    /// Range of the installation error's translations, mm: a motion whose standard deviation
+    /// (from the residual's scatter) exceeds this range along it is held, not estimated.
+    #[arg(long, value_name = "MM", default_value_t = INSTALLATION_RANGE_MM)]
+    pub installation_range_mm: f64,
+    /// Range of the installation error's rotations, degrees (see --installation-range-mm).
+    #[arg(long, value_name = "DEG", default_value_t = INSTALLATION_RANGE_DEG)]
+    pub installation_range_deg: f64,
     /// Output directory for transform.json, form_error.csv and registered_points.csv.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -106,30 +110,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         },
         probe_radius_mm: args.probe_radius_mm,
         lock,
-        weak_eigenvalue_rel: args.weak_eigenvalue,
+        installation_range_mm: args.installation_range_mm,
+        installation_range_deg: args.installation_range_deg,
         max_rotation_arcsec: args.max_rotation_arcsec,
         max_translation_um: args.max_translation_um,
         ..RegisterSettings::default()
     };
     let reg = register(&surface, &pts.points(), &settings)
         .with_context(|| format!("registering {}", args.points.display()))?;
-    // Motions the points and the surface leave exactly undetermined (a rank-deficient
-    // information matrix: coplanar points on a plane design leave rz, tx, ty free) are refused
-    // unless the user holds them; merely weak ones are locked with a warning, as documented.
-    let undetermined = reg.undetermined();
-    if !undetermined.is_empty() {
-        anyhow::bail!(
-            "{}: the points and the design surface do not determine these motions \
-             (information matrix rank-deficient, relative eigenvalue below {UNDETERMINED_REL:e}): \
-             {}; hold them with --lock (for points on a plane design: --lock rz,tx,ty) or measure \
-             where the surface is curved",
-            args.points.display(),
-            undetermined.join("; ")
-        );
-    }
+    // Motions the points and the surface leave exactly undetermined are refused unless the
+    // user holds them; those the noise leaves undetermined are held with a warning.
+    reg.refuse_undetermined("--lock")
+        .with_context(|| args.points.display().to_string())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let tf = TransformFile::of(&reg, args.probe_radius_mm);
+    let tf = TransformFile::of(&reg, &settings);
     let fx: Vec<f64> = reg.design_xy_mm.iter().map(|p| p[0]).collect();
     let fy: Vec<f64> = reg.design_xy_mm.iter().map(|p| p[1]).collect();
     let col = |k: usize| -> Vec<f64> { reg.surface_points_mm.iter().map(|p| p[k]).collect() };
@@ -184,9 +179,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for l in &tf.locked {
         match l.source {
             LockSource::Weak => eprintln!(
-                "  warning: the surface does not determine the motion {} (relative eigenvalue \
-                 {:.2e} < {:.0e}); locked at zero, its installation error is not recovered",
-                l.label, l.relative_eigenvalue, args.weak_eigenvalue
+                "  warning: motion {} held: {}; its installation error is not recovered",
+                l.label, l.reason
             ),
             LockSource::User => eprintln!("  locked {} at zero", l.label),
             LockSource::Bound => eprintln!("  {} held at its prior bound", l.label),

@@ -10,11 +10,16 @@
 //! The 6 x 6 normal equations `A y = -b` (rotation columns scaled by the point cloud's RMS
 //! radius `L`, so `A` is dimensionless and its eigenvalues compare motions by the normal
 //! displacement they cause) are solved by a symmetric eigen-decomposition in the subspace left
-//! free by locked DOFs and active prior bounds; eigen-directions whose eigenvalue is below
-//! `weak_eigenvalue_rel * lambda_max` (for example rotation about the axis of a conic, or the
-//! slide of a weakly curved freeform along itself) get no step and are reported as locked.
+//! free by locked DOFs and active prior bounds. An eigen-direction `v` (eigenvalue `mu`) is
+//! estimated when the data determine it: its standard deviation `s / sqrt(mu)`, with `s^2` the
+//! weighted residual variance of the current correspondences, is within the amplitude at which
+//! the motion reaches the stated installation range (`installation_range_mm`,
+//! `installation_range_deg`). Otherwise (rotation about the axis of a conic, coplanar points on a
+//! plane, or noise that swamps a weak slide) it gets no step and is reported as locked with that
+//! comparison. Noise-free data of any well-posed part therefore determine every motion
+//! exactly, whatever the conditioning: the test is the noise, not an eigenvalue ratio.
 //! The covariance of the estimate is `s^2 A^+` restricted to the estimated directions
-//! (Gauss-Markov; `s^2` the weighted residual variance), mapped to the design-frame DOFs. Optional Huber weights
+//! (Gauss-Markov), mapped to the design-frame DOFs. Optional Huber weights
 //! (`w = min(1, delta / |r|)`, `delta = k * 1.4826 * median|r|`) make the steps iteratively
 //! reweighted least squares.
 
@@ -30,7 +35,7 @@ use rayon::prelude::*;
 /// Points per task when summing the normal equations (fixed, so sums are reproducible).
 const CHUNK: usize = 2048;
 /// Eigenvalues of the scaled normal matrix at or below this fraction of the largest are numerically
-/// zero (no step whatever `weak_eigenvalue_rel` says).
+/// zero (no step whatever the noise).
 const RANK_FLOOR: f64 = 1e-12;
 /// Eigenvalues of the constraints' Gram matrix below this fraction of the largest span their
 /// null space.
@@ -55,7 +60,8 @@ struct Corr {
 ///
 /// Each Gauss-Newton step is solved in the subspace the locks leave free (user locks and active
 /// prior bounds as linear constraints on the design-frame DOFs), and within it eigen-directions
-/// of the reduced information matrix below `weak_eigenvalue_rel * lambda_max` get no step.
+/// of the reduced information matrix whose standard deviation exceeds the installation range
+/// along them get no step (see the module documentation).
 pub fn register(
     surface: &Surface,
     measured_mm: &[[f64; 3]],
@@ -117,6 +123,7 @@ pub fn register(
         condition_number: analysis.condition_number,
         dof_sigma: analysis.dof_sigma,
         locked: analysis.locked,
+        form_correlation: analysis.form_correlation,
     })
 }
 
@@ -352,22 +359,64 @@ struct Constraint {
     source: LockSource,
 }
 
-/// A constrained step: `y`, the estimated eigen-directions and the weak ones `(v, mu)`.
+/// A constrained step: `y`, the estimated eigen-directions `(v, mu)` and the weak ones.
 struct Solved {
     delta: Vector6<f64>,
     kept: Vec<(Vector6<f64>, f64)>,
-    weak: Vec<(Vector6<f64>, f64)>,
+    weak: Vec<Weak>,
+}
+
+/// An eigen-direction held because the data do not determine it.
+struct Weak {
+    v: Vector6<f64>,
+    /// Its standard deviation `s / sqrt(mu)`, scaled mm (infinite when `mu` is zero).
+    sigma: f64,
+    /// The amplitude at which it reaches the installation range, scaled mm.
+    range: f64,
+}
+
+/// What decides whether an eigen-direction is estimated: the residual variance `s^2` and the
+/// installation range as the weight `W` on the design-frame DOFs, with the DOF map `T`.
+struct Determinacy {
+    s2: f64,
+    w: Vector6<f64>,
+    t: Matrix6<f64>,
+}
+
+impl Determinacy {
+    fn new(corr: &[Corr], w: &[f64], t: Matrix6<f64>, settings: &RegisterSettings) -> Self {
+        let ss: f64 = corr.iter().zip(w).map(|(c, wk)| wk * c.r * c.r).sum();
+        let s2 = ss / corr.len().saturating_sub(6).max(1) as f64;
+        let rot = 1.0 / settings.installation_range_deg.to_radians();
+        let tr = 1.0 / settings.installation_range_mm;
+        Self {
+            s2,
+            w: Vector6::new(rot, rot, rot, tr, tr, tr),
+            t,
+        }
+    }
+
+    /// `1 / |W T v|`: the amplitude of the scaled direction `v` at the range ellipsoid.
+    fn range(&self, v: &Vector6<f64>) -> f64 {
+        let d = (self.t * v).component_mul(&self.w).norm();
+        if d > 0.0 {
+            1.0 / d
+        } else {
+            f64::INFINITY
+        }
+    }
 }
 
 /// Minimises `|J y + r|^2` subject to `C y = d`: `y = y_p + Z u` with `y_p` the minimum-norm
 /// solution of the constraints and `Z` an orthonormal basis of their null space; then
-/// `Z^T A Z u = -Z^T (b + A y_p)` by eigen-decomposition, where eigenvalues at or below
-/// `weak_rel * lambda_max` get no step.
+/// `Z^T A Z u = -Z^T (b + A y_p)` by eigen-decomposition, where eigen-directions that are zero to
+/// rounding or whose standard deviation `s / sqrt(mu)` exceeds their installation range get no
+/// step.
 fn solve_constrained(
     a: &Matrix6<f64>,
     b: &Vector6<f64>,
     cons: &[Constraint],
-    weak_rel: f64,
+    det: &Determinacy,
     lam_max: f64,
 ) -> Solved {
     let mut ctc = Matrix6::zeros();
@@ -407,17 +456,22 @@ fn solve_constrained(
     let rhs = b + a * delta;
     let g = z.transpose() * DVector::from_column_slice(rhs.as_slice());
     let er = SymmetricEigen::new(ar);
-    let floor = weak_rel.max(RANK_FLOOR) * lam_max;
     for j in 0..null.len() {
         let mu = er.eigenvalues[j];
         let u = er.eigenvectors.column(j);
         let vz = &z * u;
         let v = Vector6::from_column_slice(vz.as_slice());
-        if mu > floor {
+        let range = det.range(&v);
+        let sigma = if mu > RANK_FLOOR * lam_max {
+            (det.s2 / mu).sqrt()
+        } else {
+            f64::INFINITY
+        };
+        if sigma <= range {
             out.delta += v * (-u.dot(&g) / mu);
             out.kept.push((v, mu));
         } else {
-            out.weak.push((v, mu));
+            out.weak.push(Weak { v, sigma, range });
         }
     }
     out
@@ -444,6 +498,7 @@ struct StepState {
     a: Matrix6<f64>,
     lam_max: f64,
     t: Matrix6<f64>,
+    det: Determinacy,
     cons: Vec<Constraint>,
     solved: Solved,
 }
@@ -472,6 +527,7 @@ fn constrained_step(
         });
     }
     let t = to_dofs(&f);
+    let det = Determinacy::new(corr, w, t, settings);
     let theta = dofs_of(m);
     let bound = bounds(settings);
     let mut held = settings.lock;
@@ -486,7 +542,7 @@ fn constrained_step(
         })
         .collect();
     loop {
-        let solved = solve_constrained(&a, &b, &cons, settings.weak_eigenvalue_rel, lam_max);
+        let solved = solve_constrained(&a, &b, &cons, &det, lam_max);
         let new = theta + t * solved.delta;
         let mut added = false;
         for d in Dof::ALL {
@@ -513,6 +569,7 @@ fn constrained_step(
                 a,
                 lam_max,
                 t,
+                det,
                 cons,
                 solved,
             });
@@ -549,6 +606,7 @@ struct Analysis {
     condition_number: Option<f64>,
     dof_sigma: [f64; 6],
     locked: Vec<LockedMotion>,
+    form_correlation: [f64; 6],
 }
 
 /// `0.998 tx + 0.062 ry`: the components of a unit direction above 1 %, largest first, signed so
@@ -615,16 +673,26 @@ fn analyse(
             label: c.dof.name().to_string(),
             direction: std::array::from_fn(|k| v[k]),
             relative_eigenvalue: rel(&v),
+            reason: match c.source {
+                LockSource::User => "held at zero by the user".to_string(),
+                LockSource::Bound => "held at its prior bound".to_string(),
+                LockSource::Weak => String::new(),
+            },
         });
     }
-    for (v, _) in &st.solved.weak {
-        let s = if v[v.iamax()] < 0.0 { -1.0 } else { 1.0 };
-        let v = v * s;
+    for weak in &st.solved.weak {
+        let s = if weak.v[weak.v.iamax()] < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        let v = weak.v * s;
         locked.push(LockedMotion {
             source: LockSource::Weak,
             label: direction_label(&v),
             direction: std::array::from_fn(|k| v[k]),
             relative_eigenvalue: rel(&v).max(0.0),
+            reason: weak_reason(weak, &st.det),
         });
     }
     Ok(Analysis {
@@ -632,5 +700,85 @@ fn analyse(
         condition_number,
         dof_sigma,
         locked,
+        form_correlation: form_correlation(corr, w, &held),
+    })
+}
+
+/// `sigma` and `range` of a held direction in the units of the DOF it moves most against its
+/// range (arcsec or um).
+fn weak_reason(weak: &Weak, det: &Determinacy) -> String {
+    let d = det.t * weak.v;
+    let k = d.component_mul(&det.w).iamax();
+    let (unit, name) = if k < 3 {
+        (ARCSEC_PER_RAD, "arcsec")
+    } else {
+        (1e3, "um")
+    };
+    let per = d[k].abs() * unit;
+    if weak.sigma.is_finite() {
+        format!(
+            "the data do not determine it: its standard deviation from the residual's scatter \
+             ({:.4} {name} of {}) exceeds the installation range along it ({:.4} {name})",
+            weak.sigma * per,
+            Dof::ALL[k].name(),
+            weak.range * per
+        )
+    } else {
+        "the points and the surface leave it undetermined (zero information)".to_string()
+    }
+}
+
+/// [`Registration::form_correlation`](super::Registration::form_correlation): with the
+/// design-frame patterns `h_i = [p_i x n_i, n_i]`, their weighted Gram matrix `G` and
+/// `c = sum w h e`, the unique signature `u` of DOF `k` against the free set `J` (the DOFs not
+/// held, `k` excluded) has
+/// `|u|^2 = G_kk - G_kJ G_JJ^+ G_Jk` and `u . e = c_k - G_kJ G_JJ^+ c_J`.
+fn form_correlation(corr: &[Corr], w: &[f64], held: &[usize]) -> [f64; 6] {
+    let partial: Vec<(Matrix6<f64>, Vector6<f64>, f64)> = corr
+        .par_chunks(CHUNK)
+        .zip(w.par_chunks(CHUNK))
+        .map(|(cs, ws)| {
+            let mut g = Matrix6::zeros();
+            let mut c = Vector6::zeros();
+            let mut ee = 0.0;
+            for (k, &wk) in cs.iter().zip(ws) {
+                let nv = Vector3::from(k.n);
+                let rot = Vector3::from(k.p).cross(&nv);
+                let h = Vector6::new(rot.x, rot.y, rot.z, nv.x, nv.y, nv.z);
+                g += wk * h * h.transpose();
+                c += (wk * k.r) * h;
+                ee += wk * k.r * k.r;
+            }
+            (g, c, ee)
+        })
+        .collect();
+    let (mut g, mut c, mut ee) = (Matrix6::zeros(), Vector6::zeros(), 0.0);
+    for (pg, pc, pe) in partial {
+        g += pg;
+        c += pc;
+        ee += pe;
+    }
+    std::array::from_fn(|k| {
+        let others: Vec<usize> = (0..6).filter(|&j| j != k && !held.contains(&j)).collect();
+        let gjj = DMatrix::from_fn(others.len(), others.len(), |a, b| g[(others[a], others[b])]);
+        let gjk = DVector::from_fn(others.len(), |a, _| g[(others[a], k)]);
+        let cj = DVector::from_fn(others.len(), |a, _| c[others[a]]);
+        let beta = if others.is_empty() {
+            DVector::zeros(0)
+        } else {
+            let svd = gjj.svd(true, true);
+            let tol = RANK_FLOOR * svd.singular_values.max();
+            svd.solve(&gjk, tol)
+                .unwrap_or_else(|_| DVector::zeros(others.len()))
+        };
+        let uu = g[(k, k)] - gjk.dot(&beta);
+        if !(uu > RANK_FLOOR * g[(k, k)]) {
+            return 0.0;
+        }
+        let ue = c[k] - cj.dot(&beta);
+        if !(ee > 0.0) {
+            return 0.0;
+        }
+        (ue / (uu.sqrt() * ee.sqrt())).abs().min(1.0)
     })
 }

@@ -18,18 +18,14 @@ use serde::{Deserialize, Serialize};
 /// Arcseconds per radian: `180 * 3600 / pi`.
 pub const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
 
-/// Default threshold on the relative eigenvalue `lambda_k / lambda_max` of the scaled information
-/// matrix below which a rigid motion counts as undetermined by the surface and is locked.
-///
-/// A motion of amplitude `a` (mm at the points' RMS radius) along an eigen-direction with
-/// eigenvalue `lambda_k` changes the points' normal distances by `a sqrt(lambda_k / N)` RMS, and
-/// the largest eigenvalue is about `N` (piston). Conversely a form error of RMS `e` can drag the
-/// estimate along that direction by up to `e / sqrt(lambda_k / lambda_max)`: at `1e-5`, 43 nm of
-/// form error could slide it 14 um, which is why such directions are held instead; a true
-/// installation error of 5 um along one then shows as at most 16 nm RMS of form error. On
-/// `data/design_freeform.json` over 50 x 50 mm the three sliding motions (about `ty - 0.4 rz`,
-/// `tx`, `rz + 0.4 ty`) have relative eigenvalues of 4e-7 to 1.5e-6, the others 0.5 and 1.
-pub const WEAK_EIGENVALUE_REL: f64 = 1e-5;
+/// Default range of the installation error's translations, mm: what a fixture or a setter's
+/// indicator leaves on an optical part mounted for measurement. A motion whose standard deviation
+/// (estimated from the residual's own scatter) exceeds its share of this range is not determined
+/// by the data to within what the mounting can be, and is held instead of estimated.
+pub const INSTALLATION_RANGE_MM: f64 = 0.5;
+
+/// Default range of the installation error's rotations, degrees (see [`INSTALLATION_RANGE_MM`]).
+pub const INSTALLATION_RANGE_DEG: f64 = 0.2;
 
 /// Relative eigenvalue of the information matrix below which a locked weak motion counts as
 /// undetermined by the points and the surface (rank deficiency up to rounding), not merely weak:
@@ -76,7 +72,9 @@ impl Dof {
 pub enum LockSource {
     /// Locked by the user (`RegisterSettings::lock`): held at zero.
     User,
-    /// An eigen-direction of the information matrix below the weak threshold: not estimated.
+    /// An eigen-direction of the information matrix that the data do not determine: its standard
+    /// deviation from the residual's scatter exceeds the installation range along it (or its
+    /// eigenvalue is zero to rounding). Held, not estimated.
     Weak,
     /// A DOF held at its prior bound (`max_rotation_arcsec`, `max_translation_um`).
     Bound,
@@ -94,6 +92,9 @@ pub struct LockedMotion {
     pub direction: [f64; 6],
     /// `v^T A v / lambda_max` of the direction: how strongly the surface determines it.
     pub relative_eigenvalue: f64,
+    /// Why it was held, in physical terms (for a weak motion: its standard deviation against the
+    /// installation range along it).
+    pub reason: String,
 }
 
 /// Robust weighting of the Gauss-Newton steps.
@@ -132,9 +133,13 @@ pub struct RegisterSettings {
     pub probe_radius_mm: f64,
     /// DOFs held at zero, indexed by [`Dof::index`].
     pub lock: [bool; 6],
-    /// Eigen-directions of the information matrix with `lambda / lambda_max` below this are
-    /// locked automatically ([`WEAK_EIGENVALUE_REL`]; 0 locks only exactly undetermined ones).
-    pub weak_eigenvalue_rel: f64,
+    /// Range of the installation error's translations, mm ([`INSTALLATION_RANGE_MM`]). An
+    /// eigen-direction `v` of the information matrix is held when its standard deviation
+    /// `s / sqrt(mu)` (`s^2 = sum w r^2 / (N - 6)` the residual variance) exceeds the amplitude
+    /// `1 / |W T v|` at which it reaches the range ellipsoid `W = diag(1/range_rad x3, 1/range_mm x3)`.
+    pub installation_range_mm: f64,
+    /// Range of the installation error's rotations, degrees ([`INSTALLATION_RANGE_DEG`]).
+    pub installation_range_deg: f64,
     /// Prior bound on each rotation component `|rx|, |ry|, |rz|`, arcsec (`None`: unbounded).
     pub max_rotation_arcsec: Option<f64>,
     /// Prior bound on each translation component `|tx|, |ty|, |tz|`, um (`None`: unbounded).
@@ -150,7 +155,8 @@ impl Default for RegisterSettings {
             robust: Robust::None,
             probe_radius_mm: 0.0,
             lock: [false; 6],
-            weak_eigenvalue_rel: WEAK_EIGENVALUE_REL,
+            installation_range_mm: INSTALLATION_RANGE_MM,
+            installation_range_deg: INSTALLATION_RANGE_DEG,
             max_rotation_arcsec: None,
             max_translation_um: None,
         }
@@ -181,12 +187,13 @@ impl RegisterSettings {
                 format!("must be zero or positive, got {}", self.probe_radius_mm),
             ));
         }
-        if !(self.weak_eigenvalue_rel.is_finite() && (0.0..1.0).contains(&self.weak_eigenvalue_rel))
-        {
-            return Err(Error::invalid(
-                "weak_eigenvalue_rel",
-                format!("must be in [0, 1), got {}", self.weak_eigenvalue_rel),
-            ));
+        for (name, v) in [
+            ("installation_range_mm", self.installation_range_mm),
+            ("installation_range_deg", self.installation_range_deg),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(Error::invalid(name, format!("must be positive, got {v}")));
+            }
         }
         for (name, v) in [
             ("max_rotation_arcsec", self.max_rotation_arcsec),
@@ -248,6 +255,13 @@ pub struct Registration {
     pub dof_sigma: [f64; 6],
     /// Motions held fixed (user locks, weak eigen-directions, active prior bounds).
     pub locked: Vec<LockedMotion>,
+    /// How much of the form error each DOF `[rx, ry, rz, tx, ty, tz]` could absorb: the
+    /// correlation `|u . e| / (|u| |e|)` (weighted sums) of its unique signature `u` (its
+    /// normal-displacement pattern `[p x n, n]_k` made orthogonal to the other free DOFs'
+    /// patterns) with the form error `e`. An estimated motion has absorbed what it could: 0 at
+    /// convergence (the normal equations). A held motion (user lock, bound, undetermined) would
+    /// take this share of the reported form error if it were estimated.
+    pub form_correlation: [f64; 6],
 }
 
 impl Registration {
@@ -287,12 +301,29 @@ impl Registration {
 
     /// Labels of the motions the points and the surface leave exactly undetermined: weak locks
     /// whose relative eigenvalue is below [`UNDETERMINED_REL`] (coplanar points on a plane
-    /// design leave rz, tx, ty free). A caller should refuse these unless the user holds them.
+    /// design leave rz, tx, ty free). [`Registration::refuse_undetermined`] refuses them.
     pub fn undetermined(&self) -> Vec<&str> {
         self.locked
             .iter()
             .filter(|m| m.source == LockSource::Weak && m.relative_eigenvalue < UNDETERMINED_REL)
             .map(|m| m.label.as_str())
             .collect()
+    }
+
+    /// The refusal of a registration that leaves motions exactly undetermined (rank-deficient
+    /// information matrix) which the user did not hold: `lock_hint` names how the caller's face
+    /// holds them (`--lock` or `lock=`). Every face (CLI, Python, the loop) refuses with this.
+    pub fn refuse_undetermined(&self, lock_hint: &str) -> Result<()> {
+        let undetermined = self.undetermined();
+        if undetermined.is_empty() {
+            return Ok(());
+        }
+        Err(Error::Geometry(format!(
+            "the points and the design surface do not determine these motions (information \
+             matrix rank-deficient, relative eigenvalue below {UNDETERMINED_REL:e}): {}; hold them \
+             with {lock_hint} (for points on a plane design: rz, tx, ty) or measure where the \
+             surface is curved",
+            undetermined.join("; ")
+        )))
     }
 }

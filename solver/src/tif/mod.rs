@@ -50,6 +50,21 @@ pub enum Tif {
     Gaussian(GaussianTif),
 }
 
+impl Tif {
+    /// The same TIF with its removal rate multiplied by `factor` (positive and finite): a
+    /// Gaussian's peak, a grid's every sample.
+    pub fn scaled(&self, factor: f64) -> crate::error::Result<Tif> {
+        match self {
+            Tif::Grid(g) => Ok(Tif::Grid(g.scaled(factor)?)),
+            Tif::Gaussian(g) => Ok(Tif::Gaussian(GaussianTif::new(
+                g.sigma_mm,
+                g.peak_rate_nm_per_s * factor,
+                g.truncation_radius_mm,
+            )?)),
+        }
+    }
+}
+
 impl InfluenceFunction for Tif {
     #[inline]
     fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
