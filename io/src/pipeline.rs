@@ -7,9 +7,9 @@ use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures};
-use preston_solver::dwell::accel::AccelMethod;
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
+use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
@@ -335,7 +335,8 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
             });
             // With correction passes the plan's prediction is the program as executed; the
             // model's residual is kept.
-            if prepared.setup.accel.as_ref().map(|a| a.method) == Some(AccelMethod::CorrectionPasses)
+            if prepared.setup.accel.as_ref().map(|a| a.method)
+                == Some(AccelMethod::CorrectionPasses)
             {
                 report.model = Some(ResidualFigures {
                     rms_nm: report.rms_after_nm,

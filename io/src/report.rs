@@ -137,7 +137,8 @@ pub struct Report {
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub executed: Option<ExecutedReport>,
     /// How the plan modelled the tool at a dwell point: `swept` (the TIF averaged along the
-    /// point's stretch of path, as the program runs it) or `point`. Absent for simulations.
+    /// point's stretch of path, as the program runs it) or `point`; for a simulation, the model
+    /// of its removal (`point` for discrete motion, `swept` for continuous motion and programs).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub influence: Option<InfluenceModel>,
     /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`

@@ -106,7 +106,9 @@ impl Stretches {
                     }
                     // A stretch far longer than the TIF (a connecting move) is cut into at most
                     // MAX_PIECES_PER_BLOCK pieces: coarser than the executed run's sampling there.
-                    let pieces = (len / step_mm).ceil().clamp(1.0, MAX_PIECES_PER_BLOCK as f64);
+                    let pieces = (len / step_mm)
+                        .ceil()
+                        .clamp(1.0, MAX_PIECES_PER_BLOCK as f64);
                     let k = pieces as usize;
                     let w = len / pieces / ds;
                     for i in 0..k {
