@@ -25,6 +25,10 @@ fn the_sample_part_job_delivers_its_part_as_executed() {
     let r = report(&out);
     assert_eq!(r["influence"], "swept");
     let planned_rms = r["rms_after_nm"].as_f64().unwrap();
+    // The correction passes against the executed program are what bring the part down: the
+    // model's own residual is far above the executed one.
+    assert!(r["executed"]["correction_passes"].as_u64().unwrap() >= 1);
+    assert!(r["model"]["rms_nm"].as_f64().unwrap() > 2.0 * planned_rms);
     let total = r["total_dwell_s"].as_f64().unwrap();
     assert!(total <= TOTAL_DWELL_MAX_S, "total dwell {total} s");
     let dwell = csv_columns(&out.join("dwell.csv"), &["dwell_s"]);
