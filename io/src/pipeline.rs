@@ -6,9 +6,10 @@ use crate::job::{DwellInput, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
-use crate::report::{centred_residual_nm, ExecutedReport, Report};
+use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
+use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
@@ -322,6 +323,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
     if let Some(a) = outcome.approximation.filter(|a| a.exceeds_tolerance()) {
         report.warnings.push(a.warning());
     }
+    report.influence = Some(prepared.setup.influence_model());
     match &outcome.executed {
         Some(Ok(e)) => {
             let planned = report.rms_after_nm;
@@ -333,7 +335,20 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
                 stretch_time_s: e.run.check.executed_total_s,
                 max_stretch_error: e.run.check.max_relative_error,
                 stretches_over_5_percent: e.run.check.over_5_percent,
+                correction_passes: e.correction_passes,
             });
+            // With correction passes the plan's prediction is the program as executed; the
+            // model's residual is kept.
+            if prepared.setup.accel.as_ref().map(|a| a.method)
+                == Some(AccelMethod::CorrectionPasses)
+            {
+                report.model = Some(ResidualFigures {
+                    rms_nm: report.rms_after_nm,
+                    pv_nm: report.pv_after_nm,
+                });
+                report.rms_after_nm = e.after.rms_nm;
+                report.pv_after_nm = e.after.pv_nm;
+            }
         }
         Some(Err(e)) => report
             .warnings

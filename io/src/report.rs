@@ -4,6 +4,7 @@ use preston_solver::dwell::accel::AccelReport;
 use preston_solver::dwell::certificate::ConvergenceCriterion;
 use preston_solver::dwell::{MinTimeReport, OperatorKind, Problem, Solution, SolverKind, Status};
 use preston_solver::edge::EdgeMethod;
+use preston_solver::influence::InfluenceModel;
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
 use preston_solver::map::{HeightMap, HeightStats};
@@ -139,6 +140,25 @@ pub struct Report {
     /// the residual it predicted; `rms_after_nm` above is the exact `R`'s.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub operator_error: Option<preston_solver::setup::OperatorError>,
+    /// How the plan modelled the tool at a dwell point: `swept` (the TIF averaged along the
+    /// point's stretch of path, as the program runs it) or `point`; for a simulation, the model
+    /// of its removal (`point` for discrete motion, `swept` for continuous motion and programs).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub influence: Option<InfluenceModel>,
+    /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`
+    /// are the program's as executed at the acceleration limit (`accel_method =
+    /// "correction-passes"`). Absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub model: Option<ResidualFigures>,
+}
+
+/// RMS and PV of a residual (piston removed), nm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ResidualFigures {
+    /// RMS about the mean, nm.
+    pub rms_nm: f64,
+    /// Peak to valley, nm.
+    pub pv_nm: f64,
 }
 
 /// The plan as the machine executes it at an acceleration limit (`preston simulate --program
@@ -159,6 +179,10 @@ pub struct ExecutedReport {
     pub max_stretch_error: f64,
     /// Stretches more than 5% off their dwell.
     pub stretches_over_5_percent: usize,
+    /// Correction passes against the executed program kept (`accel_method =
+    /// "correction-passes"`; 0 otherwise).
+    #[serde(default)]
+    pub correction_passes: usize,
 }
 
 pub use preston_solver::setup::{centred_residual_nm, feeds_mm_per_min};
@@ -438,6 +462,8 @@ impl Report {
             dwell_outside_map_s: None,
             executed: None,
             operator_error: None,
+            influence: None,
+            model: None,
         }
     }
 

@@ -10,6 +10,7 @@ use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Problem};
+use preston_solver::influence::InfluenceModel;
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
@@ -160,6 +161,11 @@ fn assemble(
     report.solve_seconds = sim_start.elapsed().as_secs_f64();
     report.map_input = Some(map.input.clone());
     report.solver = label;
+    // The removal's model: the tool at the points for discrete motion, swept otherwise.
+    report.influence = Some(match label {
+        SolverLabel::Simulate => InfluenceModel::Point,
+        _ => InfluenceModel::Swept,
+    });
     report.set_map_coverage(&map.map, &path, &dwell_s);
     if dwell_s
         .iter()

@@ -15,6 +15,7 @@ use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, OperatorKind, Solv
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::surface::TifFrame;
 use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
+use preston_solver::influence::InfluenceModel;
 use preston_solver::machine::nc::{NcProgram, NcSettings};
 use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::path::raster::RasterAxis;
@@ -72,6 +73,9 @@ pub enum AccelMethodArg {
     ScpQp,
     /// Squared speed, then the SCP-QP from its result (QP-exact refinement; needs the assembled R).
     SquaredSpeedThenScpQp,
+    /// No constraint in the plan: the feed-limited optimum, then correction passes against the
+    /// program executed at the limit with look-ahead, kept while the executed residual falls.
+    CorrectionPasses,
 }
 
 impl From<AccelMethodArg> for AccelMethod {
@@ -80,6 +84,7 @@ impl From<AccelMethodArg> for AccelMethod {
             AccelMethodArg::SquaredSpeed => AccelMethod::SquaredSpeed,
             AccelMethodArg::ScpQp => AccelMethod::ScpQp,
             AccelMethodArg::SquaredSpeedThenScpQp => AccelMethod::SquaredSpeedThenScpQp,
+            AccelMethodArg::CorrectionPasses => AccelMethod::CorrectionPasses,
         }
     }
 }
@@ -107,6 +112,24 @@ impl From<EdgeArg> for EdgeMethod {
             EdgeArg::Gaussian => EdgeMethod::Gaussian,
             EdgeArg::Polynomial => EdgeMethod::Polynomial,
             EdgeArg::GerchbergPapoulis => EdgeMethod::GerchbergPapoulis,
+        }
+    }
+}
+
+/// How the plan models the tool at a dwell point, on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum InfluenceArg {
+    /// The TIF averaged along the dwell point's stretch of path at constant feed.
+    Swept,
+    /// The whole TIF at the dwell point.
+    Point,
+}
+
+impl From<InfluenceArg> for InfluenceModel {
+    fn from(o: InfluenceArg) -> Self {
+        match o {
+            InfluenceArg::Swept => InfluenceModel::Swept,
+            InfluenceArg::Point => InfluenceModel::Point,
         }
     }
 }
@@ -287,6 +310,11 @@ pub struct Args {
     /// How R is held: assembled, or matrix-free by FFT (default: the job's, else auto).
     #[arg(long, value_enum)]
     pub operator: Option<OperatorArg>,
+    /// How the plan models the tool at a dwell point: swept (the TIF averaged along the point's
+    /// stretch of path at constant feed, as the program runs it) or point (the whole TIF at the
+    /// point) (default: the job's, else swept).
+    #[arg(long, value_enum)]
+    pub influence: Option<InfluenceArg>,
     /// Largest estimated relative error of the off-lattice spreading operator against the
     /// assembled R (default: the job's, else 1e-4).
     #[arg(long)]
@@ -451,6 +479,9 @@ impl Args {
         }
         if let Some(k) = self.solver {
             job.solver.solver = k.into();
+        }
+        if let Some(o) = self.influence {
+            job.solver.influence = o.into();
         }
         if let Some(o) = self.operator {
             job.solver.operator = o.into();
@@ -699,6 +730,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             match r.accel.as_ref().map(|x| x.method) {
                 Some(AccelMethod::ScpQp) => "SCP iterations",
                 Some(AccelMethod::SquaredSpeedThenScpQp) => "gradient steps and SCP iterations",
+                Some(AccelMethod::CorrectionPasses) => "gradient steps (none: correction passes)",
                 _ => "gradient steps in squared speed",
             },
             r.rms_after_nm

@@ -469,6 +469,10 @@ pub struct Settings {
     /// off-lattice spreading operator ([`crate::influence::spread`]) when `operator = "auto"`
     /// considers it (dwell points off the map lattice).
     pub spread_tolerance: f64,
+    /// How the plan models the tool at a dwell point: swept along its stretch of path at
+    /// constant feed, as the program runs it (the default), or the whole TIF at the point
+    /// ([`crate::influence::InfluenceModel`]). Read where the problem is built.
+    pub influence: crate::influence::InfluenceModel,
 }
 
 /// The preconditioner of the projected Newton-CG's conjugate gradients.
@@ -526,6 +530,7 @@ impl Default for Settings {
             operator: OperatorChoice::default(),
             preconditioner: Preconditioner::default(),
             spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
+            influence: crate::influence::InfluenceModel::default(),
         }
     }
 }

@@ -15,6 +15,7 @@
 //!   gathered on the lattice);
 //! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
 //!   programs);
+//! - [`swept`]: the motion-true model, the TIF averaged along each dwell point's stretch of path;
 //! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
 //! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
 //! - [`operator`]: the traits: [`InfluenceOperator`] (`R` as a dwell problem holds it, whichever of
@@ -31,6 +32,7 @@ pub mod spread;
 pub mod stacked;
 pub mod stencil;
 pub mod surface;
+pub mod swept;
 
 pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
 pub use fft::FftOperator;
@@ -40,3 +42,4 @@ pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, Sp
 pub use spread::SpreadOperator;
 pub use stencil::StencilOperator;
 pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};
+pub use swept::{assemble_swept, InfluenceModel, Stretches, SweptTif};

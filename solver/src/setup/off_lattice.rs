@@ -209,7 +209,7 @@ impl Setup {
                 case.nnz
             ));
         }
-        match StencilOperator::new(mx, my, dx, dy, case.pitch_mm, &self.tif) {
+        match StencilOperator::new(mx, my, dx, dy, case.pitch_mm, self.lattice_kernel()) {
             Ok(op) => Ok(Some(op)),
             Err(e) if forced => Err(e).at(SetupInput::Map),
             Err(e) => {
@@ -256,11 +256,18 @@ impl Setup {
             return Ok(None);
         }
         let tolerance = self.settings.spread_tolerance;
-        let chosen =
-            match SpreadOperator::oversampling_for(mx, my, dx, dy, pitch, &self.tif, tolerance) {
-                Ok(c) => c,
-                Err(e) => return refusal(forced, "fft-spread", NotServed::Cannot(e.to_string())),
-            };
+        let chosen = match SpreadOperator::oversampling_for(
+            mx,
+            my,
+            dx,
+            dy,
+            pitch,
+            self.lattice_kernel(),
+            tolerance,
+        ) {
+            Ok(c) => c,
+            Err(e) => return refusal(forced, "fft-spread", NotServed::Cannot(e.to_string())),
+        };
         let Some((s, error)) = chosen else {
             return refusal(
                 forced,
@@ -284,7 +291,7 @@ impl Setup {
                 sparse_ns / spread_ns(s)
             ));
         }
-        match SpreadOperator::new(mx, my, dx, dy, pitch, s, &self.tif) {
+        match SpreadOperator::new(mx, my, dx, dy, pitch, s, self.lattice_kernel()) {
             Ok(op) => Ok(Some(op)),
             Err(e) if forced => Err(e).at(SetupInput::Map),
             Err(e) => {

@@ -55,12 +55,22 @@ pub enum AccelMethod {
     /// The squared-speed method, then the SCP-QP from its result: a KKT point of the first refined
     /// by the second (QP-exact where the QP is affordable; it needs the assembled `R`).
     SquaredSpeedThenScpQp,
+    /// No constraint in the plan: the feed-limited optimum, then correction passes against the
+    /// program executed at the limit with look-ahead (the set-up's
+    /// [`crate::setup::Setup::solve`]): each pass re-solves for the target less the executed
+    /// removal's departure from the plan's, `z - (h_exec - R t)`, from the last dwell times,
+    /// and is kept while the executed residual falls. The controller holds the limit; the plan
+    /// is the program as the controller runs it.
+    CorrectionPasses,
 }
 
 impl AccelMethod {
     /// Whether the method solves QPs with the assembled `R`.
     pub fn needs_assembled_r(self) -> bool {
-        !matches!(self, AccelMethod::SquaredSpeed)
+        !matches!(
+            self,
+            AccelMethod::SquaredSpeed | AccelMethod::CorrectionPasses
+        )
     }
 }
 
@@ -382,15 +392,15 @@ pub(crate) fn solve_validated(
             first_order_tolerance: settings.first_order_tolerance.max(limits.kkt_tolerance),
             ..settings.clone()
         },
-        AccelMethod::ScpQp => settings.clone(),
+        AccelMethod::ScpQp | AccelMethod::CorrectionPasses => settings.clone(),
     };
     let reference = super::solve_validated(problem, &reference_settings, observer, None)?;
     let mut scp_iterations = 0;
     let mut gradient_steps = 0;
     let mut kkt_residual = None;
     let mut qp_iterations = reference.iterations;
-    let (best_t, status, solver) = if kin.violation(&reference.dwell_s)
-        <= limits.constraint_tolerance
+    let (best_t, status, solver) = if limits.method == AccelMethod::CorrectionPasses
+        || kin.violation(&reference.dwell_s) <= limits.constraint_tolerance
     {
         // The feed-limited optimum already meets the limit.
         (
@@ -411,7 +421,9 @@ pub(crate) fn solve_validated(
                     SolverKind::Qp,
                 )
             }
-            AccelMethod::SquaredSpeed | AccelMethod::SquaredSpeedThenScpQp => {
+            AccelMethod::SquaredSpeed
+            | AccelMethod::SquaredSpeedThenScpQp
+            | AccelMethod::CorrectionPasses => {
                 let speed_limits = speed::SpeedLimits {
                     tolerance: limits.kkt_tolerance,
                     max_steps: limits.max_gradient_steps,
