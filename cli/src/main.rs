@@ -348,6 +348,9 @@ mod tests {
             &format!("else {:e})", s.spread_tolerance),
         );
         let nc = NcSettings::default();
+        // Options a machine profile can set state its default in prose: the profile's, else
+        // the library's.
+        let profile = preston_solver::machine::profile::MachineProfile::default();
         assert_says(
             "nc",
             "corner-angle-deg",
@@ -356,17 +359,17 @@ mod tests {
         assert_says(
             "nc",
             "clearance-mm",
-            &format!("[default: {}]", nc.clearance_mm),
+            &format!("else {})", profile.clearance_mm),
         );
         assert_says(
             "nc",
             "plunge-feed-mm-per-min",
-            &format!("[default: {}]", nc.plunge_feed_mm_per_min),
+            &format!("else {})", profile.plunge_feed_mm_per_min),
         );
         assert_says(
             "nc",
             "min-block-time-ms",
-            &format!("[default: {}]", nc.min_block_time_ms),
+            &format!("else {})", profile.min_block_time_ms),
         );
         // Each flag's text is its own: the point list's text is not on --arcs.
         assert_says("nc", "arcs", "G02/G03");

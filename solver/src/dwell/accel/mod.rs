@@ -460,14 +460,22 @@ pub(crate) fn solve_validated(
                 qp_iterations += r.iterations;
                 if limits.method == AccelMethod::SquaredSpeedThenScpQp {
                     // The squared-speed result meets the limit exactly: the SCP starts there.
+                    let start = r.dwell_s.clone();
                     let polished = scp(problem, &kin, r.dwell_s, limits, settings, observer)?;
                     scp_iterations = polished.iterations;
                     qp_iterations += polished.qp_iterations;
-                    (
-                        onto_the_limit(&kin, &reachable, polished.dwell_s, bounds),
-                        polished.status,
-                        SolverKind::Qp,
-                    )
+                    // Clamping an SCP iterate that overshoots the limit can cost more than the
+                    // SCP gained: keep whichever of it and the squared-speed start (exactly on
+                    // the limit) has the lower objective, so the refinement never loses.
+                    let clamped = onto_the_limit(&kin, &reachable, polished.dwell_s, bounds);
+                    let best = if problem.evaluate(&clamped)?.objective
+                        <= problem.evaluate(&start)?.objective
+                    {
+                        clamped
+                    } else {
+                        start
+                    };
+                    (best, polished.status, SolverKind::Qp)
                 } else {
                     kkt_residual = Some(r.kkt_residual);
                     (r.dwell_s, r.status, SolverKind::FirstOrder)
