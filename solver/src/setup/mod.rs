@@ -1028,6 +1028,8 @@ impl Setup {
             exact_removal_nm: exact,
             error,
         }))
+    }
+
     /// Correction passes against the executed program ([`AccelMethod::CorrectionPasses`]):
     /// from `solution` (removal `removal_all` over every row, executed run `first`), each pass
     /// re-solves the feed-limited problem for the target less the executed removal's departure
