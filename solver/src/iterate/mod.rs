@@ -374,7 +374,8 @@ pub struct IterationRecord {
     pub mean_abs_nm: f64,
     /// Polishing time of this iteration's run, s (0 on the last row).
     pub time_s: f64,
-    /// RMS of the residual the solver predicted for this run, nm (`None` on the last row).
+    /// RMS of the error predicted to be measured after this run (the plan's residual, the
+    /// uncorrectable part and the rate's spread), nm (`None` on the last row).
     pub predicted_rms_nm: Option<f64>,
     /// Relative TIF rate error applied in this run (`None` on the last row).
     pub tif_rate_error: Option<f64>,
@@ -717,7 +718,7 @@ struct Measurement {
     failed: Option<(usize, Status)>,
 }
 
-/// Measures and registers (refusing motions the points leave exactly undetermined).
+/// Measures and registers.
 fn measure(
     part: &VirtualPart,
     installation_inv: &Isometry3<f64>,
@@ -739,8 +740,9 @@ fn measure(
             [q.x, q.y, q.z + noise]
         })
         .collect();
+    // Motions the points leave exactly undetermined (in-plane motions of a plane) are held at
+    // zero: they move nothing the measurement or the polishing can see.
     let reg = register(&part.surface, &points, settings)?;
-    reg.refuse_undetermined("the registration settings' lock")?;
     let (x, y): (Vec<f64>, Vec<f64>) = reg.design_xy_mm.iter().map(|p| (p[0], p[1])).unzip();
     let failed = (!reg.status.is_converged()).then_some((reg.iterations, reg.status));
     Ok(Measurement {
