@@ -61,7 +61,7 @@ fn assembly(c: &mut Criterion) {
 fn sample_job(c: &mut Criterion) {
     let mut group = c.benchmark_group("sample_job");
     group.sample_size(10);
-    let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/job.toml");
+    let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/job_point_1mm.toml");
     let job = Job::load(&job_path).unwrap();
     // Assembly alone, on the sample job's map, dwell raster and measured TIF.
     let prepared = pipeline::prepare(&job, &job_path, &Silent).unwrap();

@@ -41,7 +41,7 @@ fn undocumented(report: &serde_json::Value, doc: &str) -> Vec<String> {
 fn every_report_key_of_the_sample_job_is_in_the_formats_reference() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("sample");
-    let job = data_arg("job.toml");
+    let job = data_arg("job_point_1mm.toml");
     ok(&preston(&[
         "solve",
         "--job",

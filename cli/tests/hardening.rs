@@ -211,7 +211,7 @@ fn oversized_arguments_are_refused_before_allocating() {
 fn the_influence_matrix_is_budgeted_before_assembly() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("out");
-    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/job.toml");
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/job_point_1mm.toml");
     let o = capped(&[
         "--max-memory-gb",
         "0.01",

@@ -14,8 +14,8 @@ const SAMPLE_REL_TOL: f64 = 1e-3;
 /// solvers and warm starts, which an acceleration limit refuses), written into `out`'s parent
 /// with absolute input paths.
 fn feed_limited_job(out: &Path) -> PathBuf {
-    let text = std::fs::read_to_string(data("job.toml")).unwrap();
-    let dir = data("job.toml").parent().unwrap().to_path_buf();
+    let text = std::fs::read_to_string(data("job_point_1mm.toml")).unwrap();
+    let dir = data("job_point_1mm.toml").parent().unwrap().to_path_buf();
     let job: String = text
         .lines()
         .filter(|l| !l.trim_start().starts_with("a_max_mm_per_s2"))
@@ -184,6 +184,9 @@ fn solve_grid(
         method,
         "--tolerance",
         tolerance,
+        // The operators' own mathematics: the point model, whose lattice kernel is exact.
+        "--influence",
+        "point",
     ];
     solve_gaussian(map, &args, out)
 }
@@ -357,6 +360,9 @@ fn operator_stencil_matches_the_assembled_matrix_and_auto_takes_it_off_the_latti
         "fista",
         "--tolerance",
         "1e-6",
+        // The operators' own mathematics: the point model, whose stencils are exact.
+        "--influence",
+        "point",
     ];
     let run = |operator: &str| {
         let out = dir.path().join(operator);

@@ -385,7 +385,7 @@ fn acceleration_limit_from_job_file_and_bad_values() {
     // The feed-limited optimum is returned unchanged (two RMS formulas: 1e-9 relative).
     let (rms0, rms) = (
         r["rms_feed_limited_only_nm"].as_f64().unwrap(),
-        r["rms_after_nm"].as_f64().unwrap(),
+        r["model"]["rms_nm"].as_f64().unwrap(),
     );
     assert!((rms0 - rms).abs() <= 1e-9 * rms, "{rms0} vs {rms}");
 }

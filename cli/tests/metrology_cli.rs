@@ -252,6 +252,9 @@ fn aperture_and_removal_reach_solve_and_its_report() {
         "1",
         "--v-max",
         "3000",
+        // The discrete simulation below models the TIF at the dwell points.
+        "--influence",
+        "point",
         "--accept-best-iterate",
         "--out",
         s(&out_dir),
@@ -641,7 +644,7 @@ fn tif_from_a_measured_spot_meets_the_targets_and_solves_the_sample_job() {
     );
 
     // The TIF solves the sample job.
-    let job = concat!(env!("CARGO_MANIFEST_DIR"), "/../data/job.toml");
+    let job = concat!(env!("CARGO_MANIFEST_DIR"), "/../data/job_point_1mm.toml");
     let out_dir = d.join("job");
     let out = preston(&[
         "solve",

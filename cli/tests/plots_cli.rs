@@ -12,7 +12,7 @@ fn solve_plots_write_every_figure_and_the_psd() {
     let out = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .arg("--plots")
         .arg("--out")
         .arg(out.path())
@@ -80,7 +80,7 @@ fn psd_2d_of_the_sample_agrees_with_an_independent_estimate() {
     let out = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .arg("--plots")
         .arg("--out")
         .arg(out.path())
@@ -167,7 +167,7 @@ fn simulate_program_plots_show_the_psd_and_the_dwell_as_executed() {
     let solved = out.path().join("solve");
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .arg("--out")
         .arg(&solved)
         .output()

@@ -57,7 +57,7 @@ fn sample_job_program_delivers_every_dwell_and_simulates_like_the_plan() {
     ok(&preston(&[
         "solve",
         "--job",
-        s(&data("job.toml")),
+        s(&data("job_point_1mm.toml")),
         "--out",
         s(&out),
     ]));

@@ -51,7 +51,7 @@ fn sample_report_renders_in_chromium_with_every_image() {
     let out = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .args(["--report", "--out"])
         .arg(out.path())
         .output()

@@ -41,7 +41,7 @@ fn report_html_holds_the_numbers_of_report_json_and_every_figure() {
     let out = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .args(["--plots", "--report", "--out"])
         .arg(out.path())
         .output()
@@ -126,7 +126,7 @@ fn report_html_holds_the_numbers_of_report_json_and_every_figure() {
     for input in [
         "mirror_error_118x8mm.csv",
         "tif_fluid_jet_10mm.csv",
-        "job.toml",
+        "job_point_1mm.toml",
     ] {
         let (hash, _) = preston_io::digest::sha256_file(&data(input)).unwrap();
         assert!(html.contains(&hash), "{input}'s hash missing");
@@ -153,7 +153,7 @@ fn report_without_plots_embeds_figures_but_writes_none() {
     let out = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .args(["--report", "--out"])
         .arg(out.path())
         .output()
@@ -208,7 +208,7 @@ fn residual_colours_span_the_bulk_of_the_sample() {
     let out = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .args(["--plots", "--out"])
         .arg(out.path())
         .output()
@@ -223,7 +223,7 @@ fn residual_colours_span_the_bulk_of_the_sample() {
     let tight = tempfile::tempdir().unwrap();
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .args(["--plots", "--color-limits", "-1,1", "--out"])
         .arg(tight.path())
         .output()
@@ -234,7 +234,7 @@ fn residual_colours_span_the_bulk_of_the_sample() {
     // Bad limits are refused before anything runs.
     let o = preston_cmd()
         .args(["solve", "--job"])
-        .arg(data("job.toml"))
+        .arg(data("job_point_1mm.toml"))
         .args(["--color-limits", "5,1", "--out"])
         .arg(tight.path().join("never"))
         .output()

@@ -256,7 +256,7 @@ fn results_do_not_depend_on_the_thread_count() {
         let out = d.path().join(format!("t{threads}"));
         let o = preston_cmd()
             .env("RAYON_NUM_THREADS", threads)
-            .args(["solve", "--job", &data_arg("job.toml"), "--out"])
+            .args(["solve", "--job", &data_arg("job_point_1mm.toml"), "--out"])
             .arg(&out)
             .output()
             .unwrap();
@@ -305,7 +305,7 @@ fn assert_complete(out: &Path) {
 fn a_killed_solve_leaves_no_partial_output() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("out");
-    let job = data_arg("job.toml");
+    let job = data_arg("job_point_1mm.toml");
     // A complete first run, and its duration.
     let start = Instant::now();
     let o = solve(&["--job", &job], &out);

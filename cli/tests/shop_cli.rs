@@ -187,7 +187,7 @@ fn marked_programs_still_compare_with_the_plan_and_json_is_one_object() {
     let o = preston(&[
         "solve",
         "--job",
-        &data_arg("job.toml"),
+        &data_arg("job_point_1mm.toml"),
         "--out",
         s(&sol),
         "--json",
@@ -205,7 +205,7 @@ fn marked_programs_still_compare_with_the_plan_and_json_is_one_object() {
         "--dwell",
         s(&sol.join("dwell.csv")),
         "--job",
-        &data_arg("job.toml"),
+        &data_arg("job_point_1mm.toml"),
         "--feed-mode",
         "inverse-time",
         "--dialect",
@@ -223,7 +223,7 @@ fn marked_programs_still_compare_with_the_plan_and_json_is_one_object() {
     let o = preston(&[
         "simulate",
         "--job",
-        &data_arg("job.toml"),
+        &data_arg("job_point_1mm.toml"),
         "--program",
         s(&prog),
         "--out",

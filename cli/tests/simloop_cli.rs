@@ -41,6 +41,9 @@ fn simulate_reproduces_the_solver_and_converges_in_continuous_mode() {
         "2000",
         "--rho",
         "0.01",
+        // The discrete simulation below models the TIF at the dwell points.
+        "--influence",
+        "point",
     ];
     args.extend(GAUSSIAN);
     args.extend(["--out", s(&solved)]);

@@ -9,7 +9,6 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
@@ -337,18 +336,14 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
                 stretches_over_5_percent: e.run.check.over_5_percent,
                 correction_passes: e.correction_passes,
             });
-            // With correction passes the plan's prediction is the program as executed; the
-            // model's residual is kept.
-            if prepared.setup.accel.as_ref().map(|a| a.method)
-                == Some(AccelMethod::CorrectionPasses)
-            {
-                report.model = Some(ResidualFigures {
-                    rms_nm: report.rms_after_nm,
-                    pv_nm: report.pv_after_nm,
-                });
-                report.rms_after_nm = e.after.rms_nm;
-                report.pv_after_nm = e.after.pv_nm;
-            }
+            // The plan's prediction is the program as executed; the model's residual is kept.
+            report.model = Some(ResidualFigures {
+                rms_nm: report.rms_after_nm,
+                pv_nm: report.pv_after_nm,
+            });
+            report.rms_after_nm = e.after.rms_nm;
+            report.pv_after_nm = e.after.pv_nm;
+            report.sensitivity = outcome.sensitivity;
         }
         Some(Err(e)) => report
             .warnings

@@ -146,10 +146,15 @@ pub struct Report {
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub influence: Option<InfluenceModel>,
     /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`
-    /// are the program's as executed at the acceleration limit (`accel_method =
-    /// "correction-passes"`). Absent otherwise.
+    /// are the program's as executed at the acceleration limit (a limit on a flat part). Absent
+    /// otherwise.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub model: Option<ResidualFigures>,
+    /// With an executed program: its residual (RMS, PV, nm) with the TIF 3% wider and
+    /// narrower (volume kept), its rate 3% higher and the tool 0.05 mm off in x and in y
+    /// ([`preston_solver::setup::sensitivity`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensitivity: Option<preston_solver::setup::sensitivity::Sensitivity>,
 }
 
 /// RMS and PV of a residual (piston removed), nm.
@@ -464,6 +469,7 @@ impl Report {
             operator_error: None,
             influence: None,
             model: None,
+            sensitivity: None,
         }
     }
 

@@ -307,6 +307,7 @@ pub fn simulate_program(
         check,
         removal_nm: removal,
         samples: n_samples,
+        ..
     } = setup
         .run_program(
             &program,

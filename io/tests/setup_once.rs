@@ -21,7 +21,7 @@ impl Observer for Counting {
 
 #[test]
 fn the_sample_job_is_resolved_once_and_its_removal_and_feeds_computed_once() {
-    let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/job.toml");
+    let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/job_point_1mm.toml");
     let job = Job::load(&job_path).unwrap();
     let counting = Counting::default();
     let prepared = pipeline::prepare(&job, &job_path, &counting).unwrap();

@@ -24,7 +24,7 @@ def preston_bin() -> Path:
 
 @pytest.fixture(scope="session")
 def sample_job() -> Path:
-    return DATA / "job.toml"
+    return DATA / "job_point_1mm.toml"
 
 
 def write_small_job(d: Path) -> dict:

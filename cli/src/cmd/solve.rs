@@ -696,11 +696,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     crate::note!(
-        "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm, piston {:.3} nm",
+        "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm{}, piston {:.3} nm",
         r.rms_before_nm,
         r.rms_after_nm,
         r.pv_before_nm,
         r.pv_after_nm,
+        match &r.model {
+            Some(m) => format!(
+                " as the program executes (model {:.3} nm RMS, {:.3} nm PV)",
+                m.rms_nm, m.pv_nm
+            ),
+            None => String::new(),
+        },
         r.piston_nm
     );
     crate::note!(
@@ -715,10 +722,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             r.total_dwell_s, mt.total_dwell_rho0_s, r.objective, mt.objective_rho0, mt.tolerance
         );
     }
+    let correction_passes =
+        r.accel.as_ref().map(|x| x.method) == Some(AccelMethod::CorrectionPasses);
     crate::note!(
-        "  machining time {:.2} s, max acceleration {:.3} mm/s^2",
+        "  machining time {:.2} s, max acceleration {:.3} mm/s^2{}",
         r.machining_time_s,
-        r.max_accel_mm_per_s2
+        r.max_accel_mm_per_s2,
+        match r.a_max_mm_per_s2 {
+            Some(a) if correction_passes && r.max_accel_mm_per_s2 > a => format!(
+                " between the programmed feeds (the controller's look-ahead holds {a} mm/s^2; the executed figures include its ramps)"
+            ),
+            _ => String::new(),
+        }
     );
     if let (Some(a), Some(it), Some(rms0)) = (
         r.a_max_mm_per_s2,
@@ -726,14 +741,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.rms_feed_limited_only_nm,
     ) {
         crate::note!(
-            "  acceleration limit {a} mm/s^2: {it} {}, RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
+            "  acceleration limit {a} mm/s^2: {it} {}, model RMS {:.3} nm vs {rms0:.3} nm feed-limited only",
             match r.accel.as_ref().map(|x| x.method) {
                 Some(AccelMethod::ScpQp) => "SCP iterations",
                 Some(AccelMethod::SquaredSpeedThenScpQp) => "gradient steps and SCP iterations",
                 Some(AccelMethod::CorrectionPasses) => "gradient steps (none: correction passes)",
                 _ => "gradient steps in squared speed",
             },
-            r.rms_after_nm
+            r.accel.as_ref().map_or(r.rms_after_nm, |x| x.rms_after_nm)
         );
     }
     let mut certificate = Vec::new();

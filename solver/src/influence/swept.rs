@@ -37,11 +37,10 @@ use std::collections::HashMap;
 #[serde(rename_all = "kebab-case")]
 pub enum InfluenceModel {
     /// The TIF averaged along the point's stretch of path at constant feed: what the program
-    /// does (module documentation).
-    Swept,
-    /// The whole TIF at the dwell point (the literature's model). Still the library default
-    /// while the pinned figures of the test suite are moved to the swept model.
+    /// does (module documentation). The default.
     #[default]
+    Swept,
+    /// The whole TIF at the dwell point (the literature's model), kept for comparison.
     Point,
 }
 

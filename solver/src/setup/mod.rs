@@ -19,6 +19,7 @@
 
 mod off_lattice;
 pub mod plausible;
+pub mod sensitivity;
 pub mod tools;
 
 use crate::dwell::accel::{self, AccelLimits, AccelMethod, AccelReport};
@@ -439,6 +440,9 @@ pub struct Outcome {
     /// With an approximate operator: its measured error on the returned dwell (the removal
     /// above is the exact `R`'s).
     pub approximation: Option<OperatorError>,
+    /// With an executed program: its residual under each scenario of TIF uncertainty
+    /// ([`sensitivity`]).
+    pub sensitivity: Option<sensitivity::Sensitivity>,
 }
 
 /// The measured error of an approximate operator on the dwell a solve returned.
@@ -977,6 +981,18 @@ impl Setup {
             self.accel.as_ref().map(|l| l.a_max_mm_per_s2),
             self.corner_angle_deg,
         )?;
+        let sensitivity = match &executed {
+            Some(Ok(e)) => Some(sensitivity::of_executed(
+                self.map.x_mm(),
+                self.map.y_mm(),
+                self.map.z_nm(),
+                &e.run.contact,
+                &e.run.removal_nm,
+                &self.tif,
+                observer,
+            )?),
+            _ => None,
+        };
         Ok(Outcome {
             solution,
             removal_nm,
@@ -985,6 +1001,7 @@ impl Setup {
             accel,
             executed,
             approximation,
+            sensitivity,
         })
     }
 
@@ -1005,15 +1022,38 @@ impl Setup {
         let m = self.map.len();
         let mut approx = problem.removal_nm(dwell_s)?;
         approx.truncate(m);
-        let exact = crate::influence::direct::removal_nm(
-            self.map.x_mm(),
-            self.map.y_mm(),
-            self.path.x_mm(),
-            self.path.y_mm(),
-            dwell_s,
-            &self.tif,
-            observer,
-        )?;
+        // The exact removal of the plan's own model: with the swept model every dwell point's
+        // stretch samples carry its dwell in proportion to their weights.
+        let exact = match &self.swept {
+            Some((stretches, _)) => {
+                let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
+                for (j, &tj) in dwell_s.iter().enumerate() {
+                    for &[dx, dy, w] in stretches.of(j) {
+                        x.push(self.path.x_mm()[j] + dx);
+                        y.push(self.path.y_mm()[j] + dy);
+                        t.push(tj * w);
+                    }
+                }
+                crate::influence::direct::removal_nm(
+                    self.map.x_mm(),
+                    self.map.y_mm(),
+                    &x,
+                    &y,
+                    &t,
+                    &self.tif,
+                    observer,
+                )?
+            }
+            None => crate::influence::direct::removal_nm(
+                self.map.x_mm(),
+                self.map.y_mm(),
+                self.path.x_mm(),
+                self.path.y_mm(),
+                dwell_s,
+                &self.tif,
+                observer,
+            )?,
+        };
         let norm = |v: &mut dyn Iterator<Item = f64>| v.map(|x| x * x).sum::<f64>().sqrt();
         let diff = norm(&mut approx.iter().zip(&exact).map(|(a, e)| a - e));
         let size = norm(&mut exact.iter().copied());

@@ -61,6 +61,9 @@ pub struct ProgramRun {
     pub removal_nm: Vec<f64>,
     /// Removal samples used.
     pub samples: usize,
+    /// The contact motion as removal samples (position and time of every piece), to integrate
+    /// another TIF along the same motion (the sensitivity of the executed part).
+    pub contact: crate::simulate::SampledProgram,
 }
 
 /// Executes `program` under `kinematics`, samples the contact motion with pieces of at most
@@ -99,5 +102,6 @@ pub fn run_on_map<T: crate::tif::InfluenceFunction + ?Sized>(
         check,
         removal_nm,
         samples: sampled.dwell_s.len(),
+        contact: sampled,
     })
 }

@@ -1,4 +1,4 @@
-//! The sample part job (`data/job_part.toml`) as a shop checks it: solved, written as a program by `preston nc` and run
+//! The sample job as shipped (`data/job.toml`) as a shop checks it: solved, written as a program by `preston nc` and run
 //! by `preston simulate --program` at the job's acceleration limit with look-ahead. The part it
 //! gives is pinned (`docs/part_quality.md`).
 
@@ -15,12 +15,15 @@ const TOTAL_DWELL_MAX_S: f64 = 50_000.0;
 const POINT_DWELL_MAX_S: f64 = 120.0;
 /// Largest relative difference between the report's planned residual and the program's run.
 const PLANNED_VS_EXECUTED: f64 = 0.03;
+/// Agreement of the report's rate scenario with the same figure computed from the simulated
+/// program's removal (the two runs are the same computation; the CSV rounds to 1e-9 nm).
+const SCENARIO_REL_TOL: f64 = 1e-6;
 
 #[test]
-fn the_sample_part_job_delivers_its_part_as_executed() {
+fn the_sample_job_as_shipped_delivers_its_part_as_executed() {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("sample");
-    let job = data_arg("job_part.toml");
+    let job = data_arg("job.toml");
     ok(&preston(&["solve", "--job", &job, "--out", s(&out)]));
     let r = report(&out);
     assert_eq!(r["influence"], "swept");
@@ -70,5 +73,38 @@ fn the_sample_part_job_delivers_its_part_as_executed() {
     assert!(
         (planned_rms - rms).abs() <= PLANNED_VS_EXECUTED * rms,
         "planned {planned_rms} nm vs executed {rms} nm"
+    );
+
+    // Sensitivity: the rate scenario is the executed removal scaled by 1.03, computed here from
+    // the simulated program's removal; every scenario is reported.
+    let sens = &r["sensitivity"];
+    for key in [
+        "tif_wider_3pct",
+        "tif_narrower_3pct",
+        "rate_plus_3pct",
+        "offset_x_0p05mm",
+        "offset_y_0p05mm",
+    ] {
+        let (rms_s, pv_s) = (
+            sens[key]["rms_nm"].as_f64().unwrap(),
+            sens[key]["pv_nm"].as_f64().unwrap(),
+        );
+        assert!(
+            rms_s.is_finite() && pv_s >= rms_s,
+            "{key}: {rms_s} / {pv_s}"
+        );
+    }
+    let cols = csv_columns(&sim.join("residual.csv"), &["z_nm", "removal_nm"]);
+    let d: Vec<f64> = cols[0]
+        .iter()
+        .zip(&cols[1])
+        .map(|(z, h)| z - 1.03 * h)
+        .collect();
+    let mean = d.iter().sum::<f64>() / d.len() as f64;
+    let rms_rate = (d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / d.len() as f64).sqrt();
+    let reported = sens["rate_plus_3pct"]["rms_nm"].as_f64().unwrap();
+    assert!(
+        (reported - rms_rate).abs() <= SCENARIO_REL_TOL * rms_rate,
+        "rate scenario {reported} nm vs {rms_rate} nm from the program's removal"
     );
 }

@@ -1,0 +1,218 @@
+//! How the executed part depends on how well the TIF is known.
+//!
+//! The program's contact motion is fixed; only the tool's footprint is uncertain. For each
+//! scenario the TIF `f` is replaced by a perturbed `f'` and integrated along the same executed
+//! motion, `h'_i = Σ_k f'(x_i - p_k) τ_k` (samples `p_k` carrying time `τ_k`), and the residual
+//! `z - h'` (piston removed) is summarised:
+//!
+//! - width `w` with the volume kept: `f'(d) = f(d / w) / w²` (`w` = 1.03 and 1/1.03);
+//! - rate `r`: `f' = r f`, so `h' = r h` (`r` = 1.03);
+//! - tool offset `o`: the tool lands `o` away from where it is programmed, `f'(d) = f(d - o)`
+//!   (`o` = 0.05 mm along x and along y).
+
+use crate::error::Result;
+use crate::map::HeightStats;
+use crate::observer::Observer;
+use crate::simulate::{removal_of_samples, SampledProgram};
+use crate::tif::InfluenceFunction;
+use serde::{Deserialize, Serialize};
+
+/// Relative change of the TIF's width and of its rate in the scenarios.
+pub const RELATIVE_CHANGE: f64 = 0.03;
+
+/// Offset of the tool in the offset scenarios, mm.
+pub const OFFSET_MM: f64 = 0.05;
+
+/// RMS and PV of one scenario's executed residual (piston removed), nm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ScenarioFigures {
+    /// RMS about the mean, nm.
+    pub rms_nm: f64,
+    /// Peak to valley, nm.
+    pub pv_nm: f64,
+}
+
+/// The executed residual of the same program under each scenario of TIF uncertainty.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Sensitivity {
+    /// The TIF 3% wider, its volume kept.
+    pub tif_wider_3pct: ScenarioFigures,
+    /// The TIF 3% narrower (width / 1.03), its volume kept.
+    pub tif_narrower_3pct: ScenarioFigures,
+    /// The removal rate 3% higher.
+    pub rate_plus_3pct: ScenarioFigures,
+    /// The tool 0.05 mm off along x.
+    pub offset_x_0p05mm: ScenarioFigures,
+    /// The tool 0.05 mm off along y.
+    pub offset_y_0p05mm: ScenarioFigures,
+}
+
+impl Sensitivity {
+    /// The worst RMS over the scenarios, nm.
+    pub fn worst_rms_nm(&self) -> f64 {
+        [
+            self.tif_wider_3pct,
+            self.tif_narrower_3pct,
+            self.rate_plus_3pct,
+            self.offset_x_0p05mm,
+            self.offset_y_0p05mm,
+        ]
+        .iter()
+        .map(|s| s.rms_nm)
+        .fold(0.0, f64::max)
+    }
+}
+
+/// A TIF scaled in width (volume kept), scaled in rate and offset: `r f((d - o) / w) / w²`.
+#[derive(Debug, Clone, Copy)]
+pub struct PerturbedTif<'a, T: ?Sized> {
+    tif: &'a T,
+    width_factor: f64,
+    rate_factor: f64,
+    offset_mm: (f64, f64),
+}
+
+impl<'a, T: InfluenceFunction + ?Sized> PerturbedTif<'a, T> {
+    /// `tif` with its width times `width_factor` (volume kept), its rate times `rate_factor`
+    /// and its centre moved by `offset_mm`.
+    pub fn new(tif: &'a T, width_factor: f64, rate_factor: f64, offset_mm: (f64, f64)) -> Self {
+        Self {
+            tif,
+            width_factor,
+            rate_factor,
+            offset_mm,
+        }
+    }
+}
+
+impl<T: InfluenceFunction + ?Sized> InfluenceFunction for PerturbedTif<'_, T> {
+    fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+        let w = self.width_factor;
+        self.rate_factor / (w * w)
+            * self.tif.rate_nm_per_s(
+                (dx_mm - self.offset_mm.0) / w,
+                (dy_mm - self.offset_mm.1) / w,
+            )
+    }
+
+    fn support_radius_mm(&self) -> f64 {
+        self.width_factor * self.tif.support_radius_mm() + self.offset_mm.0.hypot(self.offset_mm.1)
+    }
+
+    fn nominal_radius_mm(&self) -> f64 {
+        self.width_factor * self.tif.nominal_radius_mm()
+    }
+}
+
+/// The sensitivity of the executed residual: `contact` is the executed motion, `removal_nm`
+/// its removal with the nominal TIF at the map points `(map_x_mm, map_y_mm)` whose error is
+/// `z_nm`.
+pub fn of_executed<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    z_nm: &[f64],
+    contact: &SampledProgram,
+    removal_nm: &[f64],
+    tif: &T,
+    observer: &dyn Observer,
+) -> Result<Sensitivity> {
+    let figures = |h: &[f64]| {
+        let s = HeightStats::of(&super::centred_residual_nm(z_nm, h));
+        ScenarioFigures {
+            rms_nm: s.rms_nm,
+            pv_nm: s.pv_nm,
+        }
+    };
+    let run = |width: f64, offset: (f64, f64)| -> Result<ScenarioFigures> {
+        let perturbed = PerturbedTif::new(tif, width, 1.0, offset);
+        let h = removal_of_samples(map_x_mm, map_y_mm, contact, &perturbed, observer)?;
+        Ok(figures(&h))
+    };
+    let rate: Vec<f64> = removal_nm
+        .iter()
+        .map(|h| h * (1.0 + RELATIVE_CHANGE))
+        .collect();
+    Ok(Sensitivity {
+        tif_wider_3pct: run(1.0 + RELATIVE_CHANGE, (0.0, 0.0))?,
+        tif_narrower_3pct: run(1.0 / (1.0 + RELATIVE_CHANGE), (0.0, 0.0))?,
+        rate_plus_3pct: figures(&rate),
+        offset_x_0p05mm: run(1.0, (OFFSET_MM, 0.0))?,
+        offset_y_0p05mm: run(1.0, (0.0, OFFSET_MM))?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::observer::Silent as NoObserver;
+    use crate::tif::gaussian::GaussianTif;
+
+    /// Agreement of two evaluations of one closed form.
+    const CLOSED_FORM_REL_TOL: f64 = 1e-12;
+
+    fn gaussian(sigma: f64, peak: f64) -> GaussianTif {
+        GaussianTif::new(sigma, peak, 4.0 * sigma).unwrap()
+    }
+
+    /// A Gaussian widened by `w` with its volume kept is the Gaussian of width `w σ` and peak
+    /// `A / w²`; a shifted one is the Gaussian evaluated at the shifted offset.
+    #[test]
+    fn a_perturbed_gaussian_is_the_gaussian_of_the_perturbed_parameters() {
+        let g = gaussian(1.5, 10.0);
+        for w in [1.03, 1.0 / 1.03] {
+            let p = PerturbedTif::new(&g, w, 1.0, (0.0, 0.0));
+            let expect = gaussian(1.5 * w, 10.0 / (w * w));
+            for (dx, dy) in [(0.0, 0.0), (0.7, -0.3), (2.1, 1.4), (-3.0, 0.5)] {
+                let (a, b) = (p.rate_nm_per_s(dx, dy), expect.rate_nm_per_s(dx, dy));
+                assert!(
+                    (a - b).abs() <= CLOSED_FORM_REL_TOL * b.abs(),
+                    "w {w}: {a} vs {b}"
+                );
+            }
+        }
+        let p = PerturbedTif::new(&g, 1.0, 1.03, (0.05, -0.02));
+        let (a, b) = (
+            p.rate_nm_per_s(1.0, 1.0),
+            1.03 * g.rate_nm_per_s(0.95, 1.02),
+        );
+        assert!((a - b).abs() <= CLOSED_FORM_REL_TOL * b);
+        assert!(p.support_radius_mm() > g.support_radius_mm());
+    }
+
+    /// On a motion that removes exactly the error with the nominal TIF, every scenario leaves a
+    /// residual, the rate scenario exactly `0.03 z` (piston removed), and the sensitivity of
+    /// the nominal removal itself is zero residual.
+    #[test]
+    fn scenarios_of_an_exact_removal_leave_the_perturbation_alone() {
+        let g = gaussian(1.0, 5.0);
+        // A row of samples along x, one second each, and map points around it.
+        let contact = SampledProgram {
+            x_mm: (0..41).map(|k| -4.0 + 0.2 * k as f64).collect(),
+            y_mm: vec![0.0; 41],
+            dwell_s: vec![1.0; 41],
+        };
+        let (mut mx, mut my) = (Vec::new(), Vec::new());
+        for i in 0..21 {
+            for j in 0..5 {
+                mx.push(-5.0 + 0.5 * i as f64);
+                my.push(-1.0 + 0.5 * j as f64);
+            }
+        }
+        let h = removal_of_samples(&mx, &my, &contact, &g, &NoObserver).unwrap();
+        let s = of_executed(&mx, &my, &h, &contact, &h, &g, &NoObserver).unwrap();
+        let expect = HeightStats::of(&super::super::centred_residual_nm(
+            &h,
+            &h.iter().map(|v| v * 1.03).collect::<Vec<_>>(),
+        ));
+        assert!((s.rate_plus_3pct.rms_nm - expect.rms_nm).abs() <= 1e-12 * expect.rms_nm);
+        for f in [
+            s.tif_wider_3pct,
+            s.tif_narrower_3pct,
+            s.offset_x_0p05mm,
+            s.offset_y_0p05mm,
+        ] {
+            assert!(f.rms_nm > 0.0 && f.pv_nm >= f.rms_nm);
+        }
+        assert!(s.worst_rms_nm() >= s.rate_plus_3pct.rms_nm);
+    }
+}
