@@ -738,7 +738,10 @@ impl Setup {
         // lattice one is not.
         if matches!(
             choice,
-            OperatorChoice::Sparse | OperatorChoice::FftSpread | OperatorChoice::Stencil
+            OperatorChoice::Sparse
+                | OperatorChoice::FftSpread
+                | OperatorChoice::Stencil
+                | OperatorChoice::Nufft
         ) {
             return Ok(OperatorPlan::Assembled);
         }
@@ -875,6 +878,8 @@ impl Setup {
             Problem::new(op, z_nm, bounds, rho, lambda)
         } else if let Some(op) = self.stencil_plan(&rows, &mut warnings)? {
             Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.nufft_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
         } else if let Some(op) = self.spread_plan(&rows, &mut warnings)? {
             Problem::new(op, z_nm, bounds, rho, lambda)
         } else {
@@ -997,9 +1002,13 @@ impl Setup {
         dwell_s: &[f64],
         observer: &dyn Observer,
     ) -> Result<Option<Exact>> {
-        if problem.operator_kind() != crate::influence::operator::OperatorKind::FftSpread
-            || self.surface.is_some()
-        {
+        use crate::influence::operator::OperatorKind;
+        let tolerance = match problem.operator_kind() {
+            OperatorKind::FftSpread => self.settings.spread_tolerance,
+            OperatorKind::Nufft => crate::influence::nufft::DEFAULT_NUFFT_TOLERANCE,
+            _ => return Ok(None),
+        };
+        if self.surface.is_some() {
             return Ok(None);
         }
         let m = self.map.len();
@@ -1020,7 +1029,7 @@ impl Setup {
         let rms = |h: &[f64]| HeightStats::of(&centred_residual_nm(self.map.z_nm(), h)).rms_nm;
         let error = OperatorError {
             relative_removal_error: if size > 0.0 { diff / size } else { 0.0 },
-            tolerance: self.settings.spread_tolerance,
+            tolerance,
             rms_after_operator_nm: rms(&approx),
             rms_after_exact_nm: rms(&exact),
         };
