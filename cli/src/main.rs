@@ -222,6 +222,27 @@ fn is_broken_pipe(e: &anyhow::Error) -> bool {
 
 #[cfg(test)]
 mod tests {
+    /// `docs/cli.md` is the command-line reference generated from this definition (every
+    /// subcommand, flag, default and help text); it must equal what the definition generates
+    /// now. Regenerate with `PRESTON_UPDATE_DOCS=1 cargo test -p preston-cli cli_reference`.
+    #[test]
+    fn cli_reference_in_docs_is_current() {
+        let generated = format!(
+            "<!-- Generated from the clap definition by `PRESTON_UPDATE_DOCS=1 cargo test -p preston-cli cli_reference`; do not edit. -->\n\n{}",
+            clap_markdown::help_markdown_command(&super::command_tree())
+        );
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/cli.md");
+        if std::env::var_os("PRESTON_UPDATE_DOCS").is_some() {
+            std::fs::write(&path, &generated).unwrap();
+        }
+        let committed = std::fs::read_to_string(&path).unwrap_or_default();
+        assert!(
+            committed == generated,
+            "docs/cli.md is not the reference the CLI definition generates; run \
+             PRESTON_UPDATE_DOCS=1 cargo test -p preston-cli cli_reference"
+        );
+    }
+
     /// Every subcommand's flags are distinct and well formed (clap's own consistency checks,
     /// run for the whole command tree, including the shared map-input flags).
     #[test]
