@@ -65,6 +65,9 @@ pub const MAX_REFINEMENT: usize = 3;
 /// Default tolerance on the estimated relative operator error (`||R~ - R||_F / ||R||_F`) within
 /// which `operator = "auto"` may use the operator, and the ES kernel's design error.
 pub const DEFAULT_NUFFT_TOLERANCE: f64 = 1e-6;
+/// Relative error at refinement 1 above which [`NufftOperator::refinement_for`] tries no finer
+/// lattice (a multiple of the tolerance).
+const GIVE_UP: f64 = 1e3;
 /// Fine-node rows per spreading task (each task writes its own rows: a fixed summation order).
 const BAND_ROWS: usize = 16;
 
@@ -551,7 +554,8 @@ impl NufftOperator {
     /// The smallest refinement `s` in `1..=MAX_REFINEMENT` whose estimated error is within
     /// `tolerance`, with that error; otherwise (`Err`) the refinement with the smallest error
     /// and that error. Stops early when a refinement gains less than a factor 2 on the one
-    /// before (the TIF's own content beyond the band, not the lattice, then sets the error).
+    /// before (the TIF's own content beyond the band, not the lattice, then sets the error), or
+    /// when the error at `s = 1` exceeds the tolerance a thousandfold.
     pub fn refinement_for<T: InfluenceFunction + ?Sized>(
         map_x_mm: &[f64],
         map_y_mm: &[f64],
@@ -569,7 +573,10 @@ impl NufftOperator {
             if e <= tolerance {
                 return Ok(Ok((s, e)));
             }
-            let stalled = e > 0.5 * best.1;
+            // A finer lattice widens the band kept; a TIF whose error at the map's own band is
+            // more than `GIVE_UP` times the tolerance has content (steps, kinks, noise) far
+            // beyond it, and the further estimates would cost more than they could find.
+            let stalled = e > 0.5 * best.1 || (s == 1 && e > GIVE_UP * tolerance);
             if e < best.1 {
                 best = (s, e);
             }

@@ -5,16 +5,22 @@
 //!   it, or `auto` finds few distinct dwell positions within a map cell (at most one per
 //!   [`MIN_DWELL_POINTS_PER_STENCIL`] dwell points: a raster whose pitch is a rational multiple
 //!   of the map's) and the cost model below finds it cheaper than the assembled `R`.
+//! - Otherwise the NUFFT operator ([`NufftOperator`], error measured against the exact `R`) when
+//!   `operator = "nufft"` asks for it, or `auto` finds its estimated relative operator error
+//!   within [`DEFAULT_NUFFT_TOLERANCE`] at some refinement and the cost model below finds it
+//!   cheaper than the assembled `R`.
 //! - Otherwise the spreading operator ([`SpreadOperator`], approximate) when
 //!   `operator = "fft-spread"` asks for it, or `auto` finds it both accurate enough (estimated
 //!   relative operator error within `spread_tolerance`) and cheaper than the assembled `R`.
 //!
 //! Cost model (per `R^T R t`, the first-order solver's product): the sparse operator makes two
 //! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
-//! its Gram matrix where that is smaller, for the stencil's comparison); the stencil
+//! its Gram matrix where that is smaller, for the stencil's and the NUFFT operator's comparisons); the stencil
 //! operator scatters and gathers every stencil entry, `2 n pi r^2 / h^2` at about
 //! [`STENCIL_NS_PER_ENTRY`], and clears and weights its image of the lattice, two passes over its
-//! cells at about [`IMAGE_NS_PER_CELL`]; the spreading operator transforms the padded fine lattice of `F`
+//! cells at about [`IMAGE_NS_PER_CELL`]; the NUFFT operator spreads and gathers `w^2` weights a
+//! dwell point at about [`NUFFT_NS_PER_WEIGHT`] and transforms its padded fine lattice like the
+//! spreading operator; the spreading operator transforms the padded fine lattice of `F`
 //! cells forth and back, about `F log2 F` times [`SPREAD_NS_PER_CELL_LOG`]. Assembling `R` costs
 //! a TIF evaluation per non-zero on top, which the comparison leaves out (in the matrix-free
 //! operators' favour).
@@ -227,13 +233,12 @@ impl Setup {
         let formation = rows.len() as f64 * in_reach * in_reach;
         let gram_nnz = (4.0 * std::f64::consts::PI * r * r * per_mm2).min(n as f64) * n as f64;
         let through_r = 2.0 * case.nnz;
-        let sparse_ns = SPARSE_NS_PER_NNZ
+        SPARSE_NS_PER_NNZ
             * if formation <= through_r * POWER_STEPS as f64 {
                 through_r.min(gram_nnz)
             } else {
                 through_r
-            };
-        sparse_ns
+            }
     }
 
     /// The NUFFT operator over the problem rows `rows` when it applies (see the module
