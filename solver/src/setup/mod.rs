@@ -447,7 +447,8 @@ pub struct OperatorError {
     /// `||R~ t - R t|| / ||R t||` at the measured map points, `R~` the operator the solve used,
     /// `R` the exact one.
     pub relative_removal_error: f64,
-    /// The error the operator was built to (`spread_tolerance`).
+    /// The error the operator was built to (`spread_tolerance`, or the NUFFT operator's design
+    /// tolerance).
     pub tolerance: f64,
     /// RMS of the residual the solve saw (with `R~`), nm.
     pub rms_after_operator_nm: f64,
@@ -472,10 +473,10 @@ impl OperatorError {
     /// The warning to give when [`OperatorError::exceeds_tolerance`].
     pub fn warning(&self) -> String {
         format!(
-            "the spreading operator's measured error on the returned dwell is {:.2e} of the \
+            "the approximate operator's measured error on the returned dwell is {:.2e} of the \
              removal (tolerance {:.0e}): the residual it predicts, RMS {:.4} nm, is {:.4} nm with \
-             the exact R (the figure reported); a smaller spread_tolerance, or operator = \
-             \"sparse\", plans with the exact R",
+             the exact R (the figure reported); a smaller spread_tolerance (fft-spread), or \
+             operator = \"sparse\", plans with the exact R",
             self.relative_removal_error,
             self.tolerance,
             self.rms_after_operator_nm,
