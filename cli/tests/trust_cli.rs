@@ -430,6 +430,66 @@ fn the_spreading_operator_reports_its_measured_error_and_the_exact_residual() {
     assert!(misstated && err.contains("measured error"), "{err}");
 }
 
+/// The NUFFT operator on a smooth TIF (a Gaussian cut at 6 sigma) over a raster off the map
+/// lattice: the residual reported is the exact `R`'s, the measured error on the returned dwell
+/// is within ten times the 1e-6 design tolerance (the estimate is over columns; a dwell that
+/// leans on raster points far out, where the columns hold only the Gaussian's tail, weighs
+/// their larger relative error more: 3e-6 here), and the warning is given exactly when the
+/// error exceeds the tolerance or misstates the residual.
+#[test]
+fn the_nufft_operator_reports_its_measured_error_and_the_exact_residual() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &map_text(41, 0.5, 0.4));
+    let tif = Gauss {
+        sigma_mm: 1.5,
+        peak: 10.0,
+        trunc_mm: 9.0,
+    };
+    let out = d.path().join("out");
+    let mut args: Vec<String> = vec!["--map".into(), s(&map).into()];
+    args.extend(tif.args());
+    args.extend(
+        [
+            "--raster-pitch-mm",
+            "0.7",
+            "--v-max",
+            "3000",
+            "--influence",
+            "point",
+            "--operator",
+            "nufft",
+        ]
+        .map(String::from),
+    );
+    let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = solve(&refs, &out);
+    let err = stderr(&o);
+    assert!(matches!(o.status.code(), Some(0 | 3)), "{err}");
+    let r = report(&out);
+    assert_eq!(r["operator"].as_str(), Some("nufft"), "{err}");
+    let e = &r["operator_error"];
+    let measured = e["relative_removal_error"]
+        .as_f64()
+        .expect("operator_error");
+    assert_eq!(e["tolerance"].as_f64(), Some(1e-6));
+    assert!(measured <= 1e-5, "measured {measured:.2e}: {err}");
+    let w = read_written(&out);
+    let exact = exact_rms_nm(&w, &tif);
+    let reported = r["rms_after_nm"].as_f64().unwrap();
+    assert!(
+        (reported - exact).abs() <= RESIDUAL_REL * exact + RESIDUAL_ABS_NM,
+        "reported {reported} nm, exact {exact} nm"
+    );
+    assert!((e["rms_after_exact_nm"].as_f64().unwrap() - reported).abs() <= 1e-12 * reported);
+    let predicted = e["rms_after_operator_nm"].as_f64().unwrap();
+    let misstated = (predicted - exact).abs() > 0.05 * exact;
+    assert_eq!(
+        measured > 1e-6 || misstated,
+        err.contains("measured error"),
+        "measured {measured}, predicted {predicted} nm, exact {exact} nm: {err}"
+    );
+}
+
 /// A dwell path that reaches no map point, with the default and the assembled operator, and a
 /// TIF in metres under an `x_mm` header: exit 2 and nothing written (or, for the TIF, a warning
 /// before the solve at least).

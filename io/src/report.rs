@@ -31,7 +31,9 @@ pub struct Report {
     pub nnz: usize,
     /// How `R` was applied: `sparse` (assembled), `fft` (matrix-free convolution, map and dwell
     /// points on one lattice), `fft-spread` (dwell points spread onto the map lattice, then FFT)
-    /// or `stencil` (one tabulated stencil per dwell position within a map cell; exact).
+    /// `stencil` (one tabulated stencil per dwell position within a map cell; exact) or `nufft`
+    /// (dwell points spread by a smooth kernel onto a fine lattice, deconvolved FFT; error
+    /// measured, `operator_error`).
     #[serde(default)]
     pub operator: OperatorKind,
     /// Map rows skipped for an empty or NaN height.

@@ -554,7 +554,7 @@ def solve(
     * objective: ``rho`` (weight of total dwell, nm^2/s), ``lambda_`` (weight of dwell
       differences, nm^2/s^2), ``min_time`` and ``min_time_tolerance`` (relative).
     * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,
-      ``"sparse"``, ``"fft"``, ``"stencil"``, ``"fft-spread"``), ``first_order_method`` (``"lbfgs"``, the default,
+      ``"sparse"``, ``"fft"``, ``"stencil"``, ``"nufft"``, ``"fft-spread"``), ``first_order_method`` (``"lbfgs"``, the default,
       ``"fista"``, ``"newton-cg"``), ``lbfgs_memory`` (the L-BFGS's correction pairs, 1 to 100,
       default 10, 5 with the FFT operator, as ``--lbfgs-memory``),
       ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous

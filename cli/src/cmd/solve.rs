@@ -153,6 +153,9 @@ pub enum OperatorArg {
     /// Never form R: one stencil per distinct dwell position within a map cell, scattered and
     /// gathered on the map lattice (exact; map on a lattice, first-order solver).
     Stencil,
+    /// Never form R: dwell points anywhere spread by a smooth kernel onto a fine lattice, then a
+    /// deconvolved FFT (non-uniform FFT; error against the exact R measured and reported).
+    Nufft,
 }
 
 impl From<OperatorArg> for OperatorChoice {
@@ -163,6 +166,7 @@ impl From<OperatorArg> for OperatorChoice {
             OperatorArg::Fft => OperatorChoice::Fft,
             OperatorArg::FftSpread => OperatorChoice::FftSpread,
             OperatorArg::Stencil => OperatorChoice::Stencil,
+            OperatorArg::Nufft => OperatorChoice::Nufft,
         }
     }
 }
@@ -670,6 +674,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             OperatorKind::Fft => "matrix-free FFT operator",
             OperatorKind::FftSpread => "matrix-free, spread onto the map lattice + FFT",
             OperatorKind::Stencil => "matrix-free, phase stencils on the map lattice",
+            OperatorKind::Nufft => "matrix-free, ES spreading onto a fine lattice + FFT (NUFFT)",
             OperatorKind::Sparse => "assembled",
         },
         if r.skipped_rows > 0 {

@@ -10,6 +10,8 @@
 //!   dwell lattice, less the band of cells within reach that the map does not cover once;
 //! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
 //!   onto an oversampled lattice, then FFT convolution);
+//! - [`nufft`]: the matrix-free operator for dwell points anywhere with a controlled error
+//!   (exponential-of-semicircle spreading onto a fine lattice, deconvolved FFT convolution);
 //! - [`stencil`]: the exact matrix-free operator for dwell points off the map lattice at few
 //!   distinct positions within a cell (one tabulated stencil per position, scattered and
 //!   gathered on the lattice);
@@ -27,6 +29,7 @@ pub mod direct;
 pub mod fft;
 pub mod gram;
 pub mod matrix;
+pub mod nufft;
 pub mod operator;
 pub mod spread;
 pub mod stacked;
@@ -38,6 +41,7 @@ pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
 pub use fft::FftOperator;
 pub use gram::{GramMatrix, GramOperator};
 pub use matrix::{InfluenceMatrix, NNZ_BYTES};
+pub use nufft::NufftOperator;
 pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, SparseOperator};
 pub use spread::SpreadOperator;
 pub use stencil::StencilOperator;

@@ -30,6 +30,9 @@ pub enum OperatorKind {
     FftSpread,
     /// Matrix-free, one tabulated stencil per dwell position within a map cell (exact).
     Stencil,
+    /// Dwell points spread by the exponential-of-semicircle kernel onto a fine lattice, then a
+    /// deconvolved FFT convolution (non-uniform FFT; error measured against the exact `R`).
+    Nufft,
 }
 
 /// The influence operator `R` (m x n, nm/s) as a dwell problem holds it. The assembled matrix,

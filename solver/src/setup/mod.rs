@@ -451,7 +451,8 @@ pub struct OperatorError {
     /// `||R~ t - R t|| / ||R t||` at the measured map points, `R~` the operator the solve used,
     /// `R` the exact one.
     pub relative_removal_error: f64,
-    /// The error the operator was built to (`spread_tolerance`).
+    /// The error the operator was built to (`spread_tolerance`, or the NUFFT operator's design
+    /// tolerance).
     pub tolerance: f64,
     /// RMS of the residual the solve saw (with `R~`), nm.
     pub rms_after_operator_nm: f64,
@@ -476,10 +477,10 @@ impl OperatorError {
     /// The warning to give when [`OperatorError::exceeds_tolerance`].
     pub fn warning(&self) -> String {
         format!(
-            "the spreading operator's measured error on the returned dwell is {:.2e} of the \
+            "the approximate operator's measured error on the returned dwell is {:.2e} of the \
              removal (tolerance {:.0e}): the residual it predicts, RMS {:.4} nm, is {:.4} nm with \
-             the exact R (the figure reported); a smaller spread_tolerance, or operator = \
-             \"sparse\", plans with the exact R",
+             the exact R (the figure reported); a smaller spread_tolerance (fft-spread), or \
+             operator = \"sparse\", plans with the exact R",
             self.relative_removal_error,
             self.tolerance,
             self.rms_after_operator_nm,
@@ -742,7 +743,10 @@ impl Setup {
         // lattice one is not.
         if matches!(
             choice,
-            OperatorChoice::Sparse | OperatorChoice::FftSpread | OperatorChoice::Stencil
+            OperatorChoice::Sparse
+                | OperatorChoice::FftSpread
+                | OperatorChoice::Stencil
+                | OperatorChoice::Nufft
         ) {
             return Ok(OperatorPlan::Assembled);
         }
@@ -879,6 +883,8 @@ impl Setup {
             Problem::new(op, z_nm, bounds, rho, lambda)
         } else if let Some(op) = self.stencil_plan(&rows, &mut warnings)? {
             Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.nufft_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
         } else if let Some(op) = self.spread_plan(&rows, &mut warnings)? {
             Problem::new(op, z_nm, bounds, rho, lambda)
         } else {
@@ -1014,9 +1020,13 @@ impl Setup {
         dwell_s: &[f64],
         observer: &dyn Observer,
     ) -> Result<Option<Exact>> {
-        if problem.operator_kind() != crate::influence::operator::OperatorKind::FftSpread
-            || self.surface.is_some()
-        {
+        use crate::influence::operator::OperatorKind;
+        let tolerance = match problem.operator_kind() {
+            OperatorKind::FftSpread => self.settings.spread_tolerance,
+            OperatorKind::Nufft => crate::influence::nufft::DEFAULT_NUFFT_TOLERANCE,
+            _ => return Ok(None),
+        };
+        if self.surface.is_some() {
             return Ok(None);
         }
         let m = self.map.len();
@@ -1060,7 +1070,7 @@ impl Setup {
         let rms = |h: &[f64]| HeightStats::of(&centred_residual_nm(self.map.z_nm(), h)).rms_nm;
         let error = OperatorError {
             relative_removal_error: if size > 0.0 { diff / size } else { 0.0 },
-            tolerance: self.settings.spread_tolerance,
+            tolerance,
             rms_after_operator_nm: rms(&approx),
             rms_after_exact_nm: rms(&exact),
         };

@@ -5,16 +5,22 @@
 //!   it, or `auto` finds few distinct dwell positions within a map cell (at most one per
 //!   [`MIN_DWELL_POINTS_PER_STENCIL`] dwell points: a raster whose pitch is a rational multiple
 //!   of the map's) and the cost model below finds it cheaper than the assembled `R`.
+//! - Otherwise the NUFFT operator ([`NufftOperator`], error measured against the exact `R`) when
+//!   `operator = "nufft"` asks for it, or `auto` finds its estimated relative operator error
+//!   within [`DEFAULT_NUFFT_TOLERANCE`] at some refinement and the cost model below finds it
+//!   cheaper than the assembled `R`.
 //! - Otherwise the spreading operator ([`SpreadOperator`], approximate) when
 //!   `operator = "fft-spread"` asks for it, or `auto` finds it both accurate enough (estimated
 //!   relative operator error within `spread_tolerance`) and cheaper than the assembled `R`.
 //!
 //! Cost model (per `R^T R t`, the first-order solver's product): the sparse operator makes two
 //! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
-//! its Gram matrix where that is smaller, for the stencil's comparison); the stencil
+//! its Gram matrix where that is smaller, for the stencil's and the NUFFT operator's comparisons); the stencil
 //! operator scatters and gathers every stencil entry, `2 n pi r^2 / h^2` at about
 //! [`STENCIL_NS_PER_ENTRY`], and clears and weights its image of the lattice, two passes over its
-//! cells at about [`IMAGE_NS_PER_CELL`]; the spreading operator transforms the padded fine lattice of `F`
+//! cells at about [`IMAGE_NS_PER_CELL`]; the NUFFT operator spreads and gathers `w^2` weights a
+//! dwell point at about [`NUFFT_NS_PER_WEIGHT`] and transforms its padded fine lattice like the
+//! spreading operator; the spreading operator transforms the padded fine lattice of `F`
 //! cells forth and back, about `F log2 F` times [`SPREAD_NS_PER_CELL_LOG`]. Assembling `R` costs
 //! a TIF evaluation per non-zero on top, which the comparison leaves out (in the matrix-free
 //! operators' favour).
@@ -24,8 +30,9 @@ use crate::dwell::first_order::POWER_STEPS;
 use crate::dwell::{policy, OperatorChoice, SolverChoice, SolverKind};
 use crate::error::{twelve_figures, Error};
 use crate::influence::fft::{lattice_index, FftOperator};
+use crate::influence::nufft::{EsKernel, DEFAULT_NUFFT_TOLERANCE, UPSAMPLING};
 use crate::influence::spread::MAX_OVERSAMPLING;
-use crate::influence::{SpreadOperator, StencilOperator};
+use crate::influence::{NufftOperator, SpreadOperator, StencilOperator};
 use crate::map::{BoundingBox, HeightMap};
 use crate::tif::InfluenceFunction;
 
@@ -37,6 +44,9 @@ pub const STENCIL_NS_PER_ENTRY: f64 = 0.35;
 pub const IMAGE_NS_PER_CELL: f64 = 0.5;
 /// Spreading operator `R^T R t`: nanoseconds per `F log2 F` of the fine lattice (2 cores).
 pub const SPREAD_NS_PER_CELL_LOG: f64 = 0.5;
+/// NUFFT operator `R^T R t`: nanoseconds per spreading weight (one of `w^2` per dwell point,
+/// spread and gathered: two passes, 2 cores).
+pub const NUFFT_NS_PER_WEIGHT: f64 = 0.5;
 /// `auto` takes the stencil operator only when each stencil serves this many dwell points on
 /// average (the tables stay small next to `R`).
 pub const MIN_DWELL_POINTS_PER_STENCIL: usize = 16;
@@ -173,29 +183,7 @@ impl Setup {
                 * image_side((case.bbox.y_min_mm, case.bbox.y_max_mm), extent(dy));
             let stencil_ns = 2.0 * STENCIL_NS_PER_ENTRY * entries * n as f64
                 + 2.0 * IMAGE_NS_PER_CELL * image_cells;
-            // The assembled `R` serves normal products through `R` (two passes) or, where its
-            // formation (`k^2` multiply-adds per map point, `k` the dwell points in its reach)
-            // costs at most the products the solver declares, through its Gram matrix (one pass
-            // over `G`: each dwell point against those within `2 r`).
-            // Dwell points per mm^2 where there are any: over the squares of side `2 r` they
-            // occupy (a few stray points far out do not thin the estimate).
-            let square = 2.0 * r;
-            let occupied: std::collections::HashSet<(i64, i64)> = dx
-                .iter()
-                .zip(dy)
-                .map(|(&x, &y)| ((x / square).floor() as i64, (y / square).floor() as i64))
-                .collect();
-            let per_mm2 = n as f64 / (occupied.len().max(1) as f64 * square * square);
-            let in_reach = (std::f64::consts::PI * r * r * per_mm2).min(n as f64);
-            let formation = rows.len() as f64 * in_reach * in_reach;
-            let gram_nnz = (4.0 * std::f64::consts::PI * r * r * per_mm2).min(n as f64) * n as f64;
-            let through_r = 2.0 * case.nnz;
-            let sparse_ns = SPARSE_NS_PER_NNZ
-                * if formation <= through_r * POWER_STEPS as f64 {
-                    through_r.min(gram_nnz)
-                } else {
-                    through_r
-                };
+            let sparse_ns = self.sparse_normal_ns(rows, &case);
             if stencil_ns >= sparse_ns {
                 return Ok(None);
             }
@@ -215,6 +203,139 @@ impl Setup {
             Err(e) => {
                 warnings.push(format!(
                     "operator auto: the stencil operator does not apply ({e}); assembling R"
+                ));
+                Ok(None)
+            }
+        }
+    }
+
+    /// Predicted nanoseconds of one `R^T R t` with the assembled `R` (see the module
+    /// documentation): two passes over `R`, or one over its Gram matrix where forming it costs
+    /// no more than the solver's first products.
+    fn sparse_normal_ns(&self, rows: &HeightMap, case: &OffLattice) -> f64 {
+        let (dx, dy) = (self.path.x_mm(), self.path.y_mm());
+        let n = self.path.len();
+        let r = self.tif.support_radius_mm();
+        // The assembled `R` serves normal products through `R` (two passes) or, where its
+        // formation (`k^2` multiply-adds per map point, `k` the dwell points in its reach)
+        // costs at most the products the solver declares, through its Gram matrix (one pass
+        // over `G`: each dwell point against those within `2 r`).
+        // Dwell points per mm^2 where there are any: over the squares of side `2 r` they
+        // occupy (a few stray points far out do not thin the estimate).
+        let square = 2.0 * r;
+        let occupied: std::collections::HashSet<(i64, i64)> = dx
+            .iter()
+            .zip(dy)
+            .map(|(&x, &y)| ((x / square).floor() as i64, (y / square).floor() as i64))
+            .collect();
+        let per_mm2 = n as f64 / (occupied.len().max(1) as f64 * square * square);
+        let in_reach = (std::f64::consts::PI * r * r * per_mm2).min(n as f64);
+        let formation = rows.len() as f64 * in_reach * in_reach;
+        let gram_nnz = (4.0 * std::f64::consts::PI * r * r * per_mm2).min(n as f64) * n as f64;
+        let through_r = 2.0 * case.nnz;
+        SPARSE_NS_PER_NNZ
+            * if formation <= through_r * POWER_STEPS as f64 {
+                through_r.min(gram_nnz)
+            } else {
+                through_r
+            }
+    }
+
+    /// The NUFFT operator over the problem rows `rows` when it applies (see the module
+    /// documentation); `None` otherwise. With `operator = "nufft"` inputs it cannot serve are an
+    /// error naming why; a TIF no refinement brings within the tolerance is then used at its
+    /// best refinement with a warning. Notes on the choice go to `warnings`.
+    pub(super) fn nufft_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<Option<NufftOperator>> {
+        let forced = self.settings.operator == OperatorChoice::Nufft;
+        if !forced && self.settings.operator != OperatorChoice::Auto {
+            return Ok(None);
+        }
+        let case = match self.off_lattice_case(rows, forced) {
+            Ok(case) => case,
+            Err(not) => return refusal(forced, "nufft", not),
+        };
+        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        let pitch = case.pitch_mm;
+        let tolerance = DEFAULT_NUFFT_TOLERANCE;
+        let w = EsKernel::for_tolerance(tolerance, UPSAMPLING).width as f64;
+        let r = self.lattice_kernel().support_radius_mm();
+        let extent = |v: &[f64], lo: f64, hi: f64| {
+            let (a, b) = v.iter().fold((lo, hi), |(a, b), &x| (a.min(x), b.max(x)));
+            b - a
+        };
+        let (ex, ey) = (
+            extent(dx, case.bbox.x_min_mm, case.bbox.x_max_mm),
+            extent(dy, case.bbox.y_min_mm, case.bbox.y_max_mm),
+        );
+        let n = self.path.len() as f64;
+        // Spread and gather (`w^2` weights a point each) and the inner FFT operator's transforms
+        // over the fine lattice padded by the deconvolved kernel's reach (TIF + `w` cells).
+        let nufft_ns = |s: usize| {
+            let fine = pitch / s as f64;
+            let pad = 2.0 * (r / fine + 2.0 * w);
+            let cells = (ex / fine + pad) * (ey / fine + pad);
+            2.0 * NUFFT_NS_PER_WEIGHT * n * w * w
+                + SPREAD_NS_PER_CELL_LOG * cells * cells.max(2.0).log2()
+        };
+        let sparse_ns = self.sparse_normal_ns(rows, &case);
+        if !forced && nufft_ns(1) >= sparse_ns {
+            return Ok(None);
+        }
+        let chosen = match NufftOperator::refinement_for(
+            mx,
+            my,
+            dx,
+            dy,
+            pitch,
+            self.lattice_kernel(),
+            tolerance,
+        ) {
+            Ok(c) => c,
+            Err(e) => return refusal(forced, "nufft", NotServed::Cannot(e.to_string())),
+        };
+        let (s, error) = match chosen {
+            Ok((s, error)) if forced => {
+                warnings.push(format!(
+                    "operator nufft: refinement {s} ({:.4} mm lattice), estimated operator error \
+                     {error:.1e} <= {tolerance:.0e}",
+                    pitch / s as f64
+                ));
+                (s, error)
+            }
+            Ok(c) => c,
+            Err((s, error)) if forced => {
+                warnings.push(format!(
+                    "operator nufft: the TIF has content beyond the lattices' band: the smallest \
+                     estimated operator error, {error:.1e} (refinement {s}), is above the \
+                     design tolerance {tolerance:.0e}; the residual reported is the exact R's"
+                ));
+                (s, error)
+            }
+            Err(_) => return Ok(None),
+        };
+        if !forced {
+            if nufft_ns(s) >= sparse_ns {
+                return Ok(None);
+            }
+            warnings.push(format!(
+                "operator auto: dwell points off the map lattice; products spread them by a \
+                 smooth kernel onto a {:.4} mm lattice (NUFFT, estimated operator error \
+                 {error:.1e} <= {tolerance:.0e}), predicted {:.1}x cheaper per product than R \
+                 (operator = \"sparse\" assembles R)",
+                pitch / s as f64,
+                sparse_ns / nufft_ns(s)
+            ));
+        }
+        match NufftOperator::new(mx, my, dx, dy, pitch, s, tolerance, self.lattice_kernel()) {
+            Ok(op) => Ok(Some(op)),
+            Err(e) if forced => Err(e).at(SetupInput::Map),
+            Err(e) => {
+                warnings.push(format!(
+                    "operator auto: the NUFFT operator does not apply ({e}); assembling R"
                 ));
                 Ok(None)
             }
