@@ -78,6 +78,10 @@ pub struct EdgeOffsetPath {
 }
 
 /// A polygon vertex whose direction turns by more than this is a corner: the Bezier fit
+/// How far a line's nearest point may fall short of the distance that keeps its spot inside
+/// the fitted edge, mm (the offset curves are trimmed and resampled to about this precision).
+pub const CONTAINMENT_TOLERANCE_MM: f64 = 1e-6;
+
 /// Largest set offset of the plan, mm.
 fn lines_offset_max(settings: &EdgeOffsetSettings) -> Result<f64> {
     Ok(plan_offsets(settings)?
@@ -114,19 +118,24 @@ pub fn edge_offset(edge: &[[f64; 2]], settings: &EdgeOffsetSettings) -> Result<E
     let mut line_starts = Vec::new();
     // Each line starts at the point nearest to where the previous one started.
     let mut start_ref = spline[0].eval(0.0);
+    let curve_at = |used: f64, set: f64| -> Result<Vec<[f64; 2]>> {
+        let (c, corner) = trimmed_offset(&spline, &index, used, raw_step)?;
+        let pts = resample_closed(&c, &corner, settings.step_mm);
+        if pts.len() < 3 {
+            return Err(Error::Geometry(format!(
+                "the offset curve at {set} mm has fewer than three points"
+            )));
+        }
+        Ok(pts)
+    };
     for line in lines.iter_mut() {
         let mut used = line.offset_mm;
         let mut pts = Vec::new();
         let mut achieved = 0.0;
+        let mut used_pts = used;
         for _ in 0..3 {
-            let (c, corner) = trimmed_offset(&spline, &index, used, raw_step)?;
-            pts = resample_closed(&c, &corner, settings.step_mm);
-            if pts.len() < 3 {
-                return Err(Error::Geometry(format!(
-                    "the offset curve at {} mm has fewer than three points",
-                    line.offset_mm
-                )));
-            }
+            pts = curve_at(used, line.offset_mm)?;
+            used_pts = used;
             achieved = pts
                 .iter()
                 .map(|&p| index.distance_within(p, 2.0 * used + settings.step_mm))
@@ -140,6 +149,38 @@ pub fn edge_offset(edge: &[[f64; 2]], settings: &EdgeOffsetSettings) -> Result<E
             }
             used *= line.offset_mm / achieved;
         }
+        // Containment: the nearest point of the line must be at least its spot radius from the
+        // edge (the edge-most line: its set offset, which allows the set overhang). The mean
+        // correction above can pull straight stretches closer where corners push the mean out.
+        let need = line.spot_radius_mm.min(line.offset_mm);
+        let mut used = used_pts;
+        let nearest = |pts: &[[f64; 2]], used: f64| {
+            pts.iter()
+                .map(|&p| index.distance_within(p, 2.0 * used + settings.step_mm))
+                .fold(f64::INFINITY, f64::min)
+        };
+        let mut near = nearest(&pts, used);
+        for _ in 0..8 {
+            if near >= need - CONTAINMENT_TOLERANCE_MM {
+                break;
+            }
+            used += need - near + 0.5 * CONTAINMENT_TOLERANCE_MM;
+            pts = curve_at(used, line.offset_mm)?;
+            near = nearest(&pts, used);
+            achieved = pts
+                .iter()
+                .map(|&p| index.distance_within(p, 2.0 * used + settings.step_mm))
+                .sum::<f64>()
+                / pts.len() as f64;
+        }
+        if near < need - CONTAINMENT_TOLERANCE_MM {
+            return Err(Error::Geometry(format!(
+                "the line of spot radius {} mm cannot be kept inside the edge: its nearest point \
+                 is {near} mm from it",
+                line.spot_radius_mm
+            )));
+        }
+        line.clearance_mm = near - line.spot_radius_mm;
         line.achieved_offset_mm = achieved;
         if cw {
             pts.reverse();
@@ -324,8 +365,19 @@ mod tests {
                 }
             }
             let e = r1 - (r1 * r1 - lo * lo).sqrt();
-            assert!((e - s.residual_height_mm).abs() < 1e-9 * s.residual_height_mm.max(1.0));
+            // At the equal-residual spacing the profiles cross at the residual height; lines
+            // closer than that (fill lines keeping the spots inside) leave less.
+            let d_eq = residual_half_width_mm(r1, s.residual_height_mm)
+                + residual_half_width_mm(r2, s.residual_height_mm);
+            assert!(d <= d_eq * (1.0 + 1e-12));
+            assert!(e <= s.residual_height_mm * (1.0 + 1e-9));
+            if (d - d_eq).abs() <= 1e-12 * d_eq {
+                assert!((e - s.residual_height_mm).abs() < 1e-9 * s.residual_height_mm.max(1.0));
+            }
             assert!((w[0].offset_mm - w[1].offset_mm - d).abs() < 1e-12);
+            // Spots shrink towards the edge and every centre is a spot radius inside.
+            assert!(w[1].spot_radius_mm <= w[0].spot_radius_mm);
+            assert!(w[0].offset_mm >= w[0].spot_radius_mm - 1e-12);
             // Depth reproduces the spot radius: sqrt(2 R h - h^2).
             let h = w[0].depth_mm;
             assert!((((2.0 * 20.0 * h - h * h).sqrt()) - r1).abs() < 1e-9);
@@ -389,9 +441,19 @@ mod tests {
                     "line {k} point {j}: distance {d}, offset {}",
                     l.offset_mm
                 );
-                // Nothing outside the edge by more than the overhang: the spot of the
-                // edge-most line reaches at most the overhang beyond it.
-                assert!(d >= s.spot_min_mm - s.overhang_mm - tol - chord);
+                // The whole spot inside the polygon: the distance to the polygon is at least the
+                // line's spot radius (the edge-most line: less the set overhang).
+                let allowed = if k + 1 == t.lines.len() {
+                    s.overhang_mm
+                } else {
+                    0.0
+                };
+                assert!(
+                    d >= l.spot_radius_mm - allowed - tol - 1e-6,
+                    "line {k} point {j}: spot {} overhangs by {}",
+                    l.spot_radius_mm,
+                    l.spot_radius_mm - d
+                );
                 if j + 1 < end {
                     let step = (x[j + 1] - x[j]).hypot(y[j + 1] - y[j]);
                     assert!(
@@ -483,5 +545,80 @@ mod tests {
         // A 4 mm wide strip cannot hold a line 6 mm inside its edge.
         let strip = [[0.0, 0.0], [50.0, 0.0], [50.0, 4.0], [0.0, 4.0]];
         assert!(edge_offset(&strip, &bonnet40()).is_err());
+    }
+
+    /// The largest overhang of any line's spot beyond the polygon, measured point by point
+    /// against the polygon itself (not the fitted edge), and the number of lines that overhang.
+    fn spot_overhang(edge: &[[f64; 2]], t: &EdgeOffsetPath, tol: f64) -> (f64, usize) {
+        let (x, y) = (t.path.x_mm(), t.path.y_mm());
+        let mut worst: f64 = f64::NEG_INFINITY;
+        let mut lines_over = 0;
+        for (k, l) in t.lines.iter().enumerate() {
+            let end = t.line_starts.get(k + 1).copied().unwrap_or(x.len());
+            let line_worst = (t.line_starts[k]..end)
+                .map(|j| {
+                    let p = [x[j], y[j]];
+                    let d = dist_to_polygon(edge, p);
+                    l.spot_radius_mm - if inside(edge, p) { d } else { -d }
+                })
+                .fold(f64::NEG_INFINITY, f64::max);
+            if line_worst > tol {
+                lines_over += 1;
+            }
+            worst = worst.max(line_worst);
+        }
+        (worst, lines_over)
+    }
+
+    #[test]
+    fn large_spots_stay_inside_circle_polygon_and_l_shape() {
+        // A 15 mm spot on a 40 mm bonnet shrinking by 0.67935 to 1 mm with a 50 um residual:
+        // the equal-residual spacing alone puts the innermost line ~10.4 mm from the edge,
+        // 4.6 mm less than its spot radius.
+        let s = EdgeOffsetSettings {
+            bonnet_radius_mm: 40.0,
+            spot_max_mm: 15.0,
+            spot_min_mm: 1.0,
+            progression: SpotProgression::Geometric { ratio: 0.67935 },
+            residual_height_mm: 0.05,
+            ..EdgeOffsetSettings::default()
+        };
+        let circle: Vec<[f64; 2]> = (0..720)
+            .map(|i| {
+                let a = std::f64::consts::TAU * i as f64 / 720.0;
+                [24.5 * a.cos(), 24.5 * a.sin()]
+            })
+            .collect();
+        let hexagon: Vec<[f64; 2]> = (0..6)
+            .map(|i| {
+                let a = std::f64::consts::TAU * i as f64 / 6.0;
+                [40.0 * a.cos(), 40.0 * a.sin()]
+            })
+            .collect();
+        let ell = [
+            [0.0, 0.0],
+            [80.0, 0.0],
+            [80.0, 40.0],
+            [40.0, 40.0],
+            [40.0, 80.0],
+            [0.0, 80.0],
+        ];
+        for edge in [&circle[..], &hexagon[..], &ell[..]] {
+            let t = check_properties(edge, &s);
+            let (worst, over) = spot_overhang(edge, &t, s.bezier_tolerance_mm + 1e-6);
+            assert_eq!(over, 0, "{over} lines overhang, worst {worst} mm");
+            assert!(worst <= s.bezier_tolerance_mm + 1e-6, "overhang {worst} mm");
+            // The method's purpose: the spot shrinks monotonically towards the edge, from the
+            // largest to the smallest.
+            assert_eq!(t.lines[0].spot_radius_mm, 15.0);
+            assert!(t.lines.last().unwrap().spot_radius_mm < 1.01);
+            for w in t.lines.windows(2) {
+                assert!(w[1].spot_radius_mm <= w[0].spot_radius_mm);
+                assert!(w[1].offset_mm < w[0].offset_mm);
+            }
+            for l in &t.lines {
+                assert!(l.clearance_mm >= -CONTAINMENT_TOLERANCE_MM, "{l:?}");
+            }
+        }
     }
 }

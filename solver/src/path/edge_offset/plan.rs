@@ -160,36 +160,74 @@ pub struct OffsetLine {
     pub offset_mm: f64,
     /// Distance achieved by the corrected offset curve (mean over its points), mm.
     pub achieved_offset_mm: f64,
+    /// Smallest distance of the line's points to the fitted edge less the spot radius, mm:
+    /// how far the spot's rim stays inside the part (negative: it overhangs by that much).
+    pub clearance_mm: f64,
     /// Spacing to the next line towards the edge, mm (0 for the edge-most line).
     pub spacing_mm: f64,
 }
 
 /// Spot radii, depths, spacings and set offsets of the lines, innermost first.
+///
+/// The edge-most line (spot `r_N`) sits at `o_N = r_N - overhang`; going inwards line `k`
+/// sits at `o_k = max(o_{k+1} + d_k, r_k)` with `d_k = w(r_k) + w(r_{k+1})`
+/// ([`residual_half_width_mm`]), so every spot lies inside the edge. Where containment
+/// pushes line `k` further in than the equal-residual spacing, the gap is filled with lines of
+/// the smaller spot `r_{k+1}` evenly spaced at most `2 w(r_{k+1})` apart (the last one `d_k`
+/// from line `k`), so the
+/// residual height between neighbours stays at most `e` and the spot still shrinks
+/// monotonically towards the edge.
 pub fn plan_offsets(settings: &EdgeOffsetSettings) -> Result<Vec<OffsetLine>> {
     let radii = settings.spot_radii_mm()?;
     let e = settings.residual_height_mm;
     let n = radii.len();
-    let mut lines: Vec<OffsetLine> = radii
-        .iter()
-        .map(|&r| {
-            Ok(OffsetLine {
-                spot_radius_mm: r,
-                depth_mm: depth_for_spot_mm(settings.bonnet_radius_mm, r).ok_or_else(|| {
-                    Error::invalid("edge-offset spot radius", "larger than the bonnet")
-                })?,
-                offset_mm: 0.0,
-                achieved_offset_mm: 0.0,
-                spacing_mm: 0.0,
-            })
+    let line = |r: f64, o: f64| -> Result<OffsetLine> {
+        Ok(OffsetLine {
+            spot_radius_mm: r,
+            depth_mm: depth_for_spot_mm(settings.bonnet_radius_mm, r).ok_or_else(|| {
+                Error::invalid("edge-offset spot radius", "larger than the bonnet")
+            })?,
+            offset_mm: o,
+            achieved_offset_mm: 0.0,
+            clearance_mm: 0.0,
+            spacing_mm: 0.0,
         })
-        .collect::<Result<_>>()?;
+    };
+    // Built edge-most first, reversed at the end.
     let mut o = radii[n - 1] - settings.overhang_mm;
-    lines[n - 1].offset_mm = o;
+    let mut out = vec![line(radii[n - 1], o)?];
     for k in (0..n - 1).rev() {
-        let d = residual_half_width_mm(radii[k], e) + residual_half_width_mm(radii[k + 1], e);
-        lines[k].spacing_mm = d;
-        o += d;
-        lines[k].offset_mm = o;
+        let (r_in, r_out) = (radii[k], radii[k + 1]);
+        let d = residual_half_width_mm(r_in, e) + residual_half_width_mm(r_out, e);
+        let fill = 2.0 * residual_half_width_mm(r_out, e);
+        if o + d < r_in {
+            // Fill lines evenly spaced, at most `fill` apart, the last `d` from line `k`.
+            let span = r_in - d - o;
+            let m = (span / fill).ceil().max(1.0);
+            if m > 100_000.0 {
+                return Err(Error::invalid(
+                    "edge-offset progression",
+                    "more than 100000 fill lines keep the spots inside the edge",
+                ));
+            }
+            let base = o;
+            for j in 1..=m as usize {
+                o = base + span * j as f64 / m;
+                out.push(line(r_out, o)?);
+            }
+        }
+        let next = (o + d).max(r_in);
+        o = next;
+        out.push(line(r_in, o)?);
     }
-    Ok(lines)
+    out.reverse();
+    let m = out.len();
+    for i in 0..m {
+        out[i].spacing_mm = if i + 1 < m {
+            out[i].offset_mm - out[i + 1].offset_mm
+        } else {
+            0.0
+        };
+    }
+    Ok(out)
 }
