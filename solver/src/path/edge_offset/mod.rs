@@ -442,8 +442,13 @@ mod tests {
                     l.offset_mm
                 );
                 // The whole spot inside the polygon: the distance to the polygon is at least the
-                // line's spot radius (the edge-most line: less the set overhang).
-                let allowed = if k + 1 == t.lines.len() {
+                // line's spot radius (lines of the smallest spot: less the set overhang).
+                let smallest = t
+                    .lines
+                    .iter()
+                    .map(|l| l.spot_radius_mm)
+                    .fold(f64::INFINITY, f64::min);
+                let allowed = if l.spot_radius_mm <= smallest * (1.0 + 1e-12) {
                     s.overhang_mm
                 } else {
                     0.0
