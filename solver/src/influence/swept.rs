@@ -34,11 +34,16 @@ use std::collections::HashMap;
 
 /// How the plan models the tool's action at a dwell point.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum InfluenceModel {
+    /// The TIF averaged along the dwell point's stretch of path at constant feed.
+    ///
     /// The TIF averaged along the point's stretch of path at constant feed: what the program
     /// does (module documentation).
     Swept,
+    /// The whole TIF at the dwell point.
+    ///
     /// The whole TIF at the dwell point (the literature's model). Still the library default
     /// while the pinned figures of the test suite are moved to the swept model.
     #[default]
