@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 
 /// The polynomial family of a modal fit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum Basis {
     /// Zernike, Noll's ordering (`Z1` piston, `Z2`/`Z3` tilt x/y, `Z4` power, `Z11` spherical).

@@ -1,6 +1,5 @@
 //! `preston bench`: generated problems and the sample job, solved and timed (issue 2).
 
-use super::solve::FirstOrderMethodArg;
 use preston_io::bench::{self, BenchRow};
 use preston_solver::dwell::{OperatorChoice, Settings, SolverChoice};
 use std::path::PathBuf;
@@ -41,7 +40,7 @@ pub struct Args {
     pub first_order_tolerance: Option<f64>,
     /// Iteration of the first-order solver on the generated problems (default lbfgs).
     #[arg(long, value_enum)]
-    pub first_order_method: Option<FirstOrderMethodArg>,
+    pub first_order_method: Option<preston_solver::dwell::FirstOrderMethod>,
     /// Correction pairs of the projected L-BFGS (default 10, or 5 with the FFT operator).
     #[arg(long, value_name = "PAIRS")]
     pub lbfgs_memory: Option<usize>,

@@ -2,7 +2,6 @@
 //! run on a real part's measured map (`--map`).
 
 use super::map_input::{print_input_notes, MapInputArgs};
-use super::solve::SolverArg;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::{bail, Context};
@@ -79,7 +78,7 @@ pub struct Args {
     pub tolerance: f64,
     /// Dwell solver: qp, first-order or auto (by size: first-order from 5,000 dwell points).
     #[arg(long, value_enum, default_value = "auto")]
-    pub solver: SolverArg,
+    pub solver: preston_solver::dwell::SolverChoice,
     /// Polishing runs at most.
     #[arg(long, default_value_t = 5)]
     pub iterations: usize,

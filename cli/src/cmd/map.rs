@@ -45,27 +45,6 @@ pub struct ConvertArgs {
     pub out: PathBuf,
 }
 
-/// Basis on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum BasisArg {
-    /// Zernike polynomials, Noll ordering, orthonormal over the unit disk.
-    ZernikeNoll,
-    /// Zernike polynomials, Fringe ordering, orthonormal over the unit disk.
-    ZernikeFringe,
-    /// Products of Legendre polynomials, orthonormal over the square [-R, R]^2.
-    Legendre,
-}
-
-impl From<BasisArg> for Basis {
-    fn from(b: BasisArg) -> Self {
-        match b {
-            BasisArg::ZernikeNoll => Basis::ZernikeNoll,
-            BasisArg::ZernikeFringe => Basis::ZernikeFringe,
-            BasisArg::Legendre => Basis::Legendre,
-        }
-    }
-}
-
 /// Arguments of `preston map fit`.
 #[derive(Debug, clap::Args)]
 pub struct FitArgs {
@@ -78,7 +57,7 @@ pub struct FitArgs {
     pub pitch: PitchArg,
     /// Polynomial family.
     #[arg(long, value_enum)]
-    pub basis: BasisArg,
+    pub basis: Basis,
     /// Number of terms (1-based indices 1..=N in the basis's ordering).
     #[arg(long)]
     pub terms: usize,

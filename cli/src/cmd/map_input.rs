@@ -9,36 +9,6 @@ use preston_io::metrology::{
 use preston_solver::modal::FormTerm;
 use std::path::PathBuf;
 
-/// Map format on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum MapFormatArg {
-    /// CSV with units in the header (x_mm,y_mm,z_nm; x_um, z_um, z_m... converted).
-    Csv,
-    /// Whitespace- or semicolon-separated columns, header optional.
-    Xyz,
-    /// 2-D NumPy array (needs --pitch-mm).
-    Npy,
-    /// Zygo MetroPro binary .dat.
-    ZygoDat,
-    /// Zygo Mx HDF5 .datx.
-    ZygoDatx,
-    /// 4D Technology HDF5 .h5 / .4D.
-    FourD,
-}
-
-impl From<MapFormatArg> for MapFormat {
-    fn from(f: MapFormatArg) -> Self {
-        match f {
-            MapFormatArg::Csv => MapFormat::Csv,
-            MapFormatArg::Xyz => MapFormat::Xyz,
-            MapFormatArg::Npy => MapFormat::Npy,
-            MapFormatArg::ZygoDat => MapFormat::ZygoDat,
-            MapFormatArg::ZygoDatx => MapFormat::ZygoDatx,
-            MapFormatArg::FourD => MapFormat::FourD,
-        }
-    }
-}
-
 fn parse_columns(s: &str) -> Result<Columns, String> {
     s.parse().map_err(|e: preston_io::Error| e.to_string())
 }
@@ -64,7 +34,7 @@ pub struct MapInputArgs {
     /// Map format (default: from the extension: .csv, .xyz/.txt/.asc, .npy, .dat, .datx,
     /// .h5/.4D).
     #[arg(long, value_enum)]
-    pub map_format: Option<MapFormatArg>,
+    pub map_format: Option<MapFormat>,
     /// Column order of a text map, e.g. x,y,z or z,x,y (`_` skips a column).
     #[arg(long, value_name = "x,y,z", value_parser = parse_columns)]
     pub columns: Option<Columns>,

@@ -15,48 +15,6 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-/// Controller dialect on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum DialectArg {
-    /// ISO 6983 / RS-274: `( )` comments, `%` wrapped, `M30`.
-    Iso,
-    /// LinuxCNC: `( )` comments, `%` wrapped, `M2`.
-    Linuxcnc,
-    /// Fanuc: `%` wrapped, `O1000`, `( )` comments.
-    Fanuc,
-    /// Siemens Sinumerik 840D: `;` comments, `G71`, `M30`.
-    Sinumerik,
-}
-
-impl From<DialectArg> for Dialect {
-    fn from(d: DialectArg) -> Self {
-        match d {
-            DialectArg::Iso => Dialect::Iso,
-            DialectArg::Linuxcnc => Dialect::Linuxcnc,
-            DialectArg::Fanuc => Dialect::Fanuc,
-            DialectArg::Sinumerik => Dialect::Sinumerik,
-        }
-    }
-}
-
-/// Feed mode on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum FeedModeArg {
-    /// `G94`: F in mm/min.
-    PerMinute,
-    /// `G93`: F = 1 / block time in minutes.
-    InverseTime,
-}
-
-impl From<FeedModeArg> for FeedMode {
-    fn from(f: FeedModeArg) -> Self {
-        match f {
-            FeedModeArg::PerMinute => FeedMode::PerMinute,
-            FeedModeArg::InverseTime => FeedMode::InverseTime,
-        }
-    }
-}
-
 /// Arguments of `preston nc`. Flags override the job file.
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -99,14 +57,14 @@ pub struct Args {
     pub corner_angle_deg: Option<f64>,
     /// Controller dialect (default: the machine profile's, else iso).
     #[arg(long, value_enum)]
-    pub dialect: Option<DialectArg>,
+    pub dialect: Option<Dialect>,
     /// `per-minute` (G94, F in mm/min) or `inverse-time` (G93, F = 1 / block minutes) (default:
     /// the machine profile's, else per-minute).
     #[arg(long, value_enum)]
-    pub feed_mode: Option<FeedModeArg>,
+    pub feed_mode: Option<FeedMode>,
     /// Work offset selected at the start (default: the machine profile's, else g54).
     #[arg(long, value_enum)]
-    pub work_offset: Option<WorkOffsetArg>,
+    pub work_offset: Option<WorkOffset>,
     /// Clearance above the highest tool-centre point, mm: rapid there, above the run-in start,
     /// plunge, and retract at the end (default: the machine profile's, else 5).
     #[arg(long, value_name = "MM", allow_negative_numbers = true)]
@@ -152,39 +110,6 @@ pub struct Args {
     pub out: PathBuf,
     #[command(flatten)]
     pub output: OutputArgs,
-}
-
-/// Work offset on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum WorkOffsetArg {
-    /// `G54`.
-    G54,
-    /// `G55`.
-    G55,
-    /// `G56`.
-    G56,
-    /// `G57`.
-    G57,
-    /// `G58`.
-    G58,
-    /// `G59`.
-    G59,
-    /// No work-offset word.
-    None,
-}
-
-impl From<WorkOffsetArg> for WorkOffset {
-    fn from(w: WorkOffsetArg) -> Self {
-        match w {
-            WorkOffsetArg::G54 => WorkOffset::G54,
-            WorkOffsetArg::G55 => WorkOffset::G55,
-            WorkOffsetArg::G56 => WorkOffset::G56,
-            WorkOffsetArg::G57 => WorkOffset::G57,
-            WorkOffsetArg::G58 => WorkOffset::G58,
-            WorkOffsetArg::G59 => WorkOffset::G59,
-            WorkOffsetArg::None => WorkOffset::None,
-        }
-    }
 }
 
 /// The machine profile with the flags given over it.

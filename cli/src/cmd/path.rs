@@ -2,7 +2,6 @@
 //! written as `x_mm,y_mm,z_mm,tx,ty,tz,ds_mm`, optionally projected onto a design surface. The
 //! file is a valid `preston solve --dwell` input (the reader takes `x_mm,y_mm` and ignores the rest).
 
-use crate::cmd::solve::Along;
 use anyhow::{bail, Context};
 use preston_io::surface::{read_surface, stage_columns_csv};
 use preston_io::table::{read_table, ColumnSpec};
@@ -149,7 +148,7 @@ struct RasterArgs {
     region: Region,
     /// Line direction.
     #[arg(long, value_enum, default_value = "x")]
-    along: Along,
+    along: RasterAxis,
     #[command(flatten)]
     common: Common,
 }
@@ -278,13 +277,6 @@ struct RandomArgs {
     common: Common,
 }
 
-fn axis(a: Along) -> RasterAxis {
-    match a {
-        Along::X => RasterAxis::X,
-        Along::Y => RasterAxis::Y,
-    }
-}
-
 fn write(path: &DwellPath, surface: Option<&Surface>, out: &Path) -> anyhow::Result<ProjectedPath> {
     let p = project(path, surface).context("projecting the path onto the surface")?;
     stage_columns_csv(out, &ProjectedPath::HEADER, &p.columns())?
@@ -332,7 +324,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let (summary, out) = match args.kind {
         Kind::Raster(a) => {
             let surface = load_surface(&a.common.surface)?;
-            let lines = raster_lines(&a.region.bbox()?, a.region.pitch_mm, axis(a.along), 0.0)?;
+            let lines = raster_lines(&a.region.bbox()?, a.region.pitch_mm, a.along, 0.0)?;
             let path = raster_path(&a.region, &lines)?;
             let p = write(&path, surface.as_ref(), &a.common.out)?;
             (

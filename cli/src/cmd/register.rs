@@ -22,36 +22,6 @@ pub enum RobustArg {
     Huber,
 }
 
-/// A rigid-body DOF on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum DofArg {
-    /// Rotation about x.
-    Rx,
-    /// Rotation about y.
-    Ry,
-    /// Rotation about z.
-    Rz,
-    /// Translation along x.
-    Tx,
-    /// Translation along y.
-    Ty,
-    /// Translation along z.
-    Tz,
-}
-
-impl From<DofArg> for Dof {
-    fn from(d: DofArg) -> Self {
-        match d {
-            DofArg::Rx => Dof::Rx,
-            DofArg::Ry => Dof::Ry,
-            DofArg::Rz => Dof::Rz,
-            DofArg::Tx => Dof::Tx,
-            DofArg::Ty => Dof::Ty,
-            DofArg::Tz => Dof::Tz,
-        }
-    }
-}
-
 /// Arguments of `preston register`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -75,7 +45,7 @@ pub struct Args {
     pub max_iterations: usize,
     /// DOFs held at zero (design frame), e.g. `rz,tx,ty`.
     #[arg(long, value_enum, value_delimiter = ',', value_name = "LIST")]
-    pub lock: Vec<DofArg>,
+    pub lock: Vec<Dof>,
     /// Prior bound on each rotation component, arcsec.
     #[arg(long, value_name = "A")]
     pub max_rotation_arcsec: Option<f64>,

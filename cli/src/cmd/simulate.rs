@@ -2,7 +2,6 @@
 //! removal a G-code program produces as the machine runs it (`--program`).
 
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
-use super::nc::DialectArg;
 use super::tif_source::TifArgs;
 use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
@@ -81,7 +80,7 @@ pub struct Args {
     /// With --program: its dialect (default: the machine profile's, else the one its header
     /// names, else iso).
     #[arg(long, value_enum, requires = "program")]
-    pub dialect: Option<DialectArg>,
+    pub dialect: Option<preston_solver::machine::gcode::dialect::Dialect>,
     /// With --program: largest arc length of a removal sample, mm (default: TIF support
     /// radius / 64).
     #[arg(

@@ -25,175 +25,6 @@ use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
 
-/// Raster direction on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum Along {
-    /// Lines along x.
-    X,
-    /// Lines along y.
-    Y,
-}
-
-/// TIF orientation on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum Frame {
-    /// The TIF x axis follows the path tangent.
-    PathTangent,
-    /// The TIF x axis is the machine x axis projected into the tangent plane.
-    MachineX,
-}
-
-/// First-order iteration on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum FirstOrderMethodArg {
-    /// Projected Newton-CG.
-    NewtonCg,
-    /// Accelerated projected gradient with adaptive restart.
-    Fista,
-    /// Projected L-BFGS with an exact line search along the projected step.
-    Lbfgs,
-}
-
-impl From<FirstOrderMethodArg> for FirstOrderMethod {
-    fn from(m: FirstOrderMethodArg) -> Self {
-        match m {
-            FirstOrderMethodArg::NewtonCg => FirstOrderMethod::NewtonCg,
-            FirstOrderMethodArg::Fista => FirstOrderMethod::Fista,
-            FirstOrderMethodArg::Lbfgs => FirstOrderMethod::Lbfgs,
-        }
-    }
-}
-
-/// Acceleration-limit method on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum AccelMethodArg {
-    /// Projected gradient in squared speed (default).
-    SquaredSpeed,
-    /// Sequential convex programming around the QP (reference for small cases).
-    ScpQp,
-    /// Squared speed, then the SCP-QP from its result (QP-exact refinement; needs the assembled R).
-    SquaredSpeedThenScpQp,
-    /// No constraint in the plan: the feed-limited optimum, then correction passes against the
-    /// program executed at the limit with look-ahead, kept while the executed residual falls.
-    CorrectionPasses,
-}
-
-impl From<AccelMethodArg> for AccelMethod {
-    fn from(m: AccelMethodArg) -> Self {
-        match m {
-            AccelMethodArg::SquaredSpeed => AccelMethod::SquaredSpeed,
-            AccelMethodArg::ScpQp => AccelMethod::ScpQp,
-            AccelMethodArg::SquaredSpeedThenScpQp => AccelMethod::SquaredSpeedThenScpQp,
-            AccelMethodArg::CorrectionPasses => AccelMethod::CorrectionPasses,
-        }
-    }
-}
-
-/// Edge model on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum EdgeArg {
-    /// No extension beyond the map.
-    None,
-    /// Zero-removal guard band (target: the map's lowest height).
-    ZeroBand,
-    /// Gaussian-weighted extrapolation.
-    Gaussian,
-    /// Local polynomial extrapolation.
-    Polynomial,
-    /// Gerchberg-Papoulis band-limited extension (map on a regular lattice).
-    GerchbergPapoulis,
-}
-
-impl From<EdgeArg> for EdgeMethod {
-    fn from(m: EdgeArg) -> Self {
-        match m {
-            EdgeArg::None => EdgeMethod::None,
-            EdgeArg::ZeroBand => EdgeMethod::ZeroBand,
-            EdgeArg::Gaussian => EdgeMethod::Gaussian,
-            EdgeArg::Polynomial => EdgeMethod::Polynomial,
-            EdgeArg::GerchbergPapoulis => EdgeMethod::GerchbergPapoulis,
-        }
-    }
-}
-
-/// How the plan models the tool at a dwell point, on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum InfluenceArg {
-    /// The TIF averaged along the dwell point's stretch of path at constant feed.
-    Swept,
-    /// The whole TIF at the dwell point.
-    Point,
-}
-
-impl From<InfluenceArg> for InfluenceModel {
-    fn from(o: InfluenceArg) -> Self {
-        match o {
-            InfluenceArg::Swept => InfluenceModel::Swept,
-            InfluenceArg::Point => InfluenceModel::Point,
-        }
-    }
-}
-
-/// How R is held, on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum OperatorArg {
-    /// A matrix-free operator where the cost models predict it faster than the assembled R and the
-    /// inputs allow it: the FFT operator for dwell points on the map lattice, phase stencils
-    /// (exact) for dwell points off it at few positions within a cell, the spreading operator
-    /// (fft-spread) when accurate within --spread-tolerance and cheaper.
-    Auto,
-    /// Assemble the sparse influence matrix R.
-    Sparse,
-    /// Never form R: products by FFT convolution (map and dwell points on one lattice,
-    /// first-order solver).
-    Fft,
-    /// Never form R: dwell points spread onto an oversampled map lattice, then FFT (map on a
-    /// lattice, dwell points anywhere, first-order solver; error within --spread-tolerance).
-    FftSpread,
-    /// Never form R: one stencil per distinct dwell position within a map cell, scattered and
-    /// gathered on the map lattice (exact; map on a lattice, first-order solver).
-    Stencil,
-    /// Never form R: dwell points anywhere spread by a smooth kernel onto a fine lattice, then a
-    /// deconvolved FFT (non-uniform FFT; error against the exact R measured and reported).
-    Nufft,
-}
-
-impl From<OperatorArg> for OperatorChoice {
-    fn from(o: OperatorArg) -> Self {
-        match o {
-            OperatorArg::Auto => OperatorChoice::Auto,
-            OperatorArg::Sparse => OperatorChoice::Sparse,
-            OperatorArg::Fft => OperatorChoice::Fft,
-            OperatorArg::FftSpread => OperatorChoice::FftSpread,
-            OperatorArg::Stencil => OperatorChoice::Stencil,
-            OperatorArg::Nufft => OperatorChoice::Nufft,
-        }
-    }
-}
-
-/// Solver choice on the command line.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum SolverArg {
-    /// Sparse interior-point QP (Clarabel).
-    Qp,
-    /// First-order solver (projected L-BFGS, FISTA or projected Newton-CG; products with R
-    /// only) with a KKT/gap certificate.
-    FirstOrder,
-    /// The first-order solver above about 1.6e5 non-zeros of R (a predicted 1 s of QP), the QP
-    /// below and for --min-time (cost models, docs/preconditioning.md).
-    Auto,
-}
-
-impl From<SolverArg> for SolverChoice {
-    fn from(s: SolverArg) -> Self {
-        match s {
-            SolverArg::Qp => SolverChoice::Qp,
-            SolverArg::FirstOrder => SolverChoice::FirstOrder,
-            SolverArg::Auto => SolverChoice::Auto,
-        }
-    }
-}
-
 /// A TIF process model on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum TifModelArg {
@@ -245,7 +76,7 @@ pub struct Args {
     pub raster_pitch_mm: Option<f64>,
     /// Direction of the generated raster lines.
     #[arg(long, value_enum)]
-    pub raster_along: Option<Along>,
+    pub raster_along: Option<RasterAxis>,
     /// Fastest feed, mm/min. With several tools: once for all, or once per tool in order.
     #[arg(long = "v-max", value_name = "MM_PER_MIN", action = clap::ArgAction::Append)]
     pub v_max_mm_per_min: Vec<f64>,
@@ -264,14 +95,14 @@ pub struct Args {
     /// squared speed, any size and operator), scp-qp (sequential QP, the small-case reference) or
     /// squared-speed-then-scp-qp (the first, refined by the second).
     #[arg(long, value_enum)]
-    pub accel_method: Option<AccelMethodArg>,
+    pub accel_method: Option<AccelMethod>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
     /// and the machining time (default 60).
     #[arg(long, value_name = "DEG")]
     pub corner_angle_deg: Option<f64>,
     /// How the dwell area beyond the map is modelled (default: the job's [edge], else none).
     #[arg(long, value_enum)]
-    pub edge: Option<EdgeArg>,
+    pub edge: Option<EdgeMethod>,
     /// Width of the edge band beyond the map, mm (default: the TIF's nominal radius).
     #[arg(long, value_name = "MM")]
     pub edge_width_mm: Option<f64>,
@@ -297,7 +128,7 @@ pub struct Args {
     pub tolerance: Option<f64>,
     /// Iteration of the first-order solver (default: the job's, else lbfgs).
     #[arg(long, value_enum)]
-    pub first_order_method: Option<FirstOrderMethodArg>,
+    pub first_order_method: Option<FirstOrderMethod>,
     /// Correction pairs of the projected L-BFGS, 1 to 100 (default: the job's, else 10, or 5
     /// with the FFT operator). More
     /// pairs take fewer iterations: faster where a product costs far more than a pass over the
@@ -310,15 +141,15 @@ pub struct Args {
     pub max_iterations: Option<usize>,
     /// Which solver to run (default: the job's, else auto).
     #[arg(long, value_enum)]
-    pub solver: Option<SolverArg>,
+    pub solver: Option<SolverChoice>,
     /// How R is held: assembled, or matrix-free by FFT (default: the job's, else auto).
     #[arg(long, value_enum)]
-    pub operator: Option<OperatorArg>,
+    pub operator: Option<OperatorChoice>,
     /// How the plan models the tool at a dwell point: swept (the TIF averaged along the point's
     /// stretch of path at constant feed, as the program runs it) or point (the whole TIF at the
     /// point) (default: the job's, else swept).
     #[arg(long, value_enum)]
-    pub influence: Option<InfluenceArg>,
+    pub influence: Option<InfluenceModel>,
     /// Largest estimated relative error of the off-lattice spreading operator against the
     /// assembled R (default: the job's, else 1e-4).
     #[arg(long)]
@@ -348,7 +179,7 @@ pub struct Args {
     pub surface: Option<PathBuf>,
     /// Orientation of the TIF's x axis on a curved part.
     #[arg(long, value_enum, requires = "surface")]
-    pub tif_frame: Option<Frame>,
+    pub tif_frame: Option<TifFrame>,
     /// Output directory for dwell.csv, residual.csv and report.json.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -425,10 +256,7 @@ impl Args {
             job.dwell.file = None;
         }
         if let Some(a) = self.raster_along {
-            job.dwell.raster_along = match a {
-                Along::X => RasterAxis::X,
-                Along::Y => RasterAxis::Y,
-            };
+            job.dwell.raster_along = a;
         }
         if let [v] = self.v_max_mm_per_min.as_slice() {
             job.machine.v_max_mm_per_min = Some(*v);
@@ -447,10 +275,10 @@ impl Args {
             job.machine.corner_angle_deg = Some(c);
         }
         if let Some(m) = self.accel_method {
-            job.machine.accel_method = Some(m.into());
+            job.machine.accel_method = Some(m);
         }
         if let Some(e) = self.edge {
-            job.edge.method = e.into();
+            job.edge.method = e;
         }
         if let Some(w) = self.edge_width_mm {
             job.edge.width_mm = Some(w);
@@ -475,20 +303,20 @@ impl Args {
             job.solver.lbfgs_memory = Some(pairs);
         }
         if let Some(m) = self.first_order_method {
-            job.solver.first_order_method = m.into();
+            job.solver.first_order_method = m;
         }
         if let Some(k) = self.max_iterations {
             job.solver.max_iterations = k;
             job.solver.first_order_max_iterations = k;
         }
         if let Some(k) = self.solver {
-            job.solver.solver = k.into();
+            job.solver.solver = k;
         }
         if let Some(o) = self.influence {
-            job.solver.influence = o.into();
+            job.solver.influence = o;
         }
         if let Some(o) = self.operator {
-            job.solver.operator = o.into();
+            job.solver.operator = o;
         }
         if let Some(t) = self.spread_tolerance {
             job.solver.spread_tolerance = t;
@@ -500,10 +328,7 @@ impl Args {
             job.surface.file = Some(f);
         }
         if let Some(f) = self.tif_frame {
-            job.surface.tif_frame = match f {
-                Frame::PathTangent => TifFrame::PathTangent,
-                Frame::MachineX => TifFrame::MachineX,
-            };
+            job.surface.tif_frame = f;
         }
         Ok((job, job_path, self.out, self.accept_best_iterate))
     }

@@ -30,6 +30,7 @@ use std::str::FromStr;
 
 /// The file formats of a map.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum MapFormat {
     /// Comma-separated with a header naming units (`x_mm,y_mm,z_nm`; also `x_um`, `x_m`, `z_um`,

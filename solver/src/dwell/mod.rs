@@ -43,8 +43,12 @@ pub struct Problem {
 /// stencils off it) where it is predicted faster and the inputs allow it (see the set-up's
 /// operator plans).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum OperatorChoice {
+    /// A matrix-free operator where the cost models predict it faster than the assembled R and the
+    /// inputs allow it: FFT on the map lattice, phase stencils or the spreading operator off it.
+    ///
     /// The FFT operator when map and dwell points lie on one lattice, the TIF is applied in the
     /// plane, nothing needs the QP and the cost models of [`policy`] predict it faster than the
     /// assembled matrix (and the QP); for dwell points off the map lattice the phase stencils,
@@ -54,14 +58,23 @@ pub enum OperatorChoice {
     Auto,
     /// Assemble the sparse influence matrix `R`.
     Sparse,
+    /// Never form R: products by FFT convolution (map and dwell points on one lattice, first-order
+    /// solver).
+    ///
     /// Never form `R`: products by FFT convolution ([`fft::FftOperator`]). Needs map and dwell
     /// points on one regular lattice and the first-order solver.
     Fft,
+    /// Never form R: dwell points spread onto an oversampled map lattice, then FFT (map on a
+    /// lattice, dwell points anywhere, first-order solver; error within the spread tolerance).
+    ///
     /// Never form `R`: dwell points spread onto an oversampled map lattice, then FFT convolution
     /// ([`crate::influence::SpreadOperator`]), with the smallest oversampling whose estimated
     /// error is within `spread_tolerance`. Needs map points on a regular lattice (dwell points
     /// anywhere) and the first-order solver.
     FftSpread,
+    /// Never form R: one stencil per distinct dwell position within a map cell, scattered and
+    /// gathered on the map lattice (exact; map on a lattice, first-order solver).
+    ///
     /// Never form `R`: one stencil tabulated per distinct dwell position within a map cell, scattered
     /// and gathered on the map lattice ([`crate::influence::StencilOperator`]; exact, no
     /// tolerance). Needs map points on a regular lattice and the first-order solver; pays where
@@ -374,12 +387,19 @@ pub struct Evaluation {
 
 /// Which solver to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum SolverChoice {
     /// Sparse interior-point QP (Clarabel).
     Qp,
-    /// Accelerated projected gradient ([`first_order`]).
+    /// First-order solver (projected L-BFGS, FISTA or projected Newton-CG; products with R only)
+    /// with a KKT/gap certificate.
+    ///
+    /// The iterations of [`first_order`].
     FirstOrder,
+    /// The first-order solver above about 1.6e5 non-zeros of R (a predicted 1 s of QP), the QP
+    /// below and in minimum-time mode (cost models, docs/preconditioning.md).
+    ///
     /// Choose by the cost models of [`policy`] (see [`SolverChoice::resolve`]); always the QP in
     /// minimum-time mode.
     #[default]
@@ -498,18 +518,25 @@ pub enum Preconditioner {
 /// The iteration of the first-order solver ([`first_order`]). All use only products with `R`
 /// and `R^T`, on the same Jacobi-scaled variables, with the same stopping certificate.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum FirstOrderMethod {
+    /// Accelerated projected gradient (FISTA) with adaptive restart.
+    ///
     /// Accelerated projected gradient (FISTA) with adaptive restart: the cheapest iteration,
     /// but its KKT residual falls well before its objective does (0.7% above the optimum at
     /// 1e-6 on the generated 2e4 problem, docs/preconditioning.md).
     Fista,
+    /// Projected Newton-CG.
+    ///
     /// Projected Newton-CG: conjugate gradients on the free variables, projected line search.
     /// Far more accurate per product where `R` has more rows than columns and `rho = 0` (the
     /// sample job: 5e-5 relative above the optimum where FISTA is at 2e-4, in the same time),
     /// but slow to drive its KKT residual down when there are many more dwell points than map
     /// points or the problem is very ill-conditioned (README, "Benchmarks").
     NewtonCg,
+    /// Projected L-BFGS with an exact line search along the projected step (the default).
+    ///
     /// Projected L-BFGS: quasi-Newton directions on the free variables (the two-loop recursion
     /// on the pairs restricted to them), projected gradient steps on the binding ones, and an
     /// exact line search along the projected step; one Hessian product per iteration. The

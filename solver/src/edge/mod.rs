@@ -29,6 +29,7 @@ use std::collections::HashMap;
 
 /// How the dwell area beyond the map is modelled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum EdgeMethod {
     /// No extension: dwell points beyond the map are constrained only by the map points in their

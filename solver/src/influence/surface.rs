@@ -20,8 +20,11 @@ pub const SEARCH_RADIUS_FACTOR: f64 = 1.1;
 
 /// How the TIF's own x axis is oriented in the tangent plane of each dwell point.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum TifFrame {
+    /// The TIF x axis follows the path tangent.
+    ///
     /// The TIF x axis is the path tangent (central difference of the neighbouring dwell points,
     /// projected into the tangent plane) and y is `normal x tangent`: the tool footprint turns with
     /// the path. Falls back to [`TifFrame::MachineX`] where the path has no direction.

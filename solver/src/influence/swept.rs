@@ -34,13 +34,17 @@ use std::collections::HashMap;
 
 /// How the plan models the tool's action at a dwell point.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum InfluenceModel {
-    /// The TIF averaged along the point's stretch of path at constant feed: what the program
-    /// does (module documentation). The default.
+    /// The TIF averaged along the dwell point's stretch of path at constant feed.
+    ///
+    /// What the program does (module documentation). The default.
     #[default]
     Swept,
-    /// The whole TIF at the dwell point (the literature's model), kept for comparison.
+    /// The whole TIF at the dwell point.
+    ///
+    /// The literature's model, kept for comparison.
     Point,
 }
 

@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 
 /// Work coordinate system selected at the start of the program.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum WorkOffset {
     /// `G54`, the first settable work offset.

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 /// The direction of the raster lines.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum RasterAxis {
     /// Lines run along x and step in y.

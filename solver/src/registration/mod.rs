@@ -35,6 +35,7 @@ pub const UNDETERMINED_REL: f64 = 1e-10;
 /// A rigid-body degree of freedom of the transform `M`, in the design frame (rotations about the
 /// design origin's axes, translations along them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Dof {
     /// Rotation about x.

@@ -43,8 +43,11 @@ use std::time::Instant;
 
 /// How the acceleration-limited problem is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum AccelMethod {
+    /// Projected gradient in squared speed (the default; any size and operator).
+    ///
     /// Accelerated projected gradient in squared speed ([`speed`]): products with `R` only, any
     /// operator, 10^5 points and more. The default.
     #[default]
@@ -52,9 +55,14 @@ pub enum AccelMethod {
     /// Sequential convex programming with one Clarabel QP per iteration: the reference for small
     /// cases (it needs the assembled `R`).
     ScpQp,
+    /// Squared speed, then the SCP-QP from its result (QP-exact refinement; needs the assembled R).
+    ///
     /// The squared-speed method, then the SCP-QP from its result: a KKT point of the first refined
     /// by the second (QP-exact where the QP is affordable; it needs the assembled `R`).
     SquaredSpeedThenScpQp,
+    /// No constraint in the plan: the feed-limited optimum, then correction passes against the
+    /// program executed at the limit, kept while the executed residual falls.
+    ///
     /// No constraint in the plan: the feed-limited optimum, then correction passes against the
     /// program executed at the limit with look-ahead (the set-up's
     /// [`crate::setup::Setup::solve`]): each pass re-solves for the target less the executed

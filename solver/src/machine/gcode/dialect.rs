@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 
 /// A controller's dialect of ISO G-code.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Dialect {
     /// Plain ISO 6983 / RS-274: `( )` comments, `%` wrapped, `M30`.
@@ -33,6 +34,7 @@ pub enum Dialect {
 
 /// How the `F` word of a linear move is read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum FeedMode {
     /// `G94`: `F` is the path feed, mm/min.
