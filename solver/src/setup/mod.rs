@@ -1521,6 +1521,40 @@ mod tests {
         }
     }
 
+    /// Under the swept model the exact removal an approximate operator is checked against is
+    /// the assembled swept `R`'s, not the point model's.
+    #[test]
+    fn the_exact_removal_of_an_approximate_operator_follows_the_swept_contract() {
+        let mut d = data();
+        d.dwell = DwellPoints::Raster {
+            pitch_mm: 0.7,
+            along: RasterAxis::X,
+        };
+        let mut c = choices();
+        c.settings.influence = InfluenceModel::Swept;
+        c.settings.operator = OperatorChoice::Sparse;
+        let assembled = Setup::resolve(c.check(&Silent).unwrap(), d.clone(), &Silent).unwrap();
+        let mut c = choices();
+        c.settings.influence = InfluenceModel::Swept;
+        c.settings.operator = OperatorChoice::FftSpread;
+        c.settings.spread_tolerance = 1e-2;
+        let spread = Setup::resolve(c.check(&Silent).unwrap(), d, &Silent).unwrap();
+        let pa = assembled.problem(&Silent).unwrap().problem;
+        let ps = spread.problem(&Silent).unwrap().problem;
+        assert_eq!(
+            ps.operator_kind(),
+            crate::influence::OperatorKind::FftSpread
+        );
+        let t: Vec<f64> = (0..pa.n()).map(|j| 1.0 + 0.3 * (j as f64).sin()).collect();
+        let mut ha = pa.removal_nm(&t).unwrap();
+        ha.truncate(assembled.map.len());
+        let exact = spread.exact_removal(&ps, &t, &Silent).unwrap().unwrap();
+        let peak = ha.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
+        for (a, e) in ha.iter().zip(&exact.exact_removal_nm) {
+            assert!((a - e).abs() <= 1e-9 * peak, "{a} vs {e}");
+        }
+    }
+
     #[test]
     fn correction_passes_never_worsen_the_executed_residual_and_report_it() {
         // A fine raster at a low acceleration limit: the ramps matter.
