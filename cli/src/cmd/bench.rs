@@ -63,7 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         settings.first_order_tolerance = t;
     }
     if let Some(m) = args.first_order_method {
-        settings.first_order_method = m.into();
+        settings.first_order_method = m;
     }
     if let Some(pairs) = args.lbfgs_memory {
         settings.lbfgs_memory = Some(pairs);

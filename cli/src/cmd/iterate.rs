@@ -209,7 +209,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         solver: Settings {
             tolerance: args.tolerance,
             first_order_tolerance: args.tolerance,
-            solver: args.solver.into(),
+            solver: args.solver,
             ..Settings::default()
         },
     };

@@ -169,7 +169,7 @@ struct FitSummary {
 fn fit(a: FitArgs) -> anyhow::Result<ExitCode> {
     let r = read(&a.map, &a.input, a.pitch)?;
     let m = &r.map;
-    let basis: Basis = a.basis.into();
+    let basis: Basis = a.basis;
     let radius = match (a.norm_radius_mm, basis) {
         (Some(v), _) => v,
         (None, Basis::Legendre) => m

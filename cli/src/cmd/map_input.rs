@@ -54,7 +54,7 @@ impl MapInputArgs {
     /// Applies the flags given over `src` (a job's `[map]`).
     pub fn apply(&self, src: &mut MapSource) {
         if let Some(f) = self.map_format {
-            src.format = Some(f.into());
+            src.format = Some(f);
         }
         if let Some(c) = &self.columns {
             src.columns = Some(c.clone());

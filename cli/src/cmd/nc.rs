@@ -124,13 +124,13 @@ fn profile_with_flags(args: &Args, job: &Job) -> MachineProfile {
         p.tool_axis = ToolAxis::Fixed { b_deg };
     }
     if let Some(d) = args.dialect {
-        p.dialect = d.into();
+        p.dialect = d;
     }
     if let Some(f) = args.feed_mode {
-        p.feed_mode = f.into();
+        p.feed_mode = f;
     }
     if let Some(w) = args.work_offset {
-        p.work_offset = w.into();
+        p.work_offset = w;
     }
     if let Some(c) = args.clearance_mm {
         p.clearance_mm = c;

@@ -70,7 +70,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let pts = read_points(&args.points)?;
     let mut lock = [false; 6];
     for d in &args.lock {
-        lock[Dof::from(*d).index()] = true;
+        lock[(*d).index()] = true;
     }
     let settings = RegisterSettings {
         max_iterations: args.max_iterations,

@@ -229,7 +229,7 @@ fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<E
     let bars = Bars::new();
     let profile_dialect = (args.job.is_some() || args.machine.is_some()).then_some(job.nc.dialect);
     let options = ProgramOptions {
-        dialect: args.dialect.map(Into::into).or(profile_dialect),
+        dialect: args.dialect.or(profile_dialect),
         kinematics,
         sample_step_mm: args.sample_step_mm,
         part,
