@@ -350,6 +350,7 @@ def _job_of(
     max_iterations: Optional[int] = None,
     solver: Optional[str] = None,
     operator: Optional[str] = None,
+    influence: Optional[str] = None,
     warm_start: Optional[PathLike] = None,
     surface: Optional[PathLike] = None,
     tif_frame: Optional[str] = None,
@@ -429,6 +430,7 @@ def _job_of(
         ("lbfgs_memory", lbfgs_memory),
         ("solver", solver),
         ("operator", operator),
+        ("influence", influence),
     ):
         if value is not None:
             sol[key] = value
@@ -524,6 +526,7 @@ def solve(
     max_iterations: Optional[int] = None,
     solver: Optional[str] = None,
     operator: Optional[str] = None,
+    influence: Optional[str] = None,
     warm_start: Optional[PathLike] = None,
     surface: Optional[PathLike] = None,
     tif_frame: Optional[str] = None,
@@ -606,6 +609,7 @@ def solve(
         max_iterations=max_iterations,
         solver=solver,
         operator=operator,
+        influence=influence,
         warm_start=warm_start,
         surface=surface,
         tif_frame=tif_frame,

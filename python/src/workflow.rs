@@ -364,7 +364,7 @@ pub(crate) fn path_edge_offset<'py>(
         .map(|l| {
             json!({"spot_radius_mm": l.spot_radius_mm, "depth_mm": l.depth_mm,
                    "offset_mm": l.offset_mm, "achieved_offset_mm": l.achieved_offset_mm,
-                   "spacing_mm": l.spacing_mm})
+                   "spacing_mm": l.spacing_mm, "clearance_mm": l.clearance_mm})
         })
         .collect();
     let s = json!({

@@ -41,7 +41,7 @@ def write_small_job(d: Path) -> dict:
         "tif": {"gaussian": {"sigma_mm": 1.5, "peak_rate_nm_per_s": 20.0, "truncation_radius_mm": 4.5}},
         "dwell": {"raster_pitch_mm": 1.0},
         "machine": {"v_max_mm_per_min": 3000.0},
-        "solver": {"solver": "qp"},
+        "solver": {"solver": "qp", "influence": "point"},
     }
 
 

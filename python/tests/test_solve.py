@@ -77,6 +77,7 @@ def test_arrays_in_equal_files_in(cli_out, py_job_result):
         v_max=3000.0,
         a_max=1000.0,
         edge="gerchberg-papoulis",
+        influence="point",
     )
     _, d = read_csv(cli_out / "dwell.csv")
     assert_close_rel(r.dwell_s, d[:, 3])
