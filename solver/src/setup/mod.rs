@@ -1521,6 +1521,28 @@ mod tests {
         }
     }
 
+    /// A solve that ran away (a piston of 1e155 nm, a non-finite dwell or removal) is no answer:
+    /// the guard that turns it into `numerical_error` rejects each, and accepts a real solve.
+    #[test]
+    fn a_runaway_or_non_finite_solution_fails_the_guard() {
+        let setup = Setup::resolve(choices().check(&Silent).unwrap(), data(), &Silent).unwrap();
+        let problem = setup.problem(&Silent).unwrap().problem;
+        let o = setup.solve(&problem, &Silent).unwrap();
+        assert!(solution_is_finite(&o.solution, &o.removal_nm));
+        let mut s = o.solution.clone();
+        s.piston_nm = 1.2e155;
+        assert!(!solution_is_finite(&s, &o.removal_nm));
+        let mut s = o.solution.clone();
+        s.dwell_s[0] = f64::NAN;
+        assert!(!solution_is_finite(&s, &o.removal_nm));
+        let mut s = o.solution.clone();
+        s.objective = f64::INFINITY;
+        assert!(!solution_is_finite(&s, &o.removal_nm));
+        let mut h = o.removal_nm.clone();
+        h[0] = f64::INFINITY;
+        assert!(!solution_is_finite(&o.solution, &h));
+    }
+
     /// Under the swept model the exact removal an approximate operator is checked against is
     /// the assembled swept `R`'s, not the point model's.
     #[test]
