@@ -75,7 +75,7 @@ fn main() {
         let outcome = run_virtual(&part, &tif, &settings, &Silent).expect("loop");
         let loop_s = start.elapsed().as_secs_f64();
         let plots_start = Instant::now();
-        write_loop(&outcome, dir.path(), true).expect("outputs");
+        write_loop(&outcome, dir.path(), true, Default::default()).expect("outputs");
         let plots_s = plots_start.elapsed().as_secs_f64();
         let run = outcome.last_run.as_ref().expect("one run");
         // The contract's objective at the optimal piston: 0.5 ||r||^2 + rho sum(t).

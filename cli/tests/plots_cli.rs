@@ -213,4 +213,44 @@ fn simulate_program_plots_show_the_psd_and_the_dwell_as_executed() {
         common::png_size(&sim.join("dwell_planned_vs_executed.png")),
         (1200, 600)
     );
+    // The same figures as SVG: each one an SVG document of the PNG's size, no PNG written, the
+    // CSVs the same bytes.
+    let svg_dir = out.path().join("sim_svg");
+    let o = preston_cmd()
+        .arg("simulate")
+        .arg("--map")
+        .arg(data("mirror_error_118x8mm.csv"))
+        .arg("--tif")
+        .arg(data("tif_fluid_jet_10mm.csv"))
+        .arg("--program")
+        .arg(&prog)
+        .args(["--plots", "--plot-format", "svg", "--out"])
+        .arg(&svg_dir)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for entry in std::fs::read_dir(&sim).unwrap() {
+        let name = entry.unwrap().file_name().to_string_lossy().into_owned();
+        if let Some(stem) = name.strip_suffix(".png") {
+            let svg = std::fs::read_to_string(svg_dir.join(format!("{stem}.svg")))
+                .unwrap_or_else(|e| panic!("{stem}.svg: {e}"));
+            let (w, h) = common::png_size(&sim.join(&name));
+            assert!(
+                svg.starts_with(&format!("<svg width=\"{w}\" height=\"{h}\"")),
+                "{stem}.svg: {}",
+                &svg[..svg.len().min(80)]
+            );
+            assert!(svg.trim_end().ends_with("</svg>"), "{stem}.svg");
+            assert!(
+                !svg_dir.join(&name).exists(),
+                "{name} written with --plot-format svg"
+            );
+        } else if name.ends_with(".csv") {
+            assert_eq!(
+                std::fs::read(sim.join(&name)).unwrap(),
+                std::fs::read(svg_dir.join(&name)).unwrap(),
+                "{name}"
+            );
+        }
+    }
 }

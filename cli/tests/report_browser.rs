@@ -41,6 +41,18 @@ fn headless(browser: &PathBuf) -> Command {
 
 #[test]
 fn sample_report_renders_in_chromium_with_every_image() {
+    report_renders_with_every_image(&[]);
+}
+
+/// With SVG figures, every embedded SVG decodes in the browser as the PNGs do.
+#[test]
+fn sample_report_with_svg_figures_renders_in_chromium_with_every_image() {
+    report_renders_with_every_image(&["--plot-format", "svg"]);
+}
+
+/// Solves the sample job with `--report` and `extra` flags, then loads its report.html in
+/// Chromium: every image decodes, and a screenshot of the page is not blank.
+fn report_renders_with_every_image(extra: &[&str]) {
     let Some(chromium) = browser() else {
         if std::env::var_os("PRESTON_REQUIRE_BROWSER").is_some() {
             panic!("no Chromium found (PRESTON_REQUIRE_BROWSER is set): install it or set PRESTON_CHROMIUM");
@@ -52,6 +64,7 @@ fn sample_report_renders_in_chromium_with_every_image() {
     let o = preston_cmd()
         .args(["solve", "--job"])
         .arg(data("job_point_1mm.toml"))
+        .args(extra)
         .args(["--report", "--out"])
         .arg(out.path())
         .output()
@@ -62,6 +75,12 @@ fn sample_report_renders_in_chromium_with_every_image() {
     let html = std::fs::read_to_string(&page).unwrap();
     let images = html.matches("<img ").count();
     assert!(images >= 8, "{images} images");
+    let svg_images = html.matches("src=\"data:image/svg+xml;base64,").count();
+    if extra.contains(&"svg") {
+        assert_eq!(svg_images, images, "every figure is an SVG");
+    } else {
+        assert_eq!(svg_images, 0, "every figure is a PNG");
+    }
     // The DOM once the page has loaded: its script has counted the images that decoded.
     let dom = headless(&chromium)
         .args(["--virtual-time-budget=10000", "--dump-dom"])

@@ -8,14 +8,14 @@ use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::plots::{
     stage_grid_plot, stage_map_plot, stage_map_plot_with, stage_path_plot, stage_psd_plot,
-    stage_spectrum_plot, ColorLimits,
+    stage_spectrum_plot, ColorLimits, PlotFormat,
 };
 use crate::report::centred_residual_nm;
 use preston_solver::psd::{area_psd, line_psd, AreaPsd, LineAxis, LinePsd};
 use preston_solver::setup::{Outcome, Setup};
 use preston_solver::tif::InfluenceFunction;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Header of `psd.csv`.
 pub const PSD_HEADER: &str = "frequency_per_mm,error_psd_nm2_mm,residual_psd_nm2_mm";
@@ -33,6 +33,15 @@ pub struct FigureStyle {
     /// Colour range of the height-error maps (the error before and the residual); the other
     /// maps use robust percentiles.
     pub color_limits: ColorLimits,
+    /// File format of every figure (the CSVs beside them are the same in both).
+    pub format: PlotFormat,
+}
+
+impl FigureStyle {
+    /// The path of the figure `stem` in `out_dir`, in this style's format.
+    pub fn path(&self, out_dir: &Path, stem: &str) -> PathBuf {
+        out_dir.join(self.format.file_name(stem))
+    }
 }
 
 /// The caption of a figure by its file name, for the report page.
@@ -96,7 +105,7 @@ pub fn stage_solve_figures_with(
     let feeds = &outcome.feeds_mm_per_min;
     let mut staged = vec![
         stage_map_plot_with(
-            &out_dir.join("error_before.png"),
+            &style.path(out_dir, "error_before"),
             "Surface error before",
             "nm",
             mx,
@@ -105,7 +114,7 @@ pub fn stage_solve_figures_with(
             style.color_limits,
         )?,
         stage_map_plot(
-            &out_dir.join("removal.png"),
+            &style.path(out_dir, "removal"),
             "Predicted removal",
             "nm",
             mx,
@@ -113,7 +122,7 @@ pub fn stage_solve_figures_with(
             &outcome.removal_nm,
         )?,
         stage_map_plot_with(
-            &out_dir.join("residual.png"),
+            &style.path(out_dir, "residual"),
             "Residual (piston removed)",
             "nm",
             mx,
@@ -121,9 +130,23 @@ pub fn stage_solve_figures_with(
             &residual,
             style.color_limits,
         )?,
-        stage_map_plot(&out_dir.join("dwell.png"), "Dwell time", "s", px, py, dwell)?,
-        stage_map_plot(&out_dir.join("feed.png"), "Feed", "mm/min", px, py, feeds)?,
-        stage_path_plot(&out_dir.join("path.png"), "Dwell path", px, py)?,
+        stage_map_plot(
+            &style.path(out_dir, "dwell"),
+            "Dwell time",
+            "s",
+            px,
+            py,
+            dwell,
+        )?,
+        stage_map_plot(
+            &style.path(out_dir, "feed"),
+            "Feed",
+            "mm/min",
+            px,
+            py,
+            feeds,
+        )?,
+        stage_path_plot(&style.path(out_dir, "path"), "Dwell path", px, py)?,
     ];
     let radius = setup.tif.support_radius_mm();
     if radius.is_finite() && radius > 0.0 {
@@ -138,7 +161,7 @@ pub fn stage_solve_figures_with(
             }
         }
         staged.push(stage_map_plot(
-            &out_dir.join("tif.png"),
+            &style.path(out_dir, "tif"),
             "Tool influence function",
             "nm/s",
             &tx,
@@ -146,14 +169,25 @@ pub fn stage_solve_figures_with(
             &tv,
         )?);
     }
-    let (psd, notes) = stage_psd_figures(out_dir, mx, my, z, &residual, axis, raster_pitch_mm)?;
+    let (psd, notes) = stage_psd_figures(
+        out_dir,
+        mx,
+        my,
+        z,
+        &residual,
+        axis,
+        raster_pitch_mm,
+        style.format,
+    )?;
     staged.extend(psd);
     Ok((staged, notes))
 }
 
 /// Stages the PSD figures and tables of a map `z` and its residual at `(x, y)`: the 1-D PSD along
 /// `axis` (`raster_pitch_mm` marked), the 2-D PSD and its azimuthal average. Returns the staged
-/// files and notes on those left out (a PSD needs the map on a lattice).
+/// files and notes on those left out (a PSD needs the map on a lattice). The figures are drawn
+/// in `format`.
+#[allow(clippy::too_many_arguments)]
 pub fn stage_psd_figures(
     out_dir: &Path,
     x: &[f64],
@@ -162,7 +196,12 @@ pub fn stage_psd_figures(
     residual: &[f64],
     axis: LineAxis,
     raster_pitch_mm: Option<f64>,
+    format: PlotFormat,
 ) -> Result<(Vec<Staged>, Vec<String>)> {
+    let style = FigureStyle {
+        format,
+        ..FigureStyle::default()
+    };
     let mut staged = Vec::new();
     let mut notes = Vec::new();
     match (line_psd(x, y, z, axis), line_psd(x, y, residual, axis)) {
@@ -172,7 +211,7 @@ pub fn stage_psd_figures(
                 .filter(|p| *p > 0.0)
                 .map(|p| (1.0 / p, "raster pitch"));
             staged.push(stage_psd_plot(
-                &out_dir.join("psd.png"),
+                &style.path(out_dir, "psd"),
                 &format!(
                     "PSD along {} ({} segments of {} points)",
                     match axis {
@@ -200,7 +239,7 @@ pub fn stage_psd_figures(
                 &after,
             )?);
             staged.push(stage_grid_plot(
-                &out_dir.join("psd_2d.png"),
+                &style.path(out_dir, "psd_2d"),
                 "2-D PSD of the residual (log10 of nm^2 mm^2)",
                 "log10 PSD",
                 &after.fx_per_mm,
@@ -224,7 +263,7 @@ pub fn stage_psd_figures(
                 .filter(|p| *p > 0.0)
                 .map(|p| (1.0 / p, "raster pitch"));
             staged.push(stage_spectrum_plot(
-                &out_dir.join("psd_azimuthal.png"),
+                &style.path(out_dir, "psd_azimuthal"),
                 "Azimuthally averaged 2-D PSD",
                 "PSD (nm^2 mm^2)",
                 &ab.frequency_per_mm,

@@ -1,7 +1,9 @@
-//! PNG plots (plotters): maps of scattered values with a colour bar in their unit, tool paths,
-//! TIFs, PSDs and convergence curves. Every plot is rendered in memory, staged as a temporary
-//! `.png` next to its destination and renamed into place together with the command's other
-//! outputs ([`crate::atomic::commit_all`]).
+//! Plots (plotters): maps of scattered values with a colour bar in their unit, tool paths,
+//! TIFs, PSDs and convergence curves, as PNG or, for a destination ending in `.svg`, as SVG
+//! ([`PlotFormat`]; the map rasters are embedded in the SVG as PNG images, the axes, text and
+//! curves are vectors). Every plot is rendered in memory, staged as a temporary file next to its
+//! destination and renamed into place together with the command's other outputs
+//! ([`crate::atomic::commit_all`]).
 //!
 //! Text uses the DejaVu Sans font shipped in `io/assets` (Bitstream Vera licence, see
 //! `io/assets/DejaVuSans-LICENSE.txt`), so plots look the same on every machine.
@@ -35,11 +37,61 @@ fn plot_error<E: std::fmt::Display>(path: &Path, e: E) -> Error {
     Error::io(path, std::io::Error::other(format!("plotting failed: {e}")))
 }
 
+/// The file format of a plot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum PlotFormat {
+    /// Portable Network Graphics, a raster image.
+    #[default]
+    Png,
+    /// Scalable Vector Graphics: axes, text and curves as vectors, map rasters embedded as PNG.
+    Svg,
+}
+
+impl PlotFormat {
+    /// The file extension, without the dot.
+    pub fn extension(self) -> &'static str {
+        match self {
+            PlotFormat::Png => "png",
+            PlotFormat::Svg => "svg",
+        }
+    }
+
+    /// The file name of the figure `stem` in this format, e.g. `residual.svg`.
+    pub fn file_name(self, stem: &str) -> String {
+        format!("{stem}.{}", self.extension())
+    }
+
+    /// The format a plot written to `path` gets: SVG for a `.svg` extension (any case), else PNG.
+    pub fn of_path(path: &Path) -> PlotFormat {
+        match path.extension().and_then(|e| e.to_str()) {
+            Some(e) if e.eq_ignore_ascii_case("svg") => PlotFormat::Svg,
+            _ => PlotFormat::Png,
+        }
+    }
+}
+
+impl std::str::FromStr for PlotFormat {
+    type Err = String;
+
+    /// `png` or `svg`.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "png" => Ok(PlotFormat::Png),
+            "svg" => Ok(PlotFormat::Svg),
+            _ => Err(format!("`{s}`: give `png` or `svg`")),
+        }
+    }
+}
+
+/// The root drawing area of a plot.
+type Root<DB> = DrawingArea<DB, plotters::coord::Shift>;
+
 /// Draws on a canvas of `size_px` in memory with `draw` and stages the PNG for `path` (committed
 /// together with the other outputs, see [`crate::atomic::stage`]).
 fn stage_png_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<Staged>
 where
-    F: FnOnce(&DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>) -> Result<()>,
+    F: FnOnce(&Root<BitMapBackend<'_>>) -> Result<()>,
 {
     register_font();
     let (w, h) = size_px;
@@ -60,6 +112,41 @@ where
             .map_err(std::io::Error::other)?;
         writer.finish().map_err(std::io::Error::other)
     })
+}
+
+/// Draws on an SVG canvas of `size_px` (user units of one pixel) with `draw` and stages the
+/// document for `path`.
+fn stage_svg_sized<F>(path: &Path, size_px: (u32, u32), draw: F) -> Result<Staged>
+where
+    F: FnOnce(&Root<SVGBackend<'_>>) -> Result<()>,
+{
+    register_font();
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, size_px).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| plot_error(path, e))?;
+        draw(&root)?;
+        root.present().map_err(|e| plot_error(path, e))?;
+    }
+    // plotters writes embedded images with the media type `png`; browsers and editors want the
+    // registered `image/png`.
+    let svg = svg.replace("href=\"data:png;base64,", "href=\"data:image/png;base64,");
+    stage(path, |out: &mut dyn std::io::Write| {
+        out.write_all(svg.as_bytes())
+    })
+}
+
+/// Stages the plot that `|root| body` draws on a canvas of `size_px` at `path`, in the format of
+/// the path ([`PlotFormat::of_path`]): the drawing is written once and instantiated for each
+/// backend.
+macro_rules! stage_plot {
+    ($path:expr, $size_px:expr, |$root:ident| $body:expr) => {{
+        let path: &Path = $path;
+        match PlotFormat::of_path(path) {
+            PlotFormat::Png => stage_png_sized(path, $size_px, |$root| $body),
+            PlotFormat::Svg => stage_svg_sized(path, $size_px, |$root| $body),
+        }
+    }};
 }
 
 /// Finite range of `v`, widened when all values are equal; `None` when none is finite.
@@ -523,7 +610,7 @@ pub fn stage_map_plot_with(
     let (ex0, ex1, ey0, ey1) = (x0 - half, x1 + half, y0 - half, y1 + half);
     let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
     let heading = titled(title, unit, v) + &layout.stretch_note();
-    stage_png_sized(path, layout.canvas_px, |root| {
+    stage_plot!(path, layout.canvas_px, |root| {
         root.draw(&Text::new(
             heading.as_str(),
             (layout.data_origin_px.0 as i32, 10),
@@ -558,6 +645,8 @@ pub fn stage_map_plot_with(
         )?;
         let (xr, yr) = chart.plotting_area().get_pixel_range();
         let (w, h) = ((xr.end - xr.start).max(1), (yr.end - yr.start).max(1));
+        // The data area as one RGB image: pixels on a PNG, an embedded image in an SVG.
+        let mut raster = Vec::with_capacity(w as usize * h as usize * 3);
         for py in 0..h {
             for px in 0..w {
                 // Pixel centre in plot units, then in part coordinates.
@@ -570,10 +659,13 @@ pub fn stage_map_plot_with(
                     Some(i) => scale.colour(v[i], lo, hi),
                     None => NO_DATA,
                 };
-                root.draw_pixel((xr.start + px, yr.start + py), &colour)
-                    .map_err(|e| plot_error(path, e))?;
+                raster.extend_from_slice(&[colour.0, colour.1, colour.2]);
             }
         }
+        let image =
+            BitMapElement::with_owned_buffer((xr.start, yr.start), (w as u32, h as u32), raster)
+                .ok_or_else(|| plot_error(path, "the map raster does not fill its area"))?;
+        root.draw(&image).map_err(|e| plot_error(path, e))?;
         colour_bar(path, &bar, unit, (lo, hi), scale, layout, outside, n)
     })
 }
@@ -731,7 +823,7 @@ pub fn stage_grid_plot(
     } else {
         layout
     };
-    stage_png_sized(path, layout.canvas_px, |root| {
+    stage_plot!(path, layout.canvas_px, |root| {
         root.draw(&Text::new(
             title,
             (layout.data_origin_px.0 as i32, 10),
@@ -814,7 +906,7 @@ pub fn stage_path_plot(path: &Path, title: &str, x: &[f64], y: &[f64]) -> Result
     let layout = MapLayout::for_extent(ex1 - ex0, ey1 - ey0);
     let canvas = (layout.canvas_px.0, layout.canvas_px.1 - BAR_AREA_PX);
     let heading = format!("{title}: {n} points{}", layout.stretch_note());
-    stage_png_sized(path, canvas, |root| {
+    stage_plot!(path, canvas, |root| {
         root.draw(&Text::new(
             heading.as_str(),
             (layout.data_origin_px.0 as i32, 10),
@@ -910,7 +1002,7 @@ pub fn stage_spectrum_plot(
         .filter(|v| *v > 0.0 && v.is_finite())
         .collect();
     let (lo, hi) = value_range(&values).unwrap_or((1e-6, 1.0));
-    stage_png_sized(path, PLOT_SIZE_PX, |root| {
+    stage_plot!(path, PLOT_SIZE_PX, |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 22))
             .margin(16)
@@ -987,7 +1079,7 @@ pub fn stage_series_plot(
     })?;
     let (y0, y1) = value_range(&ys).unwrap_or((0.0, 1.0));
     let (y0, y1) = (y0.min(0.0), y1 + 0.05 * (y1 - y0.min(0.0)));
-    stage_png_sized(path, (1200, 600), |root| {
+    stage_plot!(path, (1200, 600), |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 22))
             .margin(16)
@@ -1049,7 +1141,7 @@ pub fn stage_convergence_plot(
         .ceil();
     // Whole iterations only: at most ten ticks, on integers.
     let ticks = (it_max as usize + 1).min(10);
-    stage_png_sized(path, PLOT_SIZE_PX, |root| {
+    stage_plot!(path, PLOT_SIZE_PX, |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 24))
             .margin(12)
@@ -1090,11 +1182,9 @@ pub fn stage_convergence_plot(
 }
 
 /// The series legend, boxed, at the upper right of `chart`.
-fn draw_legend<'a, CT>(
-    chart: &mut ChartContext<'a, BitMapBackend<'a>, CT>,
-    path: &Path,
-) -> Result<()>
+fn draw_legend<'a, DB, CT>(chart: &mut ChartContext<'a, DB, CT>, path: &Path) -> Result<()>
 where
+    DB: DrawingBackend + 'a,
     CT: CoordTranslate,
 {
     chart
@@ -1171,6 +1261,133 @@ mod tests {
         colours.sort();
         colours.dedup();
         assert!(colours.len() > 50, "{} colours", colours.len());
+    }
+
+    /// The trimmed contents of an SVG's `<text>` elements, in document order.
+    fn svg_texts(svg: &str) -> Vec<&str> {
+        svg.split("<text")
+            .skip(1)
+            .map(|t| {
+                let body = &t[t.find('>').unwrap() + 1..];
+                body[..body.find("</text>").unwrap()].trim()
+            })
+            .collect()
+    }
+
+    /// Decodes standard base64 (with `=` padding), as the SVG backend writes embedded images.
+    fn base64_decode(text: &str) -> Vec<u8> {
+        let value = |c: u8| -> u32 {
+            match c {
+                b'A'..=b'Z' => (c - b'A') as u32,
+                b'a'..=b'z' => (c - b'a') as u32 + 26,
+                b'0'..=b'9' => (c - b'0') as u32 + 52,
+                b'+' => 62,
+                b'/' => 63,
+                _ => panic!("not base64: {c}"),
+            }
+        };
+        let bytes: Vec<u8> = text.bytes().filter(|c| *c != b'=').collect();
+        let mut out = Vec::new();
+        for chunk in bytes.chunks(4) {
+            let mut acc = 0u32;
+            for (k, c) in chunk.iter().enumerate() {
+                acc |= value(*c) << (18 - 6 * k);
+            }
+            let n = chunk.len() * 6 / 8;
+            out.extend_from_slice(&acc.to_be_bytes()[1..1 + n]);
+        }
+        out
+    }
+
+    /// The SVG of a map holds the same data-area pixels as its PNG (embedded as one image at the
+    /// data area's place and size), the title as text, and the axes as vectors; the format
+    /// follows the file's extension.
+    #[test]
+    fn svg_map_plots_embed_the_png_data_area_and_draw_text_as_text() {
+        let dir = tempfile::tempdir().unwrap();
+        let (x, y) = grid();
+        let v: Vec<f64> = x.iter().zip(&y).map(|(a, b)| (a * 0.3).sin() + b).collect();
+        let png_path = dir.path().join("m.png");
+        let svg_path = dir.path().join("m.svg");
+        plot_map(&png_path, "error before", "nm", &x, &y, &v).unwrap();
+        plot_map(&svg_path, "error before", "nm", &x, &y, &v).unwrap();
+        assert_eq!(PlotFormat::of_path(&svg_path), PlotFormat::Svg);
+        assert_eq!(PlotFormat::of_path(Path::new("A.SVG")), PlotFormat::Svg);
+        assert_eq!(PlotFormat::of_path(&png_path), PlotFormat::Png);
+        let svg = std::fs::read_to_string(&svg_path).unwrap();
+        let layout = MapLayout::for_extent(30.0, 30.0);
+        assert!(svg.starts_with("<svg"), "{}", &svg[..svg.len().min(80)]);
+        assert!(svg.trim_end().ends_with("</svg>"));
+        assert!(svg.contains(&format!(
+            "width=\"{}\" height=\"{}\"",
+            layout.canvas_px.0, layout.canvas_px.1
+        )));
+        let text = svg_texts(&svg);
+        assert!(
+            text[0].starts_with("error before: PV"),
+            "the title is text: {text:?}"
+        );
+        assert!(
+            text.contains(&"x (mm)") && text.contains(&"y (mm)"),
+            "{text:?}"
+        );
+        // One embedded image: the data area.
+        assert_eq!(svg.matches("<image").count(), 1);
+        let at = svg.find("<image").unwrap();
+        let tag = &svg[at..at + svg[at..].find("/>").unwrap()];
+        let attr = |name: &str| -> String {
+            let k = tag.find(&format!(" {name}=\"")).unwrap() + name.len() + 3;
+            tag[k..k + tag[k..].find('"').unwrap()].to_string()
+        };
+        let (ix, iy): (u32, u32) = (attr("x").parse().unwrap(), attr("y").parse().unwrap());
+        let (iw, ih): (u32, u32) = (
+            attr("width").parse().unwrap(),
+            attr("height").parse().unwrap(),
+        );
+        let href = attr("href");
+        let b64 = href.strip_prefix("data:image/png;base64,").unwrap();
+        let embedded = dir.path().join("embedded.png");
+        std::fs::write(&embedded, base64_decode(b64)).unwrap();
+        let (ew, eh, epx, ebpp) = decode(&embedded);
+        assert_eq!((ew, eh), (iw, ih));
+        let (pw, _, ppx, pbpp) = decode(&png_path);
+        let mut differ = 0;
+        for r in 0..eh {
+            for c in 0..ew {
+                let e = &epx[((r * ew + c) as usize) * ebpp..][..3];
+                let p = &ppx[(((iy + r) * pw + ix + c) as usize) * pbpp..][..3];
+                differ += usize::from(e != p);
+            }
+        }
+        assert_eq!(differ, 0, "the SVG's data area is the PNG's");
+        assert!(ew * eh > 1000, "{ew} x {eh}");
+        // Vectors, not one element per pixel: the file is a fraction of the raw pixels.
+        assert!(svg.len() < (layout.canvas_px.0 * layout.canvas_px.1) as usize);
+    }
+
+    /// Line plots in SVG draw their curves as vector paths with the legend as text.
+    #[test]
+    fn svg_line_plots_draw_curves_as_paths() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = dir.path().join("conv.svg");
+        plot_convergence(
+            &c,
+            "convergence",
+            "nm",
+            &[
+                ("RMS", vec![(0.0, 50.0), (1.0, 2.0), (2.0, 0.5)]),
+                ("PV", vec![(0.0, 300.0), (1.0, 20.0), (2.0, 4.0)]),
+            ],
+        )
+        .unwrap();
+        let svg = std::fs::read_to_string(&c).unwrap();
+        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+        assert!(svg.matches("<polyline").count() >= 2, "two curves");
+        let text = svg_texts(&svg);
+        assert!(text.contains(&"RMS") && text.contains(&"PV"), "{text:?}");
+        assert!(!svg.contains("<image"));
+        assert!("SVG".parse::<PlotFormat>() == Ok(PlotFormat::Svg));
+        assert!("jpeg".parse::<PlotFormat>().is_err());
     }
 
     #[test]

@@ -3,9 +3,10 @@
 
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
+use crate::figures::FigureStyle;
 use crate::machine::{read_dwell_times, DwellTimes};
 use crate::metrology::{MapRead, MapSource};
-use crate::plots::{stage_convergence_plot, stage_map_plot, stage_path_plot};
+use crate::plots::{stage_convergence_plot, stage_map_plot, stage_map_plot_with, stage_path_plot};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
@@ -366,7 +367,11 @@ pub const EXECUTED_DWELL_HEADER: &str = "x_mm,y_mm,planned_dwell_s,executed_dwel
 
 /// Writes the outputs of [`simulate_program`]: those of [`write_simulation`] plus, for a program
 /// with DWELL markers, `executed_dwell.csv`, all committed together.
-pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: bool) -> Result<()> {
+pub fn write_program_simulation(
+    sim: &ProgramSimulated,
+    out_dir: &Path,
+    plots: Option<FigureStyle>,
+) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let s = &sim.sim;
     if sim.check.stretches == 0 {
@@ -387,12 +392,12 @@ pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: b
         Ok(())
     })?;
     let mut extra = vec![executed];
-    if plots {
+    if let Some(style) = plots {
         let index = |v: &[f64]| -> Vec<(f64, f64)> {
             v.iter().enumerate().map(|(k, t)| (k as f64, *t)).collect()
         };
         extra.push(crate::plots::stage_series_plot(
-            &out_dir.join("dwell_planned_vs_executed.png"),
+            &style.path(out_dir, "dwell_planned_vs_executed"),
             &format!(
                 "Dwell per point: planned {:.1} s, executed {:.1} s in the stretches",
                 sim.planned_dwell_s.iter().sum::<f64>(),
@@ -420,10 +425,10 @@ pub fn write_program_simulation(sim: &ProgramSimulated, out_dir: &Path, plots: b
 }
 
 /// Writes `residual.csv` and `report.json` of a simulation into `out_dir`; with `plots`, also
-/// `error_before.png`, `removal.png`, `residual.png` and the PSDs of
-/// [`crate::figures::stage_psd_figures`] (along x), and for a program
-/// `dwell_planned_vs_executed.png`.
-pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<()> {
+/// the figures `error_before`, `removal`, `residual` and the PSDs of
+/// [`crate::figures::stage_psd_figures`] (along x) in that style, and for a program
+/// `dwell_planned_vs_executed`.
+pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: Option<FigureStyle>) -> Result<()> {
     write_simulation_with(sim, out_dir, plots, Vec::new())
 }
 
@@ -431,7 +436,7 @@ pub fn write_simulation(sim: &Simulated, out_dir: &Path, plots: bool) -> Result<
 fn write_simulation_with(
     sim: &Simulated,
     out_dir: &Path,
-    plots: bool,
+    plots: Option<FigureStyle>,
     extra: Vec<Staged>,
 ) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
@@ -448,31 +453,33 @@ fn write_simulation_with(
         )?,
         stage_report(&out_dir.join("report.json"), &sim.report)?,
     ]);
-    if plots {
+    if let Some(style) = plots {
         let (x, y) = (sim.map.x_mm(), sim.map.y_mm());
-        staged.push(stage_map_plot(
-            &out_dir.join("error_before.png"),
+        staged.push(stage_map_plot_with(
+            &style.path(out_dir, "error_before"),
             "Surface error before",
             "nm",
             x,
             y,
             sim.map.z_nm(),
+            style.color_limits,
         )?);
         staged.push(stage_map_plot(
-            &out_dir.join("removal.png"),
+            &style.path(out_dir, "removal"),
             "Simulated removal",
             "nm",
             x,
             y,
             &sim.removal_nm,
         )?);
-        staged.push(stage_map_plot(
-            &out_dir.join("residual.png"),
+        staged.push(stage_map_plot_with(
+            &style.path(out_dir, "residual"),
             "Residual (piston removed)",
             "nm",
             x,
             y,
             &residual,
+            style.color_limits,
         )?);
         // A map off a lattice has no PSD; the other figures are written all the same.
         let (psd, _left_out) = crate::figures::stage_psd_figures(
@@ -483,6 +490,7 @@ fn write_simulation_with(
             &residual,
             preston_solver::psd::LineAxis::X,
             None,
+            style.format,
         )?;
         staged.extend(psd);
     }
@@ -526,9 +534,15 @@ pub fn stage_convergence_csv(path: &Path, records: &[IterationRecord]) -> Result
 
 /// Writes the outputs of a polishing loop into `out_dir`: `convergence.csv`, the last run's
 /// `dwell.csv` and `measured.csv` (`x_mm,y_mm,z_nm`, the map it was planned on), the final
-/// measured map `final_measured.csv`; with `plots`, PNGs of the error before the last run, the
-/// predicted removal, the residual, the dwell-time and feed maps, the path and the convergence.
-pub fn write_loop(outcome: &LoopOutcome, out_dir: &Path, plots: bool) -> Result<()> {
+/// measured map `final_measured.csv` and `report.html`; with `plots`, the figures of the error
+/// before the last run, the predicted removal, the residual, the dwell-time and feed maps, the
+/// path and the convergence, in `style` (the page embeds them in every run).
+pub fn write_loop(
+    outcome: &LoopOutcome,
+    out_dir: &Path,
+    plots: bool,
+    style: FigureStyle,
+) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let mut staged = vec![stage_convergence_csv(
         &out_dir.join("convergence.csv"),
@@ -560,7 +574,7 @@ pub fn write_loop(outcome: &LoopOutcome, out_dir: &Path, plots: bool) -> Result<
         )?);
     }
     // The figures are drawn for the page in every run, and written as files with `plots`.
-    let figures = stage_loop_plots(outcome, out_dir)?;
+    let figures = stage_loop_plots(outcome, out_dir, style)?;
     staged.push(stage_loop_page(outcome, out_dir, &figures)?);
     if plots {
         staged.extend(figures);
@@ -622,14 +636,18 @@ fn stage_loop_page(outcome: &LoopOutcome, out_dir: &Path, figures: &[Staged]) ->
     crate::html::stage_html(&out_dir.join("report.html"), &page)
 }
 
-fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>> {
+fn stage_loop_plots(
+    outcome: &LoopOutcome,
+    out_dir: &Path,
+    style: FigureStyle,
+) -> Result<Vec<Staged>> {
     let mut staged = Vec::new();
     let rec = &outcome.records;
     let series = |f: fn(&IterationRecord) -> f64| -> Vec<(f64, f64)> {
         rec.iter().map(|r| (r.iteration as f64, f(r))).collect()
     };
     staged.push(stage_convergence_plot(
-        &out_dir.join("convergence.png"),
+        &style.path(out_dir, "convergence"),
         "Form error per iteration",
         "nm",
         &[
@@ -639,44 +657,47 @@ fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>
         ],
     )?);
     let fin = &outcome.final_measured;
-    staged.push(stage_map_plot(
-        &out_dir.join("final_error.png"),
+    staged.push(stage_map_plot_with(
+        &style.path(out_dir, "final_error"),
         "Measured form error after the last run",
         "nm",
         fin.x_mm(),
         fin.y_mm(),
         fin.z_nm(),
+        style.color_limits,
     )?);
     if let Some(run) = &outcome.last_run {
         let m = &run.measured;
         let residual = centred_residual_nm(&run.target_nm, &run.predicted_removal_nm);
-        staged.push(stage_map_plot(
-            &out_dir.join("error_before.png"),
+        staged.push(stage_map_plot_with(
+            &style.path(out_dir, "error_before"),
             "Measured form error before the last run",
             "nm",
             m.x_mm(),
             m.y_mm(),
             m.z_nm(),
+            style.color_limits,
         )?);
         staged.push(stage_map_plot(
-            &out_dir.join("removal.png"),
+            &style.path(out_dir, "removal"),
             "Predicted removal",
             "nm",
             m.x_mm(),
             m.y_mm(),
             &run.predicted_removal_nm,
         )?);
-        staged.push(stage_map_plot(
-            &out_dir.join("residual.png"),
+        staged.push(stage_map_plot_with(
+            &style.path(out_dir, "residual"),
             "Predicted residual (piston removed)",
             "nm",
             m.x_mm(),
             m.y_mm(),
             &residual,
+            style.color_limits,
         )?);
         let (px, py) = (run.path.x_mm(), run.path.y_mm());
         staged.push(stage_map_plot(
-            &out_dir.join("dwell.png"),
+            &style.path(out_dir, "dwell"),
             "Dwell time",
             "s",
             px,
@@ -685,7 +706,7 @@ fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>
         )?);
         let feeds = feeds_mm_per_min(&run.path.ds_mm(), &run.dwell_s);
         staged.push(stage_map_plot(
-            &out_dir.join("feed.png"),
+            &style.path(out_dir, "feed"),
             "Feed",
             "mm/min",
             px,
@@ -693,7 +714,7 @@ fn stage_loop_plots(outcome: &LoopOutcome, out_dir: &Path) -> Result<Vec<Staged>
             &feeds,
         )?);
         staged.push(stage_path_plot(
-            &out_dir.join("path.png"),
+            &style.path(out_dir, "path"),
             "Tool path",
             px,
             py,

@@ -218,6 +218,7 @@ class SolveResult:
         plots: bool = False,
         report: bool = False,
         color_limits: Optional[Union[str, Tuple[float, float]]] = None,
+        plot_format: str = "png",
     ) -> List[str]:
         """Writes ``dwell.csv``, ``residual.csv`` and ``report.json`` (the CLI's files) into
         ``out_dir``, created if needed; with ``plots=True`` the figures and PSD tables of
@@ -225,7 +226,8 @@ class SolveResult:
         ``report.html`` (``preston solve --report``: one self-contained page with the inputs,
         result, machine summary, warnings and figures). ``color_limits``: ``"robust"`` (the
         default), ``"full"`` or ``(lo, hi)`` in nm for the error and residual maps, as
-        ``--color-limits``. Everything is staged first and committed together: all the files
+        ``--color-limits``; ``plot_format``: ``"png"`` or ``"svg"``, as ``--plot-format``.
+        Everything is staged first and committed together: all the files
         appear, whole, or none. Returns the notes on figures left out (a PSD needs the map on a
         lattice)."""
         if color_limits is not None and not isinstance(color_limits, str):
@@ -236,21 +238,24 @@ class SolveResult:
                 raise InputError(
                     f"color_limits={color_limits!r}: 'robust', 'full' or (lo, hi) in nm"
                 ) from None
-        return list(self._native.write(os.fspath(out_dir), plots, report, color_limits))
+        return list(
+            self._native.write(os.fspath(out_dir), plots, report, color_limits, plot_format)
+        )
 
     def write_plots(
-        self, out_dir: PathLike, *, along: Optional[str] = None
+        self, out_dir: PathLike, *, along: Optional[str] = None, plot_format: str = "png"
     ) -> Tuple[List[Path], List[str]]:
         """Writes the figures of ``preston solve --plots`` into ``out_dir`` (created if needed),
         committed together: ``error_before.png``, ``removal.png``, ``residual.png`` (nm),
         ``dwell.png`` (s), ``feed.png`` (mm/min) and ``path.png`` at equal mm per pixel (1000 px
         wide), ``tif.png`` (nm/s), and ``psd.png`` (900 x 700 px) with ``psd.csv``: the 1-D PSDs
         of error and residual along ``along`` (``"x"``/``"y"``; default: the job's raster
-        direction), the raster pitch marked.
+        direction), the raster pitch marked, and the 2-D and azimuthal PSDs with their CSVs.
+        ``plot_format="svg"`` writes the figures as SVG (``--plot-format svg``).
 
         Returns ``(files, notes)``: the paths written and why a figure was left out (no PSD for a
         map off a lattice)."""
-        files, notes = self._native.write_plots(os.fspath(out_dir), along)
+        files, notes = self._native.write_plots(os.fspath(out_dir), along, plot_format)
         return [Path(f) for f in files], list(notes)
 
     def psd(self, along: Optional[str] = None) -> dict:

@@ -4,25 +4,15 @@
 
 use crate::{array, to_py, Array, InputError};
 use preston_io::atomic::commit_all;
-use preston_io::figures::stage_solve_figures;
+use preston_io::figures::{stage_solve_figures_with, FigureStyle};
 use preston_io::pipeline::Solved;
+use preston_io::plots::PlotFormat;
 use preston_io::report::centred_residual_nm;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::{line_psd, LineAxis};
-use preston_solver::tif::InfluenceFunction;
 use pyo3::prelude::*;
 use serde_json::json;
 use std::path::{Path, PathBuf};
-
-/// The map figures every solve gets, in the order they are staged.
-const MAP_FIGURES: [&str; 6] = [
-    "error_before.png",
-    "removal.png",
-    "residual.png",
-    "dwell.png",
-    "feed.png",
-    "path.png",
-];
 
 /// The PSD's lines run along the raster's lines.
 pub(crate) fn line_axis_of(along: RasterAxis) -> LineAxis {
@@ -41,36 +31,39 @@ pub(crate) fn line_axis(along: Option<&str>, job_along: RasterAxis) -> PyResult<
     }))
 }
 
+/// The figure format of the keyword `plot_format` (`"png"` or `"svg"`).
+pub(crate) fn plot_format(plot_format: &str) -> PyResult<PlotFormat> {
+    plot_format
+        .parse()
+        .map_err(|e| InputError::new_err(format!("plot_format: {e}")))
+}
+
 /// Writes the figure set of `preston solve --plots` for `solved` into `out_dir` (created if
-/// needed), all files committed together under the directory's lock. Returns the files written
-/// and the notes on figures left out (no PSD for a map off a lattice).
+/// needed) in `format`, all files committed together under the directory's lock. Returns the
+/// files written and the notes on figures left out (no PSD for a map off a lattice).
 pub(crate) fn write_figures(
     solved: &Solved,
     out_dir: &Path,
     axis: LineAxis,
     raster_pitch_mm: Option<f64>,
+    format: PlotFormat,
 ) -> preston_io::Result<(Vec<PathBuf>, Vec<String>)> {
     std::fs::create_dir_all(out_dir).map_err(|e| preston_io::Error::io(out_dir, e))?;
-    let setup = &solved.prepared.setup;
-    let (staged, notes) =
-        stage_solve_figures(setup, &solved.outcome, out_dir, axis, raster_pitch_mm)?;
+    let style = FigureStyle {
+        format,
+        ..FigureStyle::default()
+    };
+    let (staged, notes) = stage_solve_figures_with(
+        &solved.prepared.setup,
+        &solved.outcome,
+        out_dir,
+        axis,
+        raster_pitch_mm,
+        &style,
+    )?;
+    let files = staged.iter().map(|s| s.dest().to_path_buf()).collect();
     commit_all(staged)?;
-    let radius = setup.tif.support_radius_mm();
-    let mut names: Vec<&str> = MAP_FIGURES.to_vec();
-    if radius.is_finite() && radius > 0.0 {
-        names.push("tif.png");
-    }
-    if notes.is_empty() {
-        names.extend([
-            "psd.csv",
-            "psd.png",
-            "psd_2d.csv",
-            "psd_2d.png",
-            "psd_azimuthal.csv",
-            "psd_azimuthal.png",
-        ]);
-    }
-    Ok((names.iter().map(|n| out_dir.join(n)).collect(), notes))
+    Ok((files, notes))
 }
 
 /// The one-sided 1-D PSDs (Welch, along lattice lines in `axis`) of the map error and of the

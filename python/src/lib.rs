@@ -536,8 +536,9 @@ impl SolveResult {
     /// with `plots`, the figures and psd.csv of `preston solve --plots`; everything is staged
     /// first and committed together (all files or none). Returns the notes on figures left out.
     /// With `report`, also report.html (`preston solve --report`); `color_limits` (`"robust"`,
-    /// `"full"` or `"LO,HI"` in nm) sets the colour range of the error and residual maps.
-    #[pyo3(signature = (out_dir, plots=false, report=false, color_limits=None))]
+    /// `"full"` or `"LO,HI"` in nm) sets the colour range of the error and residual maps,
+    /// `plot_format` (`"png"`, `"svg"`) the figures' file format.
+    #[pyo3(signature = (out_dir, plots=false, report=false, color_limits=None, plot_format="png"))]
     fn write(
         &self,
         py: Python<'_>,
@@ -545,7 +546,9 @@ impl SolveResult {
         plots: bool,
         report: bool,
         color_limits: Option<&str>,
+        plot_format: &str,
     ) -> PyResult<Vec<String>> {
+        let format = figures::plot_format(plot_format)?;
         let color_limits = match color_limits {
             Some(c) => c
                 .parse::<preston_io::plots::ColorLimits>()
@@ -568,7 +571,10 @@ impl SolveResult {
                     )),
                 )
             }),
-            style: preston_io::figures::FigureStyle { color_limits },
+            style: preston_io::figures::FigureStyle {
+                color_limits,
+                format,
+            },
         };
         py.detach(|| pipeline::write_solve_outputs(&self.solved, &out_dir, &options))
             .map_err(to_py)
@@ -577,17 +583,22 @@ impl SolveResult {
     /// the error, removal, residual (nm), dwell (s) and feed (mm/min), the path, the TIF (nm/s)
     /// and the PSDs of error and residual along `along` (`"x"`/`"y"`; default: the job's raster
     /// direction) with `psd.csv`, all committed together. Returns `(files, notes)`: the paths
-    /// written and why a figure was left out (no PSD for a map off a lattice).
-    #[pyo3(signature = (out_dir, along=None))]
+    /// written and why a figure was left out (no PSD for a map off a lattice). `plot_format`:
+    /// `"png"` or `"svg"`.
+    #[pyo3(signature = (out_dir, along=None, plot_format="png"))]
     fn write_plots(
         &self,
         py: Python<'_>,
         out_dir: PathBuf,
         along: Option<&str>,
+        plot_format: &str,
     ) -> PyResult<(Vec<PathBuf>, Vec<String>)> {
         let axis = figures::line_axis(along, self.raster_along)?;
-        py.detach(|| figures::write_figures(&self.solved, &out_dir, axis, self.raster_pitch_mm))
-            .map_err(to_py)
+        let format = figures::plot_format(plot_format)?;
+        py.detach(|| {
+            figures::write_figures(&self.solved, &out_dir, axis, self.raster_pitch_mm, format)
+        })
+        .map_err(to_py)
     }
     /// The 1-D PSDs (nm^2 mm) of the map error and the residual along lattice lines in `along`
     /// (default: the job's raster direction) against frequency (1/mm), the columns of psd.csv:

@@ -102,6 +102,29 @@ def test_write_plots_equals_the_cli_figures(solved, tmp_path):
         assert f.read_bytes() == (cli_out / f.name).read_bytes(), f.name
 
 
+def test_svg_figures_are_the_png_figures_as_svg(solved, tmp_path):
+    """``plot_format="svg"``: the same figures as SVG documents of the PNGs' sizes, the CSVs
+    the same bytes, and ``write(..., plots=True, plot_format="svg")`` the same files."""
+    r, cli_out, _ = solved
+    files, notes = r.write_plots(tmp_path / "svg", plot_format="svg")
+    assert notes == []
+    want = sorted(f.replace(".png", ".svg") for f in FIGURES)
+    assert sorted(f.name for f in files) == want
+    for f in files:
+        if f.suffix == ".svg":
+            text = f.read_text()
+            w, h = png_size(cli_out / (f.stem + ".png"))
+            assert text.startswith(f'<svg width="{w}" height="{h}"'), f.name
+            assert text.rstrip().endswith("</svg>"), f.name
+        else:
+            assert f.read_bytes() == (cli_out / f.name).read_bytes(), f.name
+    r.write(tmp_path / "all", plots=True, plot_format="svg")
+    for f in files:
+        assert (tmp_path / "all" / f.name).read_bytes() == f.read_bytes(), f.name
+    with pytest.raises(ValueError, match="plot_format"):
+        r.write_plots(tmp_path / "bad", plot_format="jpeg")
+
+
 def test_png_pixel_sizes(solved, tmp_path):
     r, _, _ = solved
     files, _ = r.write_plots(tmp_path)

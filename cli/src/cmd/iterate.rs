@@ -136,9 +136,11 @@ pub struct Args {
     /// Stop when the next run is predicted to lower the measured RMS by less than this, nm.
     #[arg(long, default_value_t = MIN_GAIN_NM)]
     pub min_gain_nm: f64,
-    /// Write PNG plots next to the CSVs.
+    /// Write the figures (also embedded in report.html, written every run) next to the CSVs.
     #[arg(long)]
     pub plots: bool,
+    #[command(flatten)]
+    pub figures: super::figure_args::FigureArgs,
     /// Output directory.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -238,7 +240,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             run_virtual(&part, &tif, &settings, &bars)?
         }
     };
-    write_loop(&outcome, &args.out, args.plots)
+    write_loop(&outcome, &args.out, args.plots, args.figures.style())
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     crate::note!(
         "iteration,pv_nm,rms_nm,max_abs_nm,mean_abs_nm,time_s,predicted_rms_nm,\

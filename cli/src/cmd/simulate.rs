@@ -106,9 +106,12 @@ pub struct Args {
     /// Fastest feed, mm/min: reports bound violations of the program (optional).
     #[arg(long = "v-max", value_name = "MM_PER_MIN")]
     pub v_max_mm_per_min: Option<f64>,
-    /// Write PNG plots (error before, removal, residual) next to the CSVs.
+    /// Write figures next to the CSVs: error before, removal, residual, the PSDs (1-D along x,
+    /// 2-D, azimuthal; with their CSVs) and, for a program, planned against executed dwell.
     #[arg(long)]
     pub plots: bool,
+    #[command(flatten)]
+    pub figures: super::figure_args::FigureArgs,
     /// Output directory for residual.csv and report.json.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -173,7 +176,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     });
     let bars = Bars::new();
     let sim = simulate(&inputs.map, &tif, dwell, motion, limits.as_ref(), &bars)?;
-    write_simulation(&sim, &args.out, args.plots)
+    write_simulation(&sim, &args.out, args.plots.then(|| args.figures.style()))
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.report;
     if let Some(input) = &r.map_input {
@@ -238,7 +241,7 @@ fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<E
     if let Some(input) = &sim.sim.report.map_input {
         print_input_notes(input);
     }
-    write_program_simulation(&sim, &args.out, args.plots)
+    write_program_simulation(&sim, &args.out, args.plots.then(|| args.figures.style()))
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.sim.report;
     let c = &sim.check;

@@ -161,19 +161,18 @@ pub struct Args {
     /// Exit 0 even when the solver stops before converging (the status is still reported).
     #[arg(long)]
     pub accept_best_iterate: bool,
-    /// Also write PNG figures (error_before, removal, residual, dwell, feed, tif, path) and the
-    /// PSDs of error and residual: along the raster direction (psd.png, psd.csv), 2-D
-    /// (psd_2d.png, psd_2d.csv) and azimuthally averaged (psd_azimuthal.png, psd_azimuthal.csv).
+    /// Also write figures (error_before, removal, residual, dwell, feed, tif, path; PNG or, with
+    /// `--plot-format svg`, SVG) and the PSDs of error and residual: along the raster direction
+    /// (psd.png, psd.csv), 2-D (psd_2d.png, psd_2d.csv) and azimuthally averaged
+    /// (psd_azimuthal.png, psd_azimuthal.csv).
     #[arg(long)]
     pub plots: bool,
     /// Also write report.html: one self-contained page with the inputs and their SHA-256, the
     /// result, the machine summary, the warnings and the figures embedded.
     #[arg(long)]
     pub report: bool,
-    /// Colour range of the error and residual maps: LO,HI in nm, `robust` (default: +- the 99th
-    /// percentile of |z|, points outside marked) or `full`.
-    #[arg(long, value_name = "LO,HI", allow_hyphen_values = true)]
-    pub color_limits: Option<preston_io::plots::ColorLimits>,
+    #[command(flatten)]
+    pub figures: super::figure_args::FigureArgs,
     /// Design surface JSON of a curved part: the TIF acts in each dwell point's tangent plane.
     #[arg(long, value_name = "S.json")]
     pub surface: Option<PathBuf>,
@@ -447,9 +446,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let output = args.output;
     output.apply();
     let html = args.report;
-    let style = preston_io::figures::FigureStyle {
-        color_limits: args.color_limits.unwrap_or_default(),
-    };
+    let style = args.figures.style();
     let (job, job_path, out, accept_best) = args.into_job()?;
     if preston_io::tools::is_multi_tool(&job) {
         return run_tools(&job, &job_path, &out, accept_best, output);
