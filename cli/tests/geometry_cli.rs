@@ -632,3 +632,96 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
     ]);
     assert_eq!(r.status.code(), Some(2));
 }
+
+/// Points of a conic of curvature `c` (1/mm) and conic constant `k` over a disc of radius
+/// `radius_mm` (41 x 41 grid), plus `tilt_mm_per_mm2 * x y` and `noise_mm` times uniform noise
+/// in [-0.5, 0.5) from xorshift64 seeded with `seed` (the same on every machine).
+fn conic_points(
+    c: f64,
+    k: f64,
+    radius_mm: f64,
+    tilt_mm_per_mm2: f64,
+    noise_mm: f64,
+    seed: u64,
+) -> String {
+    let mut state = seed;
+    let mut uniform = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    };
+    let mut text = String::from("x_mm,y_mm,z_mm\n");
+    for j in 0..41 {
+        for i in 0..41 {
+            let x = -radius_mm + 2.0 * radius_mm * i as f64 / 40.0;
+            let y = -radius_mm + 2.0 * radius_mm * j as f64 / 40.0;
+            let r2 = x * x + y * y;
+            if r2 > radius_mm * radius_mm {
+                continue;
+            }
+            let sag = c * r2 / (1.0 + (1.0 - (1.0 + k) * c * c * r2).sqrt());
+            let z = sag + tilt_mm_per_mm2 * x * y + noise_mm * uniform();
+            writeln!(text, "{x},{y},{z}").unwrap();
+        }
+    }
+    text
+}
+
+/// `fit --fit-conic`: points on a conic (plus an x y term) are fitted to round-off with the
+/// status converged and exit 0 (an exact fit is not a stall); on a shallow part with 10 nm of
+/// noise, whose conic constant the data do not determine (the conic overlaps the polynomial's
+/// second-order terms; the condition estimate says so and a warning names it), the fit stops
+/// at its iteration limit, exits 3 with the status and a warning, and still writes its outputs.
+#[test]
+fn conic_fit_converges_on_exact_data_and_exits_3_when_it_stalls() {
+    let dir = tempfile::tempdir().unwrap();
+    let exact = dir.path().join("exact.csv");
+    std::fs::write(&exact, conic_points(1.0 / 50.0, -2.0, 10.0, 1e-6, 0.0, 1)).unwrap();
+    let r = preston(&["fit", "--points", s(&exact), "--fit-conic", "--order", "4"]);
+    assert_eq!(
+        r.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&r.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert_eq!(summary["status"], "converged", "{summary}");
+    assert!(summary["rms_nm"].as_f64().unwrap() < 1e-6, "{summary}");
+    let stalled = dir.path().join("shallow.csv");
+    std::fs::write(&stalled, conic_points(1e-3, 0.0, 30.0, 1e-6, 2e-5, 2)).unwrap();
+    let out = dir.path().join("surface.json");
+    let r = preston(&[
+        "fit",
+        "--points",
+        s(&stalled),
+        "--fit-conic",
+        "--order",
+        "4",
+        "--out",
+        s(&out),
+    ]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(3), "{err}");
+    assert!(err.contains("stopped before converging"), "{err}");
+    let summary: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert_eq!(summary["status"], "max_iterations", "{summary}");
+    assert!(out.is_file(), "the last iterate is written");
+    // At order 10 the polynomial's r^2 and r^4 terms overlap the conic outright: the condition
+    // estimate is beyond what a fixed base accepts, and the warning says what is not determined.
+    let r = preston(&[
+        "fit",
+        "--points",
+        s(&stalled),
+        "--fit-conic",
+        "--order",
+        "10",
+    ]);
+    let err = String::from_utf8_lossy(&r.stderr);
+    let summary: serde_json::Value = serde_json::from_slice(&r.stdout).unwrap();
+    assert!(
+        summary["condition_number"].as_f64().unwrap() > 1e13,
+        "{summary}"
+    );
+    assert!(err.contains("not determined separately"), "{err}");
+}

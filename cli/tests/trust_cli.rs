@@ -685,3 +685,75 @@ fn closed_pipes_end_the_printing_not_the_run() {
         }
     }
 }
+
+/// A raster on the map's lattice with two dwell points 6 m out: `auto` does not build the mostly
+/// empty FFT lattice (a warning says so, and the solve is the assembled `R`'s), and
+/// `--operator fft`, which does, ends with exit 2 and a message naming the lattice where its
+/// buffers cannot be had (here an address space capped at 2 GiB with `ulimit -v`), never an
+/// abort, and writes nothing.
+#[test]
+fn a_mostly_empty_fft_lattice_is_not_chosen_and_one_that_cannot_be_had_is_exit_2() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &map_text(21, 1.0, 0.0));
+    let mut path = String::from("x_mm,y_mm\n-6000,-6000\n");
+    for j in 0..21 {
+        for k in 0..21 {
+            let i = if j % 2 == 0 { k } else { 20 - k };
+            path.push_str(&format!("{i},{j}\n"));
+        }
+    }
+    path.push_str("6000,6000\n");
+    let path = write(d.path(), "far.csv", &path);
+    let tif = Gauss {
+        sigma_mm: 1.0,
+        peak: 10.0,
+        trunc_mm: 3.0,
+    };
+    let args = |operator: &str| -> Vec<String> {
+        let mut a: Vec<String> = vec!["solve".into(), "--map".into(), s(&map).into()];
+        a.extend(tif.args());
+        a.extend(
+            [
+                "--dwell",
+                s(&path),
+                "--v-max",
+                "3000",
+                "--operator",
+                operator,
+            ]
+            .map(String::from),
+        );
+        a
+    };
+    let auto_out = d.path().join("auto");
+    let o = preston_cmd()
+        .args(args("auto"))
+        .arg("--out")
+        .arg(&auto_out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("mostly empty"), "{}", stderr(&o));
+    assert_eq!(report(&auto_out)["operator"], "sparse");
+    let fft_out = d.path().join("fft");
+    let mut script = String::from("ulimit -v 2097152 && exec \"$0\"");
+    for k in 1..=args("fft").len() + 2 {
+        script.push_str(&format!(" \"${{{k}}}\""));
+    }
+    let o = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(&script)
+        .arg(env!("CARGO_BIN_EXE_preston"))
+        .args(args("fft"))
+        .arg("--out")
+        .arg(&fft_out)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("FFT lattice") && stderr(&o).contains("could not be allocated"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!fft_out.join("report.json").exists());
+}

@@ -84,6 +84,25 @@ pub fn check_f64s(what: &str, detail: &str, count: f64, arrays: f64) -> Result<(
     check(what, detail, count * arrays * F64_BYTES)
 }
 
+/// `len` copies of `value` in a new vector, or an error naming `what` when the memory cannot be
+/// had (`Vec::try_reserve_exact`: an address-space cap or a refused mapping ends in an error, not
+/// in an abort). For the buffers whose size the inputs imply after [`check`] let them through.
+pub fn try_filled<T: Clone>(what: &str, len: usize, value: T) -> Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| {
+        Error::invalid(
+            what,
+            format!(
+                "{} of memory ({len} values) could not be allocated (lower --max-memory-gb to be \
+                 told before a solve starts, or reduce the problem)",
+                format_bytes(len as f64 * std::mem::size_of::<T>() as f64)
+            ),
+        )
+    })?;
+    v.resize(len, value);
+    Ok(v)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -105,5 +124,20 @@ mod tests {
         assert!(check("--x", "", lim + 1024.0).is_err());
         assert!(check_f64s("--x", "", lim / 16.0, 2.0).is_ok());
         assert!(check_f64s("--x", "", lim / 16.0, 3.0).is_err());
+    }
+
+    /// A buffer that can be had is filled; one that cannot (more than the address space) is an
+    /// error naming what it was for, not an abort.
+    #[test]
+    fn allocation_that_cannot_be_had_is_an_error() {
+        assert_eq!(try_filled("lattice", 3, 1.5).unwrap(), vec![1.5; 3]);
+        assert!(try_filled::<f64>("lattice", 0, 0.0).unwrap().is_empty());
+        let e = try_filled("FFT lattice", usize::MAX / 16, 0.0f64)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("FFT lattice") && e.contains("could not be allocated"),
+            "{e}"
+        );
     }
 }

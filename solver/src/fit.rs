@@ -344,8 +344,9 @@ impl Points<'_> {
         Ok((c0, k0))
     }
 
-    /// Levenberg-Marquardt on `[coefs, c, k]`; returns `(c, k, coefs, condition, iterations,
-    /// status)`.
+    /// Levenberg-Marquardt on `[coefs, c, k]`; converged when an accepted step lowers the sum
+    /// of squares by at most 1e-15 of it or to the data's round-off, or no step lowers it.
+    /// Returns `(c, k, coefs, condition, iterations, status)`.
     fn nonlinear_fit(
         &self,
         max_iterations: usize,
@@ -358,6 +359,10 @@ impl Points<'_> {
             Vec::new()
         };
         let mut cost = self.cost(c, k, &coefs);
+        // A sum of squares at the data's round-off (each residual within 64 ulps of the largest
+        // height) is an exact fit: further steps only trade round-off.
+        let z_max = self.z.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let round_off = self.x.len() as f64 * (64.0 * f64::EPSILON * z_max).powi(2);
         let mut lambda = 0.0;
         let mut condition = f64::INFINITY;
         let mut iterations = 0;
@@ -384,7 +389,7 @@ impl Points<'_> {
                 let ncoefs: Vec<f64> = coefs.iter().zip(&step).map(|(a, d)| a + d).collect();
                 let ncost = self.cost(nc, nk, &ncoefs);
                 if ncost <= cost {
-                    let small = (cost - ncost) <= 1e-15 * cost || ncost == 0.0;
+                    let small = (cost - ncost) <= 1e-15 * cost || ncost <= round_off;
                     c = nc;
                     k = nk;
                     coefs = ncoefs;

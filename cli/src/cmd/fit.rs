@@ -91,6 +91,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         fit.pv_nm,
         fit.condition_number
     );
+    if args.fit_conic && fit.condition_number > preston_solver::fit::MAX_CONDITION {
+        crate::errln!(
+            "  warning: condition estimate {:.3e}: the data do not determine the curvature, the \
+             conic constant and the polynomial's terms separately (they overlap over this \
+             aperture); the surface is fitted, its split into conic and polynomial is not \
+             determined separately (fix the conic with --curvature-per-mm and --conic to pin it)",
+            fit.condition_number
+        );
+    }
     if !fit.status.is_converged() {
         crate::errln!(
             "  warning: the conic fit stopped before converging (status {}, {} iterations); \

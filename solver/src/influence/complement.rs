@@ -256,7 +256,8 @@ impl ComplementNormal {
         let mut planner = FftPlanner::<f64>::new();
         let mut real_planner = RealFftPlanner::<f64>::new();
         let transforms = Transforms::new(gx, gy, &mut planner, &mut real_planner);
-        let mut buffers = Buffers::new(gx, gy);
+        // Where the memory cannot be had the direct route serves.
+        let mut buffers = Buffers::new(gx, gy).ok()?;
         for ay in 0..awy {
             for ax in 0..awx {
                 let ix = (ax as isize - kax as isize).rem_euclid(gx as isize) as usize;

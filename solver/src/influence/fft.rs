@@ -58,6 +58,9 @@ const MAX_LATTICE_CELLS: usize = 400_000_000;
 /// ones (32), the dwell occupancy and map count masks (5), rounded up.
 const LATTICE_BYTES_PER_CELL: f64 = 40.0;
 
+/// What an allocation failure of the lattice's buffers names.
+const LATTICE_WHAT: &str = "FFT lattice";
+
 /// Cost of a 2-D transform of `N` cells per `N log2 N`, in multiply-adds of the complement
 /// route's band passes (the ratio of the two measured in `docs/largescale.md`, "The normal
 /// product through the complement").
@@ -401,7 +404,7 @@ impl FftOperator {
         let cell = |(i, j): (usize, usize)| j * fx + i;
         let map_cells: Vec<usize> = map_ij.iter().map(|&p| cell(p)).collect();
         let dwell_cells: Vec<usize> = dwell_ij.iter().map(|&p| cell(p)).collect();
-        let mut seen = vec![false; fx * fy];
+        let mut seen = crate::budget::try_filled(LATTICE_WHAT, fx * fy, false)?;
         for (j, &c) in dwell_cells.iter().enumerate() {
             if std::mem::replace(&mut seen[c], true) {
                 return Err(Error::invalid(
@@ -413,7 +416,7 @@ impl FftOperator {
         let mut planner = FftPlanner::<f64>::new();
         let mut real_planner = RealFftPlanner::<f64>::new();
         let transforms = Transforms::new(fx, fy, &mut planner, &mut real_planner);
-        let mut buffers = Buffers::new(fx, fy);
+        let mut buffers = Buffers::new(fx, fy)?;
         // Kernel K[d] = TIF(d h), wrapped, and its transform (in the transposed layout).
         let k = kr as isize;
         let mut taps: Vec<(isize, isize, f64)> = Vec::new();
@@ -429,29 +432,33 @@ impl FftOperator {
             }
         }
         transforms.spectrum(&mut buffers, Fill::Ready, Spectrum::Keep);
-        let kernel_hat = buffers.columns.clone();
+        let mut kernel_hat =
+            crate::budget::try_filled(LATTICE_WHAT, buffers.columns.len(), Complex::new(0.0, 0.0))?;
+        kernel_hat.copy_from_slice(&buffers.columns);
         // Column sums over the map points for the Jacobi scaling (a cell holding several map
         // points is several rows of R).
-        let mut map_count = vec![0u32; fx * fy];
+        let mut map_count = crate::budget::try_filled(LATTICE_WHAT, fx * fy, 0u32)?;
         for &c in &map_cells {
             map_count[c] += 1;
         }
-        let sub = (dx * dy > 1).then(|| {
-            let (sx, sy) = (fx / dx, fy / dy);
-            let dwell_cells: Vec<usize> = dwell_ij
-                .iter()
-                .map(|&(i, j)| (j / dy) * sx + i / dx)
-                .collect();
-            SubLattice {
-                dx,
-                dy,
-                sx,
-                sy,
-                transforms: Transforms::new(sx, sy, &mut planner, &mut real_planner),
-                dwell: Cells::new(dwell_cells, sx, sy),
-                buffers: Mutex::new(Buffers::new(sx, sy)),
-            }
-        });
+        let sub = (dx * dy > 1)
+            .then(|| -> Result<SubLattice> {
+                let (sx, sy) = (fx / dx, fy / dy);
+                let dwell_cells: Vec<usize> = dwell_ij
+                    .iter()
+                    .map(|&(i, j)| (j / dy) * sx + i / dx)
+                    .collect();
+                Ok(SubLattice {
+                    dx,
+                    dy,
+                    sx,
+                    sy,
+                    transforms: Transforms::new(sx, sy, &mut planner, &mut real_planner),
+                    dwell: Cells::new(dwell_cells, sx, sy),
+                    buffers: Mutex::new(Buffers::new(sx, sy)?),
+                })
+            })
+            .transpose()?;
         // With a sub-lattice the map side is shifted by -(ox, oy) (see `SubLattice`).
         let map_cells: Vec<usize> = if sub.is_some() {
             map_ij
@@ -771,13 +778,15 @@ fn sub_lattice_step(mut v: impl Iterator<Item = usize>) -> usize {
 }
 
 impl Buffers {
-    pub(super) fn new(fx: usize, fy: usize) -> Self {
+    /// The zeroed buffers of an `fx` x `fy` lattice; an error where the memory cannot be had.
+    pub(super) fn new(fx: usize, fy: usize) -> Result<Self> {
         let hx = fx / 2 + 1;
-        Self {
-            real: vec![0.0; fx * fy],
-            rows: vec![Complex::new(0.0, 0.0); hx * fy],
-            columns: vec![Complex::new(0.0, 0.0); hx * fy],
-        }
+        let zero = Complex::new(0.0, 0.0);
+        Ok(Self {
+            real: crate::budget::try_filled(LATTICE_WHAT, fx * fy, 0.0)?,
+            rows: crate::budget::try_filled(LATTICE_WHAT, hx * fy, zero)?,
+            columns: crate::budget::try_filled(LATTICE_WHAT, hx * fy, zero)?,
+        })
     }
 }
 

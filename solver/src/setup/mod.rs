@@ -56,6 +56,12 @@ const DWELL_POINT_VALUES: f64 = 16.0;
 /// per map point (a round aperture fills 79% of its square, i.e. 1.27 cells per point).
 const MAX_LATTICE_CELLS_PER_MAP_POINT: f64 = 4.0;
 
+/// `auto` takes the FFT operator only where its padded lattice (map and dwell points, the TIF's
+/// reach around them) holds at most this many cells per map or dwell point: a few dwell points
+/// far from the others would otherwise make a mostly empty lattice of hundreds of MB (a padded
+/// raster over a strip holds about 3).
+const MAX_FFT_CELLS_PER_POINT: f64 = 16.0;
+
 /// Why a warm start and an acceleration limit are refused together.
 const WARM_START_WITH_ACCEL: &str = "cannot be combined with an acceleration limit: the \
     sequential convex programme starts from its own feed-limited optimum (drop the warm start or \
@@ -786,10 +792,20 @@ impl Setup {
                 // Map points inside one TIF disc, at most all of them, per dwell point.
                 let r = self.tif.support_radius_mm();
                 let per_column = (std::f64::consts::PI * r * r / (p * p)).min(rows.len() as f64);
-                let estimate = per_column * self.path.len() as f64;
+                let estimate = per_column * self.dwell_points_in_reach(rows) as f64;
+                let fft_cells = fft_lattice_cells(rows, &self.path, r, p);
+                let points = (rows.len() + self.path.len()) as f64;
+                if fft_cells > MAX_FFT_CELLS_PER_POINT * points {
+                    warnings.push(format!(
+                        "operator auto: the FFT lattice spanning the map and dwell points would \
+                         hold {fft_cells:.3e} cells for {points:.0} points (dwell points far from \
+                         the others?), mostly empty; assembling R (operator = \"fft\" forces it)"
+                    ));
+                    return Ok(OperatorPlan::Assembled);
+                }
                 let choice = policy::choose(&policy::PolicyInputs {
                     nnz: estimate,
-                    fft_cells: Some(fft_lattice_cells(rows, &self.path, r, p)),
+                    fft_cells: Some(fft_cells),
                     needs_qp: false,
                     solver: match self.settings.solver {
                         SolverChoice::FirstOrder => Some(SolverKind::FirstOrder),
@@ -1346,6 +1362,67 @@ mod tests {
         }
         let e = fft(with(OperatorChoice::Fft, SolverChoice::Qp)).unwrap_err();
         assert!(e.to_string().contains("qp"), "{e}");
+    }
+
+    /// `auto` takes the FFT operator for a large raster on a lattice map, and not once two dwell
+    /// points far out make its lattice mostly empty (a warning says why); the same far points
+    /// with `operator = "fft"` are planned as asked.
+    #[test]
+    fn auto_does_not_take_a_mostly_empty_fft_lattice() {
+        let (mut xs, mut ys, mut zs) = (Vec::new(), Vec::new(), Vec::new());
+        for j in 0..201 {
+            for i in 0..201 {
+                let (x, y) = (i as f64 * 0.5, j as f64 * 0.5);
+                xs.push(x);
+                ys.push(y);
+                zs.push(10.0 + (0.1 * x).sin() * (0.07 * y).cos());
+            }
+        }
+        let map = HeightMap::new(xs, ys, zs).unwrap();
+        let (mut px, mut py) = (Vec::new(), Vec::new());
+        for j in 0..101 {
+            for k in 0..101 {
+                let i = if j % 2 == 0 { k } else { 100 - k };
+                px.push(i as f64);
+                py.push(j as f64);
+            }
+        }
+        let plan = |px: &[f64], py: &[f64], operator| {
+            let checked = Choices {
+                settings: Settings {
+                    operator,
+                    solver: SolverChoice::FirstOrder,
+                    ..Settings::default()
+                },
+                ..choices()
+            }
+            .check(&Silent)
+            .unwrap();
+            let d = SetupData {
+                map: map.clone(),
+                tif: Tif::Gaussian(GaussianTif::new(3.0, 10.0, 10.0).unwrap()),
+                dwell: DwellPoints::Given(DwellPath::new(px.to_vec(), py.to_vec()).unwrap()),
+                surface: None,
+                warm_start_s: None,
+            };
+            let setup = Setup::resolve(checked, d, &Silent).unwrap();
+            let mut w = Vec::new();
+            let p = setup.operator_plan(&setup.map.clone(), &mut w).unwrap();
+            (p, w, setup.dwell_points_in_reach(&setup.map))
+        };
+        let (near, _, reach) = plan(&px, &py, OperatorChoice::Auto);
+        assert!(matches!(near, OperatorPlan::Fft { .. }), "{near:?}");
+        assert_eq!(reach, px.len());
+        px.extend([3000.0, -2000.0, 110.0]);
+        py.extend([3000.0, 2500.0, 50.0]);
+        let (far, w, reach) = plan(&px, &py, OperatorChoice::Auto);
+        assert_eq!(far, OperatorPlan::Assembled);
+        assert!(w.iter().any(|m| m.contains("mostly empty")), "{w:?}");
+        // The cost models count only the dwell points that reach the map (the point 10 mm past
+        // its edge is within the 10 mm truncation radius).
+        assert_eq!(reach, px.len() - 2);
+        let (forced, _, _) = plan(&px, &py, OperatorChoice::Fft);
+        assert!(matches!(forced, OperatorPlan::Fft { .. }), "{forced:?}");
     }
 
     #[test]

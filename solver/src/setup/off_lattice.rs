@@ -71,6 +71,24 @@ enum NotServed {
 }
 
 impl Setup {
+    /// Dwell points whose tool reach (the TIF's support radius) meets the bounding box of
+    /// `rows`: the columns of `R` that can hold non-zeros, counted by the cost models (points
+    /// that reach nothing add no work to `R`).
+    pub(super) fn dwell_points_in_reach(&self, rows: &HeightMap) -> usize {
+        let Some(b) = rows.bounding_box_mm() else {
+            return 0;
+        };
+        let b = b.expanded(self.tif.support_radius_mm());
+        self.path
+            .x_mm()
+            .iter()
+            .zip(self.path.y_mm())
+            .filter(|(&x, &y)| {
+                x >= b.x_min_mm && x <= b.x_max_mm && y >= b.y_min_mm && y <= b.y_max_mm
+            })
+            .count()
+    }
+
     /// Whether every dwell point lies on the map lattice of pitch `pitch_mm` through the lowest
     /// corner of `bbox` (the FFT operator's exact case).
     pub(super) fn dwell_on_map_lattice(&self, bbox: &BoundingBox, pitch_mm: f64) -> bool {
@@ -108,7 +126,7 @@ impl Setup {
         let r = self.tif.support_radius_mm();
         let per_column =
             (std::f64::consts::PI * r * r / (pitch_mm * pitch_mm)).min(rows.len() as f64);
-        let nnz = per_column * self.path.len() as f64;
+        let nnz = per_column * self.dwell_points_in_reach(rows) as f64;
         if !forced {
             // Only where the first-order solver would run anyway: below the policy's crossover
             // the QP on the assembled `R` is the faster, certified route.
