@@ -61,6 +61,9 @@ pub enum AccelMethod {
     /// by the second (QP-exact where the QP is affordable; it needs the assembled `R`).
     SquaredSpeedThenScpQp,
     /// No constraint in the plan: the feed-limited optimum, then correction passes against the
+    /// program executed at the limit, kept while the executed residual falls.
+    ///
+    /// No constraint in the plan: the feed-limited optimum, then correction passes against the
     /// program executed at the limit with look-ahead (the set-up's
     /// [`crate::setup::Setup::solve`]): each pass re-solves for the target less the executed
     /// removal's departure from the plan's, `z - (h_exec - R t)`, from the last dwell times,
