@@ -82,6 +82,10 @@ impl AccelMethod {
     }
 }
 
+/// Relative excess over the limit up to which the feed-limited optimum is taken as meeting it
+/// (round-off in `|v_{j+1}^2 - v_j^2| / (2 s)`): beyond it the constrained problem is solved.
+const REFERENCE_MEETS_LIMIT: f64 = 1e-9;
+
 /// Acceleration limit and solver settings. Job files may set any field.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -407,10 +411,16 @@ pub(crate) fn solve_validated(
     let mut gradient_steps = 0;
     let mut kkt_residual = None;
     let mut qp_iterations = reference.iterations;
-    let (best_t, status, solver) = if limits.method == AccelMethod::CorrectionPasses
-        || kin.violation(&reference.dwell_s) <= limits.constraint_tolerance
-    {
-        // The feed-limited optimum already meets the limit.
+    let (best_t, status, solver) = if limits.method == AccelMethod::CorrectionPasses {
+        // The controller holds the limit on the feed-limited optimum.
+        (
+            reference.dwell_s.clone(),
+            reference.status,
+            reference.solver,
+        )
+    } else if kin.violation(&reference.dwell_s) <= REFERENCE_MEETS_LIMIT {
+        // The feed-limited optimum meets the limit (to round-off): nothing to constrain. One
+        // that exceeds it at all, even within the constraint tolerance, is solved for below.
         (
             reference.dwell_s.clone(),
             reference.status,
