@@ -6,7 +6,7 @@ use crate::job::{DwellInput, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
-use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures};
+use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures, RobustReport};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{Problem, Solution};
@@ -14,6 +14,7 @@ use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
 use preston_solver::psd::LineAxis;
+use preston_solver::setup::robust::{self, RobustBasis, RobustSummary};
 use preston_solver::setup::{
     Checked, DwellPoints, Outcome, Setup, SetupData, SetupError, SetupInput,
 };
@@ -294,11 +295,56 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
 /// outcome. `_job` is kept for callers; everything is read from the prepared set-up.
 pub fn solve(prepared: Prepared, _job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let outcome = prepared.setup.solve(&prepared.problem, observer)?;
-    let report = report_of(&prepared, &outcome);
+    let mut report = report_of(&prepared, &outcome);
+    if prepared.setup.settings.robust {
+        report.robust = Some(robust_report(&prepared, &outcome, observer)?);
+    }
     Ok(Solved {
         prepared,
         outcome,
         report,
+    })
+}
+
+/// The robust plan of `outcome` against the nominal plan of the same set-up (solved here, the
+/// same way but for the nominal TIF alone): both plans' residual RMS in every scenario by the
+/// stacked model, and the nominal plan's executed residual and sensitivity where a program is
+/// executed.
+fn robust_report(
+    prepared: &Prepared,
+    outcome: &Outcome,
+    observer: &dyn Observer,
+) -> Result<RobustReport> {
+    let mut nominal = prepared.setup.clone();
+    nominal.settings.robust = false;
+    let built = nominal
+        .problem(observer)
+        .map_err(|e| Error::Solver(e.source))?;
+    let plan = nominal.solve(&built.problem, observer)?;
+    let z = prepared.setup.map.z_nm();
+    let per_scenario = |t: &[f64]| -> Result<Vec<f64>> {
+        Ok(robust::scenario_rms_nm(z, &prepared.problem.removal_nm(t)?))
+    };
+    let executed = |o: &Outcome| match (&o.executed, &o.sensitivity) {
+        (Some(Ok(e)), Some(s)) => Some(robust::executed_scenario_rms_nm(e.after.rms_nm, s)),
+        _ => None,
+    };
+    let planned = match (executed(outcome), executed(&plan)) {
+        (Some(r), Some(n)) => RobustSummary::new(RobustBasis::Executed, r, n),
+        _ => RobustSummary::new(
+            RobustBasis::Planned,
+            per_scenario(&outcome.solution.dwell_s)?,
+            per_scenario(&plan.solution.dwell_s)?,
+        ),
+    };
+    let nominal_plan_rms_after_nm = match &plan.executed {
+        Some(Ok(e)) => e.after.rms_nm,
+        _ => preston_solver::map::HeightStats::of(&centred_residual_nm(z, &plan.removal_nm)).rms_nm,
+    };
+    Ok(RobustReport {
+        planned,
+        nominal_plan_rms_after_nm,
+        nominal_plan_sensitivity: plan.sensitivity,
     })
 }
 
@@ -314,6 +360,8 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    // The problem's rows beyond the map are the edge model's, or other scenarios' blocks.
+    report.edge_points = prepared.edge_points;
     report.edge = prepared.setup.edge.method;
     report.map_input = Some(prepared.map_input.clone());
     report.set_machine(&outcome.schedule, outcome.accel.as_ref());

@@ -157,6 +157,25 @@ pub struct Report {
     /// ([`preston_solver::setup::sensitivity`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensitivity: Option<preston_solver::setup::sensitivity::Sensitivity>,
+    /// With `robust`: the robust plan against the nominal plan of the same job.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robust: Option<RobustReport>,
+}
+
+/// The robust plan against the nominal plan ([`preston_solver::setup::robust`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RobustReport {
+    /// Both plans' residual RMS in every scenario (as executed where both programs are, else
+    /// as planned: `basis`), what the robust plan costs nominally and what it saves in the
+    /// worst scenario.
+    #[serde(flatten)]
+    pub planned: preston_solver::setup::robust::RobustSummary,
+    /// The nominal plan's residual RMS, nm: as executed where the program is executed, else
+    /// its model's.
+    pub nominal_plan_rms_after_nm: f64,
+    /// The nominal plan's executed sensitivity (the robust plan's is `sensitivity`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nominal_plan_sensitivity: Option<preston_solver::setup::sensitivity::Sensitivity>,
 }
 
 /// RMS and PV of a residual (piston removed), nm.
@@ -472,6 +491,7 @@ impl Report {
             influence: None,
             model: None,
             sensitivity: None,
+            robust: None,
         }
     }
 

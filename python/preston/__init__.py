@@ -356,6 +356,7 @@ def _job_of(
     solver: Optional[str] = None,
     operator: Optional[str] = None,
     influence: Optional[str] = None,
+    robust: Optional[bool] = None,
     warm_start: Optional[PathLike] = None,
     surface: Optional[PathLike] = None,
     tif_frame: Optional[str] = None,
@@ -429,6 +430,8 @@ def _job_of(
         obj["lambda"] = lambda_
     if min_time:
         sol["min_time"] = True
+    if robust is not None:
+        sol["robust"] = bool(robust)
     for key, value in (
         ("min_time_tolerance", min_time_tolerance),
         ("first_order_method", first_order_method),
@@ -532,6 +535,7 @@ def solve(
     solver: Optional[str] = None,
     operator: Optional[str] = None,
     influence: Optional[str] = None,
+    robust: Optional[bool] = None,
     warm_start: Optional[PathLike] = None,
     surface: Optional[PathLike] = None,
     tif_frame: Optional[str] = None,
@@ -615,6 +619,7 @@ def solve(
         solver=solver,
         operator=operator,
         influence=influence,
+        robust=robust,
         warm_start=warm_start,
         surface=surface,
         tif_frame=tif_frame,

@@ -499,6 +499,10 @@ pub struct Settings {
     /// constant feed, as the program runs it (the default), or the whole TIF at the point
     /// ([`crate::influence::InfluenceModel`]). Read where the problem is built.
     pub influence: crate::influence::InfluenceModel,
+    /// Plan for the mean residual over the TIF-uncertainty scenarios (the TIF 3% wider and
+    /// narrower, the tool 0.05 mm off in x and y, and the nominal) instead of the nominal alone
+    /// ([`crate::setup::robust`]); needs the assembled `R`. Read where the problem is built.
+    pub robust: bool,
 }
 
 /// The preconditioner of the projected Newton-CG's conjugate gradients.
@@ -564,6 +568,7 @@ impl Default for Settings {
             preconditioner: Preconditioner::default(),
             spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
             influence: crate::influence::InfluenceModel::default(),
+            robust: false,
         }
     }
 }

@@ -19,6 +19,7 @@
 
 mod off_lattice;
 pub mod plausible;
+pub mod robust;
 pub mod sensitivity;
 pub mod tools;
 
@@ -871,6 +872,10 @@ impl Setup {
                     .to_string(),
             );
         }
+        if self.settings.robust {
+            let problem = self.robust_problem(&rows, &mut warnings, observer)?;
+            return self.built(problem, edge_points, warnings);
+        }
         let fft = match self.operator_plan(&rows, &mut warnings)? {
             OperatorPlan::Assembled => None,
             OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
@@ -910,6 +915,17 @@ impl Setup {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
         })
         .at(SetupInput::Job)?;
+        self.built(problem, edge_points, warnings)
+    }
+
+    /// `problem` with its checks: refused when no dwell point reaches the map, warned when a
+    /// large share reaches nothing.
+    fn built(
+        &self,
+        problem: Problem,
+        edge_points: usize,
+        mut warnings: Vec<String>,
+    ) -> SetupResult<Built> {
         let empty = problem.empty_columns().len();
         if let Some(why) = plausible::no_dwell_point_reaches_the_map(empty, problem.n(), &self.tif)
         {
@@ -921,6 +937,65 @@ impl Setup {
             edge_points,
             warnings,
         })
+    }
+
+    /// The robust plan's problem over `rows` ([`robust`]): the scenarios' assembled matrices
+    /// stacked against the target repeated, `rho` and `lambda` times the scenario count (the
+    /// mean over the scenarios). Refused on a curved part or with a curvature-dependent TIF, and
+    /// with an operator other than the assembled `R`.
+    fn robust_problem(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Problem> {
+        if self.surface.is_some() || !matches!(self.tif_model, TifModel::ShiftInvariant) {
+            return Err(Error::invalid(
+                "robust",
+                "not built on a curved part or with a curvature-dependent TIF",
+            ))
+            .at(SetupInput::Job);
+        }
+        if !matches!(
+            self.settings.operator,
+            OperatorChoice::Auto | OperatorChoice::Sparse
+        ) {
+            return Err(Error::invalid(
+                "robust",
+                "the robust plan stacks the scenarios' assembled matrices: use operator = \
+                 \"auto\" or \"sparse\"",
+            ))
+            .at(SetupInput::Job);
+        }
+        let scenarios = robust::SCENARIOS.len();
+        let stacked = robust::stacked_matrix(
+            rows.x_mm(),
+            rows.y_mm(),
+            &self.path,
+            self.swept.as_ref().map(|s| &s.0),
+            &self.tif,
+            observer,
+        )
+        .at(SetupInput::None)?;
+        warnings.push(format!(
+            "robust: the plan minimises the mean residual over {scenarios} scenarios (nominal, \
+             TIF 3% wider and narrower, tool 0.05 mm off in x and y), {:.2e} non-zeros in the \
+             stacked R",
+            stacked.nnz() as f64
+        ));
+        let z_nm = rows.z_nm().repeat(scenarios);
+        let s = scenarios as f64;
+        Problem::new(
+            stacked,
+            z_nm,
+            self.bounds.clone(),
+            self.rho * s,
+            self.lambda * s,
+        )
+        .and_then(|p| {
+            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+        })
+        .at(SetupInput::Job)
     }
 
     /// Solves `problem` (built by [`Setup::problem`]): the acceleration-limited SCP when the
@@ -1119,9 +1194,19 @@ impl Setup {
         let (mut solution, mut removal_all) = (solution, removal_all);
         let m = self.map.len();
         for _ in 0..MAX_CORRECTION_PASSES {
+            // The executed departure from the plan, on the measured rows of every scenario's
+            // block (one block unless the plan is robust).
+            let blocks = if self.settings.robust {
+                robust::SCENARIOS.len()
+            } else {
+                1
+            };
+            let block = problem.m() / blocks;
             let mut target = problem.z_nm().to_vec();
-            for (i, z) in target.iter_mut().enumerate().take(m) {
-                *z -= current.run.removal_nm[i] - removal_all[i];
+            for b in 0..blocks {
+                for i in 0..m {
+                    target[b * block + i] -= current.run.removal_nm[i] - removal_all[i];
+                }
             }
             let pass = problem.with_target_nm(target)?;
             let s =

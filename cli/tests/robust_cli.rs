@@ -1,0 +1,156 @@
+//! `preston solve --robust`: one plan for the mean residual over the TIF-uncertainty scenarios,
+//! reported against the nominal plan of the same job.
+
+mod common;
+
+use common::{data, preston_cmd, report, s, write};
+use std::fmt::Write as _;
+
+/// A 20 x 20 mm map at 0.5 mm with error at 4.5 to 7 mm periods, tens of nm.
+fn map_text() -> String {
+    let mut text = String::from("x_mm,y_mm,z_nm\n");
+    for j in 0..41 {
+        for i in 0..41 {
+            let (x, y) = (i as f64 * 0.5, j as f64 * 0.5);
+            let z = 40.0
+                + 15.0 * (2.0 * std::f64::consts::PI * x / 7.0).sin()
+                + 10.0 * (2.0 * std::f64::consts::PI * y / 4.5).cos()
+                + 5.0 * (2.0 * std::f64::consts::PI * (x + y) / 5.0).sin();
+            writeln!(text, "{x},{y},{z}").unwrap();
+        }
+    }
+    text
+}
+
+fn rms_list(v: &serde_json::Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
+}
+
+fn worst(v: &[f64]) -> f64 {
+    v.iter().copied().fold(0.0, f64::max)
+}
+
+/// Without an acceleration limit the comparison is the plans' model (`planned`): the robust
+/// plan's worst scenario and mean square over the scenarios are better than the nominal plan's,
+/// its nominal no better (the nominal plan is the nominal optimum), the report's cost and saving are those differences, and the
+/// robust plan's nominal RMS is `rms_after_nm`. A matrix-free operator is refused with exit 2.
+#[test]
+fn robust_plan_trades_nominal_for_the_worst_scenario() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &map_text());
+    let args = [
+        "--map",
+        s(&map),
+        "--gaussian-sigma-mm",
+        "1.5",
+        "--gaussian-peak-nm-per-s",
+        "20",
+        "--gaussian-truncation-mm",
+        "5",
+        "--raster-pitch-mm",
+        "1",
+        "--v-max",
+        "3000",
+        "--v-min",
+        "1",
+        "--rho",
+        "0.01",
+        "--edge",
+        "none",
+        "--robust",
+    ];
+    let out = d.path().join("robust");
+    let o = preston_cmd()
+        .arg("solve")
+        .args(args)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    let robust = &r["robust"];
+    assert_eq!(robust["basis"], "planned", "{robust}");
+    assert_eq!(robust["scenarios"][0], "nominal");
+    let (rob, nom) = (
+        rms_list(&robust["robust_plan_rms_nm"]),
+        rms_list(&robust["nominal_plan_rms_nm"]),
+    );
+    assert_eq!((rob.len(), nom.len()), (5, 5));
+    assert!(worst(&rob) < worst(&nom), "{rob:?} against {nom:?}");
+    // What it minimises: the mean over the scenarios of the squared residual.
+    let mean_sq = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64;
+    assert!(mean_sq(&rob) < mean_sq(&nom), "{rob:?} against {nom:?}");
+    assert_eq!(
+        r["edge_points"], 0,
+        "the scenario blocks are not edge points"
+    );
+    assert!(rob[0] >= nom[0] * (1.0 - 1e-3), "{rob:?} against {nom:?}");
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0);
+    assert!(close(
+        robust["nominal_cost_nm"].as_f64().unwrap(),
+        rob[0] - nom[0]
+    ));
+    assert!(close(
+        robust["worst_scenario_saving_nm"].as_f64().unwrap(),
+        worst(&nom) - worst(&rob)
+    ));
+    assert!(close(r["rms_after_nm"].as_f64().unwrap(), rob[0]), "{r}");
+    assert!(close(
+        robust["nominal_plan_rms_after_nm"].as_f64().unwrap(),
+        nom[0]
+    ));
+    let refused = d.path().join("fft");
+    let o = preston_cmd()
+        .arg("solve")
+        .args(args)
+        .args(["--operator", "fft", "--out"])
+        .arg(&refused)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("robust"));
+    assert!(!refused.join("report.json").exists());
+}
+
+/// The shipped job with `--robust`: both programs executed at the job's acceleration limit, the
+/// robust plan's worst executed residual over the nominal and the four TIF scenarios at most
+/// 4 nm, below the nominal plan's worst, and the nominal plan's executed residual the one the
+/// sample job reports without `--robust`.
+#[test]
+fn robust_sample_job_holds_every_scenario_within_4_nm() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("robust");
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--robust", "--quiet", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    let robust = &r["robust"];
+    assert_eq!(robust["basis"], "executed", "{robust}");
+    let (rob, nom) = (
+        rms_list(&robust["robust_plan_rms_nm"]),
+        rms_list(&robust["nominal_plan_rms_nm"]),
+    );
+    assert!(worst(&rob) <= 4.0, "{rob:?}");
+    assert!(worst(&rob) < worst(&nom), "{rob:?} against {nom:?}");
+    assert!(rob[0] <= 0.5 * worst(&rob) + 1.0, "{rob:?}");
+    assert_eq!(
+        robust["nominal_plan_rms_after_nm"].as_f64().unwrap(),
+        nom[0]
+    );
+    assert_eq!(
+        r["sensitivity"]["offset_x_0p05mm"]["rms_nm"]
+            .as_f64()
+            .unwrap(),
+        rob[3]
+    );
+}
