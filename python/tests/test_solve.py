@@ -268,3 +268,17 @@ def test_phase_stencil_operator_matches_the_assembled_matrix(small_job):
     assert gap < 1e-3 * sparse.report["rms_before_nm"]
     with pytest.raises(preston.PrestonError, match="stencil"):
         preston.solve(small_job, operator="stencil", solver="qp")
+
+
+def test_robust_keyword_is_the_cli_flag(small_job):
+    """robust=True is --robust: the report compares the robust plan with the nominal plan per
+    scenario, and its nominal RMS is the result's."""
+    r = preston.solve(small_job, robust=True, rho=0.01, v_min=1.0)
+    rob = r.report["robust"]
+    assert rob["scenarios"][0] == "nominal" and len(rob["robust_plan_rms_nm"]) == 5
+    assert rob["basis"] == "planned"
+    # What it minimises: the mean over the scenarios of the squared residual.
+    mean_sq = lambda v: sum(x * x for x in v) / len(v)  # noqa: E731
+    assert mean_sq(rob["robust_plan_rms_nm"]) <= mean_sq(rob["nominal_plan_rms_nm"]) * 1.001
+    assert abs(r.report["rms_after_nm"] - rob["robust_plan_rms_nm"][0]) <= 1e-9 * r.report["rms_after_nm"]
+    assert "robust" not in preston.solve(small_job).report
