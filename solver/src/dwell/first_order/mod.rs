@@ -81,6 +81,14 @@ use rayon::prelude::*;
 use std::sync::OnceLock;
 use std::time::Instant;
 
+mod fista;
+mod lbfgs;
+mod newton_cg;
+
+use fista::fista;
+use lbfgs::projected_lbfgs;
+use newton_cg::{circulant, newton_cg};
+
 /// Iterations between certificate evaluations (each costs one extra `R t` and `R^T r`) at least;
 /// past `CHECK_EVERY * CHECK_SPACING` iterations the gap grows to `it / CHECK_SPACING` (at most
 /// 2% more iterations past the point the tolerance is met, against 10% extra products at a
@@ -629,7 +637,15 @@ fn minimise_here(
     let lattice = lattice.filter(|l| l.len() == n);
     let (status, x, it, cert) = match settings.first_order_method {
         FirstOrderMethod::Fista => {
-            fista(&data, x, &mut work, bounds, lambda_hat, &limits, observer)
+            let it = Iteration {
+                data: &data,
+                work: &mut work,
+                bounds,
+                lip: lambda_hat,
+                limits: &limits,
+                observer,
+            };
+            fista(it, x)
         }
         FirstOrderMethod::NewtonCg => {
             let lip = lambda_hat * NEWTON_L_SAFETY;
@@ -637,16 +653,15 @@ fn minimise_here(
                 (Preconditioner::Jacobi, _) | (_, None) => None,
                 (Preconditioner::Circulant, Some(l)) => circulant(&data, l, &mut work),
             };
-            newton_cg(
-                &data,
-                x,
-                &mut work,
+            let it = Iteration {
+                data: &data,
+                work: &mut work,
                 bounds,
                 lip,
-                &limits,
+                limits: &limits,
                 observer,
-                precond.as_mut(),
-            )
+            };
+            newton_cg(it, x, precond.as_mut())
         }
         FirstOrderMethod::Lbfgs => {
             let mem = settings
@@ -665,16 +680,15 @@ fn minimise_here(
                 n as f64,
                 (2 * mem + 5) as f64,
             )?;
-            projected_lbfgs(
-                &data,
-                x,
-                mem,
-                &mut work,
+            let it = Iteration {
+                data: &data,
+                work: &mut work,
                 bounds,
-                lambda_hat * NEWTON_L_SAFETY,
-                &limits,
+                lip: lambda_hat * NEWTON_L_SAFETY,
+                limits: &limits,
                 observer,
-            )
+            };
+            projected_lbfgs(it, x, mem)
         }
     };
     observer.finish(Stage::Solve);
@@ -776,557 +790,16 @@ impl Limits {
 /// What an iteration returns: status, scaled variables, iterations, the final certificate.
 type Outcome = (Status, Vec<f64>, usize, Certificate);
 
-/// FISTA with gradient-based adaptive restart from the feasible point `x`.
-fn fista(
-    data: &Data<'_>,
-    mut x: Vec<f64>,
-    work: &mut Work,
-    bounds: &DwellBounds,
-    mut lip: f64,
-    limits: &Limits,
-    observer: &dyn Observer,
-) -> Outcome {
-    let n = x.len();
-    let rho = data.rho;
-    let mut y = x.clone();
-    let mut x_new = vec![0.0; n];
-    let mut theta = 1.0_f64;
-    let mut best_f = f64::INFINITY;
-    let max_it = limits.max_it;
-    let mut status = Status::MaxIterations;
-    let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-    let mut it = 0;
-    let mut reports = Reports::new(0);
-    while it < max_it {
-        it += 1;
-        // Projected gradient step from the extrapolated point y and, in the same pass, the
-        // gradient-based restart test (y - x_new)'(x_new - x) > 0 (summed in fixed chunks).
-        data.normal_gradient(&y, true, work);
-        let step = 1.0 / lip;
-        let restart_test = {
-            let (g, sc, lo, hi) = (&work.g, &data.s, &data.lo_w, &data.hi_w);
-            let (y, x) = (&y, &x);
-            fill_and_sum(&mut x_new, &mut work.partials, |j| {
-                let v = (y[j] - step * sc[j] * (g[j] + rho)).max(lo[j]).min(hi[j]);
-                (v, (y[j] - v) * (v - x[j]))
-            })
-        };
-        if restart_test > 0.0 {
-            theta = 1.0;
-            y.copy_from_slice(&x_new);
-        } else {
-            let theta_next = 0.5 * (1.0 + (1.0 + 4.0 * theta * theta).sqrt());
-            let beta = (theta - 1.0) / theta_next;
-            y.par_iter_mut()
-                .zip(x_new.par_iter().zip(x.par_iter()))
-                .for_each(|(y, (xn, x))| *y = xn + beta * (xn - x));
-            theta = theta_next;
-        }
-        std::mem::swap(&mut x, &mut x_new);
-
-        if reports.due(it) || it == max_it {
-            cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-            reports.report(observer, it, (cert.f, cert.kkt), true);
-            if cert.f > best_f * (1.0 + 1e-12) + f64::MIN_POSITIVE {
-                // The objective rose: the step was too long. Halve it and restart the momentum.
-                lip *= 2.0;
-                theta = 1.0;
-                y.copy_from_slice(&x);
-            }
-            best_f = best_f.min(cert.f);
-            if let Some(s) = limits.stop(&cert) {
-                status = s;
-                break;
-            }
-        }
-    }
-    if status == Status::MaxIterations && it != reports.last {
-        cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-    }
-    (status, x, it, cert)
-}
-
-/// Conjugate-gradient steps per Newton step at most.
-const MAX_CG_STEPS: usize = 200;
-/// CG stops when a step gains less than this fraction of its best step's model decrease (the
-/// face is then explored enough; More & Toraldo 1991 use the same test). Chosen by measurement on
-/// the sample job among 0.01, 0.03, 0.1, 0.25 and 0.5 (fewest products to a KKT residual of 1e-6).
-const CG_STALL: f64 = 0.25;
-/// Armijo constant of the projected line search.
-const ARMIJO: f64 = 1e-4;
-/// Halvings of the projected line search at most.
-const MAX_HALVINGS: usize = 40;
-
-/// The circulant preconditioner for `data`'s operator on `lattice`, from the column of `R^T R`
-/// at the lattice's central point (one product with `R` and one with `R^T`).
-fn circulant(
-    data: &Data<'_>,
-    lattice: &DwellLattice,
-    work: &mut Work,
-) -> Option<CirculantPreconditioner> {
-    let c = CirculantPreconditioner::probe_point(lattice);
-    work.t.iter_mut().for_each(|t| *t = 0.0);
-    *work.t.get_mut(c)? = 1.0;
-    data.op.apply(&work.t, &mut work.rt);
-    data.op.apply_transpose(&work.rt, &mut work.g);
-    CirculantPreconditioner::new(lattice, &work.g, data.lambda)
-}
-
-/// Projected Newton-CG from the feasible point `x` (the steps are in the module documentation),
-/// its conjugate gradients preconditioned by `precond` when given.
-#[allow(clippy::too_many_arguments)]
-fn newton_cg(
-    data: &Data<'_>,
-    mut x: Vec<f64>,
-    work: &mut Work,
-    bounds: &DwellBounds,
+/// What every iteration works with: the problem data, the reused work vectors, the bounds, the
+/// step constant `L` (an upper estimate of the scaled Hessian's largest eigenvalue), the stopping
+/// limits and the observer.
+struct Iteration<'a, 'd> {
+    data: &'a Data<'d>,
+    work: &'a mut Work,
+    bounds: &'a DwellBounds,
     lip: f64,
-    limits: &Limits,
-    observer: &dyn Observer,
-    mut precond: Option<&mut CirculantPreconditioner>,
-) -> Outcome {
-    let n = x.len();
-    let rho = data.rho;
-    let inv_s: Vec<f64> = data.s.iter().map(|s| 1.0 / s).collect();
-    let mut grad = vec![0.0; n];
-    let mut free = vec![true; n];
-    let mut d = vec![0.0; n];
-    let mut r = vec![0.0; n];
-    let mut zr = vec![0.0; n];
-    let mut p = vec![0.0; n];
-    let mut hp = vec![0.0; n];
-    let mut x_new = vec![0.0; n];
-    let mut status = Status::MaxIterations;
-    let mut it = 1;
-    let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-    while it < limits.max_it {
-        let it_before = it;
-        observer.iteration(&IterationInfo {
-            iteration: it,
-            objective: cert.f,
-            kkt_residual: Some(cert.kkt),
-        });
-        if let Some(s) = limits.stop(&cert) {
-            status = s;
-            break;
-        }
-        // Scaled gradient (certificate() left g = grad_t f - rho in work.g).
-        grad.par_iter_mut()
-            .zip(work.g.par_iter().zip(&data.s))
-            .for_each(|(gw, (g, s))| *gw = s * (g + rho));
-        // The binding set: variables a projected-gradient step of length 1 / L puts on a bound.
-        // They take that step (to the bound); the others the Newton-CG step (Bertsekas 1982).
-        let (lo, hi) = (&data.lo_w, &data.hi_w);
-        let step = 1.0 / lip;
-        free.par_iter_mut().enumerate().for_each(|(j, f)| {
-            *f = !binds(grad[j], x[j], lo[j], hi[j], step);
-        });
-        // Truncated CG on the free variables.
-        d.iter_mut().for_each(|v| *v = 0.0);
-        r.par_iter_mut()
-            .zip(grad.par_iter().zip(free.par_iter()))
-            .for_each(|(r, (g, f))| *r = if *f { -g } else { 0.0 });
-        let mut precondition = |r: &[f64], zr: &mut [f64]| match precond.as_deref_mut() {
-            Some(m) => m.apply_scaled(r, &inv_s, &free, zr),
-            None => zr.copy_from_slice(r),
-        };
-        precondition(&r, &mut zr);
-        p.copy_from_slice(&zr);
-        let mut rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
-        let mut rz = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
-        let target = rs.sqrt() * cert.kkt.sqrt().min(0.5);
-        let mut best_decrease = 0.0_f64;
-        for _ in 0..MAX_CG_STEPS {
-            if rs.sqrt() <= target || it >= limits.max_it {
-                break;
-            }
-            data.hessian_product(&p, work, &mut hp);
-            it += 1;
-            hp.par_iter_mut().zip(free.par_iter()).for_each(|(h, f)| {
-                if !*f {
-                    *h = 0.0;
-                }
-            });
-            let php = fixed_sum(n, &mut work.partials, |j| p[j] * hp[j]);
-            if !(php > 0.0 && rz > 0.0) {
-                break;
-            }
-            let a = rz / php;
-            // Model decrease of this step: 0.5 a r'z (More & Toraldo 1991: stop CG when a step
-            // gains less than a fraction of the best step).
-            let decrease = 0.5 * a * rz;
-            best_decrease = best_decrease.max(decrease);
-            d.par_iter_mut()
-                .zip(p.par_iter())
-                .for_each(|(d, p)| *d += a * p);
-            r.par_iter_mut()
-                .zip(hp.par_iter())
-                .for_each(|(r, h)| *r -= a * h);
-            rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
-            if decrease <= CG_STALL * best_decrease {
-                break;
-            }
-            precondition(&r, &mut zr);
-            let rz_new = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
-            let beta = rz_new / rz;
-            rz = rz_new;
-            p.par_iter_mut()
-                .zip(zr.par_iter())
-                .for_each(|(p, z)| *p = z + beta * *p);
-        }
-        d.par_iter_mut()
-            .zip(grad.par_iter().zip(free.par_iter()))
-            .for_each(|(d, (g, f))| {
-                if !*f {
-                    *d = -step * g;
-                }
-            });
-        // Projected line search along d, then along -grad; a projected gradient step of length
-        // 1 / L (a guaranteed decrease for an L-smooth f) if both fail.
-        let mut accepted = false;
-        for direction in [Direction::Newton, Direction::Gradient] {
-            if direction == Direction::Gradient {
-                d.par_iter_mut()
-                    .zip(grad.par_iter())
-                    .for_each(|(d, g)| *d = -g);
-            }
-            let mut alpha = 1.0;
-            for _ in 0..MAX_HALVINGS {
-                trial(data, &x, &d, alpha, &mut x_new);
-                let decrease = fixed_sum(n, &mut work.partials, |j| grad[j] * (x_new[j] - x[j]));
-                if !(decrease < 0.0) {
-                    break;
-                }
-                let f_new = data.objective(&x_new, work);
-                it += 1;
-                if f_new <= cert.f + ARMIJO * decrease {
-                    accepted = true;
-                    break;
-                }
-                alpha *= 0.5;
-            }
-            if accepted {
-                break;
-            }
-        }
-        if !accepted {
-            trial(data, &x, &d, 1.0 / lip, &mut x_new);
-            let f_new = data.objective(&x_new, work);
-            it += 1;
-            if !(f_new < cert.f) {
-                // No descent left at rounding level: the point cannot be improved here.
-                status = if cert.kkt <= limits.tol.sqrt() {
-                    Status::AlmostConverged
-                } else {
-                    Status::NumericalError
-                };
-                break;
-            }
-        }
-        std::mem::swap(&mut x, &mut x_new);
-        cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-        it += 1;
-        observer.advance(Stage::Solve, (it - it_before) as u64);
-    }
-    (status, x, it, cert)
-}
-
-/// Projected L-BFGS from the feasible point `x`, in the scaled variables. At `x` with scaled
-/// gradient `q`, the binding variables (those a projected gradient step of length `1 / L` puts on
-/// a bound) take that step; the others `d_F = -H q_F`, `H` the L-BFGS inverse Hessian (Nocedal,
-/// Math. Comp. 35, 1980: two-loop recursion) on the stored pairs restricted to the free set
-/// (Kim, Sra & Dhillon, "Tackling box-constrained optimization via a new projected quasi-Newton
-/// approach", SIAM J. Sci. Comput. 32, 2010). The step `p = Proj(x + d) - x` and one Hessian
-/// product `H p` give, the objective being quadratic, the exact minimiser along the segment
-/// `x + tau p`, `tau = min(1, -q'p / p'Hp)`, and the new gradient `q + tau H p` without further
-/// products (recomputed exactly at every check). Should `p` not descend, the memory is cleared
-/// and the projected gradient step taken instead. Memory: `2 mem + 5` vectors of `n` (`mem`
-/// pairs) and a free-set mask. The recursion's first pass carries the binding test, the first
-/// loop's last update the scaling by `gamma`, and the projection the second loop's last update,
-/// so an iteration makes `2 mem + 2` passes over `n`-vectors besides the Hessian product.
-#[allow(clippy::too_many_arguments)]
-fn projected_lbfgs(
-    data: &Data<'_>,
-    mut x: Vec<f64>,
-    mem: usize,
-    work: &mut Work,
-    bounds: &DwellBounds,
-    lip: f64,
-    limits: &Limits,
-    observer: &dyn Observer,
-) -> Outcome {
-    let n = x.len();
-    let rho = data.rho;
-    let mut s_mem = vec![vec![0.0; n]; mem];
-    let mut y_mem = vec![vec![0.0; n]; mem];
-    let mut inv_sy = vec![0.0; mem];
-    let mut gamma_of = vec![0.0; mem];
-    let mut coef = vec![0.0; mem];
-    let (mut stored, mut newest) = (0usize, 0usize);
-    let mut q = vec![0.0; n];
-    let mut d = vec![0.0; n];
-    let mut p = vec![0.0; n];
-    let mut hp = vec![0.0; n];
-    let mut free = vec![true; n];
-    let mut pair_partials = Vec::new();
-    let mut status = Status::MaxIterations;
-    let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-    // Without `rho` or dwell upper bounds there is no gap bound to stop on (see
-    // `super::certificate`), so the certificate is formed only when the carried gradient's KKT
-    // residual says the tolerance is met, to confirm it.
-    let periodic = rho > 0.0 || data.hi_w.iter().all(|h| h.is_finite());
-    // The objective carried along the steps, `f + tau q'p + 0.5 tau^2 p'Hp` (exact for the
-    // quadratic up to rounding), for the progress reports between certificates.
-    let mut carried_f = cert.f;
-    let scaled_gradient = |work: &Work, q: &mut [f64]| {
-        q.par_iter_mut()
-            .zip(work.g.par_iter().zip(&data.s))
-            .for_each(|(q, (g, s))| *q = s * (g + rho));
-    };
-    scaled_gradient(work, &mut q);
-    let mut it = 1;
-    let mut reports = Reports::new(it);
-    // The iteration at which `q` and `cert` were last computed exactly.
-    let mut exact_at = it;
-    observer.iteration(&IterationInfo {
-        iteration: it,
-        objective: cert.f,
-        kkt_residual: Some(cert.kkt),
-    });
-    if let Some(st) = limits.stop(&cert) {
-        return (st, x, it, cert);
-    }
-    while it < limits.max_it {
-        let step = 1.0 / lip;
-        // Two-loop recursion on the free variables; `d` stays zero on the binding ones, so its
-        // dot products with the stored pairs are the restricted ones.
-        let order = |k: usize| (newest + mem - k) % mem;
-        let (mut dot, carried_kkt2) = {
-            let newest_s = (stored > 0).then(|| s_mem[order(0)].as_slice());
-            free_gradient(
-                data,
-                &x,
-                &q,
-                step,
-                newest_s,
-                &mut free,
-                &mut d,
-                &mut pair_partials,
-            )
-        };
-        if it != exact_at {
-            // The carried gradient `q` follows the exact one to rounding (`q += tau S H S p`
-            // each step), so its KKT residual tells when to form the certificate that decides.
-            let carried_kkt = carried_kkt2.sqrt() / limits.kkt_norm.at(carried_f);
-            let report = reports.due(it);
-            let out_of_time = limits.began.elapsed().as_secs_f64() > limits.time_limit_s;
-            if carried_kkt <= limits.tol || (periodic && report) || out_of_time {
-                cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-                scaled_gradient(work, &mut q);
-                exact_at = it;
-                carried_f = cert.f;
-                reports.report(observer, it, (cert.f, cert.kkt), true);
-                if let Some(st) = limits.stop(&cert) {
-                    status = st;
-                    break;
-                }
-                // The next pass starts again from the exact gradient.
-                continue;
-            }
-            if report {
-                reports.report(observer, it, (carried_f, carried_kkt), false);
-            }
-        }
-        let gamma = if stored > 0 && gamma_of[order(0)] > 0.0 {
-            gamma_of[order(0)]
-        } else {
-            step
-        };
-        // The first loop's last update also scales `d` by `gamma` and takes the second loop's
-        // first dot product (one pass for the two).
-        for k in 0..stored {
-            let i = order(k);
-            let a = inv_sy[i] * dot;
-            coef[i] = a;
-            let (next, scale) = if k + 1 < stored {
-                (s_mem[order(k + 1)].as_slice(), None)
-            } else {
-                (y_mem[order(k)].as_slice(), Some(gamma))
-            };
-            dot = masked_axpy_dot(
-                &mut d,
-                -a,
-                &y_mem[i],
-                &free,
-                scale,
-                Some(next),
-                &mut work.partials,
-            );
-        }
-        if stored == 0 {
-            scale(&mut d, gamma);
-        }
-        // The second loop's last update is left to the projection's pass: `(c, i)`.
-        let mut last_update = None;
-        for k in (0..stored).rev() {
-            let i = order(k);
-            let c = coef[i] - inv_sy[i] * dot;
-            if k == 0 {
-                last_update = Some((c, i));
-                break;
-            }
-            let next = Some(y_mem[order(k - 1)].as_slice());
-            dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, None, next, &mut work.partials);
-        }
-        // The projected step, and the projected gradient step when it does not descend.
-        // The direction is `-d` on the free variables (`d` the recursion's `H q`, finished here
-        // by its last update) and the gradient step on the binding ones.
-        let mut qp = match last_update {
-            Some((c, i)) => {
-                let s_last = &s_mem[i];
-                project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
-                    if free[j] {
-                        -(d[j] + c * s_last[j])
-                    } else {
-                        -step * q[j]
-                    }
-                })
-            }
-            None => project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
-                if free[j] {
-                    -d[j]
-                } else {
-                    -step * q[j]
-                }
-            }),
-        };
-        if !(qp < 0.0) {
-            stored = 0;
-            qp = project_along(data, &x, &mut p, &q, &mut work.partials, |j| -step * q[j]);
-        }
-        if !(qp < 0.0) {
-            // No descent along the updated gradient: take the exact one, and stop if that
-            // shows none either (stationary to rounding).
-            cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-            scaled_gradient(work, &mut q);
-            let fresh = it == exact_at;
-            exact_at = it;
-            carried_f = cert.f;
-            if let Some(st) = limits.stop(&cert) {
-                status = st;
-                break;
-            }
-            if fresh {
-                status = if cert.kkt <= limits.tol.sqrt() {
-                    Status::AlmostConverged
-                } else {
-                    Status::NumericalError
-                };
-                break;
-            }
-            continue;
-        }
-        let php = data.hessian_product_dot(&p, work, &mut hp);
-        it += 1;
-        let tau = if php > 0.0 { (-qp / php).min(1.0) } else { 1.0 };
-        carried_f += tau * qp + 0.5 * tau * tau * php;
-        let yy = move_along(&mut x, &mut p, &mut hp, &mut q, tau, &mut work.partials);
-        // The new pair: s = tau p, y = tau H p (exact for the quadratic). `p` and `hp` are
-        // overwritten in full by the next step, so the pair's vectors are swapped in.
-        let sy = tau * tau * php;
-        if sy > 0.0 && sy.is_finite() {
-            newest = (newest + 1) % mem;
-            std::mem::swap(&mut s_mem[newest], &mut p);
-            std::mem::swap(&mut y_mem[newest], &mut hp);
-            inv_sy[newest] = 1.0 / sy;
-            gamma_of[newest] = if yy > 0.0 { sy / yy } else { 0.0 };
-            stored = (stored + 1).min(mem);
-        }
-    }
-    if it != exact_at {
-        cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-        if status == Status::MaxIterations && limits.met(&cert).is_some() {
-            status = Status::Converged;
-        }
-    }
-    observer.advance(Stage::Solve, (it - reports.last) as u64);
-    (status, x, it, cert)
-}
-
-/// The start of the two-loop recursion, in one pass over fixed chunks: `free[j]` = whether a
-/// projected gradient step of length `step` leaves variable `j` off its bounds ([`binds`]),
-/// `d = q` on the free variables and 0 on the binding ones. Returns `sum_j w[j] d[j]` (0 without
-/// `w`) and the squared projected-gradient norm `sum_j (x_j - Proj(x_j - q_j))^2` at the scaled
-/// gradient `q` the iteration carries, the KKT residual's numerator (see [`certificate`]).
-#[allow(clippy::too_many_arguments)]
-fn free_gradient(
-    data: &Data<'_>,
-    x: &[f64],
-    q: &[f64],
-    step: f64,
-    w: Option<&[f64]>,
-    free: &mut [bool],
-    d: &mut [f64],
-    partials: &mut Vec<[f64; 2]>,
-) -> (f64, f64) {
-    let (lo, hi) = (&data.lo_w, &data.hi_w);
-    d.par_chunks_mut(CHUNK)
-        .zip(free.par_chunks_mut(CHUNK))
-        .enumerate()
-        .map(|(c, (d_chunk, free_chunk))| {
-            let (mut acc, mut kkt2) = (0.0, 0.0);
-            for (k, (d, fr)) in d_chunk.iter_mut().zip(free_chunk).enumerate() {
-                let j = c * CHUNK + k;
-                *fr = !binds(q[j], x[j], lo[j], hi[j], step);
-                *d = if *fr { q[j] } else { 0.0 };
-                if let Some(w) = w {
-                    acc += w[j] * *d;
-                }
-                let moved = x[j] - (x[j] - q[j]).max(lo[j]).min(hi[j]);
-                kkt2 += moved * moved;
-            }
-            [acc, kkt2]
-        })
-        .collect_into_vec(partials);
-    partials
-        .iter()
-        .fold((0.0, 0.0), |(a, k), p| (a + p[0], k + p[1]))
-}
-
-/// `d[j] += a v[j]` on the free variables (`mask`), then `d[j] *= scale` where there is one,
-/// then `sum_j w[j] d[j]` (0 without `w`), in one pass over fixed chunks (bit-identical for any
-/// thread count, and to the update and [`scale`] one after the other).
-fn masked_axpy_dot(
-    d: &mut [f64],
-    a: f64,
-    v: &[f64],
-    mask: &[bool],
-    scale: Option<f64>,
-    w: Option<&[f64]>,
-    partials: &mut Vec<f64>,
-) -> f64 {
-    d.par_chunks_mut(CHUNK)
-        .enumerate()
-        .map(|(c, chunk)| {
-            let base = c * CHUNK;
-            let end = base + chunk.len();
-            let (v, mask) = (&v[base..end], &mask[base..end]);
-            match scale {
-                None => {
-                    for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
-                        *d += if m { a * v } else { 0.0 };
-                    }
-                }
-                Some(g) => {
-                    for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
-                        *d = (*d + if m { a * v } else { 0.0 }) * g;
-                    }
-                }
-            }
-            w.map_or(0.0, |w| lane_dot(chunk, &w[base..end]))
-        })
-        .collect_into_vec(partials);
-    partials.iter().sum()
+    limits: &'a Limits,
+    observer: &'a dyn Observer,
 }
 
 /// `d *= a`.
@@ -1334,73 +807,10 @@ fn scale(d: &mut [f64], a: f64) {
     d.par_iter_mut().for_each(|d| *d *= a);
 }
 
-/// `p *= tau`, `hp *= tau`, `x += p`, `q += hp`; returns `||hp||^2` after the scaling (one pass,
-/// fixed chunks).
-fn move_along(
-    x: &mut [f64],
-    p: &mut [f64],
-    hp: &mut [f64],
-    q: &mut [f64],
-    tau: f64,
-    partials: &mut Vec<f64>,
-) -> f64 {
-    x.par_chunks_mut(CHUNK)
-        .zip(p.par_chunks_mut(CHUNK))
-        .zip(hp.par_chunks_mut(CHUNK).zip(q.par_chunks_mut(CHUNK)))
-        .map(|((x, p), (h, q))| {
-            let mut acc = 0.0;
-            for (((x, p), h), q) in x.iter_mut().zip(p.iter_mut()).zip(h.iter_mut()).zip(q) {
-                *p *= tau;
-                *h *= tau;
-                *x += *p;
-                *q += *h;
-                acc += *h * *h;
-            }
-            acc
-        })
-        .collect_into_vec(partials);
-    partials.iter().sum()
-}
-
-/// `p = Proj(x + direction) - x`, the direction given entry by entry (so that it is assembled
-/// in the projection's pass); returns `q'p`.
-fn project_along<F>(
-    data: &Data<'_>,
-    x: &[f64],
-    p: &mut [f64],
-    q: &[f64],
-    partials: &mut Vec<f64>,
-    direction: F,
-) -> f64
-where
-    F: Fn(usize) -> f64 + Sync,
-{
-    let (lo, hi) = (&data.lo_w, &data.hi_w);
-    fill_and_sum(p, partials, |j| {
-        let v = (x[j] + direction(j)).max(lo[j]).min(hi[j]) - x[j];
-        (v, q[j] * v)
-    })
-}
-
 /// Whether a projected gradient step of length `step` from `x` along the scaled gradient `g`
 /// puts the variable on its bound `lo` or `hi` (the binding set of Bertsekas 1982).
 fn binds(g: f64, x: f64, lo: f64, hi: f64, step: f64) -> bool {
     (g > 0.0 && x - lo <= step * g) || (g < 0.0 && hi - x <= -step * g)
-}
-
-/// Search directions of a Newton-CG step.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Direction {
-    Newton,
-    Gradient,
-}
-
-/// `out = Proj(x + alpha d)`.
-fn trial(data: &Data<'_>, x: &[f64], d: &[f64], alpha: f64, out: &mut [f64]) {
-    out.par_iter_mut()
-        .zip(x.par_iter().zip(d.par_iter()))
-        .for_each(|(o, (x, d))| *o = x + alpha * d);
-    data.project(out);
 }
 
 /// The largest eigenvalue of the scaled Hessian: `cache`'s value when it holds one, else
@@ -1504,6 +914,7 @@ fn certificate(
 
 #[cfg(test)]
 mod tests {
+    use super::lbfgs::{free_gradient, masked_axpy_dot, project_along};
     use super::*;
     use crate::influence::operator::SparseOperator;
     use crate::observer::Silent;
