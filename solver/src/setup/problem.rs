@@ -1,0 +1,351 @@
+//! [`Setup::problem`]: the rows (map and edge model), how `R` is held (assembled, FFT, off-lattice
+//! operators, or the robust plan's stacked scenarios) and the [`Problem`] built on them.
+
+use super::*;
+
+/// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
+/// per map point (a round aperture fills 79% of its square, i.e. 1.27 cells per point).
+pub(super) const MAX_LATTICE_CELLS_PER_MAP_POINT: f64 = 4.0;
+
+/// `auto` takes the FFT operator only where its padded lattice (map and dwell points, the TIF's
+/// reach around them) holds at most this many cells per map or dwell point: a few dwell points
+/// far from the others would otherwise make a mostly empty lattice of hundreds of MB (a padded
+/// raster over a strip holds about 3).
+pub(super) const MAX_FFT_CELLS_PER_POINT: f64 = 16.0;
+
+/// Cells of the FFT operator's lattice (pitch `pitch` mm) for `map` and `path`, padded by the
+/// TIF's support radius `radius` mm on every side: the cost model's size.
+pub(super) fn fft_lattice_cells(map: &HeightMap, path: &DwellPath, radius: f64, pitch: f64) -> f64 {
+    let span = |v: &mut dyn Iterator<Item = &f64>| {
+        let (lo, hi) = v.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
+        ((hi - lo).max(0.0) + 2.0 * radius) / pitch + 1.0
+    };
+    span(&mut map.x_mm().iter().chain(path.x_mm()))
+        * span(&mut map.y_mm().iter().chain(path.y_mm()))
+}
+
+impl Setup {
+    /// The problem's rows: the measured map, then the edge extension into the dwell area.
+    pub(super) fn rows(&self) -> SetupResult<(HeightMap, usize)> {
+        let map = &self.map;
+        let extension = edge::extend(
+            &self.edge,
+            map.x_mm(),
+            map.y_mm(),
+            map.z_nm(),
+            self.path.x_mm(),
+            self.path.y_mm(),
+            self.tif.nominal_radius_mm(),
+            self.tif.support_radius_mm(),
+        )
+        .at(SetupInput::Map)?;
+        let edge_points = extension.len();
+        if extension.is_empty() {
+            return Ok((map.clone(), 0));
+        }
+        let cat = |a: &[f64], b: &[f64]| [a, b].concat();
+        let rows = HeightMap::new(
+            cat(map.x_mm(), &extension.x_mm),
+            cat(map.y_mm(), &extension.y_mm),
+            cat(map.z_nm(), &extension.z_nm),
+        )
+        .at(SetupInput::Map)?;
+        Ok((rows, edge_points))
+    }
+
+    /// The shift-invariant kernel of the lattice operators: the TIF swept along the stretch most
+    /// dwell points share (swept model), or the TIF itself (point model).
+    pub(crate) fn lattice_kernel(&self) -> &dyn InfluenceFunction {
+        match &self.swept {
+            Some((_, kernel)) => kernel,
+            None => &self.tif,
+        }
+    }
+
+    /// What keeps the FFT operator from serving this set-up, if anything.
+    pub(super) fn fft_blocker(&self) -> Option<&'static str> {
+        if self.surface.is_some() {
+            Some("a [surface] file (the TIF acts in each point's tangent frame)")
+        } else if self
+            .accel
+            .as_ref()
+            .is_some_and(|a| a.method.needs_assembled_r())
+        {
+            Some("accel_method = \"scp-qp\" or \"squared-speed-then-scp-qp\" (the sequential QP needs R)")
+        } else if self.settings.min_time {
+            Some("the minimum-time mode (it runs the QP)")
+        } else if self.settings.solver == SolverChoice::Qp {
+            Some("solver = \"qp\" (the QP needs R)")
+        } else {
+            None
+        }
+    }
+
+    /// How `R` is held for the problem rows `rows` (`operator` of the settings): `fft` with
+    /// inputs it cannot serve is an error naming why; `auto` takes the FFT operator when the
+    /// cost models of [`policy::choose`] predict it faster than the assembled `R`, the map fills
+    /// its lattice and nothing blocks it (a warning says so), the assembled matrix otherwise.
+    pub fn operator_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<OperatorPlan> {
+        let choice = self.settings.operator;
+        // The off-lattice operators are planned by `stencil_plan` and `spread_plan` where the
+        // lattice one is not.
+        if matches!(
+            choice,
+            OperatorChoice::Sparse
+                | OperatorChoice::FftSpread
+                | OperatorChoice::Stencil
+                | OperatorChoice::Nufft
+        ) {
+            return Ok(OperatorPlan::Assembled);
+        }
+        let blocker = self.fft_blocker();
+        // The map must fill a fair share of its lattice (a gridded map, perhaps with a round
+        // aperture), or the FFT buffers would dwarf the map.
+        let pitch = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()).filter(|&p| {
+            rows.bounding_box_mm().is_some_and(|b| {
+                let cells =
+                    ((b.x_max_mm - b.x_min_mm) / p + 1.0) * ((b.y_max_mm - b.y_min_mm) / p + 1.0);
+                cells <= MAX_LATTICE_CELLS_PER_MAP_POINT * rows.len() as f64
+            })
+        });
+        match (choice, blocker, pitch) {
+            (OperatorChoice::Fft, Some(why), _) => Err(Error::invalid(
+                "operator",
+                format!("operator = \"fft\" cannot be used with {why}"),
+            ))
+            .at(SetupInput::Job),
+            (OperatorChoice::Fft, None, None) => Err(Error::invalid(
+                "operator",
+                "operator = \"fft\" needs map points on a regular lattice that they fill at \
+                 least a quarter of",
+            ))
+            .at(SetupInput::Job),
+            (OperatorChoice::Fft, None, Some(p)) => Ok(OperatorPlan::Fft { pitch_mm: p }),
+            (_, Some(_), _) | (_, None, None) => Ok(OperatorPlan::Assembled),
+            // Dwell points off the lattice are the off-lattice operators' case.
+            (_, None, Some(p))
+                if !rows
+                    .bounding_box_mm()
+                    .is_some_and(|b| self.dwell_on_map_lattice(&b, p)) =>
+            {
+                Ok(OperatorPlan::Assembled)
+            }
+            (_, None, Some(p)) => {
+                // Map points inside one TIF disc, at most all of them, per dwell point.
+                let r = self.tif.support_radius_mm();
+                let per_column = (std::f64::consts::PI * r * r / (p * p)).min(rows.len() as f64);
+                let estimate = per_column * self.dwell_points_in_reach(rows) as f64;
+                let fft_cells = fft_lattice_cells(rows, &self.path, r, p);
+                let points = (rows.len() + self.path.len()) as f64;
+                if fft_cells > MAX_FFT_CELLS_PER_POINT * points {
+                    warnings.push(format!(
+                        "operator auto: the FFT lattice spanning the map and dwell points would \
+                         hold {fft_cells:.3e} cells for {points:.0} points (dwell points far from \
+                         the others?), mostly empty; assembling R (operator = \"fft\" forces it)"
+                    ));
+                    return Ok(OperatorPlan::Assembled);
+                }
+                let choice = policy::choose(&policy::PolicyInputs {
+                    nnz: estimate,
+                    fft_cells: Some(fft_cells),
+                    needs_qp: false,
+                    solver: match self.settings.solver {
+                        SolverChoice::FirstOrder => Some(SolverKind::FirstOrder),
+                        SolverChoice::Qp => Some(SolverKind::Qp),
+                        SolverChoice::Auto => None,
+                    },
+                });
+                if choice.operator == policy::OperatorKind::Fft {
+                    warnings.push(format!(
+                        "operator auto: about {estimate:.2e} non-zeros in R; the FFT operator is \
+                         predicted faster ({:.2} s against {:.2} s first-order with R, {:.2} s QP), \
+                         so products use it (operator = \"sparse\" assembles R)",
+                        choice.first_order_fft_s, choice.first_order_sparse_s, choice.qp_s
+                    ));
+                    Ok(OperatorPlan::Fft { pitch_mm: p })
+                } else {
+                    Ok(OperatorPlan::Assembled)
+                }
+            }
+        }
+    }
+
+    /// Assembles `R` over `rows`: in the plane, in each dwell point's tangent frame on the design
+    /// surface, or with a curvature-dependent TIF per dwell point.
+    pub(super) fn assemble(
+        &self,
+        rows: &HeightMap,
+        observer: &dyn Observer,
+    ) -> SetupResult<InfluenceMatrix> {
+        let (mx, my, px, py) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        match (&self.surface, &self.tif_model) {
+            (None, TifModel::ShiftInvariant) if self.swept.is_some() => {
+                let stretches = self.swept.as_ref().map(|s| &s.0);
+                match stretches {
+                    Some(st) => assemble_swept(mx, my, &self.path, st, &self.tif, observer)
+                        .at(SetupInput::None),
+                    None => InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer)
+                        .at(SetupInput::None),
+                }
+            }
+            (None, _) => {
+                InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer).at(SetupInput::None)
+            }
+            (Some(s), TifModel::ShiftInvariant) => {
+                assemble_on_surface(s, mx, my, px, py, &self.tif, self.tif_frame, observer)
+                    .at(SetupInput::Surface)
+            }
+            (Some(s), TifModel::CurvatureDependent(params)) => {
+                assemble_curvature_dependent(s, mx, my, px, py, params, self.tif_frame, observer)
+                    .at(SetupInput::Surface)
+            }
+        }
+    }
+
+    /// Builds the problem: the edge extension, the operator (assembled or FFT) and the
+    /// validated [`Problem`].
+    pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Built> {
+        observer.setup_step(SetupStep::BuildProblem);
+        let (rows, edge_points) = self.rows()?;
+        let mut warnings = plausible::size_warnings(&self.map, &self.tif);
+        if self.settings.influence == InfluenceModel::Swept
+            && self.swept.is_none()
+            && self.feed.is_some()
+        {
+            warnings.push(
+                "influence swept: not built on a curved part (tangent frame) or with a                  curvature-dependent TIF; the plan uses the point model"
+                    .to_string(),
+            );
+        }
+        if self.settings.robust {
+            let problem = self.robust_problem(&rows, &mut warnings, observer)?;
+            return self.built(problem, edge_points, warnings);
+        }
+        let fft = match self.operator_plan(&rows, &mut warnings)? {
+            OperatorPlan::Assembled => None,
+            OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
+                rows.x_mm(),
+                rows.y_mm(),
+                self.path.x_mm(),
+                self.path.y_mm(),
+                pitch_mm,
+                self.lattice_kernel(),
+            ) {
+                Ok(op) => Some(op),
+                Err(e) if self.settings.operator == OperatorChoice::Fft => {
+                    return Err(e).at(SetupInput::Map);
+                }
+                Err(e) => {
+                    warnings.push(format!(
+                        "operator auto: the FFT operator does not apply ({e}); assembling R"
+                    ));
+                    None
+                }
+            },
+        };
+        let z_nm = rows.z_nm().to_vec();
+        let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
+        let problem = if let Some(op) = fft {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.stencil_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.nufft_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else if let Some(op) = self.spread_plan(&rows, &mut warnings)? {
+            Problem::new(op, z_nm, bounds, rho, lambda)
+        } else {
+            Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
+        }
+        .and_then(|p| {
+            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+        })
+        .at(SetupInput::Job)?;
+        self.built(problem, edge_points, warnings)
+    }
+
+    /// `problem` with its checks: refused when no dwell point reaches the map, warned when a
+    /// large share reaches nothing.
+    pub(super) fn built(
+        &self,
+        problem: Problem,
+        edge_points: usize,
+        mut warnings: Vec<String>,
+    ) -> SetupResult<Built> {
+        let empty = problem.empty_columns().len();
+        if let Some(why) = plausible::no_dwell_point_reaches_the_map(empty, problem.n(), &self.tif)
+        {
+            return Err(Error::invalid("dwell path", why)).at(SetupInput::None);
+        }
+        warnings.extend(plausible::unreachable_share_warning(empty, problem.n()));
+        Ok(Built {
+            problem,
+            edge_points,
+            warnings,
+        })
+    }
+
+    /// The robust plan's problem over `rows` ([`robust`]): the scenarios' assembled matrices
+    /// stacked against the target repeated, `rho` and `lambda` times the scenario count (the
+    /// mean over the scenarios). Refused on a curved part or with a curvature-dependent TIF, and
+    /// with an operator other than the assembled `R`.
+    pub(super) fn robust_problem(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Problem> {
+        if self.surface.is_some() || !matches!(self.tif_model, TifModel::ShiftInvariant) {
+            return Err(Error::invalid(
+                "robust",
+                "not built on a curved part or with a curvature-dependent TIF",
+            ))
+            .at(SetupInput::Job);
+        }
+        if !matches!(
+            self.settings.operator,
+            OperatorChoice::Auto | OperatorChoice::Sparse
+        ) {
+            return Err(Error::invalid(
+                "robust",
+                "the robust plan stacks the scenarios' assembled matrices: use operator = \
+                 \"auto\" or \"sparse\"",
+            ))
+            .at(SetupInput::Job);
+        }
+        let scenarios = robust::SCENARIOS.len();
+        let stacked = robust::stacked_matrix(
+            rows.x_mm(),
+            rows.y_mm(),
+            &self.path,
+            self.swept.as_ref().map(|s| &s.0),
+            &self.tif,
+            observer,
+        )
+        .at(SetupInput::None)?;
+        warnings.push(format!(
+            "robust: the plan minimises the mean residual over {scenarios} scenarios (nominal, \
+             TIF 3% wider and narrower, tool 0.05 mm off in x and y), {:.2e} non-zeros in the \
+             stacked R",
+            stacked.nnz() as f64
+        ));
+        let z_nm = rows.z_nm().repeat(scenarios);
+        let s = scenarios as f64;
+        Problem::new(
+            stacked,
+            z_nm,
+            self.bounds.clone(),
+            self.rho * s,
+            self.lambda * s,
+        )
+        .and_then(|p| {
+            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+        })
+        .at(SetupInput::Job)
+    }
+}

@@ -1,0 +1,346 @@
+//! [`Setup::solve`]: the dwell solve (with the acceleration limit's methods and the correction
+//! passes against the executed program), the exact residual of approximate operators, the
+//! sensitivity; and the plans evaluated as given ([`Setup::removal_of`], [`Setup::run_program`]).
+
+use super::*;
+
+/// Most correction passes against the executed program.
+pub const MAX_CORRECTION_PASSES: usize = 4;
+
+/// Smallest relative fall of the executed RMS for which a correction pass is kept.
+pub const PASS_GAIN: f64 = 1e-3;
+
+/// The exact removal and the operator's error on it.
+pub(super) struct Exact {
+    pub(super) exact_removal_nm: Vec<f64>,
+    pub(super) error: OperatorError,
+}
+
+/// Whether every figure of a solve is finite and within physical range (a dwell of more than
+/// 10^12 s, a piston or removal of more than 10^12 nm is a run-away iteration).
+pub(super) fn solution_is_finite(solution: &Solution, removal_nm: &[f64]) -> bool {
+    const RUNAWAY: f64 = 1e12;
+    let ok = |v: f64| v.is_finite() && v.abs() < RUNAWAY;
+    ok(solution.piston_nm)
+        && solution.objective.is_finite()
+        && solution.dwell_s.iter().all(|&t| ok(t))
+        && removal_nm.iter().all(|&h| ok(h))
+}
+
+impl Setup {
+    /// Solves `problem` (built by [`Setup::problem`]): the acceleration-limited SCP when the
+    /// set-up has a limit, the dwell solver the settings choose otherwise (from the warm start
+    /// if there is one). Computes the removal `R t` and the feed schedule once.
+    pub fn solve(&self, problem: &Problem, observer: &dyn Observer) -> Result<Outcome> {
+        observer.setup_step(SetupStep::Solve);
+        let m = self.map.len();
+        let edge_rows = problem.m() > m;
+        let (solution, removal_all, accel) = match &self.accel {
+            Some(limits) => {
+                let a =
+                    accel::solve_validated(problem, &self.path, limits, &self.settings, observer)?;
+                let mut report = a.report;
+                observer.setup_step(SetupStep::Removal);
+                let removal = problem.removal_nm(&a.solution.dwell_s)?;
+                if edge_rows {
+                    // The SCP's RMS figures are over every row; give them on the measured map.
+                    let on_map = |h: &[f64]| {
+                        HeightStats::of(&centred_residual_nm(self.map.z_nm(), &h[..m])).rms_nm
+                    };
+                    report.rms_after_nm = on_map(&removal);
+                    report.rms_after_reference_nm =
+                        on_map(&problem.removal_nm(&a.reference.dwell_s)?);
+                }
+                (a.solution, removal, Some(report))
+            }
+            None => {
+                let s = dwell::solve_validated(
+                    problem,
+                    &self.settings,
+                    observer,
+                    self.warm_start_s.as_deref(),
+                )?;
+                observer.setup_step(SetupStep::Removal);
+                let removal = problem.removal_nm(&s.dwell_s)?;
+                (s, removal, None)
+            }
+        };
+        let (solution, removal_all, executed) = match (&self.accel, &self.surface) {
+            (Some(l), None) => {
+                let first = self.executed_at_limit(&solution.dwell_s, l.a_max_mm_per_s2, observer);
+                if l.method == AccelMethod::CorrectionPasses {
+                    self.correction_passes(problem, l, solution, removal_all, first, observer)?
+                } else {
+                    (solution, removal_all, Some(first))
+                }
+            }
+            _ => (solution, removal_all, None),
+        };
+        let mut removal_nm = removal_all;
+        removal_nm.truncate(m);
+        let mut solution = solution;
+        // A solve that ran away (a non-finite or astronomically large figure) is no answer.
+        if !solution_is_finite(&solution, &removal_nm) {
+            solution.status = Status::NumericalError;
+        }
+        let approximation = self.exact_removal(problem, &solution.dwell_s, observer)?;
+        if let Some(a) = &approximation {
+            // The report gives the exact residual of the dwell returned, and where the problem
+            // has no rows beyond the map, its piston and objective.
+            removal_nm.clone_from(&a.exact_removal_nm);
+            if problem.m() == m && m > 0 {
+                let d: Vec<f64> = removal_nm
+                    .iter()
+                    .zip(self.map.z_nm())
+                    .map(|(h, z)| h - z)
+                    .collect();
+                let piston = d.iter().sum::<f64>() / m as f64;
+                solution.piston_nm = piston;
+                solution.objective = 0.5 * d.iter().map(|v| (v - piston).powi(2)).sum::<f64>();
+            }
+        }
+        let approximation = approximation.map(|a| a.error);
+        observer.setup_step(SetupStep::FeedSchedule);
+        let feeds = feeds_mm_per_min(&self.ds_mm, &solution.dwell_s);
+        let schedule = FeedSchedule::new(
+            &self.path,
+            &solution.dwell_s,
+            self.accel.as_ref().map(|l| l.a_max_mm_per_s2),
+            self.corner_angle_deg,
+        )?;
+        let sensitivity = match &executed {
+            Some(Ok(e)) => Some(sensitivity::of_executed(
+                self.map.x_mm(),
+                self.map.y_mm(),
+                self.map.z_nm(),
+                &e.run.contact,
+                &e.run.removal_nm,
+                &self.tif,
+                observer,
+            )?),
+            _ => None,
+        };
+        Ok(Outcome {
+            solution,
+            removal_nm,
+            feeds_mm_per_min: feeds,
+            schedule,
+            accel,
+            executed,
+            approximation,
+            sensitivity,
+        })
+    }
+
+    /// With an approximate operator (the spreading operator): the removal of `dwell_s` by the
+    /// exact `R` (summed directly, [`crate::influence::direct`]) at the measured map points and
+    /// the operator's measured error on it. `None` for the exact operators.
+    pub(super) fn exact_removal(
+        &self,
+        problem: &Problem,
+        dwell_s: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<Option<Exact>> {
+        use crate::influence::operator::OperatorKind;
+        let tolerance = match problem.operator_kind() {
+            OperatorKind::FftSpread => self.settings.spread_tolerance,
+            OperatorKind::Nufft => crate::influence::nufft::DEFAULT_NUFFT_TOLERANCE,
+            _ => return Ok(None),
+        };
+        if self.surface.is_some() {
+            return Ok(None);
+        }
+        let m = self.map.len();
+        let mut approx = problem.removal_nm(dwell_s)?;
+        approx.truncate(m);
+        // The exact removal of the plan's own model: with the swept model every dwell point's
+        // stretch samples carry its dwell in proportion to their weights.
+        let exact = match &self.swept {
+            Some((stretches, _)) => {
+                let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
+                for (j, &tj) in dwell_s.iter().enumerate() {
+                    for &[dx, dy, w] in stretches.of(j) {
+                        x.push(self.path.x_mm()[j] + dx);
+                        y.push(self.path.y_mm()[j] + dy);
+                        t.push(tj * w);
+                    }
+                }
+                crate::influence::direct::removal_nm(
+                    self.map.x_mm(),
+                    self.map.y_mm(),
+                    &x,
+                    &y,
+                    &t,
+                    &self.tif,
+                    observer,
+                )?
+            }
+            None => crate::influence::direct::removal_nm(
+                self.map.x_mm(),
+                self.map.y_mm(),
+                self.path.x_mm(),
+                self.path.y_mm(),
+                dwell_s,
+                &self.tif,
+                observer,
+            )?,
+        };
+        let norm = |v: &mut dyn Iterator<Item = f64>| v.map(|x| x * x).sum::<f64>().sqrt();
+        let diff = norm(&mut approx.iter().zip(&exact).map(|(a, e)| a - e));
+        let size = norm(&mut exact.iter().copied());
+        let rms = |h: &[f64]| HeightStats::of(&centred_residual_nm(self.map.z_nm(), h)).rms_nm;
+        let error = OperatorError {
+            relative_removal_error: if size > 0.0 { diff / size } else { 0.0 },
+            tolerance,
+            rms_after_operator_nm: rms(&approx),
+            rms_after_exact_nm: rms(&exact),
+        };
+        Ok(Some(Exact {
+            exact_removal_nm: exact,
+            error,
+        }))
+    }
+
+    /// Correction passes against the executed program ([`AccelMethod::CorrectionPasses`]):
+    /// from `solution` (removal `removal_all` over every row, executed run `first`), each pass
+    /// re-solves the feed-limited problem for the target less the executed removal's departure
+    /// from the plan's on the measured map, `z_i - (h_exec_i - (R t)_i)`, warm-started from the
+    /// last dwell times, and executes the result; a pass is kept while the executed RMS falls by
+    /// more than [`PASS_GAIN`], at most [`MAX_CORRECTION_PASSES`] passes.
+    #[allow(clippy::type_complexity)]
+    pub(super) fn correction_passes(
+        &self,
+        problem: &Problem,
+        limits: &AccelLimits,
+        solution: Solution,
+        removal_all: Vec<f64>,
+        first: Result<Executed>,
+        observer: &dyn Observer,
+    ) -> Result<(Solution, Vec<f64>, Option<Result<Executed>>)> {
+        let mut current = match first {
+            Ok(e) => e,
+            Err(e) => return Ok((solution, removal_all, Some(Err(e)))),
+        };
+        let (mut solution, mut removal_all) = (solution, removal_all);
+        let m = self.map.len();
+        for _ in 0..MAX_CORRECTION_PASSES {
+            // The executed departure from the plan, on the measured rows of every scenario's
+            // block (one block unless the plan is robust).
+            let blocks = if self.settings.robust {
+                robust::SCENARIOS.len()
+            } else {
+                1
+            };
+            let block = problem.m() / blocks;
+            let mut target = problem.z_nm().to_vec();
+            for b in 0..blocks {
+                for i in 0..m {
+                    target[b * block + i] -= current.run.removal_nm[i] - removal_all[i];
+                }
+            }
+            let pass = problem.with_target_nm(target)?;
+            let s =
+                dwell::solve_validated(&pass, &self.settings, observer, Some(&solution.dwell_s))?;
+            // A pass whose plan cannot be written as a program is not kept.
+            let Ok(e) = self.executed_at_limit(&s.dwell_s, limits.a_max_mm_per_s2, observer) else {
+                break;
+            };
+            if e.after.rms_nm >= current.after.rms_nm * (1.0 - PASS_GAIN) {
+                break;
+            }
+            removal_all = problem.removal_nm(&s.dwell_s)?;
+            solution = s;
+            current = Executed {
+                correction_passes: current.correction_passes + 1,
+                ..e
+            };
+        }
+        Ok((solution, removal_all, Some(Ok(current))))
+    }
+
+    /// The removal `R t` of given dwell times `dwell_s` at the measured map points, nm (edge
+    /// rows dropped), with `problem` built by [`Setup::problem`]: a plan evaluated, no solve.
+    pub fn removal_of(
+        &self,
+        problem: &Problem,
+        dwell_s: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<Vec<f64>> {
+        observer.setup_step(SetupStep::Removal);
+        let mut removal = problem.removal_nm(dwell_s)?;
+        removal.truncate(self.map.len());
+        Ok(removal)
+    }
+
+    /// Runs `program` as the machine would (block by block under `kinematics`) and integrates
+    /// the TIF along the contact motion at the measured map points, in pieces of at most
+    /// `step_mm` of arc length (default [`default_sample_step_mm`]); `part`: the part geometry
+    /// and the tool-centre offset along its normal, to map tool centres back to contact points
+    /// (none: the program's X, Y are the contact points). The executed removal of a given
+    /// program, as [`Setup::removal_of`] is of given dwell times; the set-up's dwell points are
+    /// the program's marked points ([`DwellPoints::of_program`]) for the report.
+    pub fn run_program(
+        &self,
+        program: &Program,
+        kinematics: Kinematics,
+        step_mm: Option<f64>,
+        part: Option<(&dyn PartGeometry, f64)>,
+        observer: &dyn Observer,
+    ) -> Result<ProgramRun> {
+        observer.setup_step(SetupStep::Removal);
+        self.run_on_map(program, kinematics, step_mm, part, observer)
+    }
+
+    /// [`Setup::run_program`] without the step report (also the solve's executed program).
+    pub(super) fn run_on_map(
+        &self,
+        program: &Program,
+        kinematics: Kinematics,
+        step_mm: Option<f64>,
+        part: Option<(&dyn PartGeometry, f64)>,
+        observer: &dyn Observer,
+    ) -> Result<ProgramRun> {
+        let m = &self.map;
+        run_on_map(
+            program,
+            kinematics,
+            step_mm.unwrap_or_else(|| default_sample_step_mm(&self.tif)),
+            part,
+            m.x_mm(),
+            m.y_mm(),
+            &self.tif,
+            observer,
+        )
+    }
+
+    /// The default program for `dwell_s` (ISO, G94, flat part, the feed limit) executed at
+    /// `a_max` with look-ahead, and the removal integrated along the executed motion
+    /// ([`crate::machine::gcode::motion`]), on the measured map.
+    pub(super) fn executed_at_limit(
+        &self,
+        dwell_s: &[f64],
+        a_max_mm_per_s2: f64,
+        observer: &dyn Observer,
+    ) -> Result<Executed> {
+        let settings = NcSettings {
+            a_max_mm_per_s2: Some(a_max_mm_per_s2),
+            corner_angle_deg: self.corner_angle_deg,
+            v_max_mm_per_min: self.feed.map(|f| f.v_max_mm_per_min),
+            ..NcSettings::default()
+        };
+        let nc = NcProgram::plan(&self.path, dwell_s, &Flat, &settings)?;
+        let check = write_and_check(&nc, &[])?;
+        let kinematics = Kinematics::Trapezoidal {
+            a_max_mm_per_s2,
+            corner_angle_deg: settings.corner_angle_deg,
+        };
+        let run = self.run_on_map(&check.program, kinematics, None, None, observer)?;
+        let after = HeightStats::of(&centred_residual_nm(self.map.z_nm(), &run.removal_nm));
+        Ok(Executed {
+            a_max_mm_per_s2,
+            after,
+            run,
+            correction_passes: 0,
+        })
+    }
+}
