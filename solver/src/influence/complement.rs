@@ -26,7 +26,7 @@
 //! of that ratio. [`super::FftOperator`] takes this route where its cost model says it is
 //! cheaper.
 
-use super::fft::{smooth_size, Buffers, Cells, Fill, Spectrum, Transforms};
+use super::lattice::{smooth_size, Buffers, Cells, Fill, Spectrum, Transforms};
 use rayon::prelude::*;
 use realfft::RealFftPlanner;
 use rustfft::num_complex::Complex;

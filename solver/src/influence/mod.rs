@@ -28,6 +28,7 @@ pub mod curvature;
 pub mod direct;
 pub mod fft;
 pub mod gram;
+pub(crate) mod lattice;
 pub mod matrix;
 pub mod nufft;
 pub mod operator;

@@ -43,7 +43,8 @@
 //! over an evenly spaced sample of columns, each computed both ways entry by entry against the
 //! exact contract.
 
-use super::fft::{off_lattice_error, FftOperator};
+use super::fft::FftOperator;
+use super::lattice::off_lattice_error;
 use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };

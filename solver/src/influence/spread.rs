@@ -26,7 +26,8 @@
 //! the relative Frobenius error `||R~ - R||_F / ||R||_F` over a fixed, evenly spaced sample of
 //! columns, each column computed both ways entry by entry.
 
-use super::fft::{off_lattice_error, FftOperator};
+use super::fft::FftOperator;
+use super::lattice::off_lattice_error;
 use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };

@@ -32,7 +32,7 @@
 //! truncated Gaussian's cut) may be kept by one and not the other. Everything else is the
 //! assembled contract, entry for entry.
 
-use super::fft::{lattice_index, off_lattice_error};
+use super::lattice::{lattice_index, off_lattice_error};
 use super::operator::{
     ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
 };
