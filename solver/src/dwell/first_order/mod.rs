@@ -635,61 +635,49 @@ fn minimise_here(
         },
     };
     let lattice = lattice.filter(|l| l.len() == n);
-    let (status, x, it, cert) = match settings.first_order_method {
-        FirstOrderMethod::Fista => {
-            let it = Iteration {
-                data: &data,
-                work: &mut work,
-                bounds,
-                lip: lambda_hat,
-                limits: &limits,
-                observer,
-            };
-            fista(it, x)
+    let method = settings.first_order_method;
+    // FISTA steps with the estimate itself; Newton-CG and L-BFGS need an upper bound (module
+    // documentation).
+    let lip = match method {
+        FirstOrderMethod::Fista => lambda_hat,
+        FirstOrderMethod::NewtonCg | FirstOrderMethod::Lbfgs => lambda_hat * NEWTON_L_SAFETY,
+    };
+    let mut precond = match (method, settings.preconditioner, lattice) {
+        (FirstOrderMethod::NewtonCg, Preconditioner::Circulant, Some(l)) => {
+            circulant(&data, l, &mut work)
         }
-        FirstOrderMethod::NewtonCg => {
-            let lip = lambda_hat * NEWTON_L_SAFETY;
-            let mut precond = match (settings.preconditioner, lattice) {
-                (Preconditioner::Jacobi, _) | (_, None) => None,
-                (Preconditioner::Circulant, Some(l)) => circulant(&data, l, &mut work),
-            };
-            let it = Iteration {
-                data: &data,
-                work: &mut work,
-                bounds,
-                lip,
-                limits: &limits,
-                observer,
-            };
-            newton_cg(it, x, precond.as_mut())
-        }
-        FirstOrderMethod::Lbfgs => {
-            let mem = settings
-                .lbfgs_memory
-                .unwrap_or(if op.products_cheap_per_dwell_point() {
-                    super::DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS
-                } else {
-                    super::DEFAULT_LBFGS_MEMORY
-                });
-            crate::budget::check_f64s(
-                "lbfgs_memory",
-                &format!(
-                    "{mem} correction pairs: {} vectors of {n} dwell times",
-                    2 * mem + 5
-                ),
-                n as f64,
-                (2 * mem + 5) as f64,
-            )?;
-            let it = Iteration {
-                data: &data,
-                work: &mut work,
-                bounds,
-                lip: lambda_hat * NEWTON_L_SAFETY,
-                limits: &limits,
-                observer,
-            };
-            projected_lbfgs(it, x, mem)
-        }
+        _ => None,
+    };
+    let mem = settings
+        .lbfgs_memory
+        .unwrap_or(if op.products_cheap_per_dwell_point() {
+            super::DEFAULT_LBFGS_MEMORY_CHEAP_PRODUCTS
+        } else {
+            super::DEFAULT_LBFGS_MEMORY
+        });
+    if method == FirstOrderMethod::Lbfgs {
+        crate::budget::check_f64s(
+            "lbfgs_memory",
+            &format!(
+                "{mem} correction pairs: {} vectors of {n} dwell times",
+                2 * mem + 5
+            ),
+            n as f64,
+            (2 * mem + 5) as f64,
+        )?;
+    }
+    let iteration = Iteration {
+        data: &data,
+        work: &mut work,
+        bounds,
+        lip,
+        limits: &limits,
+        observer,
+    };
+    let (status, x, it, cert) = match method {
+        FirstOrderMethod::Fista => fista(iteration, x),
+        FirstOrderMethod::NewtonCg => newton_cg(iteration, x, precond.as_mut()),
+        FirstOrderMethod::Lbfgs => projected_lbfgs(iteration, x, mem),
     };
     observer.finish(Stage::Solve);
     let dwell_s: Vec<f64> = x.iter().zip(&data.s).map(|(w, s)| w * s).collect();
