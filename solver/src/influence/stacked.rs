@@ -1,7 +1,8 @@
-//! The stacked influence matrix of several tools in one solve: `[R_1 / w_1, R_2 / w_2, ...]`,
-//! the tools' matrices side by side over the same map points, each column block divided by the
+//! Stacked influence matrices. Several tools in one solve: `[R_1 / w_1, R_2 / w_2, ...]`, the
+//! tools' matrices side by side over the same map points, each column block divided by the
 //! tool's machining-time weight `w_k` (so that `rho sum(u)` with `u_k = w_k t_k` weighs tool `k`'s
-//! time by `w_k`; `R_k t_k = (R_k / w_k) u_k`).
+//! time by `w_k`; `R_k t_k = (R_k / w_k) u_k`). Several scenarios of one path (the robust plan):
+//! `[R_1; R_2; ...]`, one above the other over the same dwell points.
 
 use super::matrix::InfluenceMatrix;
 use crate::error::{Error, Result};
@@ -37,6 +38,48 @@ pub fn stack_scaled(blocks: &[(&InfluenceMatrix, f64)]) -> Result<InfluenceMatri
         CscMatrix::try_from_csc_data(m, n, offsets, rows, vals).map_err(|e| Error::Numerical {
             stage: "stacked influence matrix",
             why: e.to_string(),
+        })?;
+    Ok(InfluenceMatrix::from_csc(csc))
+}
+
+/// `[R_1; R_2; ...]`: the blocks one above the other (same columns), as the robust plan's
+/// scenarios ([`crate::setup::robust`]).
+pub fn stack_rows(blocks: &[InfluenceMatrix]) -> Result<InfluenceMatrix> {
+    let Some(first) = blocks.first() else {
+        return Err(Error::invalid("robust", "no scenario"));
+    };
+    let (m, n) = (first.csc().nrows(), first.csc().ncols());
+    if let Some(b) = blocks
+        .iter()
+        .find(|b| b.csc().ncols() != n || b.csc().nrows() != m)
+    {
+        return Err(Error::LengthMismatch {
+            what: "scenario influence matrix",
+            got: b.csc().ncols(),
+            expected: n,
+        });
+    }
+    let nnz: usize = blocks.iter().map(|b| b.csc().nnz()).sum();
+    let (mut offsets, mut rows, mut vals) = (
+        Vec::with_capacity(n + 1),
+        Vec::with_capacity(nnz),
+        Vec::with_capacity(nnz),
+    );
+    offsets.push(0);
+    for j in 0..n {
+        for (k, b) in blocks.iter().enumerate() {
+            let col = b.csc().col(j);
+            rows.extend(col.row_indices().iter().map(|i| i + k * m));
+            vals.extend_from_slice(col.values());
+        }
+        offsets.push(rows.len());
+    }
+    let csc =
+        CscMatrix::try_from_csc_data(m * blocks.len(), n, offsets, rows, vals).map_err(|e| {
+            Error::Numerical {
+                stage: "stacked scenario matrix",
+                why: e.to_string(),
+            }
         })?;
     Ok(InfluenceMatrix::from_csc(csc))
 }

@@ -13,14 +13,13 @@
 //! scenario (a width change keeps the volume, an offset moves nothing in or out).
 
 use super::sensitivity::{PerturbedTif, OFFSET_MM, RELATIVE_CHANGE};
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::influence::swept::{assemble_swept, Stretches};
 use crate::influence::InfluenceMatrix;
 use crate::map::HeightStats;
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
-use nalgebra_sparse::CscMatrix;
 use serde::{Deserialize, Serialize};
 
 /// One scenario of a robust plan: the TIF's width factor (volume kept) and the tool's offset.
@@ -82,48 +81,7 @@ pub fn stacked_matrix<T: InfluenceFunction + ?Sized>(
             None => InfluenceMatrix::assemble(x_mm, y_mm, path.x_mm(), path.y_mm(), &f, observer)?,
         });
     }
-    stack_rows(&blocks)
-}
-
-/// `[R_1; R_2; ...]`: the blocks one above the other (same columns).
-pub fn stack_rows(blocks: &[InfluenceMatrix]) -> Result<InfluenceMatrix> {
-    let Some(first) = blocks.first() else {
-        return Err(Error::invalid("robust", "no scenario"));
-    };
-    let (m, n) = (first.csc().nrows(), first.csc().ncols());
-    if let Some(b) = blocks
-        .iter()
-        .find(|b| b.csc().ncols() != n || b.csc().nrows() != m)
-    {
-        return Err(Error::LengthMismatch {
-            what: "scenario influence matrix",
-            got: b.csc().ncols(),
-            expected: n,
-        });
-    }
-    let nnz: usize = blocks.iter().map(|b| b.csc().nnz()).sum();
-    let (mut offsets, mut rows, mut vals) = (
-        Vec::with_capacity(n + 1),
-        Vec::with_capacity(nnz),
-        Vec::with_capacity(nnz),
-    );
-    offsets.push(0);
-    for j in 0..n {
-        for (k, b) in blocks.iter().enumerate() {
-            let col = b.csc().col(j);
-            rows.extend(col.row_indices().iter().map(|i| i + k * m));
-            vals.extend_from_slice(col.values());
-        }
-        offsets.push(rows.len());
-    }
-    let csc =
-        CscMatrix::try_from_csc_data(m * blocks.len(), n, offsets, rows, vals).map_err(|e| {
-            Error::Numerical {
-                stage: "stacked scenario matrix",
-                why: e.to_string(),
-            }
-        })?;
-    Ok(InfluenceMatrix::from_csc(csc))
+    crate::influence::stacked::stack_rows(&blocks)
 }
 
 /// The executed residual RMS of each scenario, nm: the nominal's and the sensitivity's
