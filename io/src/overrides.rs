@@ -76,8 +76,8 @@ pub struct Overrides {
     #[cfg_attr(feature = "clap", arg(long, value_name = "MM_PER_S2"))]
     #[serde(alias = "a_max")]
     pub a_max_mm_per_s2: Option<f64>,
-    /// How the acceleration limit is imposed: squared-speed (projected gradient in squared
-    /// speed, any size and operator), scp-qp (sequential QP, the small-case reference),
+    /// How the acceleration limit is imposed: squared-speed (default; projected gradient in
+    /// squared speed, any size and operator), scp-qp (sequential QP, the small-case reference),
     /// squared-speed-then-scp-qp (the first, refined by the second) or correction-passes (the
     /// plan re-solved against the program executed at the limit).
     #[cfg_attr(feature = "clap", arg(long, value_enum))]
