@@ -170,11 +170,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             (ProcessModel::bonnet(&p)?.sample(a.pitch_mm)?, a.out)
         }
         Kind::Gaussian(a) => {
-            let g = GaussianTif {
-                sigma_mm: a.sigma_mm,
-                peak_rate_nm_per_s: a.peak_nm_per_s,
-                truncation_radius_mm: a.truncation_mm.unwrap_or(3.0 * a.sigma_mm),
-            };
+            let g = GaussianTif::truncated(a.sigma_mm, a.peak_nm_per_s, a.truncation_mm)?;
             (ProcessModel::gaussian(g)?.sample(a.pitch_mm)?, a.out)
         }
         Kind::Grid(a) => {
