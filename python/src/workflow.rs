@@ -17,6 +17,7 @@ use preston_solver::observer::{Observer, Silent};
 use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings};
 use preston_solver::path::random::{random_unicursal, RandomPathSettings};
 use preston_solver::path::spiral::archimedes;
+use preston_solver::path::PathSummary;
 use preston_solver::registration::{register as icp, RegisterSettings};
 use preston_solver::surface::Surface;
 use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions, SpotSummary};
@@ -51,8 +52,8 @@ fn grid_arrays<'py>(py: Python<'py>, g: &GridTif) -> (Array<'py>, Array<'py>, Ar
     (array(py, &x), array(py, &y), array(py, rate))
 }
 
-/// A TIF summary as the JSON text `preston tif` prints.
-fn summary_json<T: serde::Serialize>(s: &T) -> PyResult<String> {
+/// A summary (of a TIF, a path) as the JSON text the CLI prints.
+pub(crate) fn summary_json<T: serde::Serialize>(s: &T) -> PyResult<String> {
     serde_json::to_string(s).map_err(|e| InputError::new_err(e.to_string()))
 }
 
@@ -244,16 +245,8 @@ pub(crate) fn path_random<'py>(
     let r = py
         .detach(|| random_unicursal(&region, &set))
         .map_err(|e| engine_to_py("random path", e))?;
-    let s = json!({
-        "kind": "random", "points": r.path.len(), "nodes": r.nodes,
-        "region_nodes": r.region_nodes, "longest_run": r.longest_run,
-        "tree_exchanges": r.swaps, "seed": set.seed, "jitter": set.jitter,
-    });
-    Ok((
-        array(py, r.path.x_mm()),
-        array(py, r.path.y_mm()),
-        s.to_string(),
-    ))
+    let s = summary_json(&PathSummary::random(&r, &set, None))?;
+    Ok((array(py, r.path.x_mm()), array(py, r.path.y_mm()), s))
 }
 
 /// The lifting-bonnet edge-offset trajectory inside the closed edge `edge_xy` (`(N, 2)`, mm)
@@ -271,25 +264,8 @@ pub(crate) fn path_edge_offset<'py>(
     let t = py
         .detach(|| edge_offset(&edge, &set))
         .map_err(|e| engine_to_py("edge offset", e))?;
-    let lines: Vec<Value> = t
-        .lines
-        .iter()
-        .map(|l| {
-            json!({"spot_radius_mm": l.spot_radius_mm, "depth_mm": l.depth_mm,
-                   "offset_mm": l.offset_mm, "achieved_offset_mm": l.achieved_offset_mm,
-                   "spacing_mm": l.spacing_mm, "clearance_mm": l.clearance_mm})
-        })
-        .collect();
-    let s = json!({
-        "kind": "edge_offset", "points": t.path.len(), "bezier_segments": t.edge.len(),
-        "bezier_max_error_mm": t.fit_error_mm, "corners": t.corners, "lines": lines,
-        "line_starts": t.line_starts,
-    });
-    Ok((
-        array(py, t.path.x_mm()),
-        array(py, t.path.y_mm()),
-        s.to_string(),
-    ))
+    let s = summary_json(&PathSummary::edge_offset(t.path.len(), &t))?;
+    Ok((array(py, t.path.x_mm()), array(py, t.path.y_mm()), s))
 }
 
 /// Registers measured points `(N, 3)` (x, y, z in mm; probe tip centres with a probe radius) on
