@@ -1,7 +1,8 @@
 //! No top-level module of the library crates (solver, io) uses a module that uses it, directly
 //! or through others: the `crate::` and root-reaching `super::` paths of every source file are
 //! read, and the graph of top-level modules must have no strongly connected component with more
-//! than one module (Tarjan's algorithm).
+//! than one module (Tarjan's algorithm). The same holds inside every folder among its files,
+//! but where a trait names the types that implement it (listed in [`TRAIT_AND_IMPLEMENTATIONS`]).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -76,7 +77,7 @@ fn super_paths(text: &str, depth: usize, deps: &mut BTreeSet<String>) {
             n += 1;
             tail = t;
         }
-        if n >= depth {
+        if n == depth {
             deps.insert(identifier(tail).to_string());
         }
         rest = tail;
@@ -85,6 +86,19 @@ fn super_paths(text: &str, depth: usize, deps: &mut BTreeSet<String>) {
 
 /// Top-level module -> the top-level modules it uses.
 fn module_graph(src: &Path) -> BTreeMap<String, BTreeSet<String>> {
+    module_graph_in(src, None)
+}
+
+/// The file modules of the folder `folder` (`influence`, `machine/gcode`) of the crate at `src`
+/// -> those of them each uses (`crate::influence::x` and `super::x` paths; other `crate::` paths are
+/// left out).
+fn folder_graph(src: &Path, folder: &str) -> BTreeMap<String, BTreeSet<String>> {
+    module_graph_in(&src.join(folder), Some(&folder.replace('/', "::")))
+}
+
+/// [`module_graph`] of `src`, or of the folder module `folder` (its path from the crate root)
+/// whose files are under `src`.
+fn module_graph_in(src: &Path, folder: Option<&str>) -> BTreeMap<String, BTreeSet<String>> {
     let mut files = Vec::new();
     sources(src, &mut files);
     let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
@@ -98,6 +112,10 @@ fn module_graph(src: &Path) -> BTreeMap<String, BTreeSet<String>> {
         if rel.len() == 1 && (rel[0] == "lib.rs" || rel[0] == "main.rs") {
             continue;
         }
+        // In a folder, its files are the modules; each sub-folder is checked on its own.
+        if folder.is_some() && (rel.len() > 1 || rel[0] == "mod.rs") {
+            continue;
+        }
         let top = rel[0].trim_end_matches(".rs").to_string();
         // Module depth below the root: `a.rs` and `a/mod.rs` are 1, `a/b.rs` is 2.
         let depth = if rel.last().is_some_and(|l| l == "mod.rs") {
@@ -105,12 +123,19 @@ fn module_graph(src: &Path) -> BTreeMap<String, BTreeSet<String>> {
         } else {
             rel.len()
         };
-        let text: String = std::fs::read_to_string(&f)
+        let mut text: String = std::fs::read_to_string(&f)
             .unwrap()
             .lines()
             .filter(|l| !l.trim_start().starts_with("//"))
             .collect::<Vec<_>>()
             .join("\n");
+        if let Some(folder) = folder {
+            // Paths into the folder read as paths from its root; every other crate path is left
+            // out.
+            text = text
+                .replace("crate::", "other_crate_path::")
+                .replace(&format!("other_crate_path::{folder}::"), "crate::");
+        }
         let mut deps = BTreeSet::new();
         crate_paths(&text, &mut deps);
         super_paths(&text, depth, &mut deps);
@@ -205,6 +230,78 @@ fn the_checker_finds_a_planted_cycle() {
     let g = module_graph(&dir);
     let _ = std::fs::remove_dir_all(&dir);
     assert_eq!(cycles(&g), vec![vec!["a".to_string(), "b".to_string()]]);
+}
+
+/// The modules that name each other because a trait names its implementations: the operator
+/// traits of `influence::operator` and the assembled matrix and Gram operator that implement them.
+const TRAIT_AND_IMPLEMENTATIONS: [(&str, &[&str]); 1] =
+    [("influence", &["gram", "matrix", "operator"])];
+
+/// Every folder below `src`, as a path from it (`influence`, `machine/gcode`).
+fn folders(src: &Path, prefix: &str, out: &mut Vec<String>) {
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(src)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.is_dir())
+        .collect();
+    entries.sort();
+    for d in entries {
+        let name = d.file_name().unwrap().to_string_lossy().into_owned();
+        let path = if prefix.is_empty() {
+            name
+        } else {
+            format!("{prefix}/{name}")
+        };
+        folders(&d, &path, out);
+        out.push(path);
+    }
+}
+
+#[test]
+fn the_folder_checker_finds_a_planted_cycle_and_ignores_other_crate_paths() {
+    let dir = std::env::temp_dir().join(format!("preston-folder-cycles-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("f")).unwrap();
+    std::fs::write(
+        dir.join("f/mod.rs"),
+        "pub mod p;\npub mod q;\npub mod surface;\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.join("f/p.rs"),
+        "use super::q::X;\nuse crate::surface::S;\n",
+    )
+    .unwrap();
+    std::fs::write(dir.join("f/q.rs"), "use crate::f::{p::Y, other};\n").unwrap();
+    std::fs::write(dir.join("f/surface.rs"), "use super::super::p::Z;\n").unwrap();
+    let g = folder_graph(&dir, "f");
+    let _ = std::fs::remove_dir_all(&dir);
+    assert_eq!(cycles(&g), vec![vec!["p".to_string(), "q".to_string()]]);
+    assert!(g["p"].contains("q") && !g["p"].contains("surface"), "{g:?}");
+}
+
+#[test]
+fn inside_every_folder_no_module_uses_one_that_uses_it_but_trait_and_implementations() {
+    for name in ["solver", "io"] {
+        let src = crate_src(name);
+        let mut all = Vec::new();
+        folders(&src, "", &mut all);
+        assert!(!all.is_empty(), "{name}: no folders read");
+        for folder in all {
+            let allowed: Vec<Vec<String>> = TRAIT_AND_IMPLEMENTATIONS
+                .iter()
+                .filter(|(f, _)| *f == folder)
+                .map(|(_, m)| m.iter().map(|s| s.to_string()).collect())
+                .collect();
+            let c: Vec<Vec<String>> = cycles(&folder_graph(&src, &folder))
+                .into_iter()
+                .filter(|c| !allowed.contains(c))
+                .collect();
+            assert!(
+                c.is_empty(),
+                "{name}/src/{folder}: modules that use each other: {c:?}"
+            );
+        }
+    }
 }
 
 #[test]
