@@ -4,20 +4,20 @@
 //! seven columns `preston path` writes (`x_mm, y_mm, z_mm, tx, ty, tz, ds_mm`) and the summary
 //! the CLI prints, with the same keys and values.
 
-use crate::workflow::surface_of;
+use crate::workflow::{summary_json, surface_of};
 use crate::{array, columns, engine_to_py, Array, InputError};
 use numpy::PyReadonlyArray2;
 use preston_solver::map::BoundingBox;
 use preston_solver::path::arcs::lines_with_arcs;
 use preston_solver::path::chord_height::{chord_height_line, ChordHeightSettings};
 use preston_solver::path::intersection::{
-    clip_to_aperture, intersection_lines, iteration_pattern, lines_to_path, raster_lines, Line,
+    clip_to_aperture, intersection_lines, lines_to_path, raster_lines, Line,
 };
 use preston_solver::path::raster::RasterAxis;
-use preston_solver::path::{project, DwellPath, ProjectedPath};
+use preston_solver::path::{project, DwellPath, PathSummary, ProjectedPath};
 use preston_solver::surface::Surface;
 use pyo3::prelude::*;
-use serde_json::{json, Value};
+use serde_json::Value;
 
 /// The columns of `preston path`'s CSV: `(x_mm, y_mm, z_mm, tx, ty, tz, ds_mm)`.
 pub(crate) type Columns<'py> = (
@@ -167,17 +167,10 @@ pub(crate) fn path_lines<'py>(
         .map_err(|e| engine_to_py(kind, e))?;
     let p = py.detach(|| projected(&p, surface.as_ref()))?;
     let summary = match iteration {
-        Some(k) => {
-            let (ax, shifted) = iteration_pattern(k);
-            json!({"kind": "intersection", "iteration": k,
-                   "along": if ax == RasterAxis::X { "x" } else { "y" },
-                   "shift_mm": if shifted { 0.5 * pitch_mm } else { 0.0 },
-                   "points": p.len(), "lines": lines.len()})
-        }
-        None => json!({"kind": "raster", "points": p.len(), "lines": lines.len(),
-                       "length_mm": p.ds_mm.iter().sum::<f64>()}),
+        Some(k) => PathSummary::intersection(&p, k, pitch_mm, lines.len()),
+        None => PathSummary::raster(&p, lines.len()),
     };
-    Ok((columns_of(py, &p), summary.to_string()))
+    Ok((columns_of(py, &p), summary_json(&summary)?))
 }
 
 /// Equal chord-height points along the line `x = line_x_mm` from `y_range_mm.0` to
@@ -212,19 +205,12 @@ pub(crate) fn path_chord_height<'py>(
         .detach(|| chord_height_line(&surface, line_x_mm, y_range_mm.0, y_range_mm.1, &set))
         .map_err(|e| engine_to_py("chord-height line", e))?;
     let p = py.detach(|| projected(&c.path, Some(&surface)))?;
-    let hs = &c.chord_heights_mm;
-    let inner = &hs[..hs.len().saturating_sub(1)];
-    let summary = json!({"kind": "chord_height", "points": p.len(),
-           "min_step_mm": c.min_step_mm(), "max_step_mm": c.max_step_mm(),
-           "min_chord_height_um": inner.iter().copied().fold(f64::INFINITY, f64::min) * 1e3,
-           "max_chord_height_um": hs.iter().copied().fold(0.0, f64::max) * 1e3,
-           "last_chord_height_um": hs.last().copied().unwrap_or(0.0) * 1e3,
-           "last_step_mm": c.steps_mm.last().copied().unwrap_or(0.0)});
+    let summary = summary_json(&PathSummary::chord_height(&p, &c))?;
     Ok((
         columns_of(py, &p),
-        summary.to_string(),
+        summary,
         array(py, &c.steps_mm),
-        array(py, hs),
+        array(py, &c.chord_heights_mm),
     ))
 }
 

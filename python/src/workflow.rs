@@ -17,12 +17,14 @@ use preston_solver::observer::{Observer, Silent};
 use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings};
 use preston_solver::path::random::{random_unicursal, RandomPathSettings};
 use preston_solver::path::spiral::archimedes;
+use preston_solver::path::PathSummary;
 use preston_solver::registration::{register as icp, RegisterSettings};
 use preston_solver::surface::Surface;
-use preston_solver::tif::bonnet::{BonnetParams, BonnetTif};
-use preston_solver::tif::hertz::{sample_on_grid, HertzParams, HertzTif};
-use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions};
-use preston_solver::tif::{GaussianTif, GridTif, InfluenceFunction, Tif};
+use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions, SpotSummary};
+use preston_solver::tif::{
+    BonnetParams, GaussianTif, GridAdjustment, GridTif, HertzParams, HertzPart, ProcessModel, Tif,
+    TifSummary,
+};
 use pyo3::prelude::*;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
@@ -44,43 +46,15 @@ pub(crate) fn surface_of(text: &str) -> PyResult<Surface> {
     Ok(s)
 }
 
-/// A TIF grid as the rows of its CSV (`x_mm, y_mm, rate_nm_per_s`, row-major).
+/// A TIF grid as the columns of its CSV (`x_mm, y_mm, rate_nm_per_s`, row-major).
 fn grid_arrays<'py>(py: Python<'py>, g: &GridTif) -> (Array<'py>, Array<'py>, Array<'py>) {
-    let (nx, ny) = g.shape();
-    let (x0, y0) = g.origin_mm();
-    let (px, py_) = g.pitch_mm();
-    let mut x = Vec::with_capacity(nx * ny);
-    let mut y = Vec::with_capacity(nx * ny);
-    for iy in 0..ny {
-        for ix in 0..nx {
-            x.push(x0 + ix as f64 * px);
-            y.push(y0 + iy as f64 * py_);
-        }
-    }
-    (array(py, &x), array(py, &y), array(py, g.rates_nm_per_s()))
+    let (x, y, rate) = g.columns();
+    (array(py, &x), array(py, &y), array(py, rate))
 }
 
-/// The grid's part of a `preston tif` summary, added to `s`; refuses a grid without removal.
-fn grid_summary(mut s: Value, g: &GridTif) -> PyResult<String> {
-    let (nx, ny) = g.shape();
-    let peak = g.peak_rate_nm_per_s();
-    if peak.is_nan() || peak <= 0.0 {
-        return Err(InputError::new_err(
-            "the TIF has no positive rate (check K, speed and force)",
-        ));
-    }
-    if let Value::Object(m) = &mut s {
-        m.insert("nx".into(), json!(nx));
-        m.insert("ny".into(), json!(ny));
-        m.insert("pitch_mm".into(), json!(g.pitch_mm().0));
-        m.insert("peak_rate_nm_per_s".into(), json!(peak));
-        m.insert(
-            "grid_volume_rate_mm3_per_min".into(),
-            json!(g.volume_rate_mm3_per_s() * 60.0),
-        );
-        m.insert("fwhm_mm".into(), json!(g.fwhm_mm()));
-    }
-    Ok(s.to_string())
+/// A summary (of a TIF, a path) as the JSON text the CLI prints.
+pub(crate) fn summary_json<T: serde::Serialize>(s: &T) -> PyResult<String> {
+    serde_json::to_string(s).map_err(|e| InputError::new_err(e.to_string()))
 }
 
 /// A TIF from a process model (`"hertz"`, `"bonnet"`, `"gaussian"`) with its parameters (JSON,
@@ -100,83 +74,53 @@ pub(crate) fn tif_model<'py>(
     at_mm: Option<(f64, f64)>,
 ) -> PyResult<(Array<'py>, Array<'py>, Array<'py>, String)> {
     let e = |e| engine_to_py(model, e);
-    let (grid, summary) =
-        match model {
-            "hertz" => {
-                let p: HertzParams = settings(params_json, "hertz parameters")?;
-                let t =
-                    match (part_radius_mm, surface_json, at_mm) {
-                        (Some(r), None, None) => HertzTif::with_part_radius(&p, r).map_err(e)?,
-                        (None, Some(s), Some((x, y))) => {
-                            let (k1, k2) = surface_of(s)?
-                                .principal_curvatures_per_mm(x, y)
-                                .map_err(|er| {
-                                    engine_to_py(&format!("surface curvature at ({x}, {y}) mm"), er)
-                                })?;
-                            HertzTif::with_curvatures(&p, k1, k2).map_err(e)?
-                        }
-                        (None, None, None) => HertzTif::flat(&p).map_err(e)?,
-                        _ => return Err(InputError::new_err(
-                            "hertz: give part_radius_mm, or surface with at_mm, or neither (flat)",
-                        )),
-                    };
-                let grid = py.detach(|| t.to_grid(pitch_mm)).map_err(e)?;
-                let s = json!({
-                    "model": "hertz",
-                    "contact_radius_mm": t.contact_radius_mm(),
-                    "peak_pressure_mpa": t.peak_pressure_mpa(),
-                    "volume_rate_mm3_per_min": t.volume_rate_mm3_per_s() * 60.0,
-                    "centre_speed_mm_per_s": t.sliding_speed_mm_per_s(0.0, 0.0),
-                    "effective_radius_mm": t.effective_radius_mm(),
-                });
-                (grid, s)
-            }
-            "bonnet" | "gaussian" if part_radius_mm.is_some() || surface_json.is_some() => {
-                return Err(InputError::new_err(format!(
-                    "{model}: part_radius_mm and surface apply to the hertz model"
-                )))
-            }
-            "bonnet" => {
-                let p: BonnetParams = settings(params_json, "bonnet parameters")?;
-                let t = BonnetTif::new(&p).map_err(e)?;
-                // The model volume by a fine grid (the pressure vanishes linearly at the edge, so the
-                // trapezoid rule converges as pitch^2), as `preston tif bonnet` reports it.
-                let (grid, fine) = py
-                    .detach(|| Ok((t.to_grid(pitch_mm)?, t.to_grid(t.spot_radius_mm() / 400.0)?)))
-                    .map_err(e)?;
-                let s = json!({
-                    "model": "bonnet",
-                    "contact_radius_mm": t.spot_radius_mm(),
-                    "peak_pressure_mpa": t.peak_pressure_mpa(),
-                    "volume_rate_mm3_per_min": fine.volume_rate_mm3_per_s() * 60.0,
-                    "centre_speed_mm_per_s": t.sliding_speed_mm_per_s(0.0, 0.0),
-                    "effective_radius_mm": null,
-                });
-                (grid, s)
-            }
-            "gaussian" => {
-                let g: GaussianTif = settings(params_json, "gaussian parameters")?;
-                g.validate().map_err(e)?;
-                let grid = sample_on_grid(&g, g.truncation_radius_mm, pitch_mm).map_err(e)?;
-                let s = json!({
-                    "model": "gaussian",
-                    "contact_radius_mm": g.truncation_radius_mm,
-                    "peak_pressure_mpa": null,
-                    "volume_rate_mm3_per_min": g.volume_rate_mm3_per_s() * 60.0,
-                    "centre_speed_mm_per_s": null,
-                    "effective_radius_mm": null,
-                });
-                (grid, s)
-            }
-            other => {
-                return Err(InputError::new_err(format!(
-                    "tif model `{other}`: expected hertz, bonnet or gaussian"
-                )))
-            }
-        };
-    let summary = grid_summary(summary, &grid)?;
-    let (x, y, r) = grid_arrays(py, &grid);
-    Ok((x, y, r, summary))
+    let m = match model {
+        "hertz" => {
+            let p: HertzParams = settings(params_json, "hertz parameters")?;
+            let part = match (part_radius_mm, surface_json, at_mm) {
+                (Some(radius_mm), None, None) => HertzPart::Sphere { radius_mm },
+                (None, Some(s), Some((x, y))) => {
+                    let (k1_per_mm, k2_per_mm) = surface_of(s)?
+                        .principal_curvatures_per_mm(x, y)
+                        .map_err(|er| {
+                        engine_to_py(&format!("surface curvature at ({x}, {y}) mm"), er)
+                    })?;
+                    HertzPart::Curvatures {
+                        k1_per_mm,
+                        k2_per_mm,
+                    }
+                }
+                (None, None, None) => HertzPart::Flat,
+                _ => {
+                    return Err(InputError::new_err(
+                        "hertz: give part_radius_mm, or surface with at_mm, or neither (flat)",
+                    ))
+                }
+            };
+            ProcessModel::hertz(&p, part).map_err(e)?
+        }
+        "bonnet" | "gaussian" if part_radius_mm.is_some() || surface_json.is_some() => {
+            return Err(InputError::new_err(format!(
+                "{model}: part_radius_mm and surface apply to the hertz model"
+            )))
+        }
+        "bonnet" => {
+            let p: BonnetParams = settings(params_json, "bonnet parameters")?;
+            ProcessModel::bonnet(&p).map_err(e)?
+        }
+        "gaussian" => {
+            let g: GaussianTif = settings(params_json, "gaussian parameters")?;
+            ProcessModel::gaussian(g).map_err(e)?
+        }
+        other => {
+            return Err(InputError::new_err(format!(
+                "tif model `{other}`: expected hertz, bonnet or gaussian"
+            )))
+        }
+    };
+    let sampled = py.detach(|| m.sample(pitch_mm)).map_err(e)?;
+    let (x, y, r) = grid_arrays(py, &sampled.grid);
+    Ok((x, y, r, summary_json(&sampled.summary)?))
 }
 
 /// A measured TIF grid (`(N, 3)`: x_mm, y_mm, rate_nm_per_s) resampled to `pitch_mm`,
@@ -200,30 +144,16 @@ pub(crate) fn tif_grid<'py>(
     }
     let c = columns(&tif_xyr, "tif_xyr", 3)?;
     let e = |e| engine_to_py("tif_xyr", e);
-    let mut g = GridTif::from_samples(&c[0], &c[1], &c[2]).map_err(e)?;
-    if let Some(p) = pitch_mm {
-        g = py.detach(|| g.resampled(p)).map_err(e)?;
-    }
-    if recentre {
-        g = g.recentred().map_err(e)?;
-    }
-    if let Some(p) = peak_nm_per_s {
-        g = g.scaled_to_peak(p).map_err(e)?;
-    }
-    if let Some(v) = volume_mm3_per_min {
-        g = g.scaled_to_volume(v / 60.0).map_err(e)?;
-    }
-    let s = json!({
-        "model": "grid",
-        "contact_radius_mm": g.support_radius_mm(),
-        "peak_pressure_mpa": null,
-        "volume_rate_mm3_per_min": g.volume_rate_mm3_per_s() * 60.0,
-        "centre_speed_mm_per_s": null,
-        "effective_radius_mm": null,
-    });
-    let summary = grid_summary(s, &g)?;
+    let g = GridTif::from_samples(&c[0], &c[1], &c[2]).map_err(e)?;
+    let adjust = GridAdjustment {
+        pitch_mm,
+        recentre,
+        peak_nm_per_s,
+        volume_mm3_per_min,
+    };
+    let g = py.detach(|| adjust.apply(g)).map_err(e)?;
     let (x, y, r) = grid_arrays(py, &g);
-    Ok((x, y, r, summary))
+    Ok((x, y, r, summary_json(&TifSummary::of_measured(&g))?))
 }
 
 /// The TIF of a removal spot (`preston tif spot`): maps before and after a stationary dwell of
@@ -268,29 +198,13 @@ pub(crate) fn tif_spot<'py>(
             Ok((spot, fit))
         })
         .map_err(|e| engine_to_py("spot", e))?;
-    let g = &spot.tif;
-    let (nx, ny) = g.shape();
-    let mut s = json!({
-        "model": "spot",
-        "peak_rate_nm_per_s": g.peak_rate_nm_per_s(),
-        "fwhm_mm": g.fwhm_mm(),
-        "centroid_mm": g.centroid_mm(),
-        "spot_centroid_mm": spot.spot_centroid_mm,
-        "volume_rate_mm3_per_min": g.volume_rate_mm3_per_s() * 60.0,
-        "crop_radius_mm": spot.crop_radius_mm,
-        "background_nm_per_s": spot.background,
-        "nx": nx,
-        "ny": ny,
-        "pitch_mm": g.pitch_mm().0,
-    });
-    if let (Some(f), Value::Object(m)) = (fit, &mut s) {
-        m.insert("sigma_x_mm".into(), json!(f.sigma_x_mm));
-        m.insert("sigma_y_mm".into(), json!(f.sigma_y_mm));
-        m.insert("gaussian_peak_nm_per_s".into(), json!(f.peak_nm_per_s));
-        m.insert("gaussian_centre_mm".into(), json!(f.centre_mm));
-    }
-    let (x, y, r) = grid_arrays(py, g);
-    Ok((x, y, r, s.to_string()))
+    let (x, y, r) = grid_arrays(py, &spot.tif);
+    Ok((
+        x,
+        y,
+        r,
+        summary_json(&SpotSummary::of(&spot, fit.as_ref()))?,
+    ))
 }
 
 /// An Archimedes spiral of `pitch_mm` between turns from `centre_mm` out to `radius_mm`, points
@@ -331,16 +245,8 @@ pub(crate) fn path_random<'py>(
     let r = py
         .detach(|| random_unicursal(&region, &set))
         .map_err(|e| engine_to_py("random path", e))?;
-    let s = json!({
-        "kind": "random", "points": r.path.len(), "nodes": r.nodes,
-        "region_nodes": r.region_nodes, "longest_run": r.longest_run,
-        "tree_exchanges": r.swaps, "seed": set.seed, "jitter": set.jitter,
-    });
-    Ok((
-        array(py, r.path.x_mm()),
-        array(py, r.path.y_mm()),
-        s.to_string(),
-    ))
+    let s = summary_json(&PathSummary::random(&r, &set, None))?;
+    Ok((array(py, r.path.x_mm()), array(py, r.path.y_mm()), s))
 }
 
 /// The lifting-bonnet edge-offset trajectory inside the closed edge `edge_xy` (`(N, 2)`, mm)
@@ -358,25 +264,8 @@ pub(crate) fn path_edge_offset<'py>(
     let t = py
         .detach(|| edge_offset(&edge, &set))
         .map_err(|e| engine_to_py("edge offset", e))?;
-    let lines: Vec<Value> = t
-        .lines
-        .iter()
-        .map(|l| {
-            json!({"spot_radius_mm": l.spot_radius_mm, "depth_mm": l.depth_mm,
-                   "offset_mm": l.offset_mm, "achieved_offset_mm": l.achieved_offset_mm,
-                   "spacing_mm": l.spacing_mm, "clearance_mm": l.clearance_mm})
-        })
-        .collect();
-    let s = json!({
-        "kind": "edge_offset", "points": t.path.len(), "bezier_segments": t.edge.len(),
-        "bezier_max_error_mm": t.fit_error_mm, "corners": t.corners, "lines": lines,
-        "line_starts": t.line_starts,
-    });
-    Ok((
-        array(py, t.path.x_mm()),
-        array(py, t.path.y_mm()),
-        s.to_string(),
-    ))
+    let s = summary_json(&PathSummary::edge_offset(t.path.len(), &t))?;
+    Ok((array(py, t.path.x_mm()), array(py, t.path.y_mm()), s))
 }
 
 /// Registers measured points `(N, 3)` (x, y, z in mm; probe tip centres with a probe radius) on
@@ -460,18 +349,8 @@ pub(crate) fn simulate_program<'py>(
         tif_json,
         tif_xyr.map(|a| columns(&a, "tif_xyr", 3)).transpose()?,
     )?;
-    let kinematics = match a_max_mm_per_s2 {
-        Some(a) if !(a.is_finite() && a > 0.0) => {
-            return Err(InputError::new_err(format!(
-                "a_max_mm_per_s2 must be positive, got {a}"
-            )))
-        }
-        Some(a) => Kinematics::Trapezoidal {
-            a_max_mm_per_s2: a,
-            corner_angle_deg,
-        },
-        None => Kinematics::ProgrammedFeed,
-    };
+    let kinematics = Kinematics::of_limit(a_max_mm_per_s2, corner_angle_deg)
+        .map_err(|e| to_py(preston_io::Error::Solver(e)))?;
     let dialect: Option<Dialect> = dialect
         .map(|d| {
             serde_json::from_value(Value::String(d.to_string()))

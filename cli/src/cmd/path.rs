@@ -10,14 +10,13 @@ use preston_solver::path::arcs::lines_with_arcs;
 use preston_solver::path::chord_height::{chord_height_line, ChordHeightSettings};
 use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings, SpotProgression};
 use preston_solver::path::intersection::{
-    clip_to_aperture, intersection_lines, iteration_pattern, lines_to_path, raster_lines,
+    clip_to_aperture, intersection_lines, lines_to_path, raster_lines,
 };
 use preston_solver::path::random::{random_unicursal, RandomPathSettings};
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::path::spiral::archimedes;
-use preston_solver::path::{project, DwellPath, ProjectedPath};
+use preston_solver::path::{project, DwellPath, PathSummary, ProjectedPath};
 use preston_solver::surface::Surface;
-use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -327,25 +326,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             let lines = raster_lines(&a.region.bbox()?, a.region.pitch_mm, a.along, 0.0)?;
             let path = raster_path(&a.region, &lines)?;
             let p = write(&path, surface.as_ref(), &a.common.out)?;
-            (
-                json!({"kind": "raster", "points": p.len(), "lines": lines.len(),
-                       "length_mm": p.ds_mm.iter().sum::<f64>()}),
-                a.common.out,
-            )
+            (PathSummary::raster(&p, lines.len()), a.common.out)
         }
         Kind::Intersection(a) => {
             let surface = load_surface(&a.common.surface)?;
             let lines = intersection_lines(&a.region.bbox()?, a.region.pitch_mm, a.iteration)?;
             let path = raster_path(&a.region, &lines)?;
             let p = write(&path, surface.as_ref(), &a.common.out)?;
-            let (ax, shifted) = iteration_pattern(a.iteration);
-            (
-                json!({"kind": "intersection", "iteration": a.iteration,
-                       "along": if ax == RasterAxis::X { "x" } else { "y" },
-                       "shift_mm": if shifted { 0.5 * a.region.pitch_mm } else { 0.0 },
-                       "points": p.len(), "lines": lines.len()}),
-                a.common.out,
-            )
+            let s = PathSummary::intersection(&p, a.iteration, a.region.pitch_mm, lines.len());
+            (s, a.common.out)
         }
         Kind::Spiral(a) => {
             let surface = load_surface(&a.common.surface)?;
@@ -356,11 +345,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 a.step_mm.unwrap_or(a.pitch_mm),
             )?;
             let p = write(&path, surface.as_ref(), &a.common.out)?;
-            (
-                json!({"kind": "spiral", "points": p.len(), "turns": a.radius_mm / a.pitch_mm,
-                       "length_mm": p.ds_mm.iter().sum::<f64>()}),
-                a.common.out,
-            )
+            let s = PathSummary::spiral(&p, a.radius_mm, a.pitch_mm);
+            (s, a.common.out)
         }
         Kind::ChordHeight(a) => {
             let surface = read_surface(&a.surface)?;
@@ -374,17 +360,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             };
             let c = chord_height_line(&surface, a.line_x_mm, a.y_mm.0, a.y_mm.1, &set)?;
             let p = write(&c.path, Some(&surface), &a.out)?;
-            let hs = &c.chord_heights_mm;
-            let inner = &hs[..hs.len().saturating_sub(1)];
-            (
-                json!({"kind": "chord_height", "points": p.len(),
-                       "min_step_mm": c.min_step_mm(), "max_step_mm": c.max_step_mm(),
-                       "min_chord_height_um": inner.iter().copied().fold(f64::INFINITY, f64::min) * 1e3,
-                       "max_chord_height_um": hs.iter().copied().fold(0.0, f64::max) * 1e3,
-                       "last_chord_height_um": hs.last().copied().unwrap_or(0.0) * 1e3,
-                       "last_step_mm": c.steps_mm.last().copied().unwrap_or(0.0)}),
-                a.out,
-            )
+            (PathSummary::chord_height(&p, &c), a.out)
         }
         Kind::EdgeOffset(a) => {
             let surface = load_surface(&a.common.surface)?;
@@ -420,13 +396,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             };
             let t = edge_offset(&edge, &set)?;
             let p = write(&t.path, surface.as_ref(), &a.common.out)?;
-            (
-                json!({"kind": "edge_offset", "points": p.len(),
-                       "bezier_segments": t.edge.len(), "bezier_max_error_mm": t.fit_error_mm,
-                       "corners": t.corners,
-                       "lines": t.lines, "line_starts": t.line_starts}),
-                a.common.out,
-            )
+            (PathSummary::edge_offset(p.len(), &t), a.common.out)
         }
         Kind::Random(a) => {
             let surface = load_surface(&a.common.surface)?;
@@ -438,25 +408,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 y_min_mm: y0.min(y1),
                 y_max_mm: y0.max(y1),
             };
-            let r = random_unicursal(
-                &region,
-                &RandomPathSettings {
-                    pitch_mm: a.pitch_mm,
-                    seed: a.seed,
-                    max_run: a.max_run,
-                    jitter: a.jitter,
-                },
-            )?;
+            let set = RandomPathSettings {
+                pitch_mm: a.pitch_mm,
+                seed: a.seed,
+                max_run: a.max_run,
+                jitter: a.jitter,
+            };
+            let r = random_unicursal(&region, &set)?;
             let p = write(&r.path, surface.as_ref(), &a.common.out)?;
-            (
-                json!({"kind": "random", "points": p.len(), "nodes": r.nodes,
-                       "region_nodes": r.region_nodes, "longest_run": r.longest_run,
-                       "tree_exchanges": r.swaps, "seed": a.seed, "jitter": a.jitter,
-                       "length_mm": p.ds_mm.iter().sum::<f64>()}),
-                a.common.out,
-            )
+            (PathSummary::random(&r, &set, Some(&p)), a.common.out)
         }
     };
+    // As a JSON value, its keys in the order `preston path` has always printed (sorted).
+    let summary = serde_json::to_value(&summary)?;
     crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
     crate::errln!("preston path: wrote {}", out.display());
     Ok(ExitCode::SUCCESS)

@@ -207,20 +207,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 /// `preston simulate --program`: the program as the machine runs it.
 fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<ExitCode> {
     let job = &inputs.job;
-    let kinematics = match args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2) {
-        Some(a) => {
-            if !(a.is_finite() && a > 0.0) {
-                anyhow::bail!("--a-max-mm-per-s2 must be positive, got {a}");
-            }
-            Kinematics::Trapezoidal {
-                a_max_mm_per_s2: a,
-                corner_angle_deg: args
-                    .corner_angle_deg
-                    .unwrap_or_else(|| job.corner_angle_deg()),
-            }
-        }
-        None => Kinematics::ProgrammedFeed,
-    };
+    let kinematics = Kinematics::of_limit(
+        args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2),
+        args.corner_angle_deg
+            .unwrap_or_else(|| job.corner_angle_deg()),
+    )?;
     let surface_file = args.surface.clone().or_else(|| job.surface.file.clone());
     let surface = surface_file.as_deref().map(read_surface).transpose()?;
     let part = surface.as_ref().map(|s| {

@@ -2,13 +2,13 @@
 //! Gaussian) or a measured grid, written as the grid CSV `x_mm,y_mm,rate_nm_per_s` that
 //! `preston solve --tif` reads; a JSON summary goes to stdout.
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use preston_io::readers::read_tif;
 use preston_io::surface::{read_surface, stage_columns_csv};
-use preston_solver::tif::bonnet::{BonnetParams, BonnetTif};
-use preston_solver::tif::hertz::{sample_on_grid, HertzTif};
-use preston_solver::tif::{GaussianTif, GridTif};
-use serde::Serialize;
+use preston_solver::tif::{
+    BonnetParams, GaussianTif, GridAdjustment, GridTif, HertzPart, ProcessModel, SampledTif,
+    TifSummary,
+};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -135,62 +135,27 @@ struct GridArgs {
     out: PathBuf,
 }
 
-/// What `preston tif` prints (stdout, JSON).
-#[derive(Debug, Serialize)]
-struct Summary {
-    model: &'static str,
-    /// Contact (spot, support) radius, mm.
-    contact_radius_mm: f64,
-    /// Peak contact pressure, MPa (null for Gaussian and measured grids).
-    peak_pressure_mpa: Option<f64>,
-    /// Largest rate in the written grid, nm/s.
-    peak_rate_nm_per_s: f64,
-    /// Volumetric removal rate of the model (quadrature), mm^3/min.
-    volume_rate_mm3_per_min: f64,
-    /// Volumetric rate of the written grid (bilinear, exact trapezoid), mm^3/min.
-    grid_volume_rate_mm3_per_min: f64,
-    /// Equivalent-circle FWHM of the grid, mm.
-    fwhm_mm: f64,
-    /// Sliding speed at the centre, mm/s (process models).
-    centre_speed_mm_per_s: Option<f64>,
-    /// Effective Hertz radius, mm (Hertz only).
-    effective_radius_mm: Option<f64>,
-    /// Grid shape.
-    nx: usize,
-    /// Grid shape.
-    ny: usize,
-    /// Grid pitch, mm.
-    pitch_mm: f64,
-}
-
 /// Runs `preston tif`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let (grid, out, mut summary) = match args.kind {
+    let (SampledTif { grid, summary }, out) = match args.kind {
         Kind::Spot(a) => return super::tif_spot::run(a),
         Kind::Hertz(a) => {
             let p = a.model.params()?;
-            let t = match (a.part_radius_mm, &a.surface, a.at_mm) {
-                (Some(r), _, _) => HertzTif::with_part_radius(&p, r)?,
+            let part = match (a.part_radius_mm, &a.surface, a.at_mm) {
+                (Some(radius_mm), _, _) => HertzPart::Sphere { radius_mm },
                 (None, Some(f), Some((x, y))) => {
                     let s = read_surface(f)?;
-                    let (k1, k2) = s
+                    let (k1_per_mm, k2_per_mm) = s
                         .principal_curvatures_per_mm(x, y)
                         .with_context(|| format!("surface curvature at ({x}, {y}) mm"))?;
-                    HertzTif::with_curvatures(&p, k1, k2)?
+                    HertzPart::Curvatures {
+                        k1_per_mm,
+                        k2_per_mm,
+                    }
                 }
-                _ => HertzTif::flat(&p)?,
+                _ => HertzPart::Flat,
             };
-            let grid = t.to_grid(a.pitch_mm)?;
-            let s = Summary {
-                model: "hertz",
-                contact_radius_mm: t.contact_radius_mm(),
-                peak_pressure_mpa: Some(t.peak_pressure_mpa()),
-                volume_rate_mm3_per_min: t.volume_rate_mm3_per_s() * 60.0,
-                centre_speed_mm_per_s: Some(t.sliding_speed_mm_per_s(0.0, 0.0)),
-                effective_radius_mm: Some(t.effective_radius_mm()),
-                ..blank()
-            };
-            (grid, a.out, s)
+            (ProcessModel::hertz(&p, part)?.sample(a.pitch_mm)?, a.out)
         }
         Kind::Bonnet(a) => {
             let p = BonnetParams {
@@ -202,111 +167,40 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 force_n: a.force_n,
                 preston_k_mm2_per_n: a.preston_k,
             };
-            let t = BonnetTif::new(&p)?;
-            let grid = t.to_grid(a.pitch_mm)?;
-            // The model volume by a fine grid (the pressure vanishes linearly at the edge, so
-            // the trapezoid rule converges as pitch^2).
-            let fine = t.to_grid(t.spot_radius_mm() / 400.0)?;
-            let s = Summary {
-                model: "bonnet",
-                contact_radius_mm: t.spot_radius_mm(),
-                peak_pressure_mpa: Some(t.peak_pressure_mpa()),
-                volume_rate_mm3_per_min: fine.volume_rate_mm3_per_s() * 60.0,
-                centre_speed_mm_per_s: Some(t.sliding_speed_mm_per_s(0.0, 0.0)),
-                ..blank()
-            };
-            (grid, a.out, s)
+            (ProcessModel::bonnet(&p)?.sample(a.pitch_mm)?, a.out)
         }
         Kind::Gaussian(a) => {
-            let g = GaussianTif::new(
-                a.sigma_mm,
-                a.peak_nm_per_s,
-                a.truncation_mm.unwrap_or(3.0 * a.sigma_mm),
-            )?;
-            let grid = sample_on_grid(&g, g.truncation_radius_mm, a.pitch_mm)?;
-            let s = Summary {
-                model: "gaussian",
-                contact_radius_mm: g.truncation_radius_mm,
-                volume_rate_mm3_per_min: g.volume_rate_mm3_per_s() * 60.0,
-                ..blank()
-            };
-            (grid, a.out, s)
+            let g = GaussianTif::truncated(a.sigma_mm, a.peak_nm_per_s, a.truncation_mm)?;
+            (ProcessModel::gaussian(g)?.sample(a.pitch_mm)?, a.out)
         }
         Kind::Grid(a) => {
-            let mut g: GridTif = read_tif(&a.input)?;
-            if let Some(p) = a.pitch_mm {
-                g = g.resampled(p)?;
-            }
-            if a.recentre {
-                g = g.recentred()?;
-            }
-            if let Some(p) = a.peak_nm_per_s {
-                g = g.scaled_to_peak(p)?;
-            }
-            if let Some(v) = a.volume_mm3_per_min {
-                g = g.scaled_to_volume(v / 60.0)?;
-            }
-            let s = Summary {
-                model: "grid",
-                contact_radius_mm: preston_solver::tif::InfluenceFunction::support_radius_mm(&g),
-                volume_rate_mm3_per_min: g.volume_rate_mm3_per_s() * 60.0,
-                ..blank()
+            let adjust = GridAdjustment {
+                pitch_mm: a.pitch_mm,
+                recentre: a.recentre,
+                peak_nm_per_s: a.peak_nm_per_s,
+                volume_mm3_per_min: a.volume_mm3_per_min,
             };
-            (g, a.out, s)
+            let grid = adjust.apply(read_tif(&a.input)?)?;
+            let summary = TifSummary::of_measured(&grid);
+            (SampledTif { grid, summary }, a.out)
         }
     };
-    let (nx, ny) = grid.shape();
-    summary.nx = nx;
-    summary.ny = ny;
-    summary.pitch_mm = grid.pitch_mm().0;
-    summary.peak_rate_nm_per_s = grid.peak_rate_nm_per_s();
-    summary.grid_volume_rate_mm3_per_min = grid.volume_rate_mm3_per_s() * 60.0;
-    summary.fwhm_mm = grid.fwhm_mm();
-    if summary.peak_rate_nm_per_s.is_nan() || summary.peak_rate_nm_per_s <= 0.0 {
-        bail!("the TIF has no positive rate (check K, speed and force)");
-    }
     write_grid(&out, &grid)?;
     crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
-    crate::errln!("preston tif: {nx} x {ny} grid; wrote {}", out.display());
+    crate::errln!(
+        "preston tif: {} x {} grid; wrote {}",
+        summary.nx,
+        summary.ny,
+        out.display()
+    );
     Ok(ExitCode::SUCCESS)
-}
-
-fn blank() -> Summary {
-    Summary {
-        model: "",
-        contact_radius_mm: 0.0,
-        peak_pressure_mpa: None,
-        peak_rate_nm_per_s: 0.0,
-        volume_rate_mm3_per_min: 0.0,
-        grid_volume_rate_mm3_per_min: 0.0,
-        fwhm_mm: 0.0,
-        centre_speed_mm_per_s: None,
-        effective_radius_mm: None,
-        nx: 0,
-        ny: 0,
-        pitch_mm: 0.0,
-    }
 }
 
 /// Writes the grid as `x_mm,y_mm,rate_nm_per_s`, row-major, atomically.
 pub(super) fn write_grid(path: &Path, g: &GridTif) -> anyhow::Result<()> {
-    let (nx, ny) = g.shape();
-    let (x0, y0) = g.origin_mm();
-    let (px, py) = g.pitch_mm();
-    let mut x = Vec::with_capacity(nx * ny);
-    let mut y = Vec::with_capacity(nx * ny);
-    for iy in 0..ny {
-        for ix in 0..nx {
-            x.push(x0 + ix as f64 * px);
-            y.push(y0 + iy as f64 * py);
-        }
-    }
-    stage_columns_csv(
-        path,
-        &["x_mm", "y_mm", "rate_nm_per_s"],
-        &[&x, &y, g.rates_nm_per_s()],
-    )?
-    .commit()
-    .with_context(|| format!("writing {}", path.display()))?;
+    let (x, y, rate) = g.columns();
+    stage_columns_csv(path, &["x_mm", "y_mm", "rate_nm_per_s"], &[&x, &y, rate])?
+        .commit()
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }

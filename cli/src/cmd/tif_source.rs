@@ -27,12 +27,10 @@ impl TifArgs {
     /// The Gaussian model the flags give, if they give one (truncation default 3 sigma).
     pub fn gaussian(&self) -> anyhow::Result<Option<GaussianTif>> {
         match (self.gaussian_sigma_mm, self.gaussian_peak_nm_per_s) {
-            (Some(sigma), Some(peak)) => {
-                let trunc = self.gaussian_truncation_mm.unwrap_or(3.0 * sigma);
-                Ok(Some(
-                    GaussianTif::new(sigma, peak, trunc).context("Gaussian TIF")?,
-                ))
-            }
+            (Some(sigma), Some(peak)) => Ok(Some(
+                GaussianTif::truncated(sigma, peak, self.gaussian_truncation_mm)
+                    .context("Gaussian TIF")?,
+            )),
             _ => Ok(None),
         }
     }

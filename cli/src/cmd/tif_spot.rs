@@ -3,8 +3,7 @@
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use anyhow::{bail, Context};
 use preston_solver::modal::FormTerm;
-use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions};
-use serde::Serialize;
+use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions, SpotSummary};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -45,37 +44,6 @@ pub struct SpotArgs {
     /// Output TIF CSV `x_mm,y_mm,rate_nm_per_s`.
     #[arg(long, value_name = "TIF.csv")]
     pub out: PathBuf,
-}
-
-/// What `preston tif spot` prints (stdout, JSON).
-#[derive(Debug, Serialize)]
-struct SpotSummary {
-    model: &'static str,
-    /// Largest rate, nm/s.
-    peak_rate_nm_per_s: f64,
-    /// Equivalent-circle FWHM, mm.
-    fwhm_mm: f64,
-    /// Rate-weighted centroid of the written TIF, mm (the origin after --recentre).
-    centroid_mm: (f64, f64),
-    /// Rate-weighted centroid in the maps' coordinates, mm.
-    spot_centroid_mm: (f64, f64),
-    /// Volumetric removal rate, mm^3/min.
-    volume_rate_mm3_per_min: f64,
-    /// Crop radius used, mm.
-    crop_radius_mm: f64,
-    /// Background removed outside the crop: piston nm/s, slopes nm/s per mm (x, y).
-    background_nm_per_s: (f64, f64, f64),
-    #[serde(skip_serializing_if = "Option::is_none")]
-    sigma_x_mm: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    sigma_y_mm: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    gaussian_peak_nm_per_s: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    gaussian_centre_mm: Option<(f64, f64)>,
-    nx: usize,
-    ny: usize,
-    pitch_mm: f64,
 }
 
 /// Runs `preston tif spot`.
@@ -121,24 +89,8 @@ pub fn run(a: SpotArgs) -> anyhow::Result<ExitCode> {
         None => None,
     };
     super::tif::write_grid(&a.out, g)?;
-    let (nx, ny) = g.shape();
-    let summary = SpotSummary {
-        model: "spot",
-        peak_rate_nm_per_s: g.peak_rate_nm_per_s(),
-        fwhm_mm: g.fwhm_mm(),
-        centroid_mm: g.centroid_mm(),
-        spot_centroid_mm: spot.spot_centroid_mm,
-        volume_rate_mm3_per_min: g.volume_rate_mm3_per_s() * 60.0,
-        crop_radius_mm: spot.crop_radius_mm,
-        background_nm_per_s: spot.background,
-        sigma_x_mm: fit.map(|f| f.sigma_x_mm),
-        sigma_y_mm: fit.map(|f| f.sigma_y_mm),
-        gaussian_peak_nm_per_s: fit.map(|f| f.peak_nm_per_s),
-        gaussian_centre_mm: fit.map(|f| f.centre_mm),
-        nx,
-        ny,
-        pitch_mm: g.pitch_mm().0,
-    };
+    let summary = SpotSummary::of(&spot, fit.as_ref());
+    let (nx, ny) = (summary.nx, summary.ny);
     crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
     crate::errln!(
         "preston tif spot: {nx} x {ny} grid, peak {:.4} nm/s, FWHM {:.4} mm; wrote {}",

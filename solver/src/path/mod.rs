@@ -8,9 +8,11 @@ pub mod project;
 pub mod random;
 pub mod raster;
 pub mod spiral;
+pub mod summary;
 
 pub use intersection::intersection;
 pub use project::{project, ProjectedPath};
+pub use summary::PathSummary;
 
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};

@@ -24,6 +24,9 @@ pub struct GaussianTif {
     pub truncation_radius_mm: f64,
 }
 
+/// The customary truncation radius, in standard deviations, when none is given.
+pub const DEFAULT_TRUNCATION_SIGMAS: f64 = 3.0;
+
 /// An offset within this fraction of the truncation radius outside it is on the cut circle.
 pub const ON_CIRCLE_REL: f64 = 1e-6;
 
@@ -37,6 +40,17 @@ impl GaussianTif {
         };
         g.validate()?;
         Ok(g)
+    }
+
+    /// A validated Gaussian TIF cut at `truncation_radius_mm`, or at
+    /// [`DEFAULT_TRUNCATION_SIGMAS`] sigma when none is given.
+    pub fn truncated(
+        sigma_mm: f64,
+        peak_rate_nm_per_s: f64,
+        truncation_radius_mm: Option<f64>,
+    ) -> Result<Self> {
+        let cut = truncation_radius_mm.unwrap_or(DEFAULT_TRUNCATION_SIGMAS * sigma_mm);
+        Self::new(sigma_mm, peak_rate_nm_per_s, cut)
     }
 
     /// Checks the parameters (all positive and finite).
@@ -84,6 +98,16 @@ impl InfluenceFunction for GaussianTif {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn truncation_defaults_to_three_sigma_and_is_validated() {
+        let g = GaussianTif::truncated(1.5, 7.0, None).unwrap();
+        assert_eq!(g, GaussianTif::new(1.5, 7.0, 4.5).unwrap());
+        let g = GaussianTif::truncated(1.5, 7.0, Some(2.0)).unwrap();
+        assert_eq!(g.truncation_radius_mm, 2.0);
+        assert!(GaussianTif::truncated(0.0, 7.0, None).is_err());
+        assert!(GaussianTif::truncated(1.5, 7.0, Some(-1.0)).is_err());
+    }
 
     #[test]
     fn gaussian_values() {

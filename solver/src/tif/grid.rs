@@ -186,6 +186,21 @@ impl GridTif {
         &self.rates_nm_per_s
     }
 
+    /// The grid as the columns of its CSV: `(x_mm, y_mm, rate_nm_per_s)` of every node,
+    /// row-major (x fastest), the order of [`GridTif::rates_nm_per_s`].
+    pub fn columns(&self) -> (Vec<f64>, Vec<f64>, &[f64]) {
+        let n = self.nx * self.ny;
+        let mut x = Vec::with_capacity(n);
+        let mut y = Vec::with_capacity(n);
+        for iy in 0..self.ny {
+            for ix in 0..self.nx {
+                x.push(self.x0_mm + ix as f64 * self.pitch_x_mm);
+                y.push(self.y0_mm + iy as f64 * self.pitch_y_mm);
+            }
+        }
+        (x, y, &self.rates_nm_per_s)
+    }
+
     /// Largest sampled rate, nm/s.
     pub fn peak_rate_nm_per_s(&self) -> f64 {
         self.rates_nm_per_s.iter().copied().fold(0.0, f64::max)
@@ -502,6 +517,20 @@ mod tests {
             vec![0.0, 1.0, 2.0, 4.0, 5.0, 6.0],
         )
         .unwrap()
+    }
+
+    #[test]
+    fn columns_are_the_nodes_row_major_and_read_back_to_the_grid() {
+        let g = small();
+        let (x, y, r) = g.columns();
+        assert_eq!(x, vec![-1.0, 0.0, 1.0, -1.0, 0.0, 1.0]);
+        assert_eq!(y, vec![0.0, 0.0, 0.0, 2.0, 2.0, 2.0]);
+        assert_eq!(r, g.rates_nm_per_s());
+        // Each node's rate is the grid's rate there, and the columns read back to the grid.
+        for k in 0..r.len() {
+            assert_eq!(g.rate_nm_per_s(x[k], y[k]), r[k]);
+        }
+        assert_eq!(GridTif::from_samples(&x, &y, r).unwrap(), g);
     }
 
     #[test]

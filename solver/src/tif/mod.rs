@@ -8,12 +8,15 @@ pub mod bonnet;
 pub mod gaussian;
 pub mod grid;
 pub mod hertz;
+pub mod model;
 pub mod spot;
 
 pub use bonnet::{BonnetParams, BonnetTif};
 pub use gaussian::GaussianTif;
 pub use grid::GridTif;
 pub use hertz::{HertzParams, HertzTif};
+pub use model::{GridAdjustment, HertzPart, ProcessModel, SampledTif, TifModelKind, TifSummary};
+pub use spot::SpotSummary;
 
 use serde::{Deserialize, Serialize};
 

@@ -12,8 +12,9 @@
 
 use crate::error::{Error, Result};
 use crate::map::HeightMap;
-use crate::tif::GridTif;
+use crate::tif::{GridTif, TifModelKind};
 use nalgebra::{Matrix3, Matrix5, Vector3, Vector5};
+use serde::{Deserialize, Serialize};
 
 /// How to turn a removal spot into a TIF.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -360,6 +361,70 @@ fn gaussian_of(p: &Vector5<f64>) -> GaussianFit {
         centre_mm: (p[1], p[2]),
         sigma_x_mm: p[3].abs(),
         sigma_y_mm: p[4].abs(),
+    }
+}
+
+/// What `preston tif spot` prints (JSON) and the Python package's `tif_spot` returns.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SpotSummary {
+    /// Always [`TifModelKind::Spot`].
+    pub model: TifModelKind,
+    /// Largest rate, nm/s.
+    pub peak_rate_nm_per_s: f64,
+    /// Equivalent-circle FWHM, mm.
+    pub fwhm_mm: f64,
+    /// Rate-weighted centroid of the TIF, mm (the origin after recentring).
+    pub centroid_mm: (f64, f64),
+    /// Rate-weighted centroid in the maps' coordinates, mm.
+    pub spot_centroid_mm: (f64, f64),
+    /// Volumetric removal rate, mm^3/min.
+    pub volume_rate_mm3_per_min: f64,
+    /// Crop radius used, mm.
+    pub crop_radius_mm: f64,
+    /// Background removed outside the crop: piston nm/s, slopes nm/s per mm (x, y).
+    pub background_nm_per_s: (f64, f64, f64),
+    /// Fitted Gaussian's standard deviation along x, mm (with a fit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_x_mm: Option<f64>,
+    /// Fitted Gaussian's standard deviation along y, mm (with a fit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_y_mm: Option<f64>,
+    /// Fitted Gaussian's peak rate, nm/s (with a fit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussian_peak_nm_per_s: Option<f64>,
+    /// Fitted Gaussian's centre, mm (with a fit).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gaussian_centre_mm: Option<(f64, f64)>,
+    /// Grid nodes along x.
+    pub nx: usize,
+    /// Grid nodes along y.
+    pub ny: usize,
+    /// Grid pitch along x, mm.
+    pub pitch_mm: f64,
+}
+
+impl SpotSummary {
+    /// The summary of `spot`, with the fitted Gaussian `fit` if one was fitted.
+    pub fn of(spot: &SpotTif, fit: Option<&GaussianFit>) -> Self {
+        let g = &spot.tif;
+        let (nx, ny) = g.shape();
+        Self {
+            model: TifModelKind::Spot,
+            peak_rate_nm_per_s: g.peak_rate_nm_per_s(),
+            fwhm_mm: g.fwhm_mm(),
+            centroid_mm: g.centroid_mm(),
+            spot_centroid_mm: spot.spot_centroid_mm,
+            volume_rate_mm3_per_min: g.volume_rate_mm3_per_s() * 60.0,
+            crop_radius_mm: spot.crop_radius_mm,
+            background_nm_per_s: spot.background,
+            sigma_x_mm: fit.map(|f| f.sigma_x_mm),
+            sigma_y_mm: fit.map(|f| f.sigma_y_mm),
+            gaussian_peak_nm_per_s: fit.map(|f| f.peak_nm_per_s),
+            gaussian_centre_mm: fit.map(|f| f.centre_mm),
+            nx,
+            ny,
+            pitch_mm: g.pitch_mm().0,
+        }
     }
 }
 

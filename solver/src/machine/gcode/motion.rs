@@ -41,6 +41,37 @@ pub enum Kinematics {
     },
 }
 
+impl Kinematics {
+    /// The controller of an optional path acceleration limit `a_max_mm_per_s2` (mm/s^2):
+    /// [`Kinematics::Trapezoidal`] with the corner angle `corner_angle_deg` (degrees) when there
+    /// is one, [`Kinematics::ProgrammedFeed`] when there is none; validated, so that a face
+    /// refuses a bad limit before it reads a map or a program.
+    pub fn of_limit(a_max_mm_per_s2: Option<f64>, corner_angle_deg: f64) -> Result<Self> {
+        let k = match a_max_mm_per_s2 {
+            Some(a_max_mm_per_s2) => Kinematics::Trapezoidal {
+                a_max_mm_per_s2,
+                corner_angle_deg,
+            },
+            None => Kinematics::ProgrammedFeed,
+        };
+        k.validate()?;
+        Ok(k)
+    }
+
+    /// Checks the acceleration limit: positive and finite.
+    pub fn validate(&self) -> Result<()> {
+        match *self {
+            Kinematics::Trapezoidal {
+                a_max_mm_per_s2: a, ..
+            } if !(a.is_finite() && a > 0.0) => Err(Error::invalid(
+                "a_max_mm_per_s2",
+                format!("must be positive and finite, got {a}"),
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// One block's executed speed profile: accelerate, cruise, decelerate.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Profile {
@@ -146,12 +177,7 @@ pub fn execute(program: &Program, kinematics: Kinematics) -> Result<Executed> {
             a_max_mm_per_s2: a,
             corner_angle_deg,
         } => {
-            if !(a.is_finite() && a > 0.0) {
-                return Err(Error::invalid(
-                    "a_max_mm_per_s2",
-                    format!("must be positive and finite, got {a}"),
-                ));
-            }
+            kinematics.validate()?;
             // Junction k sits before block k (k = 0..=nb).
             let mut junction = vec![0.0f64; nb + 1];
             for k in 1..nb {
@@ -412,6 +438,34 @@ mod tests {
 
     fn line_program(text: &str) -> Program {
         Program::parse(text, Dialect::Iso).unwrap()
+    }
+
+    #[test]
+    fn a_limit_is_trapezoidal_no_limit_the_programmed_feed_and_a_bad_one_refused() {
+        assert_eq!(
+            Kinematics::of_limit(None, 60.0),
+            Ok(Kinematics::ProgrammedFeed)
+        );
+        assert_eq!(
+            Kinematics::of_limit(Some(500.0), 45.0),
+            Ok(Kinematics::Trapezoidal {
+                a_max_mm_per_s2: 500.0,
+                corner_angle_deg: 45.0
+            })
+        );
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let e = Kinematics::of_limit(Some(bad), 60.0).unwrap_err();
+            assert!(e.to_string().contains("a_max_mm_per_s2"), "{e}");
+            // The executor refuses the same limit.
+            let k = Kinematics::Trapezoidal {
+                a_max_mm_per_s2: bad,
+                corner_angle_deg: 60.0,
+            };
+            assert_eq!(
+                execute(&line_program("G0 X0 Y0 Z0\nG1 X10 F600\n"), k).unwrap_err(),
+                e
+            );
+        }
     }
 
     #[test]
