@@ -10,7 +10,6 @@ use crate::plots::{
     stage_grid_plot, stage_map_plot, stage_map_plot_with, stage_path_plot, stage_psd_plot,
     stage_spectrum_plot, ColorLimits, PlotFormat,
 };
-use crate::report::centred_residual_nm;
 use preston_solver::psd::{area_psd, line_psd, AreaPsd, LineAxis, LinePsd};
 use preston_solver::setup::{Outcome, Setup};
 use preston_solver::tif::InfluenceFunction;
@@ -99,7 +98,7 @@ pub fn stage_solve_figures_with(
 ) -> Result<(Vec<Staged>, Vec<String>)> {
     let map = &setup.map;
     let (mx, my, z) = (map.x_mm(), map.y_mm(), map.z_nm());
-    let residual = centred_residual_nm(z, &outcome.removal_nm);
+    let residual = &outcome.residual_nm;
     let (px, py) = (setup.path.x_mm(), setup.path.y_mm());
     let dwell = &outcome.solution.dwell_s;
     let feeds = &outcome.feeds_mm_per_min;
@@ -127,7 +126,7 @@ pub fn stage_solve_figures_with(
             "nm",
             mx,
             my,
-            &residual,
+            residual,
             style.color_limits,
         )?,
         stage_map_plot(
@@ -174,7 +173,7 @@ pub fn stage_solve_figures_with(
         mx,
         my,
         z,
-        &residual,
+        residual,
         axis,
         raster_pitch_mm,
         style.format,

@@ -497,6 +497,19 @@ impl Job {
         })
     }
 
+    /// The settings of the program written for a plan of this job: the `[nc]` machine profile
+    /// with the job's feed and acceleration limits, corner angle and compensation (what
+    /// `preston nc --job` writes without flags).
+    pub fn nc_settings(&self) -> preston_solver::machine::nc::NcSettings {
+        preston_solver::machine::nc::NcSettings {
+            a_max_mm_per_s2: self.machine.a_max_mm_per_s2,
+            corner_angle_deg: self.corner_angle_deg(),
+            compensation: self.compensation.clone(),
+            v_max_mm_per_min: self.machine.v_max_mm_per_min,
+            ..self.nc.nc_settings()
+        }
+    }
+
     /// Corner angle of the machine, degrees (`[machine] corner_angle_deg`, default 60).
     pub fn corner_angle_deg(&self) -> f64 {
         self.machine

@@ -12,6 +12,7 @@ pub mod figures;
 pub mod html;
 pub mod machine;
 pub mod metrology;
+pub mod overrides;
 pub mod readers;
 pub mod report;
 pub mod surface;

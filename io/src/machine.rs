@@ -6,6 +6,7 @@ use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::table::{read_table, ColumnSpec};
 use preston_solver::machine::asphere::{write_nc, AsphereJob, AsphereLine, ProfileError};
+use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::machine::nc::NcProgram;
 use preston_solver::path::DwellPath;
 use std::path::Path;
@@ -51,6 +52,22 @@ pub fn stage_points_csv(path: &Path, program: &NcProgram) -> Result<Staged> {
 /// Stages an asphere program (`N<k> X<x> Z<z> B<b> S<rpm> F<feed>` lines).
 pub fn stage_asphere_nc(path: &Path, job: &AsphereJob, lines: &[AsphereLine]) -> Result<Staged> {
     stage(path, |w| write_nc(job, lines, w))
+}
+
+/// What the program as written does with the plan, as JSON (`--json`).
+pub fn program_check_summary(check: &ProgramCheck) -> serde_json::Value {
+    let w = &check.written;
+    serde_json::json!({
+        "machining_time_s": w.stretch_time_s + w.plunge_time_s,
+        "stretch_time_s": w.stretch_time_s,
+        "plunge_time_s": w.plunge_time_s,
+        "feed_blocks": w.feed_blocks,
+        "arc_blocks": w.arc_blocks,
+        "merged_stretches": w.merged_stretches,
+        "slowed_stretches": w.slowed_stretches,
+        "programmed": check.programmed,
+        "accelerated": check.accelerated,
+    })
 }
 
 #[cfg(test)]

@@ -6,10 +6,13 @@ use crate::job::{DwellInput, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
-use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures, RobustReport};
+use crate::report::{ExecutedReport, Report, ResidualFigures, RobustReport};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{Problem, Solution};
+use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
+use preston_solver::machine::nc::{NcProgram, NcSettings};
+use preston_solver::machine::{Flat, PartGeometry};
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
@@ -72,6 +75,9 @@ pub struct Solved {
     pub outcome: Outcome,
     /// The report.
     pub report: Report,
+    /// The program for the plan on the job's machine ([`Job::nc_settings`]), written, read
+    /// back and checked; or why no program can deliver the plan.
+    pub program_check: std::result::Result<ProgramCheck, preston_solver::Error>,
 }
 
 impl Solved {
@@ -291,19 +297,42 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
 }
 
 /// Runs the solver on prepared inputs ([`Setup::solve`]: the acceleration-limited SCP with
-/// `[machine] a_max_mm_per_s2`, the dwell solver otherwise) and builds the report from the
-/// outcome. `_job` is kept for callers; everything is read from the prepared set-up.
-pub fn solve(prepared: Prepared, _job: &Job, observer: &dyn Observer) -> Result<Solved> {
+/// `[machine] a_max_mm_per_s2`, the dwell solver otherwise), builds the report from the outcome
+/// and checks the program of the job's machine for the plan ([`program_check`]).
+pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let outcome = prepared.setup.solve(&prepared.problem, observer)?;
     let mut report = report_of(&prepared, &outcome);
     if prepared.setup.settings.robust {
         report.robust = Some(robust_report(&prepared, &outcome, observer)?);
     }
+    let program_check = program_check(&prepared.setup, &outcome, &job.nc_settings());
     Ok(Solved {
         prepared,
         outcome,
         report,
+        program_check,
     })
+}
+
+/// The program of `settings` for the outcome's plan, written, read back and checked: the one
+/// the solve executed when that was written with the same settings on a flat part, planned
+/// here otherwise (on the set-up's design surface when there is one).
+pub fn program_check(
+    setup: &Setup,
+    outcome: &Outcome,
+    settings: &NcSettings,
+) -> std::result::Result<ProgramCheck, preston_solver::Error> {
+    if let (Some(Ok(e)), None) = (&outcome.executed, &setup.surface) {
+        if e.settings == *settings {
+            return Ok(e.program.clone());
+        }
+    }
+    let geometry: &dyn PartGeometry = match &setup.surface {
+        Some(s) => s,
+        None => &Flat,
+    };
+    NcProgram::plan(&setup.path, &outcome.solution.dwell_s, geometry, settings)
+        .and_then(|nc| write_and_check(&nc, &[]))
 }
 
 /// The robust plan of `outcome` against the nominal plan of the same set-up (solved here, the
@@ -339,7 +368,7 @@ fn robust_report(
     };
     let nominal_plan_rms_after_nm = match &plan.executed {
         Some(Ok(e)) => e.after.rms_nm,
-        _ => preston_solver::map::HeightStats::of(&centred_residual_nm(z, &plan.removal_nm)).rms_nm,
+        _ => preston_solver::map::HeightStats::of(&plan.residual_nm).rms_nm,
     };
     Ok(RobustReport {
         planned,
@@ -354,7 +383,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
     let mut report = Report::with_feeds(
         &prepared.problem,
         solution,
-        &outcome.removal_nm,
+        &outcome.residual_nm,
         &outcome.feeds_mm_per_min,
         prepared.skipped_rows,
         prepared.build_seconds,
@@ -365,7 +394,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
     report.edge = prepared.setup.edge.method;
     report.map_input = Some(prepared.map_input.clone());
     report.set_machine(&outcome.schedule, outcome.accel.as_ref());
-    report.set_map_coverage(prepared.map(), prepared.path(), &solution.dwell_s);
+    report.dwell_outside_map_s = Some(outcome.dwell_outside_map_s);
     report.operator_error = outcome.approximation;
     if let Some(a) = outcome.approximation.filter(|a| a.exceeds_tolerance()) {
         report.warnings.push(a.warning());
@@ -466,7 +495,6 @@ pub fn write_solve_outputs(
     let p = &solved.prepared;
     let (map, path) = (p.map(), p.path());
     let o = &solved.outcome;
-    let residual = centred_residual_nm(map.z_nm(), &o.removal_nm);
     let mut staged = vec![
         stage_dwell_csv(
             &out_dir.join("dwell.csv"),
@@ -482,7 +510,7 @@ pub fn write_solve_outputs(
             map.y_mm(),
             map.z_nm(),
             &o.removal_nm,
-            &residual,
+            &o.residual_nm,
         )?,
         stage_report(&out_dir.join("report.json"), &solved.report)?,
     ];

@@ -6,9 +6,8 @@ use preston_solver::dwell::{MinTimeReport, OperatorKind, Problem, Solution, Solv
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::InfluenceModel;
 use preston_solver::machine::feeds::FeedSchedule;
-use preston_solver::machine::machinability::{dwell_outside_map_s, max_neighbour_feed_ratio};
-use preston_solver::map::{HeightMap, HeightStats};
-use preston_solver::path::DwellPath;
+use preston_solver::machine::machinability::max_neighbour_feed_ratio;
+use preston_solver::map::HeightStats;
 use serde::{Deserialize, Serialize};
 
 /// The report of one solve (or simulation). Key names are a contract: tests and benchmarks
@@ -354,6 +353,16 @@ pub fn solver_name(kind: SolverKind) -> String {
         .unwrap_or_else(|| format!("{kind:?}"))
 }
 
+/// The residual of a dwell on the map, and the piston and objective that go with it.
+struct Fit<'a> {
+    /// Residual about its mean, nm.
+    residual_nm: &'a [f64],
+    /// `mean(R t - z)`, nm.
+    piston_nm: f64,
+    /// `0.5 ||R t - z - c||^2`, nm^2.
+    objective: f64,
+}
+
 /// Name of a status in reports.
 pub fn status_name(status: Status) -> String {
     serde_json::to_value(status)
@@ -365,7 +374,6 @@ pub fn status_name(status: Status) -> String {
 impl Report {
     /// Builds the report of `solution` on `problem`; `removal_nm` is `R t` on the measured map:
     /// the first `removal_nm.len()` rows of the problem (edge extension rows follow them).
-    #[allow(clippy::too_many_arguments)]
     pub fn new(
         problem: &Problem,
         solution: &Solution,
@@ -375,35 +383,42 @@ impl Report {
         build_seconds: f64,
     ) -> Self {
         let feeds = feeds_mm_per_min(ds_mm, &solution.dwell_s);
+        let z = &problem.z_nm()[..removal_nm.len().min(problem.m())];
+        let residual = centred_residual_nm(z, removal_nm);
         Self::with_feeds(
             problem,
             solution,
-            removal_nm,
+            &residual,
             &feeds,
             skipped_rows,
             build_seconds,
         )
     }
 
-    /// As [`Report::new`] with the feeds already computed (one per dwell point, mm/min).
+    /// As [`Report::new`] with the residual on the measured map (about its mean, nm) and the
+    /// feeds (one per dwell point, mm/min) already computed; the piston and objective are the
+    /// solution's.
     pub fn with_feeds(
         problem: &Problem,
         solution: &Solution,
-        removal_nm: &[f64],
+        residual_nm: &[f64],
         feeds: &[f64],
         skipped_rows: usize,
         build_seconds: f64,
     ) -> Self {
-        let mut r = Self::of_dwell(
+        let fit = Fit {
+            residual_nm,
+            piston_nm: solution.piston_nm,
+            objective: solution.objective,
+        };
+        let mut r = Self::of_fit(
             problem,
             &solution.dwell_s,
-            removal_nm,
+            fit,
             feeds,
             skipped_rows,
             build_seconds,
         );
-        r.piston_nm = solution.piston_nm;
-        r.objective = solution.objective;
         r.solve_seconds = solution.solve_seconds;
         r.solver = SolverLabel::Solver(solution.solver);
         r.iterations = solution.iterations;
@@ -429,8 +444,7 @@ impl Report {
         build_seconds: f64,
     ) -> Self {
         let z = &problem.z_nm()[..removal_nm.len().min(problem.m())];
-        let before = HeightStats::of(z);
-        let after = HeightStats::of(&centred_residual_nm(z, removal_nm));
+        let residual_nm = centred_residual_nm(z, removal_nm);
         let piston_nm = removal_nm.iter().zip(z).map(|(h, z)| h - z).sum::<f64>()
             / removal_nm.len().max(1) as f64;
         let objective = 0.5
@@ -439,6 +453,31 @@ impl Report {
                 .zip(z)
                 .map(|(h, z)| (h - z - piston_nm).powi(2))
                 .sum::<f64>();
+        let fit = Fit {
+            residual_nm: &residual_nm,
+            piston_nm,
+            objective,
+        };
+        Self::of_fit(problem, dwell_s, fit, feeds, skipped_rows, build_seconds)
+    }
+
+    /// The report's keys of the dwell and its fit to the map, with no solver.
+    fn of_fit(
+        problem: &Problem,
+        dwell_s: &[f64],
+        fit: Fit<'_>,
+        feeds: &[f64],
+        skipped_rows: usize,
+        build_seconds: f64,
+    ) -> Self {
+        let Fit {
+            residual_nm,
+            piston_nm,
+            objective,
+        } = fit;
+        let z = &problem.z_nm()[..residual_nm.len().min(problem.m())];
+        let before = HeightStats::of(z);
+        let after = HeightStats::of(residual_nm);
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();
         Self {
@@ -493,17 +532,6 @@ impl Report {
             sensitivity: None,
             robust: None,
         }
-    }
-
-    /// Sets `dwell_outside_map_s` from the map points and the dwell points with their dwell.
-    pub fn set_map_coverage(&mut self, map: &HeightMap, path: &DwellPath, dwell_s: &[f64]) {
-        self.dwell_outside_map_s = Some(dwell_outside_map_s(
-            map.x_mm(),
-            map.y_mm(),
-            path.x_mm(),
-            path.y_mm(),
-            dwell_s,
-        ));
     }
 
     /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the

@@ -18,6 +18,7 @@ use preston_solver::machine::gcode::dialect::Dialect;
 use preston_solver::machine::gcode::motion::{Kinematics, StretchCheck};
 use preston_solver::machine::gcode::program::{Program, MAX_PROGRAM_BYTES};
 use preston_solver::machine::gcode::ProgramRun;
+use preston_solver::machine::machinability::dwell_outside_map_s;
 use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
@@ -167,7 +168,13 @@ fn assemble(
         SolverLabel::Simulate => InfluenceModel::Point,
         _ => InfluenceModel::Swept,
     });
-    report.set_map_coverage(&map.map, &path, &dwell_s);
+    report.dwell_outside_map_s = Some(dwell_outside_map_s(
+        map.map.x_mm(),
+        map.map.y_mm(),
+        path.x_mm(),
+        path.y_mm(),
+        &dwell_s,
+    ));
     if dwell_s
         .iter()
         .zip(&ds_mm)

@@ -33,6 +33,8 @@ pub struct MultiSolved {
     pub dwell_s: Vec<Vec<f64>>,
     /// Predicted removal of all tools at the map points, nm.
     pub removal_nm: Vec<f64>,
+    /// Predicted residual at the map points about its mean, nm.
+    pub residual_nm: Vec<f64>,
     /// The report (with `tools`).
     pub report: Report,
 }
@@ -144,11 +146,12 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         .collect();
     let mut unscaled = solution.clone();
     unscaled.dwell_s = dwell_s.concat();
-    let mut report = Report::new(
+    let residual_nm = centred_residual_nm(setup.map.z_nm(), &removal_nm);
+    let mut report = Report::with_feeds(
         &problem,
         &unscaled,
-        &removal_nm,
-        &ds_all,
+        &residual_nm,
+        &feeds_mm_per_min(&ds_all, &unscaled.dwell_s),
         map_read.input.invalid_points,
         build_seconds,
     );
@@ -196,6 +199,7 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         solution,
         dwell_s,
         removal_nm,
+        residual_nm,
         report,
     })
 }
@@ -217,14 +221,13 @@ pub fn write_tool_outputs(solved: &MultiSolved, out_dir: &Path) -> Result<()> {
         )?);
     }
     let m = &solved.map;
-    let residual = centred_residual_nm(m.z_nm(), &solved.removal_nm);
     staged.push(stage_residual_csv(
         &out_dir.join("residual.csv"),
         m.x_mm(),
         m.y_mm(),
         m.z_nm(),
         &solved.removal_nm,
-        &residual,
+        &solved.residual_nm,
     )?);
     staged.push(stage_report(&out_dir.join("report.json"), &solved.report)?);
     commit_all(staged)

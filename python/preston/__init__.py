@@ -147,6 +147,10 @@ class SolveResult:
     * ``report`` -- dict with the keys of ``report.json`` (RMS/PV before and after in nm, total
       dwell s, machining time s, solver, status, iterations, warnings, ...).
     * ``status`` (str), ``converged`` (bool) -- the solver's status.
+    * ``program_check`` -- dict: what the program of the job's machine (its ``[nc]`` profile and
+      limits) does with the plan, as ``preston solve --json`` prints it (machining time s, feed
+      blocks, the programmed and accelerated stretch times against the plan); ``None`` when no
+      program can deliver the plan.
 
     Where the map is on a lattice, :meth:`grid` gives any map quantity as a 2-D array with its x
     and y axes (``error_grid``, ``removal_grid`` and ``residual_grid`` for the usual three).
@@ -167,6 +171,7 @@ class SolveResult:
         "report",
         "status",
         "converged",
+        "program_check",
     )
 
     def __init__(self, native: "_preston.SolveResult") -> None:
@@ -184,6 +189,8 @@ class SolveResult:
         self.report = json.loads(native.report_json)
         self.status = native.status
         self.converged = native.converged
+        check = native.program_check_json
+        self.program_check = None if check is None else json.loads(check)
 
     def grid(self, values: str = "residual_nm") -> Grid:
         """The map quantity ``values`` (``"z_nm"``, ``"removal_nm"`` or ``"residual_nm"``) on the
@@ -327,55 +334,39 @@ def _abs(p: PathLike) -> str:
     return os.path.abspath(os.fspath(p))
 
 
+_PATH_KEYWORDS = ("map", "tif", "dwell", "warm_start", "surface")
+
+
 def _job_of(
     job: Optional[Union[PathLike, Mapping[str, Any]]],
     *,
-    map: Optional[PathLike] = None,
     map_xyz: Optional[ArrayLike] = None,
     map_options: Optional[Mapping[str, Any]] = None,
-    tif: Optional[PathLike] = None,
     tif_xyr: Optional[ArrayLike] = None,
-    gaussian: Optional[Mapping[str, float]] = None,
-    dwell: Optional[PathLike] = None,
     dwell_xy: Optional[ArrayLike] = None,
-    raster_pitch_mm: Optional[float] = None,
-    raster_along: Optional[str] = None,
-    v_max: Optional[float] = None,
-    v_min: Optional[float] = None,
-    a_max: Optional[float] = None,
-    accel_method: Optional[str] = None,
-    corner_angle_deg: Optional[float] = None,
-    rho: Optional[float] = None,
-    lambda_: Optional[float] = None,
-    min_time: Optional[bool] = None,
-    min_time_tolerance: Optional[float] = None,
-    tolerance: Optional[float] = None,
-    first_order_method: Optional[str] = None,
-    lbfgs_memory: Optional[int] = None,
-    max_iterations: Optional[int] = None,
-    solver: Optional[str] = None,
-    operator: Optional[str] = None,
-    influence: Optional[str] = None,
-    robust: Optional[bool] = None,
-    warm_start: Optional[PathLike] = None,
-    surface: Optional[PathLike] = None,
-    tif_frame: Optional[str] = None,
-    edge: Optional[str] = None,
-    edge_width_mm: Optional[float] = None,
+    **overrides: Any,
 ) -> Tuple[dict, str, dict]:
-    """The job of :func:`solve`'s arguments: the job dict, its name and the arrays."""
+    """The job of :func:`solve`'s arguments: the job dict, its name and the arrays. The keywords
+    in ``overrides`` go through the engine's override layer (the one the CLI's flags go
+    through); the arrays and ``map_options`` are this package's own."""
     j = load_job(job) if job is not None else load_job({})
     name = os.fspath(job) if isinstance(job, (str, os.PathLike)) else "<python>"
-    sections = ("map", "tif", "dwell", "machine", "objective", "solver", "surface")
-    for s in sections:
-        if j.get(s) is None:
-            j[s] = {}
-    m, t, d, mach, obj, sol, surf = (j[s] for s in sections)
-
-    if map is not None and map_xyz is not None:
+    given = {k: v for k, v in overrides.items() if v is not None}
+    for k in _PATH_KEYWORDS:
+        if k in given:
+            given[k] = os.fspath(given[k])
+    if "gaussian" in given:
+        given["gaussian"] = _gaussian(given["gaussian"])
+    if "map" in given and map_xyz is not None:
         raise InputError("give map= (a file) or map_xyz= (an array), not both")
-    if map is not None:
-        m["file"] = _abs(map)
+    if tif_xyr is not None and ("tif" in given or "gaussian" in given):
+        raise InputError("give one of tif=, tif_xyr=, gaussian=")
+    if dwell_xy is not None and ("dwell" in given or "raster_pitch_mm" in given):
+        raise InputError("give one of dwell=, dwell_xy=, raster_pitch_mm=")
+    if given:
+        j = json.loads(_preston.apply_overrides(_dumps(j), _dumps(given), os.getcwd(), name))
+
+    m = j.get("map") or {}
     if map_options:
         unknown = sorted(set(map_options) - set(MAP_OPTIONS))
         if unknown:
@@ -390,74 +381,15 @@ def _job_of(
             )
         m["file"] = None
         arrays["map_xyz"] = _columns(map_xyz, 3, "map_xyz")
-
-    if sum(x is not None for x in (tif, tif_xyr, gaussian)) > 1:
-        raise InputError("give one of tif=, tif_xyr=, gaussian=")
-    if tif is not None:
-        j["tif"] = {"file": _abs(tif), "gaussian": None}
-    elif gaussian is not None:
-        j["tif"] = {"file": None, "gaussian": _gaussian(gaussian)}
-    elif tif_xyr is not None:
+    j["map"] = m
+    if tif_xyr is not None:
         j["tif"] = {"file": None, "gaussian": None}
         arrays["tif_xyr"] = _columns(tif_xyr, 3, "tif_xyr")
-
-    if sum(x is not None for x in (dwell, dwell_xy, raster_pitch_mm)) > 1:
-        raise InputError("give one of dwell=, dwell_xy=, raster_pitch_mm=")
-    if dwell is not None:
-        d["file"], d["raster_pitch_mm"] = _abs(dwell), None
-    elif dwell_xy is not None:
+    if dwell_xy is not None:
+        d = j.get("dwell") or {}
         d["file"], d["raster_pitch_mm"] = None, None
+        j["dwell"] = d
         arrays["dwell_xy"] = _columns(dwell_xy, 2, "dwell_xy")
-    elif raster_pitch_mm is not None:
-        d["file"], d["raster_pitch_mm"] = None, raster_pitch_mm
-    if raster_along is not None:
-        d["raster_along"] = raster_along
-    if warm_start is not None:
-        d["warm_start"] = _abs(warm_start)
-
-    for key, value in (
-        ("v_max_mm_per_min", v_max),
-        ("v_min_mm_per_min", v_min),
-        ("a_max_mm_per_s2", a_max),
-        ("accel_method", accel_method),
-        ("corner_angle_deg", corner_angle_deg),
-    ):
-        if value is not None:
-            mach[key] = value
-    if rho is not None:
-        obj["rho"] = rho
-    if lambda_ is not None:
-        obj["lambda"] = lambda_
-    if min_time:
-        sol["min_time"] = True
-    if robust is not None:
-        sol["robust"] = bool(robust)
-    for key, value in (
-        ("min_time_tolerance", min_time_tolerance),
-        ("first_order_method", first_order_method),
-        ("lbfgs_memory", lbfgs_memory),
-        ("solver", solver),
-        ("operator", operator),
-        ("influence", influence),
-    ):
-        if value is not None:
-            sol[key] = value
-    if tolerance is not None:
-        sol["tolerance"] = sol["first_order_tolerance"] = tolerance
-    if max_iterations is not None:
-        sol["max_iterations"] = sol["first_order_max_iterations"] = max_iterations
-    if surface is not None:
-        surf["file"] = _abs(surface)
-    if tif_frame is not None:
-        surf["tif_frame"] = tif_frame
-    if edge is not None or edge_width_mm is not None:
-        e = j.get("edge") or {}
-        if edge is not None:
-            e["method"] = edge
-        if edge_width_mm is not None:
-            e["width_mm"] = edge_width_mm
-        j["edge"] = e
-
     return j, name, arrays
 
 
@@ -491,10 +423,6 @@ def influence_matrix(
         import scipy.sparse as sp
     except ImportError as e:  # pragma: no cover - scipy is a test requirement
         raise ImportError("preston.influence_matrix needs scipy (pip install scipy)") from e
-    allowed = set(_SOLVE_KEYWORDS)
-    unknown = sorted(set(kwargs) - allowed)
-    if unknown:
-        raise InputError(f"influence_matrix: unknown keyword(s) {unknown}")
     j, name, arrays = _job_of(job, **kwargs)
     m, rows, cols, indptr, indices, data, _points = _preston.influence_matrix(
         _dumps(j), name, **arrays
@@ -509,46 +437,24 @@ def influence_matrix(
 def solve(
     job: Optional[Union[PathLike, Mapping[str, Any]]] = None,
     *,
-    map: Optional[PathLike] = None,
     map_xyz: Optional[ArrayLike] = None,
     map_options: Optional[Mapping[str, Any]] = None,
-    tif: Optional[PathLike] = None,
     tif_xyr: Optional[ArrayLike] = None,
-    gaussian: Optional[Mapping[str, float]] = None,
-    dwell: Optional[PathLike] = None,
     dwell_xy: Optional[ArrayLike] = None,
-    raster_pitch_mm: Optional[float] = None,
-    raster_along: Optional[str] = None,
-    v_max: Optional[float] = None,
-    v_min: Optional[float] = None,
-    a_max: Optional[float] = None,
-    accel_method: Optional[str] = None,
-    corner_angle_deg: Optional[float] = None,
-    rho: Optional[float] = None,
-    lambda_: Optional[float] = None,
-    min_time: Optional[bool] = None,
-    min_time_tolerance: Optional[float] = None,
-    tolerance: Optional[float] = None,
-    first_order_method: Optional[str] = None,
-    lbfgs_memory: Optional[int] = None,
-    max_iterations: Optional[int] = None,
-    solver: Optional[str] = None,
-    operator: Optional[str] = None,
-    influence: Optional[str] = None,
-    robust: Optional[bool] = None,
-    warm_start: Optional[PathLike] = None,
-    surface: Optional[PathLike] = None,
-    tif_frame: Optional[str] = None,
-    edge: Optional[str] = None,
-    edge_width_mm: Optional[float] = None,
     progress: Optional[Callable[[dict], Any]] = None,
     require_converged: bool = False,
     threads: Optional[int] = None,
+    **overrides: Any,
 ) -> SolveResult:
     """Dwell times and feeds: the engine of ``preston solve``, arrays in and out.
 
-    ``job`` is a job file (TOML) or a dict of the same structure; the keyword arguments override
-    it exactly as the CLI's flags override ``--job``:
+    ``job`` is a job file (TOML) or a dict of the same structure. The other keywords override it
+    through the engine's override layer, the one the CLI's flags go through (``Overrides`` in
+    ``preston-io``): each flag of ``preston solve`` that changes the job is a keyword of the same
+    name with ``_`` for ``-`` (``--raster-pitch-mm``: ``raster_pitch_mm``; the feeds and
+    acceleration also as ``v_max``, ``v_min``, ``a_max``, and ``--lambda`` as ``lambda_``), and an
+    unknown keyword raises :class:`InputError` naming the known ones. ``None`` leaves the job's
+    key as it is. The arrays and ``map_options`` are this package's own:
 
     * map: ``map`` (a file, any format of :func:`read_map`, read with ``map_options``) or
       ``map_xyz`` (an ``(N, 3)`` array of x_mm, y_mm, z_nm, or a tuple ``(x_mm, y_mm, z_nm)`` such
@@ -573,6 +479,10 @@ def solve(
       dwell.csv).
     * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,
       ``"machine_x"``).
+    * the plan's model: ``influence`` (``"swept"``, the default, or ``"point"``), ``robust``
+      (plan for the mean over the TIF-uncertainty scenarios), ``spread_tolerance``; a Hertzian
+      tool: ``hertz`` (a dict with the keys of a job's ``[tif.hertz]``), ``tif_pitch_mm``,
+      ``curvature_dependent``.
     * edges: ``edge`` (``"none"``, ``"zero-band"``, ``"gaussian"``, ``"polynomial"``,
       ``"gerchberg-papoulis"``: how the map is extended into the dwell area beyond it) and
       ``edge_width_mm`` (the band's width, mm), as ``--edge`` / ``[edge]``.
@@ -593,38 +503,11 @@ def solve(
     """
     j, name, arrays = _job_of(
         job,
-        map=map,
         map_xyz=map_xyz,
         map_options=map_options,
-        tif=tif,
         tif_xyr=tif_xyr,
-        gaussian=gaussian,
-        dwell=dwell,
         dwell_xy=dwell_xy,
-        raster_pitch_mm=raster_pitch_mm,
-        raster_along=raster_along,
-        v_max=v_max,
-        v_min=v_min,
-        a_max=a_max,
-        accel_method=accel_method,
-        corner_angle_deg=corner_angle_deg,
-        rho=rho,
-        lambda_=lambda_,
-        min_time=min_time,
-        min_time_tolerance=min_time_tolerance,
-        tolerance=tolerance,
-        first_order_method=first_order_method,
-        lbfgs_memory=lbfgs_memory,
-        max_iterations=max_iterations,
-        solver=solver,
-        operator=operator,
-        influence=influence,
-        robust=robust,
-        warm_start=warm_start,
-        surface=surface,
-        tif_frame=tif_frame,
-        edge=edge,
-        edge_width_mm=edge_width_mm,
+        **overrides,
     )
     native = _preston.solve(_dumps(j), name, progress=progress, threads=threads, **arrays)
     result = SolveResult(native)
@@ -634,40 +517,6 @@ def solve(
             f"{result.report.get('iterations')} iterations)"
         )
     return result
-
-
-_SOLVE_KEYWORDS = (
-    "map",
-    "map_xyz",
-    "map_options",
-    "tif",
-    "tif_xyr",
-    "gaussian",
-    "dwell",
-    "dwell_xy",
-    "raster_pitch_mm",
-    "raster_along",
-    "v_max",
-    "v_min",
-    "a_max",
-    "accel_method",
-    "corner_angle_deg",
-    "rho",
-    "lambda_",
-    "min_time",
-    "min_time_tolerance",
-    "tolerance",
-    "first_order_method",
-    "lbfgs_memory",
-    "max_iterations",
-    "solver",
-    "operator",
-    "warm_start",
-    "surface",
-    "tif_frame",
-    "edge",
-    "edge_width_mm",
-)
 
 
 def _map_options(options: Mapping[str, Any]) -> dict:

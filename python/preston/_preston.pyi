@@ -63,6 +63,9 @@ class SolveResult:
     def status(self) -> str: ...
     @property
     def converged(self) -> bool: ...
+    @property
+    def program_check_json(self) -> Optional[str]:
+        """What the program of the job's machine does with the plan (JSON), or None."""
     def write(self, out_dir: str, plots: bool = False) -> List[str]:
         """Writes dwell.csv, residual.csv, report.json (and with ``plots`` the figures and psd.csv)
         into ``out_dir``, all committed together; returns the notes on figures left out."""
@@ -78,6 +81,11 @@ def load_job(path: str) -> str:
 
 def check_job(job_json: str, base_dir: Optional[str] = None, job_name: str = "<job>") -> str:
     """A job (JSON) checked and normalised, relative paths resolved against ``base_dir``."""
+
+def apply_overrides(
+    job_json: str, overrides_json: str, base_dir: str, job_name: str = "<python>"
+) -> str:
+    """The job (JSON) with the keywords of ``solve`` applied by the engine's override layer."""
 
 def read_map(source_json: str) -> Tuple[F64, F64, F64, str]:
     """A map read with a ``[map]`` table's options: ``(x_mm, y_mm, z_nm, how_read_json)``."""

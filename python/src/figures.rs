@@ -7,7 +7,6 @@ use preston_io::atomic::commit_all;
 use preston_io::figures::{stage_solve_figures_with, FigureStyle};
 use preston_io::pipeline::Solved;
 use preston_io::plots::PlotFormat;
-use preston_io::report::centred_residual_nm;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::{line_psd, LineAxis};
 use pyo3::prelude::*;
@@ -76,9 +75,9 @@ pub(crate) fn psd<'py>(
 ) -> PyResult<(Array<'py>, Array<'py>, Array<'py>, String)> {
     let map = solved.prepared.map();
     let (x, y, z) = (map.x_mm(), map.y_mm(), map.z_nm());
-    let residual = centred_residual_nm(z, solved.removal_nm());
+    let residual = &solved.outcome.residual_nm;
     let (before, after) = py
-        .detach(|| Ok((line_psd(x, y, z, axis)?, line_psd(x, y, &residual, axis)?)))
+        .detach(|| Ok((line_psd(x, y, z, axis)?, line_psd(x, y, residual, axis)?)))
         .map_err(|e| to_py(preston_io::Error::engine("psd", e)))?;
     let info = json!({
         "along": match axis { LineAxis::X => "x", LineAxis::Y => "y" },

@@ -26,7 +26,6 @@ use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
 use preston_io::pipeline::{self, Inputs, Solved};
 use preston_io::readers::{read_dwell, DwellFile};
-use preston_io::report::centred_residual_nm;
 use preston_io::surface::{read_surface, FitSummary};
 use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
 use preston_solver::machine::gcode::write_and_check;
@@ -323,6 +322,7 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<SolveResult>()?;
     m.add_function(wrap_pyfunction!(solve::load_job, m)?)?;
     m.add_function(wrap_pyfunction!(solve::check_job, m)?)?;
+    m.add_function(wrap_pyfunction!(solve::apply_overrides, m)?)?;
     m.add_function(wrap_pyfunction!(read_map, m)?)?;
     m.add_function(wrap_pyfunction!(solve::solve, m)?)?;
     m.add_function(wrap_pyfunction!(solve::influence_matrix, m)?)?;

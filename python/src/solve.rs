@@ -3,6 +3,7 @@
 //! report and writers.
 
 use crate::*;
+use preston_io::overrides::Overrides;
 
 /// The result of a solve: dwell times, feeds, removal and residual as numpy arrays, the report
 /// as a dict (the keys of `report.json`).
@@ -13,8 +14,6 @@ pub struct SolveResult {
     job: Job,
     /// The job file (or `<python>`).
     job_path: PathBuf,
-    feeds: Vec<f64>,
-    residual: Vec<f64>,
     /// The job's raster direction (`[dwell] raster_along`): the PSD's line direction.
     raster_along: RasterAxis,
     /// The job's raster pitch, mm, marked on the PSD plot.
@@ -31,7 +30,7 @@ impl SolveResult {
     /// Feed into each dwell point, mm/min (`ds_mm / dwell_s * 60`).
     #[getter]
     fn feed_mm_per_min<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, &self.feeds)
+        array(py, &self.solved.outcome.feeds_mm_per_min)
     }
     /// Path length each dwell point stands for, mm.
     #[getter]
@@ -71,13 +70,20 @@ impl SolveResult {
     /// Residual `z - removal` at each map point with its mean removed (as in residual.csv), nm.
     #[getter]
     fn residual_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        array(py, &self.residual)
+        array(py, &self.solved.outcome.residual_nm)
     }
     /// The report as JSON text (the content of report.json).
     #[getter]
     fn report_json(&self) -> PyResult<String> {
         serde_json::to_string(&self.solved.report)
             .map_err(|e| InputError::new_err(format!("report: {e}")))
+    }
+    /// What the program of the job's machine does with the plan, as JSON text (the
+    /// `program_check` of `preston solve --json`), or `None` when no program can deliver it.
+    #[getter]
+    fn program_check_json(&self) -> Option<String> {
+        let check = self.solved.program_check.as_ref().ok()?;
+        Some(preston_io::machine::program_check_summary(check).to_string())
     }
     /// Solver status (`converged`, `almost_converged`, ...), as in the report.
     #[getter]
@@ -211,6 +217,56 @@ pub(crate) fn check_job(
         job.resolve_paths(&b);
     }
     job_to_json(&job, job_name)
+}
+
+/// A job (JSON) with the keywords of `preston.solve` applied over it ([`Overrides::apply`], the
+/// same layer as the command line's flags), relative paths resolved against `base_dir`.
+#[pyfunction]
+#[pyo3(signature = (job_json, overrides_json, base_dir, job_name="<python>"))]
+pub(crate) fn apply_overrides(
+    job_json: &str,
+    overrides_json: &str,
+    base_dir: PathBuf,
+    job_name: &str,
+) -> PyResult<String> {
+    let mut job = parse_job(job_json, job_name)?;
+    let overrides: Overrides = serde_json::from_str(overrides_json)
+        .map_err(|e| InputError::new_err(keyword_error(overrides_json, &e)))?;
+    overrides
+        .apply(&mut job, Path::new(job_name))
+        .map_err(to_py)?;
+    job.resolve_paths(&base_dir);
+    job_to_json(&job, job_name)
+}
+
+/// A keyword's value that is not an override, in the keyword's terms: `solver=: unknown variant
+/// ...`, `gaussian=: unknown field `peak` ...`, or `unknown keyword `vmax`, expected one of ...`.
+fn keyword_error(json: &str, e: &serde_json::Error) -> String {
+    let mut msg = e.to_string();
+    if let Some(k) = msg.rfind(" at line ") {
+        msg.truncate(k);
+    }
+    let offset = json
+        .split_inclusive('\n')
+        .take(e.line().saturating_sub(1))
+        .map(str::len)
+        .sum::<usize>()
+        + e.column().saturating_sub(1);
+    let mut path = crate::errors::key_path_at(json, offset);
+    let unknown = msg
+        .strip_prefix("unknown field `")
+        .and_then(|r| r.split('`').next())
+        .map(str::to_string);
+    if let Some(field) = &unknown {
+        if path.last() == Some(field) {
+            path.pop();
+        }
+    }
+    match (path.first(), msg.strip_prefix("unknown field")) {
+        (None, Some(rest)) => format!("unknown keyword{rest}"),
+        (Some(kw), _) => format!("{kw}=: {msg}"),
+        (None, None) => msg,
+    }
 }
 
 /// Arrays given in place of the job's files.
@@ -391,13 +447,8 @@ pub(crate) fn solve(
         return Err(e);
     }
     let solved = solved.map_err(to_py)?;
-    let p = &solved.prepared;
-    let feeds = solved.outcome.feeds_mm_per_min.clone();
-    let residual = centred_residual_nm(p.map().z_nm(), solved.removal_nm());
     Ok(SolveResult {
         solved,
-        feeds,
-        residual,
         raster_along: job.dwell.raster_along,
         raster_pitch_mm: job.dwell.raster_pitch_mm,
         job,

@@ -135,3 +135,23 @@ def test_simulate_callback_exception_is_raised(small_job):
         preston.simulate(np.column_stack([x, 0 * x, 1 + 0 * x]), np.array([[0.0, 0.0], [1.0, 0.0]]), np.ones(2),
                          gaussian=small_job["tif"]["gaussian"], samples_per_point=4, progress=stop)
     assert len(events) == 1  # no call after the first exception
+
+
+def test_keywords_go_through_the_engines_override_layer(small_job):
+    # The CLI's flag names, `_` for `-`, and the package's short names, into the job's keys.
+    j, _, _ = preston._job_of(
+        small_job, v_max=2000.0, lambda_=0.5, spread_tolerance=1e-3, robust=False, edge="none"
+    )
+    assert j["machine"]["v_max_mm_per_min"] == 2000.0
+    assert j["objective"]["lambda"] == 0.5
+    assert j["solver"]["spread_tolerance"] == 1e-3
+    assert j["solver"]["robust"] is False
+    assert j["edge"]["method"] == "none"
+    # One tolerance and one iteration limit for whichever solver runs, as --tolerance does.
+    j, _, _ = preston._job_of(small_job, tolerance=1e-7, max_iterations=40)
+    assert j["solver"]["tolerance"] == j["solver"]["first_order_tolerance"] == 1e-7
+    assert j["solver"]["max_iterations"] == j["solver"]["first_order_max_iterations"] == 40
+    with pytest.raises(preston.InputError, match="unknown keyword `vmax`"):
+        preston.solve(small_job, vmax=3000.0)
+    with pytest.raises(preston.InputError, match="not both"):
+        preston.solve(small_job, dwell="d.csv", raster_pitch_mm=1.0)

@@ -26,11 +26,12 @@ def read_csv(path):
 @pytest.fixture(scope="module")
 def cli_out(preston_bin, sample_job, tmp_path_factory):
     out = tmp_path_factory.mktemp("cli")
-    subprocess.run(
-        [str(preston_bin), "solve", "--job", str(sample_job), "--out", str(out)],
+    done = subprocess.run(
+        [str(preston_bin), "solve", "--job", str(sample_job), "--out", str(out), "--json"],
         check=True,
         capture_output=True,
     )
+    (out / "stdout.json").write_bytes(done.stdout)
     return out
 
 
@@ -62,6 +63,17 @@ def test_sample_job_equals_cli(cli_out, py_job_result):
     for k in ("rms_before_nm", "rms_after_nm", "pv_after_nm", "total_dwell_s", "iterations", "status", "n", "m", "nnz"):
         assert r.report[k] == cli_report[k], k
     assert r.converged and r.status == cli_report["status"]
+
+
+def test_program_check_is_the_clis(cli_out, py_job_result):
+    # The program of the job's machine, checked once by the engine, read by both faces.
+    cli = json.loads((cli_out / "stdout.json").read_text())["program_check"]
+    check = py_job_result.program_check
+    assert check == cli
+    # The program as written delivers the plan: its stretches take the planned dwell.
+    p = check["programmed"]
+    assert abs(p["planned_total_s"] - py_job_result.report["total_dwell_s"]) <= 1e-6 * p["planned_total_s"]
+    assert p["max_relative_error"] < 0.01
 
 
 def test_arrays_in_equal_files_in(cli_out, py_job_result):

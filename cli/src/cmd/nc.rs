@@ -4,7 +4,7 @@ use crate::output::{print_json, OutputArgs};
 use anyhow::{bail, Context};
 use preston_io::atomic::{commit_all, stage};
 use preston_io::job::Job;
-use preston_io::machine::{read_dwell_times, stage_points_csv};
+use preston_io::machine::{program_check_summary, read_dwell_times, stage_points_csv};
 use preston_io::surface::read_surface;
 use preston_solver::machine::gcode::dialect::{Dialect, FeedMode};
 use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
@@ -242,26 +242,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "dialect": settings.dialect,
             "feed_mode": settings.feed_mode,
             "total_dwell_s": s.total_dwell_s,
-            "program_check": program_check_json(&check),
+            "program_check": program_check_summary(&check),
         }))?;
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// What the program as written does with the plan, as JSON (`--json`).
-pub fn program_check_json(check: &ProgramCheck) -> serde_json::Value {
-    let w = &check.written;
-    serde_json::json!({
-        "machining_time_s": w.stretch_time_s + w.plunge_time_s,
-        "stretch_time_s": w.stretch_time_s,
-        "plunge_time_s": w.plunge_time_s,
-        "feed_blocks": w.feed_blocks,
-        "arc_blocks": w.arc_blocks,
-        "merged_stretches": w.merged_stretches,
-        "slowed_stretches": w.slowed_stretches,
-        "programmed": check.programmed,
-        "accelerated": check.accelerated,
-    })
 }
 
 /// Prints what the program as written does with the plan (`preston nc` and `preston solve`).

@@ -2,25 +2,21 @@
 
 use super::hertz_args::HertzArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
-use super::nc::{print_program_check, program_check_json};
+use super::nc::print_program_check;
 use super::tif_source::TifArgs;
 use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
 use anyhow::Context;
 use preston_io::job::{Job, TifSource};
+use preston_io::machine::program_check_summary;
+use preston_io::overrides::Overrides;
 use preston_io::pipeline;
-use preston_io::surface::read_surface;
 use preston_solver::dwell::accel::AccelMethod;
-use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, OperatorKind, SolverChoice};
-use preston_solver::edge::EdgeMethod;
-use preston_solver::influence::surface::TifFrame;
-use preston_solver::influence::InfluenceModel;
-use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
-use preston_solver::machine::nc::{NcProgram, NcSettings};
-use preston_solver::machine::{Flat, PartGeometry};
+use preston_solver::dwell::OperatorKind;
+use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::LineAxis;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
@@ -42,9 +38,10 @@ pub struct Args {
     /// limits and the program the plan is checked with; the job's own keys win over it.
     #[arg(long, value_name = "PROFILE.toml")]
     pub machine: Option<PathBuf>,
-    /// Error map: CSV `x_mm,y_mm,z_nm` or any format of `preston map convert`.
-    #[arg(long, value_name = "FILE")]
-    pub map: Option<PathBuf>,
+    /// What a solve may change over the job file: one definition with the Python package's
+    /// keywords ([`Overrides`]).
+    #[command(flatten)]
+    pub overrides: Overrides,
     #[command(flatten)]
     pub map_input: MapInputArgs,
     #[command(flatten)]
@@ -60,23 +57,10 @@ pub struct Args {
     pub tif_model: Option<TifModelArg>,
     #[command(flatten)]
     pub hertz: HertzArgs,
-    /// Pitch of the grid on which the Hertz model on a flat part is sampled, mm.
-    #[arg(long, value_name = "MM")]
-    pub tif_pitch_mm: Option<f64>,
-    /// With the Hertz model: one TIF per dwell point, its effective radius from the design
-    /// surface's principal curvatures there (needs --surface or the job's [surface]).
-    #[arg(long)]
-    pub curvature_dependent: bool,
     /// Dwell points CSV `x_mm,y_mm` in path order. Repeated with --tif (the k-th --dwell goes
     /// with the k-th --tif), several tools in one solve: dwell_tool1.csv, dwell_tool2.csv, ...
     #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm", action = clap::ArgAction::Append)]
     pub dwell: Vec<PathBuf>,
-    /// Generate a serpentine raster at this pitch (mm) over the map extended by the TIF radius.
-    #[arg(long)]
-    pub raster_pitch_mm: Option<f64>,
-    /// Direction of the generated raster lines.
-    #[arg(long, value_enum)]
-    pub raster_along: Option<RasterAxis>,
     /// Fastest feed, mm/min. With several tools: once for all, or once per tool in order.
     #[arg(long = "v-max", value_name = "MM_PER_MIN", action = clap::ArgAction::Append)]
     pub v_max_mm_per_min: Vec<f64>,
@@ -84,86 +68,6 @@ pub struct Args {
     /// order; default 1).
     #[arg(long, value_name = "W", action = clap::ArgAction::Append)]
     pub time_weight: Vec<f64>,
-    /// Slowest feed, mm/min (0 = no limit).
-    #[arg(long = "v-min", value_name = "MM_PER_MIN")]
-    pub v_min_mm_per_min: Option<f64>,
-    /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
-    /// the distance between consecutive dwell points.
-    #[arg(long, value_name = "MM_PER_S2")]
-    pub a_max_mm_per_s2: Option<f64>,
-    /// How the acceleration limit is imposed: squared-speed (default; projected gradient in
-    /// squared speed, any size and operator), scp-qp (sequential QP, the small-case reference) or
-    /// squared-speed-then-scp-qp (the first, refined by the second).
-    #[arg(long, value_enum)]
-    pub accel_method: Option<AccelMethod>,
-    /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
-    /// and the machining time (default 60).
-    #[arg(long, value_name = "DEG")]
-    pub corner_angle_deg: Option<f64>,
-    /// How the dwell area beyond the map is modelled (default: the job's [edge], else none).
-    #[arg(long, value_enum)]
-    pub edge: Option<EdgeMethod>,
-    /// Width of the edge band beyond the map, mm (default: the TIF's nominal radius).
-    #[arg(long, value_name = "MM")]
-    pub edge_width_mm: Option<f64>,
-    /// Weight of total dwell time in the objective (nm^2 per s).
-    #[arg(long)]
-    pub rho: Option<f64>,
-    /// Weight of dwell-time differences along the path (nm^2/s^2).
-    #[arg(long)]
-    pub lambda: Option<f64>,
-    /// Find the smallest total dwell within --min-time-tolerance of the rho = 0 optimum.
-    #[arg(long)]
-    pub min_time: bool,
-    /// Relative objective tolerance of --min-time (default 0.001).
-    #[arg(long)]
-    pub min_time_tolerance: Option<f64>,
-    /// Relative optimality tolerance of the solver (the QP's and the first-order solver's;
-    /// defaults 1e-8 and 1e-6). The first-order solver stops when its gap bound, or its KKT
-    /// residual, is below it. The residual is relative to the gradient at zero dwell and, where
-    /// the plan removes more than 1 - 1e-5 of the objective (the RMS more than 316-fold), to
-    /// what is left: at 1e-6 the generated benchmarks land 0.03-0.07% above the optimum, a
-    /// two-tool plan 0.07% (docs/preconditioning.md).
-    #[arg(long)]
-    pub tolerance: Option<f64>,
-    /// Iteration of the first-order solver (default: the job's, else lbfgs).
-    #[arg(long, value_enum)]
-    pub first_order_method: Option<FirstOrderMethod>,
-    /// Correction pairs of the projected L-BFGS, 1 to 100 (default: the job's, else 10, or 5
-    /// with the FFT operator). More
-    /// pairs take fewer iterations: faster where a product costs far more than a pass over the
-    /// dwell times (off-lattice stencil products), slower where the operator is cheap per dwell
-    /// point (FFT-served maps); docs/off_lattice.md has the figures.
-    #[arg(long, value_name = "PAIRS")]
-    pub lbfgs_memory: Option<usize>,
-    /// Iteration limit of the solver.
-    #[arg(long)]
-    pub max_iterations: Option<usize>,
-    /// Which solver to run (default: the job's, else auto).
-    #[arg(long, value_enum)]
-    pub solver: Option<SolverChoice>,
-    /// How R is held: assembled, or matrix-free by FFT (default: the job's, else auto).
-    #[arg(long, value_enum)]
-    pub operator: Option<OperatorChoice>,
-    /// How the plan models the tool at a dwell point: swept (the TIF averaged along the point's
-    /// stretch of path at constant feed, as the program runs it) or point (the whole TIF at the
-    /// point) (default: the job's, else swept).
-    #[arg(long, value_enum)]
-    pub influence: Option<InfluenceModel>,
-    /// Plan for the mean residual over the TIF-uncertainty scenarios (the TIF 3% wider and
-    /// narrower, the tool 0.05 mm off in x and y, and the nominal): report.json `robust` gives
-    /// both plans per scenario, what it costs nominally and saves in the worst scenario (job:
-    /// `[solver] robust = true`). Assembles R for each scenario.
-    #[arg(long)]
-    pub robust: bool,
-    /// Largest estimated relative error of the off-lattice spreading operator against the
-    /// assembled R (default: the job's, else 1e-4).
-    #[arg(long)]
-    pub spread_tolerance: Option<f64>,
-    /// Start the first-order solver from the `dwell_s` column of a previous dwell.csv (same dwell
-    /// points, in the same order).
-    #[arg(long, value_name = "dwell.csv")]
-    pub warm_start: Option<PathBuf>,
     /// Exit 0 even when the solver stops before converging (the status is still reported).
     #[arg(long)]
     pub accept_best_iterate: bool,
@@ -179,12 +83,6 @@ pub struct Args {
     pub report: bool,
     #[command(flatten)]
     pub figures: super::figure_args::FigureArgs,
-    /// Design surface JSON of a curved part: the TIF acts in each dwell point's tangent plane.
-    #[arg(long, value_name = "S.json")]
-    pub surface: Option<PathBuf>,
-    /// Orientation of the TIF's x axis on a curved part.
-    #[arg(long, value_enum, requires = "surface")]
-    pub tif_frame: Option<TifFrame>,
     /// Output directory for dwell.csv, residual.csv and report.json.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -193,20 +91,19 @@ pub struct Args {
 }
 
 impl Args {
-    /// The job with every flag applied over the job file.
+    /// The job with every flag applied over the job file: the map's reading flags and the
+    /// several-tools syntax here, the rest through [`Overrides::apply`].
     fn into_job(self) -> anyhow::Result<(Job, PathBuf, PathBuf, bool)> {
         let mut job = Job::load_with_profile(self.job.as_deref(), self.machine.as_deref())?;
         let job_path = self
             .job
             .clone()
             .unwrap_or_else(|| PathBuf::from("<command line>"));
-        if let Some(m) = self.map {
-            job.map.file = Some(m);
-        }
         self.map_input.apply(&mut job.map);
         if let Some(p) = self.map_pitch.pitch_mm {
             job.map.pitch_mm = Some(p);
         }
+        let mut overrides = self.overrides;
         let tools = self.tif.tif.len().max(self.dwell.len());
         if tools > 1 {
             apply_tools(
@@ -216,128 +113,28 @@ impl Args {
                 &self.v_max_mm_per_min,
                 &self.time_weight,
             )?;
-        } else if !self.time_weight.is_empty() {
-            anyhow::bail!("--time-weight is for several tools (repeated --tif and --dwell)");
-        }
-        // A TIF on the command line replaces the job's whole [tif] section.
-        if let (1, Some(t)) = (tools, self.tif.tif.first()) {
-            job.tif = TifSource {
-                file: Some(t.clone()),
-                ..TifSource::default()
-            };
-        }
-        if let Some(g) = self.tif.gaussian()? {
-            job.tif = TifSource {
-                gaussian: Some(g),
-                ..TifSource::default()
-            };
-        }
-        match self.tif_model {
-            Some(TifModelArg::Hertz) => {
-                job.tif = TifSource {
-                    hertz: Some(self.hertz.params().context("--tif-model hertz")?),
-                    pitch_mm: job.tif.pitch_mm,
-                    curvature_dependent: job.tif.curvature_dependent,
-                    ..TifSource::default()
-                };
+        } else {
+            if !self.time_weight.is_empty() {
+                anyhow::bail!("--time-weight is for several tools (repeated --tif and --dwell)");
             }
+            if self.v_max_mm_per_min.len() > 1 {
+                anyhow::bail!(
+                    "--v-max is repeated only with several tools (repeated --tif and --dwell)"
+                );
+            }
+            overrides.tif = self.tif.tif.first().cloned();
+            overrides.dwell = self.dwell.first().cloned();
+            overrides.v_max_mm_per_min = self.v_max_mm_per_min.first().copied();
+        }
+        overrides.gaussian = self.tif.gaussian()?;
+        overrides.hertz = match self.tif_model {
+            Some(TifModelArg::Hertz) => Some(self.hertz.params().context("--tif-model hertz")?),
             None if self.hertz.is_given() => anyhow::bail!(
                 "the Hertz tool's flags (--force-n, --tool-e-gpa, ...) go with --tif-model hertz"
             ),
-            None => {}
-        }
-        if let Some(p) = self.tif_pitch_mm {
-            job.tif.pitch_mm = Some(p);
-        }
-        if self.curvature_dependent {
-            job.tif.curvature_dependent = true;
-        }
-        if let (1, Some(d)) = (tools, self.dwell.first()) {
-            job.dwell.file = Some(d.clone());
-            job.dwell.raster_pitch_mm = None;
-        }
-        if let Some(p) = self.raster_pitch_mm {
-            job.dwell.raster_pitch_mm = Some(p);
-            job.dwell.file = None;
-        }
-        if let Some(a) = self.raster_along {
-            job.dwell.raster_along = a;
-        }
-        if let [v] = self.v_max_mm_per_min.as_slice() {
-            job.machine.v_max_mm_per_min = Some(*v);
-        } else if self.v_max_mm_per_min.len() > 1 && tools <= 1 {
-            anyhow::bail!(
-                "--v-max is repeated only with several tools (repeated --tif and --dwell)"
-            );
-        }
-        if let Some(v) = self.v_min_mm_per_min {
-            job.machine.v_min_mm_per_min = Some(v);
-        }
-        if let Some(a) = self.a_max_mm_per_s2 {
-            job.machine.a_max_mm_per_s2 = Some(a);
-        }
-        if let Some(c) = self.corner_angle_deg {
-            job.machine.corner_angle_deg = Some(c);
-        }
-        if let Some(m) = self.accel_method {
-            job.machine.accel_method = Some(m);
-        }
-        if let Some(e) = self.edge {
-            job.edge.method = e;
-        }
-        if let Some(w) = self.edge_width_mm {
-            job.edge.width_mm = Some(w);
-        }
-        if let Some(r) = self.rho {
-            job.objective.rho = r;
-        }
-        if let Some(l) = self.lambda {
-            job.objective.lambda = l;
-        }
-        if self.min_time {
-            job.solver.min_time = true;
-        }
-        if let Some(t) = self.min_time_tolerance {
-            job.solver.min_time_tolerance = t;
-        }
-        if let Some(t) = self.tolerance {
-            job.solver.tolerance = t;
-            job.solver.first_order_tolerance = t;
-        }
-        if let Some(pairs) = self.lbfgs_memory {
-            job.solver.lbfgs_memory = Some(pairs);
-        }
-        if let Some(m) = self.first_order_method {
-            job.solver.first_order_method = m;
-        }
-        if let Some(k) = self.max_iterations {
-            job.solver.max_iterations = k;
-            job.solver.first_order_max_iterations = k;
-        }
-        if let Some(k) = self.solver {
-            job.solver.solver = k;
-        }
-        if let Some(o) = self.influence {
-            job.solver.influence = o;
-        }
-        if self.robust {
-            job.solver.robust = true;
-        }
-        if let Some(o) = self.operator {
-            job.solver.operator = o;
-        }
-        if let Some(t) = self.spread_tolerance {
-            job.solver.spread_tolerance = t;
-        }
-        if let Some(w) = self.warm_start {
-            job.dwell.warm_start = Some(w);
-        }
-        if let Some(f) = self.surface {
-            job.surface.file = Some(f);
-        }
-        if let Some(f) = self.tif_frame {
-            job.surface.tif_frame = f;
-        }
+            None => None,
+        };
+        overrides.apply(&mut job, Path::new("<command line>"))?;
         Ok((job, job_path, self.out, self.accept_best_iterate))
     }
 }
@@ -425,11 +222,31 @@ fn run_tools(
         r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm, r.solver, r.iterations, r.status, r.solve_seconds,
         out.display()
     );
-    let converged = solved.solution.status.is_converged();
+    finish(
+        solved.solution.status.is_converged(),
+        accept_best,
+        output,
+        out,
+        r,
+        None,
+    )
+}
+
+/// The end of a solve: the warning of a solve that did not converge, `--json`'s summary and the
+/// exit code (0, or 3 when the solver stopped before converging and `--accept-best-iterate` was
+/// not given).
+fn finish(
+    converged: bool,
+    accept_best: bool,
+    output: OutputArgs,
+    out: &std::path::Path,
+    report: &preston_io::report::Report,
+    check: Option<&ProgramCheck>,
+) -> anyhow::Result<ExitCode> {
     if !converged {
         crate::errln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
-            r.status
+            report.status
         );
     }
     let code = if converged || accept_best {
@@ -438,13 +255,17 @@ fn run_tools(
         EXIT_NOT_CONVERGED
     };
     if output.json {
-        print_json(&serde_json::json!({
+        let mut summary = serde_json::json!({
             "command": "solve",
             "exit_code": code,
             "converged": converged,
             "out": out,
-            "report": r,
-        }))?;
+            "report": report,
+        });
+        if let Some(c) = check {
+            summary["program_check"] = program_check_summary(c);
+        }
+        print_json(&summary)?;
     }
     Ok(ExitCode::from(code))
 }
@@ -489,6 +310,23 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for note in notes {
         crate::note!("  note: {note}");
     }
+    print_summary(&solved, early_warnings, &out);
+    let r = &solved.report;
+    let check = print_check(&solved);
+    finish(
+        solved.solution().status.is_converged(),
+        accept_best,
+        output,
+        &out,
+        r,
+        check,
+    )
+}
+
+/// Prints what a solve did: sizes and operator, the warnings after `early_warnings` (those of
+/// the inputs were printed before the solve), the residual, dwell, feeds, machining time, the
+/// acceleration limit's account and the solver's certificate.
+fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::path::Path) {
     let r = &solved.report;
     print_input_notes(&solved.prepared.map_input);
     crate::note!(
@@ -613,64 +451,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         r.solve_seconds,
         out.display()
     );
-    let check = program_check(&solved, &job);
-    let converged = solved.solution().status.is_converged();
-    if !converged {
-        crate::errln!(
-            "  warning: the solver did not converge (status {}); outputs hold the best iterate",
-            r.status
-        );
-    }
-    let code = if converged || accept_best {
-        0
-    } else {
-        EXIT_NOT_CONVERGED
-    };
-    if output.json {
-        print_json(&serde_json::json!({
-            "command": "solve",
-            "exit_code": code,
-            "converged": converged,
-            "out": out,
-            "report": r,
-            "program_check": check.as_ref().map(program_check_json),
-        }))?;
-    }
-    Ok(ExitCode::from(code))
 }
 
-/// Plans the program for the solution on the job's machine profile (`[nc]`: dialect, feed mode,
-/// tool radius and axis; its surface, feed and acceleration limits), reads it back and prints
-/// what the machine would do with it; a plan no program can deliver is a warning here
-/// (`preston nc` refuses it).
-fn program_check(solved: &pipeline::Solved, job: &Job) -> Option<ProgramCheck> {
-    let settings = NcSettings {
-        a_max_mm_per_s2: job.machine.a_max_mm_per_s2,
-        corner_angle_deg: job.corner_angle_deg(),
-        compensation: job.compensation.clone(),
-        v_max_mm_per_min: job.machine.v_max_mm_per_min,
-        ..job.nc.nc_settings()
-    };
-    let surface = match &job.surface.file {
-        Some(f) => match read_surface(f) {
-            Ok(s) => Some(s),
-            Err(e) => {
-                crate::errln!("  warning: no program check: {e}");
-                return None;
-            }
-        },
-        None => None,
-    };
-    let geometry: &dyn PartGeometry = match &surface {
-        Some(s) => s,
-        None => &Flat,
-    };
-    let p = solved.prepared.path();
-    let checked = NcProgram::plan(p, &solved.solution().dwell_s, geometry, &settings)
-        .and_then(|nc| write_and_check(&nc, &[]));
-    match checked {
+/// Prints what the machine would do with the program of the plan (the pipeline's check on the
+/// job's machine profile); a plan no program can deliver is a warning here (`preston nc`
+/// refuses it).
+fn print_check(solved: &pipeline::Solved) -> Option<&ProgramCheck> {
+    match &solved.program_check {
         Ok(c) => {
-            print_program_check(&c);
+            print_program_check(c);
             Some(c)
         }
         Err(e) => {

@@ -221,7 +221,7 @@ fn gap_bound_with(problem: &Problem, op: &dyn LinearOperator, dwell_s: &[f64]) -
     let mut half_d2 = 0.0;
     if lambda > 0.0 {
         for (j, gj) in g.iter_mut().enumerate() {
-            *gj += lambda * super::first_order::dtd(dwell_s, j);
+            *gj += lambda * super::dtd(dwell_s, j);
         }
         half_d2 = 0.5
             * lambda

@@ -791,6 +791,18 @@ pub(crate) fn with_operator<T>(
     f(&*problem.operator().products(None))
 }
 
+/// `(D^T D t)_j` for the first-difference matrix `D` along the path.
+pub(crate) fn dtd(t: &[f64], j: usize) -> f64 {
+    let mut dd = 0.0;
+    if j > 0 {
+        dd += t[j] - t[j - 1];
+    }
+    if j + 1 < t.len() {
+        dd -= t[j + 1] - t[j];
+    }
+    dd
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -13,6 +13,7 @@ pub mod geometry;
 pub mod machinability;
 pub mod nc;
 pub mod profile;
+pub mod words;
 
 use crate::error::Result;
 

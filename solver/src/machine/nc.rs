@@ -19,7 +19,7 @@
 use super::compensation::NormalDisplacement;
 use super::feeds::FeedSchedule;
 use super::gcode::dialect::{Dialect, FeedMode};
-use super::profile::{
+use super::words::{
     check_block, Coolant, SpindleDirection, WorkOffset, MAX_DECIMALS, MIN_DECIMALS,
 };
 use super::PartGeometry;
@@ -27,6 +27,10 @@ use crate::error::{Error, Result};
 use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
+
+/// Largest arc tolerance, mm: half the reader's start/end radius limit
+/// ([`super::gcode::program::ARC_RADIUS_TOLERANCE_MM`]).
+pub const MAX_ARC_TOLERANCE_MM: f64 = 0.5 * super::gcode::program::ARC_RADIUS_TOLERANCE_MM;
 
 /// Decimal places of X, Y, Z and B in the program (0.1 um, 0.0001 deg).
 pub const COORD_DECIMALS: usize = 4;
@@ -171,7 +175,7 @@ impl NcSettings {
             Error::require_positive(&[("spindle_rpm", s)])?;
         }
         if let Some(t) = self.arc_tolerance_mm {
-            let most = super::gcode::write::MAX_ARC_TOLERANCE_MM;
+            let most = MAX_ARC_TOLERANCE_MM;
             if !(t.is_finite() && t > 0.0 && t <= most) {
                 return Err(Error::invalid(
                     "arc_tolerance_mm",
@@ -323,19 +327,6 @@ impl NcProgram {
             schedule,
             settings: settings.clone(),
         })
-    }
-
-    /// Writes the G-code program ([`super::gcode::write`]).
-    pub fn write_gcode(&self, w: &mut dyn Write) -> Result<()> {
-        self.write_gcode_with_notes(&[], w)
-    }
-
-    /// As [`NcProgram::write_gcode`], with extra comment lines (the job summary: input files,
-    /// surface) in the header.
-    pub fn write_gcode_with_notes(&self, notes: &[String], w: &mut dyn Write) -> Result<()> {
-        let text = super::gcode::write::program_text(self, notes)?;
-        w.write_all(text.as_bytes())
-            .map_err(|e| Error::invalid("program output", e.to_string()))
     }
 
     /// Writes the point list `x_mm,y_mm,z_mm,nx,ny,nz,dwell_s,feed_mm_per_min` (contact points,

@@ -45,7 +45,7 @@ use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretche
 use crate::machine::feeds::FeedSchedule;
 use crate::machine::gcode::motion::Kinematics;
 use crate::machine::gcode::program::Program;
-use crate::machine::gcode::{run_on_map, write_and_check, ProgramRun};
+use crate::machine::gcode::{run_on_map, write_and_check, ProgramCheck, ProgramRun};
 use crate::machine::nc::{NcProgram, NcSettings};
 use crate::machine::{Flat, PartGeometry};
 use crate::map::{HeightMap, HeightStats};
@@ -266,6 +266,10 @@ pub struct Executed {
     pub run: ProgramRun,
     /// Correction passes kept ([`AccelMethod::CorrectionPasses`]; 0 for the other methods).
     pub correction_passes: usize,
+    /// The settings the program was written with.
+    pub settings: NcSettings,
+    /// The program written, read back and checked.
+    pub program: ProgramCheck,
 }
 
 /// A finished solve: everything downstream needs, computed once.
@@ -275,6 +279,12 @@ pub struct Outcome {
     pub solution: Solution,
     /// Predicted removal `R t` at the measured map points, nm (edge rows dropped).
     pub removal_nm: Vec<f64>,
+    /// Predicted residual at the measured map points about its mean, nm:
+    /// `(z - R t) - mean(z - R t)` ([`centred_residual_nm`]).
+    pub residual_nm: Vec<f64>,
+    /// Dwell on the points whose nearest map point is farther than the map's pitch, s
+    /// ([`crate::machine::machinability::dwell_outside_map_s`]).
+    pub dwell_outside_map_s: f64,
     /// Feed at each dwell point, mm/min (`ds / t * 60`, 0 where either is 0).
     pub feeds_mm_per_min: Vec<f64>,
     /// The feed schedule (machining time, largest acceleration).

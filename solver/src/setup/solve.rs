@@ -120,9 +120,19 @@ impl Setup {
             )?),
             _ => None,
         };
+        let residual_nm = centred_residual_nm(self.map.z_nm(), &removal_nm);
+        let dwell_outside_map_s = crate::machine::machinability::dwell_outside_map_s(
+            self.map.x_mm(),
+            self.map.y_mm(),
+            self.path.x_mm(),
+            self.path.y_mm(),
+            &solution.dwell_s,
+        );
         Ok(Outcome {
             solution,
             removal_nm,
+            residual_nm,
+            dwell_outside_map_s,
             feeds_mm_per_min: feeds,
             schedule,
             accel,
@@ -341,6 +351,8 @@ impl Setup {
             after,
             run,
             correction_passes: 0,
+            settings,
+            program: check,
         })
     }
 }

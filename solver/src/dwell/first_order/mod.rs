@@ -69,6 +69,7 @@
 //! happens inside the iteration loop.
 
 use super::certificate::{gap_bound, ConvergenceCriterion, DualInputs, GapBound};
+use super::dtd;
 use super::precond::{CirculantPreconditioner, DwellLattice};
 use super::with_solver_operator;
 use super::{
@@ -474,18 +475,6 @@ impl<'a> Data<'a> {
 
         (data, work, kkt_scale)
     }
-}
-
-/// `(D^T D t)_j` for the first-difference matrix `D` along the path.
-pub(crate) fn dtd(t: &[f64], j: usize) -> f64 {
-    let mut dd = 0.0;
-    if j > 0 {
-        dd += t[j] - t[j - 1];
-    }
-    if j + 1 < t.len() {
-        dd -= t[j + 1] - t[j];
-    }
-    dd
 }
 
 /// Below this many rows plus columns the iteration runs on one thread: rayon's per-call cost

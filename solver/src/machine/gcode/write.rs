@@ -65,9 +65,7 @@ pub const FEED_ROUNDING: f64 = 1e-4;
 pub const MIN_ARC_POINTS: usize = 5;
 /// Largest radius written as a circular move, mm (flatter runs stay straight).
 pub const MAX_ARC_RADIUS_MM: f64 = 1e4;
-/// Largest arc tolerance, mm: half the reader's start/end radius limit
-/// ([`super::program::ARC_RADIUS_TOLERANCE_MM`]).
-pub const MAX_ARC_TOLERANCE_MM: f64 = 0.5 * super::program::ARC_RADIUS_TOLERANCE_MM;
+pub use crate::machine::nc::MAX_ARC_TOLERANCE_MM;
 
 /// A circular run of dwell points `first..=last` about `centre`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -882,6 +880,26 @@ impl<'a> Writer<'a> {
             line("%");
         }
         out
+    }
+}
+
+/// The program's G-code, where the program model meets the writer.
+impl NcProgram {
+    /// Writes the G-code program ([`program_text`]).
+    pub fn write_gcode(&self, w: &mut dyn std::io::Write) -> Result<()> {
+        self.write_gcode_with_notes(&[], w)
+    }
+
+    /// As [`NcProgram::write_gcode`], with extra comment lines (the job summary: input files,
+    /// surface) in the header.
+    pub fn write_gcode_with_notes(
+        &self,
+        notes: &[String],
+        w: &mut dyn std::io::Write,
+    ) -> Result<()> {
+        let text = program_text(self, notes)?;
+        w.write_all(text.as_bytes())
+            .map_err(|e| Error::invalid("program output", e.to_string()))
     }
 }
 
