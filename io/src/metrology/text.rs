@@ -243,7 +243,8 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
                 .iter()
                 .all(|t| t.parse::<f64>().is_ok() || t.is_empty());
             if !numeric {
-                (pos, header_units) = header_columns(path, line_no, line, &toks, src, pos)?;
+                let header = header_columns(path, line_no, line, &toks, src, pos)?;
+                (pos, header_units) = (header.pos, header.units);
                 continue;
             }
         }
@@ -279,6 +280,12 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
     })
 }
 
+/// What a header line says: the x, y and z columns, and the unit of each named with one.
+struct HeaderColumns {
+    pos: Option<(usize, usize, usize)>,
+    units: [Option<LengthUnit>; 3],
+}
+
 /// The x, y and z columns and units a header line names (`toks`, the line `line_no`): the
 /// columns given (`pos`) or found by name, the units found by name. An error for a unit it
 /// cannot read (unless columns or units are given) or a header without x, y and z.
@@ -289,7 +296,7 @@ fn header_columns(
     toks: &[&str],
     src: &MapSource,
     pos: Option<(usize, usize, usize)>,
-) -> Result<(Option<(usize, usize, usize)>, [Option<LengthUnit>; 3])> {
+) -> Result<HeaderColumns> {
     let mut header_units: [Option<LengthUnit>; 3] = [None; 3];
     let mut found: [Option<usize>; 3] = [None; 3];
     for (k, t) in toks.iter().enumerate() {
@@ -320,10 +327,16 @@ fn header_columns(
         }
     }
     if pos.is_some() {
-        return Ok((pos, header_units));
+        return Ok(HeaderColumns {
+            pos,
+            units: header_units,
+        });
     }
     match found {
-        [Some(a), Some(b), Some(c)] => Ok((Some((a, b, c)), header_units)),
+        [Some(a), Some(b), Some(c)] => Ok(HeaderColumns {
+            pos: Some((a, b, c)),
+            units: header_units,
+        }),
         _ => Err(Error::Csv {
             file: path.to_path_buf(),
             line: line_no,
