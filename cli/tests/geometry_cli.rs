@@ -456,15 +456,12 @@ fn solve_on_a_surface_reduces_to_the_flat_solve_on_a_plane() {
     assert_eq!(report["status"], "converged");
 }
 
-/// `preston register` on the shipped freeform: conditioning in `transform.json`, the weakly
-/// determined motions estimated by default and held with a warning and its reason when the
-/// installation range is tighter than their uncertainty, `--lock` by name, and point sets that
-/// cannot determine the motions refused with exit 2 naming them and writing nothing.
-#[test]
-fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
-    let dir = tempfile::tempdir().unwrap();
+/// The shipped freeform's design points on a 2.5 mm grid over +-25 mm, raised by 2 um (a
+/// piston: tz = -2 um) with a smooth 40 nm error, written to `p.csv` in `dir`: the design
+/// surface's file, the points and their file.
+fn freeform_points(dir: &Path) -> (std::path::PathBuf, Vec<[f64; 3]>, std::path::PathBuf) {
     let design = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/design_freeform.json");
-    let grid = dir.path().join("grid.csv");
+    let grid = dir.join("grid.csv");
     ok(&preston(&[
         "surface",
         "--surface",
@@ -490,8 +487,23 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
         let e_mm = 40e-6 * (0.1 * v[0]).sin() * (0.08 * v[1]).cos();
         pts.push([v[0], v[1], v[2] + 2e-3 + e_mm]);
     }
-    let pfile = dir.path().join("p.csv");
+    let pfile = dir.join("p.csv");
     write_points(&pfile, &pts);
+    (design, pts, pfile)
+}
+
+/// The `transform.json` that `preston register` wrote to `out`.
+fn transform_json(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("transform.json")).unwrap()).unwrap()
+}
+
+/// `preston register` on the shipped freeform: conditioning in `transform.json` (eigenvalues
+/// in order, the piston's the largest, the condition number their ratio), every motion
+/// estimated by default without a warning, the piston recovered.
+#[test]
+fn register_reports_conditioning() {
+    let dir = tempfile::tempdir().unwrap();
+    let (design, pts, pfile) = freeform_points(dir.path());
     let out = dir.path().join("reg");
     let r = preston(&[
         "register",
@@ -505,9 +517,7 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
     ok(&r);
     let err = String::from_utf8_lossy(&r.stderr);
     assert!(!err.contains("warning"), "{err}");
-    let tf: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("transform.json")).unwrap())
-            .unwrap();
+    let tf = transform_json(&out);
     let ev: Vec<f64> = tf["information_eigenvalues"]
         .as_array()
         .unwrap()
@@ -533,6 +543,14 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
         let w = tf["rotation_arcsec"][k].as_f64().unwrap();
         assert!(w.abs() < 5.0, "rotation {k}: {w} arcsec");
     }
+}
+
+/// `preston register` on a mount tighter than the weakly determined motions' uncertainty: they
+/// are held, with a warning and its reason.
+#[test]
+fn register_holds_weak_motions_on_a_tight_mount() {
+    let dir = tempfile::tempdir().unwrap();
+    let (design, _, pfile) = freeform_points(dir.path());
     // On a mount known to 0.1 um and 0.01 arcsec the 40 nm error leaves the slides uncertain
     // by more than that: held, with a warning giving the comparison.
     let tight = dir.path().join("reg_tight");
@@ -555,9 +573,7 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
         err.contains("warning: motion") && err.contains("installation range"),
         "{err}"
     );
-    let tf: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(tight.join("transform.json")).unwrap())
-            .unwrap();
+    let tf = transform_json(&tight);
     let locked = tf["locked"].as_array().unwrap();
     assert!(
         !locked.is_empty() && locked.iter().all(|l| l["source"] == "weak"),
@@ -566,7 +582,14 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
     assert!(locked
         .iter()
         .all(|l| l["reason"].as_str().unwrap().contains("standard deviation")));
+}
 
+/// `preston register --lock` by name: the locked motions held at zero, the piston kept in the
+/// form error.
+#[test]
+fn register_locks_motions_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let (design, _, pfile) = freeform_points(dir.path());
     // --lock tz with the slides keeps the piston in the form error (with tz alone held, the
     // weakly determined rx + ty combination mimics part of a piston on this surface).
     let out2 = dir.path().join("reg2");
@@ -581,9 +604,7 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
         "--out",
         s(&out2),
     ]));
-    let tf: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out2.join("transform.json")).unwrap())
-            .unwrap();
+    let tf = transform_json(&out2);
     assert!(tf["translation_um"][2].as_f64().unwrap().abs() < 1e-6);
     assert_eq!(tf["dof_sigma"][5].as_f64().unwrap(), 0.0);
     let users: Vec<&str> = tf["locked"]
@@ -598,7 +619,14 @@ fn register_reports_conditioning_locks_weak_motions_and_refuses_lines() {
         (tf["rms_nm"].as_f64().unwrap() - 2000.0).abs() < 50.0,
         "{tf}"
     );
+}
 
+/// `preston register` refuses a single profile line (exit 2, the undetermined motions named,
+/// nothing written) and unknown motion names.
+#[test]
+fn register_refuses_lines_and_unknown_motions() {
+    let dir = tempfile::tempdir().unwrap();
+    let (design, pts, pfile) = freeform_points(dir.path());
     // A single profile line: exit 2, the undetermined motions named, nothing written.
     let line: Vec<[f64; 3]> = pts.iter().filter(|p| p[1] == 0.0).copied().collect();
     assert!(line.len() > 10);

@@ -217,10 +217,25 @@ fn gaussian_bonnet_and_grid_tifs() {
     assert!(cx.abs() < 1e-9 && cy.abs() < 1e-9);
 }
 
+/// The columns of every `preston path` CSV.
+const PATH_HEADER: [&str; 7] = ["x_mm", "y_mm", "z_mm", "tx", "ty", "tz", "ds_mm"];
+
+/// An ellipsoid (`c = 0.01 /mm`, conic 0.6) written as a surface file in `dir`.
+fn ellipsoid(dir: &Path) -> std::path::PathBuf {
+    let surf = dir.join("ell.json");
+    std::fs::write(
+        &surf,
+        r#"{"type":"conic","curvature_per_mm":0.01,"conic":0.6}"#,
+    )
+    .unwrap();
+    surf
+}
+
+/// `preston path intersection`: the first line along x or y by iteration, offset by half the
+/// pitch from iteration 2, on the plane.
 #[test]
-fn paths_intersection_spiral_chord_height_edge() {
+fn path_intersection_alternates_axis_and_offset() {
     let dir = tempfile::tempdir().unwrap();
-    let header = ["x_mm", "y_mm", "z_mm", "tx", "ty", "tz", "ds_mm"];
     let p = 2.0;
     let mut ys0 = Vec::new();
     for k in 0..4 {
@@ -241,7 +256,7 @@ fn paths_intersection_spiral_chord_height_edge() {
         ]));
         assert_eq!(j["along"], if k & 1 == 0 { "x" } else { "y" });
         let (h, rows) = read_csv(&out);
-        assert_eq!(h, header);
+        assert_eq!(h, PATH_HEADER);
         // The first line runs along its axis: the tangent of the first point.
         let t = (rows[0][3], rows[0][4]);
         assert_eq!(t, if k & 1 == 0 { (1.0, 0.0) } else { (0.0, 1.0) });
@@ -256,6 +271,13 @@ fn paths_intersection_spiral_chord_height_edge() {
         assert!(rows.iter().all(|r| r[2] == 0.0));
     }
     assert!(!ys0.is_empty());
+}
+
+/// `preston path spiral`: the last point on the radius; a negative pitch refused (exit 2, no
+/// file).
+#[test]
+fn path_spiral_ends_on_the_radius_and_refuses_bad_pitch() {
+    let dir = tempfile::tempdir().unwrap();
     // Spiral: every point on r = P theta / (2 pi) modulo turns; last point on the radius.
     let sp = dir.path().join("s.csv");
     ok_json(&preston(&[
@@ -271,13 +293,28 @@ fn paths_intersection_spiral_chord_height_edge() {
     let (_, rows) = read_csv(&sp);
     let last = rows.last().unwrap();
     assert!((last[0].hypot(last[1]) - 20.0).abs() < 1e-9);
-    // Chord height on an ellipsoid with the published window.
-    let surf = dir.path().join("ell.json");
-    std::fs::write(
-        &surf,
-        r#"{"type":"conic","curvature_per_mm":0.01,"conic":0.6}"#,
-    )
-    .unwrap();
+    // Bad input: exit 2, no file.
+    let bad = dir.path().join("bad.csv");
+    let o = preston(&[
+        "path",
+        "spiral",
+        "--radius-mm",
+        "20",
+        "--pitch-mm",
+        "-1",
+        "--out",
+        s(&bad),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(!bad.exists());
+}
+
+/// `preston path chord-height` on an ellipsoid: chord heights within the published window and
+/// every point on the surface.
+#[test]
+fn path_chord_height_on_an_ellipsoid() {
+    let dir = tempfile::tempdir().unwrap();
+    let surf = ellipsoid(dir.path());
     let ch = dir.path().join("c.csv");
     let j = ok_json(&preston(&[
         "path",
@@ -309,6 +346,13 @@ fn paths_intersection_spiral_chord_height_edge() {
         let z = 0.01 * rho2 / (1.0 + (1.0 - 1.6 * 1e-4 * rho2).sqrt());
         assert!((r[2] - z).abs() < 1e-12);
     }
+}
+
+/// `preston path edge-offset` on a round part projected onto an ellipsoid, and on a square edge.
+#[test]
+fn path_edge_offset_round_and_square() {
+    let dir = tempfile::tempdir().unwrap();
+    let surf = ellipsoid(dir.path());
     // Edge offset on a round part, projected onto the ellipsoid.
     let eo = dir.path().join("e.csv");
     let j = ok_json(&preston(&[
@@ -334,7 +378,7 @@ fn paths_intersection_spiral_chord_height_edge() {
     let lines = j["lines"].as_array().unwrap();
     assert!(lines.len() >= 5);
     let (h, _) = read_csv(&eo);
-    assert_eq!(h, header);
+    assert_eq!(h, PATH_HEADER);
     // The 4-corner 60 mm square, bonnet R 40 mm, 0.5 mm overhang: 4 straight Bezier segments,
     // every point inside the edge by at least r_min - overhang, none repeated.
     let sq = dir.path().join("square.csv");
@@ -375,20 +419,6 @@ fn paths_intersection_spiral_chord_height_edge() {
         }
         prev = Some((r[0], r[1]));
     }
-    // Bad input: exit 2, no file.
-    let bad = dir.path().join("bad.csv");
-    let o = preston(&[
-        "path",
-        "spiral",
-        "--radius-mm",
-        "20",
-        "--pitch-mm",
-        "-1",
-        "--out",
-        s(&bad),
-    ]);
-    assert_eq!(o.status.code(), Some(2));
-    assert!(!bad.exists());
 }
 
 /// `preston path random`: the CSV contract of the other paths, every node of the even grid once

@@ -115,52 +115,14 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
         .terminator(csv::Terminator::Any(b'\n'))
         .from_reader(reader);
     let headers = rdr.byte_headers().map_err(|e| csv_error(path, &e))?.clone();
-    let names: Vec<String> = headers
-        .iter()
-        .enumerate()
-        .map(|(k, h)| {
-            let s = String::from_utf8_lossy(h).to_string();
-            let s = if k == 0 {
-                s.trim_start_matches('\u{feff}').to_string()
-            } else {
-                s
-            };
-            s.trim().to_string()
-        })
-        .collect();
+    let names = header_names(&headers);
     if names.iter().all(|n| n.is_empty()) {
         return Err(Error::Empty {
             file: path.to_path_buf(),
             why: "the file is empty (no header line)".into(),
         });
     }
-    let mut index: Vec<Option<usize>> = Vec::with_capacity(specs.len());
-    for spec in specs {
-        let found: Vec<usize> = names
-            .iter()
-            .enumerate()
-            .filter(|(_, n)| n.as_str() == spec.name)
-            .map(|(k, _)| k)
-            .collect();
-        match found.as_slice() {
-            [k] => index.push(Some(*k)),
-            [] if !spec.required => index.push(None),
-            [] => {
-                return Err(Error::MissingColumn {
-                    file: path.to_path_buf(),
-                    column: spec.name.to_string(),
-                    found: truncate(&names.join(",")),
-                    hint: hint_for(spec.name, &names),
-                })
-            }
-            _ => {
-                return Err(Error::DuplicateColumn {
-                    file: path.to_path_buf(),
-                    column: spec.name.to_string(),
-                })
-            }
-        }
-    }
+    let index = column_index(path, specs, &names)?;
     let mut columns: Vec<Option<Vec<f64>>> = index.iter().map(|k| k.map(|_| Vec::new())).collect();
     let mut lines = Vec::new();
     let mut skipped_rows = 0usize;
@@ -191,55 +153,7 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
                 column: spec.name.to_string(),
                 why: "not valid UTF-8".into(),
             })?;
-            let parsed = if text.is_empty() {
-                None
-            } else {
-                match text.parse::<f64>() {
-                    Ok(v) if v.is_nan() => None,
-                    Ok(v) if v.is_infinite() => {
-                        return Err(Error::Cell {
-                            file: path.to_path_buf(),
-                            line,
-                            column: spec.name.to_string(),
-                            why: format!("`{}` is infinite", truncate(text)),
-                        })
-                    }
-                    Ok(v) => Some(v),
-                    Err(_) if text.contains(';') && !text.contains(',') => {
-                        return Err(Error::Cell {
-                            file: path.to_path_buf(),
-                            line,
-                            column: spec.name.to_string(),
-                            why: format!(
-                                "`{}` is not a number; the values look separated by `;`, Preston's \
-                                 CSV is comma-separated",
-                                truncate(text)
-                            ),
-                        })
-                    }
-                    Err(_) => {
-                        return Err(Error::Cell {
-                            file: path.to_path_buf(),
-                            line,
-                            column: spec.name.to_string(),
-                            why: format!("`{}` is not a number", truncate(text)),
-                        })
-                    }
-                }
-            };
-            if let (Some(v), Some(Some((max, what)))) = (parsed, ranges.get(spec_k)) {
-                if v.abs() > *max {
-                    return Err(Error::Cell {
-                        file: path.to_path_buf(),
-                        line,
-                        column: spec.name.to_string(),
-                        why: format!(
-                            "{v:e} is beyond the physical range of a {what} (|value| <= {max:e}); \
-                             check the units"
-                        ),
-                    });
-                }
-            }
+            let parsed = parse_cell(path, line, spec.name, text, ranges[spec_k])?;
             match (parsed, spec.missing) {
                 (Some(v), _) => *slot = v,
                 (None, Missing::SkipRow) => skip = true,
@@ -274,6 +188,101 @@ pub fn read_table_from<R: Read>(reader: R, path: &Path, specs: &[ColumnSpec]) ->
         lines,
         skipped_rows,
     })
+}
+
+/// The header's column names, trimmed, without a byte-order mark on the first.
+fn header_names(headers: &csv::ByteRecord) -> Vec<String> {
+    headers
+        .iter()
+        .enumerate()
+        .map(|(k, h)| {
+            let s = String::from_utf8_lossy(h).to_string();
+            let s = if k == 0 {
+                s.trim_start_matches('\u{feff}').to_string()
+            } else {
+                s
+            };
+            s.trim().to_string()
+        })
+        .collect()
+}
+
+/// The column of each spec among `names` (`None` for an optional one that is absent); an error
+/// for a required column missing or any column named twice.
+fn column_index(path: &Path, specs: &[ColumnSpec], names: &[String]) -> Result<Vec<Option<usize>>> {
+    let mut index: Vec<Option<usize>> = Vec::with_capacity(specs.len());
+    for spec in specs {
+        let found: Vec<usize> = names
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| n.as_str() == spec.name)
+            .map(|(k, _)| k)
+            .collect();
+        match found.as_slice() {
+            [k] => index.push(Some(*k)),
+            [] if !spec.required => index.push(None),
+            [] => {
+                return Err(Error::MissingColumn {
+                    file: path.to_path_buf(),
+                    column: spec.name.to_string(),
+                    found: truncate(&names.join(",")),
+                    hint: hint_for(spec.name, names),
+                })
+            }
+            _ => {
+                return Err(Error::DuplicateColumn {
+                    file: path.to_path_buf(),
+                    column: spec.name.to_string(),
+                })
+            }
+        }
+    }
+    Ok(index)
+}
+
+/// The value of one cell: `None` when empty or NaN; an error naming the cell when infinite,
+/// not a number, or beyond the column's physical `range` (`(max |value|, what)`).
+fn parse_cell(
+    path: &Path,
+    line: u64,
+    column: &str,
+    text: &str,
+    range: Option<(f64, &str)>,
+) -> Result<Option<f64>> {
+    let cell_error = |why: String| Error::Cell {
+        file: path.to_path_buf(),
+        line,
+        column: column.to_string(),
+        why,
+    };
+    let parsed = if text.is_empty() {
+        None
+    } else {
+        match text.parse::<f64>() {
+            Ok(v) if v.is_nan() => None,
+            Ok(v) if v.is_infinite() => {
+                return Err(cell_error(format!("`{}` is infinite", truncate(text))))
+            }
+            Ok(v) => Some(v),
+            Err(_) if text.contains(';') && !text.contains(',') => {
+                return Err(cell_error(format!(
+                    "`{}` is not a number; the values look separated by `;`, Preston's \
+                     CSV is comma-separated",
+                    truncate(text)
+                )))
+            }
+            Err(_) => return Err(cell_error(format!("`{}` is not a number", truncate(text)))),
+        }
+    };
+    if let (Some(v), Some((max, what))) = (parsed, range) {
+        if v.abs() > max {
+            return Err(cell_error(format!(
+                "{v:e} is beyond the physical range of a {what} (|value| <= {max:e}); \
+                 check the units"
+            )));
+        }
+    }
+    Ok(parsed)
 }
 
 fn truncate(s: &str) -> String {

@@ -243,73 +243,12 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
                 .iter()
                 .all(|t| t.parse::<f64>().is_ok() || t.is_empty());
             if !numeric {
-                let mut found: [Option<usize>; 3] = [None; 3];
-                for (k, t) in toks.iter().enumerate() {
-                    if let Some((role, unit)) = header_role(t) {
-                        let slot = match role {
-                            'x' => 0,
-                            'y' => 1,
-                            _ => 2,
-                        };
-                        let unit = match unit {
-                            Ok(u) => u,
-                            Err(_) if pos.is_some() || src.units.is_some() => None,
-                            Err(u) => {
-                                return Err(Error::Csv {
-                                    file: path.to_path_buf(),
-                                    line: line_no,
-                                    why: format!(
-                                        "column `{t}`: unit `{u}` is not m, mm, um or nm; \
-                                         convert it or give --units"
-                                    ),
-                                })
-                            }
-                        };
-                        if found[slot].is_none() {
-                            found[slot] = Some(k);
-                            header_units[slot] = unit;
-                        }
-                    }
-                }
-                if pos.is_none() {
-                    match found {
-                        [Some(a), Some(b), Some(c)] => pos = Some((a, b, c)),
-                        _ => {
-                            return Err(Error::Csv {
-                                file: path.to_path_buf(),
-                                line: line_no,
-                                why: format!(
-                                    "the header `{}` does not name x, y and z columns; give \
-                                     --columns (for example x,y,z) and --units",
-                                    line.chars().take(80).collect::<String>()
-                                ),
-                            })
-                        }
-                    }
-                }
+                let header = header_columns(path, line_no, line, &toks, src, pos)?;
+                (pos, header_units) = (header.pos, header.units);
                 continue;
             }
         }
-        let (px, py, pz) = pos.unwrap_or((0, 1, 2));
-        let need = px.max(py).max(pz) + 1;
-        if toks.len() < need && !(toks.len() == need - 1 && pz == need - 1) {
-            return Err(Error::Csv {
-                file: path.to_path_buf(),
-                line: line_no,
-                why: format!("has {} fields, the columns need {need}", toks.len()),
-            });
-        }
-        let x = parse_cell(path, line_no, "x", toks.get(px))?;
-        let y = parse_cell(path, line_no, "y", toks.get(py))?;
-        let z = parse_cell(path, line_no, "z", toks.get(pz))?;
-        let (Some(x), Some(y)) = (x, y) else {
-            return Err(Error::Cell {
-                file: path.to_path_buf(),
-                line: line_no,
-                column: "x/y".into(),
-                why: "empty or NaN coordinate".into(),
-            });
-        };
+        let (x, y, z) = data_row(path, line_no, &toks, pos.unwrap_or((0, 1, 2)))?;
         match z {
             Some(z) => {
                 xs.push(x);
@@ -320,6 +259,133 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
             None => invalid += 1,
         }
     }
+    let (units, notes) = units_and_notes(path, src, header_units);
+    let (fx, fy, fz) = (
+        units.x.factor_to(LengthUnit::Mm),
+        units.y.factor_to(LengthUnit::Mm),
+        units.z.factor_to(LengthUnit::Nm),
+    );
+    xs.iter_mut().for_each(|v| *v *= fx);
+    ys.iter_mut().for_each(|v| *v *= fy);
+    zs.iter_mut().for_each(|v| *v *= fz);
+    super::check_ranges(path, &xs, &ys, &zs, Some(&lines))?;
+    check_duplicates(path, &xs, &ys, &lines)?;
+    Ok(RawPoints {
+        x_mm: xs,
+        y_mm: ys,
+        z_nm: zs,
+        invalid,
+        pitch_mm: None,
+        notes,
+    })
+}
+
+/// What a header line says: the x, y and z columns, and the unit of each named with one.
+struct HeaderColumns {
+    pos: Option<(usize, usize, usize)>,
+    units: [Option<LengthUnit>; 3],
+}
+
+/// The x, y and z columns and units a header line names (`toks`, the line `line_no`): the
+/// columns given (`pos`) or found by name, the units found by name. An error for a unit it
+/// cannot read (unless columns or units are given) or a header without x, y and z.
+fn header_columns(
+    path: &Path,
+    line_no: u64,
+    line: &str,
+    toks: &[&str],
+    src: &MapSource,
+    pos: Option<(usize, usize, usize)>,
+) -> Result<HeaderColumns> {
+    let mut header_units: [Option<LengthUnit>; 3] = [None; 3];
+    let mut found: [Option<usize>; 3] = [None; 3];
+    for (k, t) in toks.iter().enumerate() {
+        if let Some((role, unit)) = header_role(t) {
+            let slot = match role {
+                'x' => 0,
+                'y' => 1,
+                _ => 2,
+            };
+            let unit = match unit {
+                Ok(u) => u,
+                Err(_) if pos.is_some() || src.units.is_some() => None,
+                Err(u) => {
+                    return Err(Error::Csv {
+                        file: path.to_path_buf(),
+                        line: line_no,
+                        why: format!(
+                            "column `{t}`: unit `{u}` is not m, mm, um or nm; \
+                             convert it or give --units"
+                        ),
+                    })
+                }
+            };
+            if found[slot].is_none() {
+                found[slot] = Some(k);
+                header_units[slot] = unit;
+            }
+        }
+    }
+    if pos.is_some() {
+        return Ok(HeaderColumns {
+            pos,
+            units: header_units,
+        });
+    }
+    match found {
+        [Some(a), Some(b), Some(c)] => Ok(HeaderColumns {
+            pos: Some((a, b, c)),
+            units: header_units,
+        }),
+        _ => Err(Error::Csv {
+            file: path.to_path_buf(),
+            line: line_no,
+            why: format!(
+                "the header `{}` does not name x, y and z columns; give \
+                 --columns (for example x,y,z) and --units",
+                line.chars().take(80).collect::<String>()
+            ),
+        }),
+    }
+}
+
+/// The x, y and z of a data line (`toks`) from the columns `(px, py, pz)`; z `None` when empty
+/// or NaN. An error for too few fields or an empty or NaN coordinate.
+fn data_row(
+    path: &Path,
+    line_no: u64,
+    toks: &[&str],
+    (px, py, pz): (usize, usize, usize),
+) -> Result<(f64, f64, Option<f64>)> {
+    let need = px.max(py).max(pz) + 1;
+    if toks.len() < need && !(toks.len() == need - 1 && pz == need - 1) {
+        return Err(Error::Csv {
+            file: path.to_path_buf(),
+            line: line_no,
+            why: format!("has {} fields, the columns need {need}", toks.len()),
+        });
+    }
+    let x = parse_cell(path, line_no, "x", toks.get(px))?;
+    let y = parse_cell(path, line_no, "y", toks.get(py))?;
+    let z = parse_cell(path, line_no, "z", toks.get(pz))?;
+    let (Some(x), Some(y)) = (x, y) else {
+        return Err(Error::Cell {
+            file: path.to_path_buf(),
+            line: line_no,
+            column: "x/y".into(),
+            why: "empty or NaN coordinate".into(),
+        });
+    };
+    Ok((x, y, z))
+}
+
+/// The units of the columns (given, else from the header, else mm, mm, nm) and the notes on
+/// what was converted or assumed.
+fn units_and_notes(
+    path: &Path,
+    src: &MapSource,
+    header_units: [Option<LengthUnit>; 3],
+) -> (Units, Vec<String>) {
     let units = match src.units {
         Some(u) => u,
         None => Units {
@@ -354,24 +420,7 @@ fn read_delimited(path: &Path, src: &MapSource, delim: Option<u8>) -> Result<Raw
             notes.push(format!("{}: {n}", path.display()));
         }
     }
-    let (fx, fy, fz) = (
-        units.x.factor_to(LengthUnit::Mm),
-        units.y.factor_to(LengthUnit::Mm),
-        units.z.factor_to(LengthUnit::Nm),
-    );
-    xs.iter_mut().for_each(|v| *v *= fx);
-    ys.iter_mut().for_each(|v| *v *= fy);
-    zs.iter_mut().for_each(|v| *v *= fz);
-    super::check_ranges(path, &xs, &ys, &zs, Some(&lines))?;
-    check_duplicates(path, &xs, &ys, &lines)?;
-    Ok(RawPoints {
-        x_mm: xs,
-        y_mm: ys,
-        z_nm: zs,
-        invalid,
-        pitch_mm: None,
-        notes,
-    })
+    (units, notes)
 }
 
 #[cfg(test)]

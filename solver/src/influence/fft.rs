@@ -184,86 +184,18 @@ impl FftOperator {
         if map_x_mm.is_empty() || dwell_x_mm.is_empty() {
             return Err(Error::invalid("FFT operator", "needs map and dwell points"));
         }
-        // The lattice runs through the map's lowest x and y; dwell points must lie on it too.
-        let x0 = map_x_mm.iter().copied().fold(f64::INFINITY, f64::min);
-        let y0 = map_y_mm.iter().copied().fold(f64::INFINITY, f64::min);
-        let idx = |xs: &[f64], ys: &[f64], what| -> Result<Vec<(i64, i64)>> {
-            xs.iter()
-                .zip(ys)
-                .enumerate()
-                .map(|(k, (&x, &y))| {
-                    match (
-                        lattice_index(x, x0, pitch_mm),
-                        lattice_index(y, y0, pitch_mm),
-                    ) {
-                        (Some(i), Some(j)) => Ok((i, j)),
-                        _ => Err(off_lattice_error(what, k, (x, y), pitch_mm, (x0, y0))),
-                    }
-                })
-                .collect()
-        };
-        let map_signed = idx(map_x_mm, map_y_mm, "map point")?;
-        let dwell_signed = idx(dwell_x_mm, dwell_y_mm, "dwell point")?;
-        let (i0, j0) = map_signed
-            .iter()
-            .chain(&dwell_signed)
-            .fold((i64::MAX, i64::MAX), |(a, b), p| (a.min(p.0), b.min(p.1)));
-        let shift = |v: &[(i64, i64)]| -> Vec<(usize, usize)> {
-            v.iter()
-                .map(|&(i, j)| ((i - i0) as usize, (j - j0) as usize))
-                .collect()
-        };
-        let (map_ij, dwell_ij) = (shift(&map_signed), shift(&dwell_signed));
-        let nx = map_ij
-            .iter()
-            .chain(&dwell_ij)
-            .map(|p| p.0)
-            .max()
-            .unwrap_or(0)
-            + 1;
-        let ny = map_ij
-            .iter()
-            .chain(&dwell_ij)
-            .map(|p| p.1)
-            .max()
-            .unwrap_or(0)
-            + 1;
-        // A lattice too large to hold (points spread over a huge area) is an input error.
-        if nx.saturating_mul(ny) > MAX_LATTICE_CELLS {
-            return Err(Error::invalid(
-                "FFT operator",
-                format!(
-                    "the points span {nx} x {ny} cells of {pitch_mm} mm, more than {MAX_LATTICE_CELLS}"
-                ),
-            ));
-        }
+        let OnLattice {
+            map_ij,
+            dwell_ij,
+            nx,
+            ny,
+        } = OnLattice::index((map_x_mm, map_y_mm), (dwell_x_mm, dwell_y_mm), pitch_mm)?;
         let kr = lattice_reach(tif.support_radius_mm(), pitch_mm) as usize;
-        // The dwell points' sub-lattice: steps dx, dy (gcd of their index differences), offset.
-        let (dx, dy) = (
-            sub_lattice_step(dwell_ij.iter().map(|p| p.0)),
-            sub_lattice_step(dwell_ij.iter().map(|p| p.1)),
-        );
-        let (ox, oy) = (dwell_ij[0].0 % dx, dwell_ij[0].1 % dy);
-        // Padded so that no wrap-around reaches an output (`wrap_free_size`), then up to a
-        // multiple of the step whose prime factors are 2, 3, 5 and 7 only, whose transforms are
-        // fastest (a prime factor such as 227 in 908 sends the transform to Rader's or
-        // Bluestein's algorithm).
-        let (need_x, need_y) = (
-            wrap_free_size(map_ij.iter().map(|p| p.0), dwell_ij.iter().map(|p| p.0), kr),
-            wrap_free_size(map_ij.iter().map(|p| p.1), dwell_ij.iter().map(|p| p.1), kr),
-        );
-        let (fx, fy) = (
-            dx * smooth_size(need_x.max(nx).div_ceil(dx)),
-            dy * smooth_size(need_y.max(ny).div_ceil(dy)),
-        );
-        crate::budget::check(
-            "map and dwell points (FFT operator)",
-            &format!(
-                "the points span {nx} x {ny} cells of {pitch_mm} mm; an FFT lattice of {fx} x {fy} \
-                 cells at {LATTICE_BYTES_PER_CELL} bytes each"
-            ),
-            fx as f64 * fy as f64 * LATTICE_BYTES_PER_CELL,
-        )?;
+        let Padded {
+            step: (dx, dy),
+            offset: (ox, oy),
+            size: (fx, fy),
+        } = Padded::new(&map_ij, &dwell_ij, (nx, ny), kr, pitch_mm)?;
         let cell = |(i, j): (usize, usize)| j * fx + i;
         let map_cells: Vec<usize> = map_ij.iter().map(|&p| cell(p)).collect();
         let dwell_cells: Vec<usize> = dwell_ij.iter().map(|&p| cell(p)).collect();
@@ -281,19 +213,7 @@ impl FftOperator {
         let transforms = Transforms::new(fx, fy, &mut planner, &mut real_planner);
         let mut buffers = Buffers::new(fx, fy)?;
         // Kernel K[d] = TIF(d h), wrapped, and its transform (in the transposed layout).
-        let k = kr as isize;
-        let mut taps: Vec<(isize, isize, f64)> = Vec::new();
-        for dy in -k..=k {
-            for dx in -k..=k {
-                let v = tif.rate_nm_per_s(dx as f64 * pitch_mm, dy as f64 * pitch_mm);
-                if v != 0.0 {
-                    let ix = dx.rem_euclid(fx as isize) as usize;
-                    let iy = dy.rem_euclid(fy as isize) as usize;
-                    buffers.real[iy * fx + ix] = v;
-                    taps.push((dx, dy, v));
-                }
-            }
-        }
+        let taps = kernel_taps(tif, kr, pitch_mm, &mut buffers.real, (fx, fy));
         transforms.spectrum(&mut buffers, Fill::Ready, Spectrum::Keep);
         let mut kernel_hat =
             crate::budget::try_filled(LATTICE_WHAT, buffers.columns.len(), Complex::new(0.0, 0.0))?;
@@ -331,19 +251,7 @@ impl FftOperator {
         } else {
             map_cells
         };
-        let columns = dwell_ij
-            .iter()
-            .map(|&(i, j)| {
-                let mut sums = ColumnSums::default();
-                for &(dx, dy, v) in &taps {
-                    let (a, b) = (i as isize + dx, j as isize + dy);
-                    if a >= 0 && b >= 0 && (a as usize) < nx && (b as usize) < ny {
-                        sums.add(map_count[b as usize * fx + a as usize], v);
-                    }
-                }
-                sums
-            })
-            .collect();
+        let columns = column_sums(&dwell_ij, &taps, &map_count, (nx, ny), fx);
         let complement = match route {
             NormalRoute::Direct => None,
             NormalRoute::Cheaper | NormalRoute::Complement => {
@@ -574,6 +482,185 @@ impl FftOperator {
         sub.transforms.to_real(small, &sub.dwell.rows);
         sub.dwell.gather(&small.real, self.scale(), out);
     }
+}
+
+/// Map and dwell points as indices on the lattice of `pitch_mm` through the map's lowest x and
+/// y, shifted so that the lowest index is 0; `nx` x `ny` cells hold them all.
+struct OnLattice {
+    map_ij: Vec<(usize, usize)>,
+    dwell_ij: Vec<(usize, usize)>,
+    nx: usize,
+    ny: usize,
+}
+
+impl OnLattice {
+    /// The indices, or an input error naming a point off the lattice or a lattice too large to
+    /// hold.
+    fn index(
+        (map_x_mm, map_y_mm): (&[f64], &[f64]),
+        (dwell_x_mm, dwell_y_mm): (&[f64], &[f64]),
+        pitch_mm: f64,
+    ) -> Result<Self> {
+        // The lattice runs through the map's lowest x and y; dwell points must lie on it too.
+        let x0 = map_x_mm.iter().copied().fold(f64::INFINITY, f64::min);
+        let y0 = map_y_mm.iter().copied().fold(f64::INFINITY, f64::min);
+        let idx = |xs: &[f64], ys: &[f64], what| -> Result<Vec<(i64, i64)>> {
+            xs.iter()
+                .zip(ys)
+                .enumerate()
+                .map(|(k, (&x, &y))| {
+                    match (
+                        lattice_index(x, x0, pitch_mm),
+                        lattice_index(y, y0, pitch_mm),
+                    ) {
+                        (Some(i), Some(j)) => Ok((i, j)),
+                        _ => Err(off_lattice_error(what, k, (x, y), pitch_mm, (x0, y0))),
+                    }
+                })
+                .collect()
+        };
+        let map_signed = idx(map_x_mm, map_y_mm, "map point")?;
+        let dwell_signed = idx(dwell_x_mm, dwell_y_mm, "dwell point")?;
+        let (i0, j0) = map_signed
+            .iter()
+            .chain(&dwell_signed)
+            .fold((i64::MAX, i64::MAX), |(a, b), p| (a.min(p.0), b.min(p.1)));
+        let shift = |v: &[(i64, i64)]| -> Vec<(usize, usize)> {
+            v.iter()
+                .map(|&(i, j)| ((i - i0) as usize, (j - j0) as usize))
+                .collect()
+        };
+        let (map_ij, dwell_ij) = (shift(&map_signed), shift(&dwell_signed));
+        let nx = map_ij
+            .iter()
+            .chain(&dwell_ij)
+            .map(|p| p.0)
+            .max()
+            .unwrap_or(0)
+            + 1;
+        let ny = map_ij
+            .iter()
+            .chain(&dwell_ij)
+            .map(|p| p.1)
+            .max()
+            .unwrap_or(0)
+            + 1;
+        // A lattice too large to hold (points spread over a huge area) is an input error.
+        if nx.saturating_mul(ny) > MAX_LATTICE_CELLS {
+            return Err(Error::invalid(
+                "FFT operator",
+                format!(
+                    "the points span {nx} x {ny} cells of {pitch_mm} mm, more than {MAX_LATTICE_CELLS}"
+                ),
+            ));
+        }
+        Ok(Self {
+            map_ij,
+            dwell_ij,
+            nx,
+            ny,
+        })
+    }
+}
+
+/// The padded periodic lattice of the transforms and the dwell points' sub-lattice on it.
+struct Padded {
+    /// Steps of the dwell points' sub-lattice (gcd of their index differences).
+    step: (usize, usize),
+    /// Offset of the sub-lattice (the first dwell point's index modulo the step).
+    offset: (usize, usize),
+    /// Cells of the padded lattice along x and y.
+    size: (usize, usize),
+}
+
+impl Padded {
+    /// Padded so that no wrap-around reaches an output (`wrap_free_size`), then up to a
+    /// multiple of the step whose prime factors are 2, 3, 5 and 7 only, whose transforms are
+    /// fastest (a prime factor such as 227 in 908 sends the transform to Rader's or
+    /// Bluestein's algorithm); refused when the memory budget cannot hold it.
+    fn new(
+        map_ij: &[(usize, usize)],
+        dwell_ij: &[(usize, usize)],
+        (nx, ny): (usize, usize),
+        kr: usize,
+        pitch_mm: f64,
+    ) -> Result<Self> {
+        let (dx, dy) = (
+            sub_lattice_step(dwell_ij.iter().map(|p| p.0)),
+            sub_lattice_step(dwell_ij.iter().map(|p| p.1)),
+        );
+        let (ox, oy) = (dwell_ij[0].0 % dx, dwell_ij[0].1 % dy);
+        let (need_x, need_y) = (
+            wrap_free_size(map_ij.iter().map(|p| p.0), dwell_ij.iter().map(|p| p.0), kr),
+            wrap_free_size(map_ij.iter().map(|p| p.1), dwell_ij.iter().map(|p| p.1), kr),
+        );
+        let (fx, fy) = (
+            dx * smooth_size(need_x.max(nx).div_ceil(dx)),
+            dy * smooth_size(need_y.max(ny).div_ceil(dy)),
+        );
+        crate::budget::check(
+            "map and dwell points (FFT operator)",
+            &format!(
+                "the points span {nx} x {ny} cells of {pitch_mm} mm; an FFT lattice of {fx} x {fy} \
+                 cells at {LATTICE_BYTES_PER_CELL} bytes each"
+            ),
+            fx as f64 * fy as f64 * LATTICE_BYTES_PER_CELL,
+        )?;
+        Ok(Self {
+            step: (dx, dy),
+            offset: (ox, oy),
+            size: (fx, fy),
+        })
+    }
+}
+
+/// The kernel `K[d] = TIF(d h)` within the reach `kr`, written wrapped into `real` (a
+/// `fx` x `fy` lattice, row-major), and its non-zero taps `(dx, dy, rate)`.
+fn kernel_taps<T: InfluenceFunction + ?Sized>(
+    tif: &T,
+    kr: usize,
+    pitch_mm: f64,
+    real: &mut [f64],
+    (fx, fy): (usize, usize),
+) -> Vec<(isize, isize, f64)> {
+    let k = kr as isize;
+    let mut taps: Vec<(isize, isize, f64)> = Vec::new();
+    for dy in -k..=k {
+        for dx in -k..=k {
+            let v = tif.rate_nm_per_s(dx as f64 * pitch_mm, dy as f64 * pitch_mm);
+            if v != 0.0 {
+                let ix = dx.rem_euclid(fx as isize) as usize;
+                let iy = dy.rem_euclid(fy as isize) as usize;
+                real[iy * fx + ix] = v;
+                taps.push((dx, dy, v));
+            }
+        }
+    }
+    taps
+}
+
+/// Column sums of `R` for each dwell point over the map points it reaches (`map_count`: map
+/// points per cell of the lattice of row length `fx`; the points lie within `nx` x `ny`).
+fn column_sums(
+    dwell_ij: &[(usize, usize)],
+    taps: &[(isize, isize, f64)],
+    map_count: &[u32],
+    (nx, ny): (usize, usize),
+    fx: usize,
+) -> Vec<ColumnSums> {
+    dwell_ij
+        .iter()
+        .map(|&(i, j)| {
+            let mut sums = ColumnSums::default();
+            for &(dx, dy, v) in taps {
+                let (a, b) = (i as isize + dx, j as isize + dy);
+                if a >= 0 && b >= 0 && (a as usize) < nx && (b as usize) < ny {
+                    sums.add(map_count[b as usize * fx + a as usize], v);
+                }
+            }
+            sums
+        })
+        .collect()
 }
 
 /// Work of the direct normal product (in units of one multiply-add of the band's passes): two

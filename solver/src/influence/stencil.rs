@@ -203,60 +203,15 @@ impl StencilOperator {
             ));
         }
         let radius = tif.support_radius_mm();
-        let reach = (radius / pitch_mm).ceil();
-        if !(radius.is_finite() && radius > 0.0 && reach <= MAX_REACH_CELLS as f64) {
-            return Err(Error::invalid(
-                "stencil operator",
-                format!(
-                    "the TIF's support radius {radius} mm spans more than {MAX_REACH_CELLS} cells \
-                     of {pitch_mm} mm"
-                ),
-            ));
-        }
-        let w = reach as usize;
+        let w = stencil_reach(radius, pitch_mm)?;
         let side = 2 * w + 1;
         let (x0, y0) = lattice_origin(map_x_mm, map_y_mm);
-        let map_ij: Vec<(i64, i64)> = map_x_mm
-            .iter()
-            .zip(map_y_mm)
-            .enumerate()
-            .map(|(i, (&x, &y))| {
-                match (
-                    lattice_index(x, x0, pitch_mm),
-                    lattice_index(y, y0, pitch_mm),
-                ) {
-                    (Some(a), Some(b)) => Ok((a, b)),
-                    _ => Err(off_lattice_error(
-                        "map point",
-                        i,
-                        (x, y),
-                        pitch_mm,
-                        (x0, y0),
-                    )),
-                }
-            })
-            .collect::<Result<_>>()?;
-        let mut class_of: HashMap<(i64, i64), usize> = HashMap::new();
-        let mut phases: Vec<(i64, i64)> = Vec::new();
-        let mut dwell_class = Vec::with_capacity(dwell_x_mm.len());
-        let mut dwell_base = Vec::with_capacity(dwell_x_mm.len());
-        for (j, (&x, &y)) in dwell_x_mm.iter().zip(dwell_y_mm).enumerate() {
-            let Some((base, phase)) = dwell_cell_and_phase((x, y), (x0, y0), pitch_mm) else {
-                return Err(Error::invalid(
-                    "dwell point",
-                    format!(
-                        "{j} at ({x}, {y}) mm is not finite or more than {MAX_CELL_OFFSET:e} cells \
-                         from the map"
-                    ),
-                ));
-            };
-            let class = *class_of.entry(phase).or_insert_with(|| {
-                phases.push(phase);
-                phases.len() - 1
-            });
-            dwell_class.push(class);
-            dwell_base.push(base);
-        }
+        let map_ij = map_indices((map_x_mm, map_y_mm), (x0, y0), pitch_mm)?;
+        let PhaseClasses {
+            phases,
+            dwell_class,
+            dwell_base,
+        } = PhaseClasses::of((dwell_x_mm, dwell_y_mm), (x0, y0), pitch_mm)?;
         let classes = phases.len();
         crate::budget::check_f64s(
             "dwell points (stencil operator)",
@@ -267,68 +222,12 @@ impl StencilOperator {
             classes as f64 * (side * side) as f64,
             1.0,
         )?;
-        // The image spans the map cells and every stencil, so no product clips.
         let wi = w as i64;
-        let (mut lo_x, mut lo_y, mut hi_x, mut hi_y) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
-        for &(a, b) in &map_ij {
-            (lo_x, lo_y, hi_x, hi_y) = (lo_x.min(a), lo_y.min(b), hi_x.max(a), hi_y.max(b));
-        }
-        for &(a, b) in &dwell_base {
-            (lo_x, lo_y) = (lo_x.min(a - wi), lo_y.min(b - wi));
-            (hi_x, hi_y) = (hi_x.max(a + wi), hi_y.max(b + wi));
-        }
-        let (span_x, span_y) = ((hi_x - lo_x + 1) as f64, (hi_y - lo_y + 1) as f64);
-        if span_x * span_y > MAX_IMAGE_CELLS as f64 {
-            return Err(Error::invalid(
-                "stencil operator",
-                format!(
-                    "map and dwell points span {span_x} x {span_y} cells of {pitch_mm} mm, more \
-                     than {MAX_IMAGE_CELLS}"
-                ),
-            ));
-        }
-        crate::budget::check(
-            "map and dwell points (stencil operator)",
-            &format!(
-                "an image of {span_x} x {span_y} cells of {pitch_mm} mm at \
-                 {IMAGE_BYTES_PER_CELL} bytes each"
-            ),
-            (span_x + ROW_SLACK as f64) * span_y * IMAGE_BYTES_PER_CELL,
-        )?;
-        let (nx, ny) = (span_x as usize + ROW_SLACK, span_y as usize);
+        let ((lo_x, lo_y), (nx, ny)) = image_extent(&map_ij, &dwell_base, w, pitch_mm)?;
 
         // One stencil per phase class: S_f[b][a] = TIF(((a - w) - fx) h, ((b - w) - fy) h).
-        let r2 = radius * radius;
         let stride = side + ROW_SLACK;
-        let mut stencils = vec![0.0; classes * side * stride];
-        stencils
-            .par_chunks_mut(side * stride)
-            .zip(&phases)
-            .for_each(|(block, &(fx, fy))| {
-                let (px, py) = (
-                    fx as f64 / PHASE_STEPS as f64,
-                    fy as f64 / PHASE_STEPS as f64,
-                );
-                for (b, row) in block.chunks_mut(stride).enumerate() {
-                    let dy = ((b as f64 - w as f64) - py) * pitch_mm;
-                    for (a, v) in row[..side].iter_mut().enumerate() {
-                        let dx = ((a as f64 - w as f64) - px) * pitch_mm;
-                        if dx * dx + dy * dy <= r2 {
-                            *v = tif.rate_nm_per_s(dx, dy);
-                        }
-                    }
-                }
-            });
-        let spans: Vec<(usize, usize)> = stencils
-            .chunks(stride)
-            .map(|row| match row.iter().position(|&v| v != 0.0) {
-                Some(lo) => {
-                    let hi = stride - row.iter().rev().position(|&v| v != 0.0).unwrap_or(0);
-                    (lo, lo + (hi - lo).next_multiple_of(LANE_GROUP))
-                }
-                None => (0, 0),
-            })
-            .collect();
+        let (stencils, spans) = tabulate_stencils(tif, &phases, w, pitch_mm);
 
         let cell_of = |(a, b): (i64, i64)| (b - lo_y) as usize * nx + (a - lo_x) as usize;
         let map_cells: Vec<usize> = map_ij.iter().map(|&p| cell_of(p)).collect();
@@ -523,6 +422,177 @@ impl StencilOperator {
         // overwrites all of it first.
         self.image.lock().unwrap_or_else(|e| e.into_inner())
     }
+}
+
+/// The stencil's half-width in cells for a TIF of support `radius` mm on the lattice of
+/// `pitch_mm`, or an input error when it is not finite, not positive or too wide.
+fn stencil_reach(radius: f64, pitch_mm: f64) -> Result<usize> {
+    let reach = (radius / pitch_mm).ceil();
+    if !(radius.is_finite() && radius > 0.0 && reach <= MAX_REACH_CELLS as f64) {
+        return Err(Error::invalid(
+            "stencil operator",
+            format!(
+                "the TIF's support radius {radius} mm spans more than {MAX_REACH_CELLS} cells \
+                 of {pitch_mm} mm"
+            ),
+        ));
+    }
+    Ok(reach as usize)
+}
+
+/// The lattice index of each map point, or an error naming the first point off the lattice.
+fn map_indices(
+    (map_x_mm, map_y_mm): (&[f64], &[f64]),
+    (x0, y0): (f64, f64),
+    pitch_mm: f64,
+) -> Result<Vec<(i64, i64)>> {
+    map_x_mm
+        .iter()
+        .zip(map_y_mm)
+        .enumerate()
+        .map(|(i, (&x, &y))| {
+            match (
+                lattice_index(x, x0, pitch_mm),
+                lattice_index(y, y0, pitch_mm),
+            ) {
+                (Some(a), Some(b)) => Ok((a, b)),
+                _ => Err(off_lattice_error(
+                    "map point",
+                    i,
+                    (x, y),
+                    pitch_mm,
+                    (x0, y0),
+                )),
+            }
+        })
+        .collect::<Result<_>>()
+}
+
+/// The dwell points' phase classes: the distinct positions within a lattice cell (in
+/// `PHASE_STEPS` per cell, in order of first appearance), each point's class and its base cell.
+struct PhaseClasses {
+    phases: Vec<(i64, i64)>,
+    dwell_class: Vec<usize>,
+    dwell_base: Vec<(i64, i64)>,
+}
+
+impl PhaseClasses {
+    fn of(
+        (dwell_x_mm, dwell_y_mm): (&[f64], &[f64]),
+        origin: (f64, f64),
+        pitch_mm: f64,
+    ) -> Result<Self> {
+        let mut class_of: HashMap<(i64, i64), usize> = HashMap::new();
+        let mut phases: Vec<(i64, i64)> = Vec::new();
+        let mut dwell_class = Vec::with_capacity(dwell_x_mm.len());
+        let mut dwell_base = Vec::with_capacity(dwell_x_mm.len());
+        for (j, (&x, &y)) in dwell_x_mm.iter().zip(dwell_y_mm).enumerate() {
+            let Some((base, phase)) = dwell_cell_and_phase((x, y), origin, pitch_mm) else {
+                return Err(Error::invalid(
+                    "dwell point",
+                    format!(
+                        "{j} at ({x}, {y}) mm is not finite or more than {MAX_CELL_OFFSET:e} cells \
+                         from the map"
+                    ),
+                ));
+            };
+            let class = *class_of.entry(phase).or_insert_with(|| {
+                phases.push(phase);
+                phases.len() - 1
+            });
+            dwell_class.push(class);
+            dwell_base.push(base);
+        }
+        Ok(Self {
+            phases,
+            dwell_class,
+            dwell_base,
+        })
+    }
+}
+
+/// The image's lowest cell and its size `(nx, ny)` (with the row slack): it spans the map cells
+/// and every stencil of half-width `w`, so no product clips; refused when too large or beyond
+/// the memory budget.
+fn image_extent(
+    map_ij: &[(i64, i64)],
+    dwell_base: &[(i64, i64)],
+    w: usize,
+    pitch_mm: f64,
+) -> Result<((i64, i64), (usize, usize))> {
+    let wi = w as i64;
+    let (mut lo_x, mut lo_y, mut hi_x, mut hi_y) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
+    for &(a, b) in map_ij {
+        (lo_x, lo_y, hi_x, hi_y) = (lo_x.min(a), lo_y.min(b), hi_x.max(a), hi_y.max(b));
+    }
+    for &(a, b) in dwell_base {
+        (lo_x, lo_y) = (lo_x.min(a - wi), lo_y.min(b - wi));
+        (hi_x, hi_y) = (hi_x.max(a + wi), hi_y.max(b + wi));
+    }
+    let (span_x, span_y) = ((hi_x - lo_x + 1) as f64, (hi_y - lo_y + 1) as f64);
+    if span_x * span_y > MAX_IMAGE_CELLS as f64 {
+        return Err(Error::invalid(
+            "stencil operator",
+            format!(
+                "map and dwell points span {span_x} x {span_y} cells of {pitch_mm} mm, more \
+                 than {MAX_IMAGE_CELLS}"
+            ),
+        ));
+    }
+    crate::budget::check(
+        "map and dwell points (stencil operator)",
+        &format!(
+            "an image of {span_x} x {span_y} cells of {pitch_mm} mm at \
+             {IMAGE_BYTES_PER_CELL} bytes each"
+        ),
+        (span_x + ROW_SLACK as f64) * span_y * IMAGE_BYTES_PER_CELL,
+    )?;
+    Ok(((lo_x, lo_y), (span_x as usize + ROW_SLACK, span_y as usize)))
+}
+
+/// One stencil per phase class, `S_f[b][a] = TIF(((a - w) - fx) h, ((b - w) - fy) h)` inside
+/// the TIF's support, rows of `2 w + 1 + ROW_SLACK`; and each row's span of non-zeros widened
+/// to whole lane groups.
+fn tabulate_stencils<T: InfluenceFunction + ?Sized>(
+    tif: &T,
+    phases: &[(i64, i64)],
+    w: usize,
+    pitch_mm: f64,
+) -> (Vec<f64>, Vec<(usize, usize)>) {
+    let radius = tif.support_radius_mm();
+    let r2 = radius * radius;
+    let side = 2 * w + 1;
+    let stride = side + ROW_SLACK;
+    let mut stencils = vec![0.0; phases.len() * side * stride];
+    stencils
+        .par_chunks_mut(side * stride)
+        .zip(phases)
+        .for_each(|(block, &(fx, fy))| {
+            let (px, py) = (
+                fx as f64 / PHASE_STEPS as f64,
+                fy as f64 / PHASE_STEPS as f64,
+            );
+            for (b, row) in block.chunks_mut(stride).enumerate() {
+                let dy = ((b as f64 - w as f64) - py) * pitch_mm;
+                for (a, v) in row[..side].iter_mut().enumerate() {
+                    let dx = ((a as f64 - w as f64) - px) * pitch_mm;
+                    if dx * dx + dy * dy <= r2 {
+                        *v = tif.rate_nm_per_s(dx, dy);
+                    }
+                }
+            }
+        });
+    let spans: Vec<(usize, usize)> = stencils
+        .chunks(stride)
+        .map(|row| match row.iter().position(|&v| v != 0.0) {
+            Some(lo) => {
+                let hi = stride - row.iter().rev().position(|&v| v != 0.0).unwrap_or(0);
+                (lo, lo + (hi - lo).next_multiple_of(LANE_GROUP))
+            }
+            None => (0, 0),
+        })
+        .collect();
+    (stencils, spans)
 }
 
 /// Whether `S` holds [`LANE_GROUP`] `f64` lanes: the kernels then take a group per

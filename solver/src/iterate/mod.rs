@@ -790,30 +790,9 @@ pub fn run_virtual(
     settings: &LoopSettings,
     observer: &dyn Observer,
 ) -> Result<LoopOutcome> {
-    settings.validate()?;
-    part.surface.validate()?;
-    if !(part.measurement_noise_nm.is_finite() && part.measurement_noise_nm >= 0.0) {
-        return Err(Error::invalid(
-            "measurement_noise_nm",
-            format!("must be >= 0, got {}", part.measurement_noise_nm),
-        ));
-    }
-    let rot = Vector3::from(part.rotation_arcsec) * RAD_PER_ARCSEC;
-    let trans = Vector3::from(part.translation_um) * 1e-3;
-    if !(rot.iter().chain(trans.iter()).all(|v| v.is_finite())) {
-        return Err(Error::invalid("installation error", "must be finite"));
-    }
-    let installation = Isometry3::new(trans, rot);
-    let installation_inv = installation.inverse();
-    let (gx, gy) = grid_points(&settings.aperture, settings.grid);
-    let mut design = Vec::with_capacity(gx.len());
-    let mut normals = Vec::with_capacity(gx.len());
-    for (&x, &y) in gx.iter().zip(&gy) {
-        let d = part.surface.derivs(x, y)?;
-        design.push([x, y, d.z]);
-        normals.push(d.normal());
-    }
-    let mut truth = part.form_error.sample(&settings.aperture, &gx, &gy)?;
+    let shop = Shop::new(part, tif, settings, observer)?;
+    let (gx, gy) = (&shop.gx, &shop.gy);
+    let mut truth = part.form_error.sample(&settings.aperture, gx, gy)?;
     let mut rng = SplitMix64::new(settings.seed);
     let margin = settings
         .path_margin_mm
@@ -824,15 +803,7 @@ pub fn run_virtual(
     let mut observations: Vec<RateObservation> = Vec::new();
     observer.start(Stage::Loop, settings.max_iterations as u64);
     let mut not_converged = Vec::new();
-    let mut measured = measure(
-        part,
-        &installation_inv,
-        &design,
-        &normals,
-        &truth,
-        &mut rng,
-        &settings.register,
-    )?;
+    let mut measured = shop.measure(&truth, &mut rng)?;
     not_converged.extend(registration_failure(0, measured.failed));
     let mut met = false;
     let mut stop = StopReason::Iterations;
@@ -879,67 +850,15 @@ pub fn run_virtual(
             };
             break;
         }
-        // Polish with disturbances. The machine places the path through the registered
-        // transform: a design-frame point p is driven to M_est^-1 p, which lies on the true
-        // part at installation * M_est^-1 p.
-        let to_true = installation * measured.transform.inverse();
-        let e = settings.disturbances.tif_rate_error * (2.0 * rng.uniform() - 1.0);
-        let sigma = settings.disturbances.positioning_noise_mm;
-        let mut px = Vec::with_capacity(plan.path.len());
-        let mut py = Vec::with_capacity(plan.path.len());
-        for (&x, &y) in plan.path.x_mm().iter().zip(plan.path.y_mm()) {
-            let z = part.surface.sag_mm(x, y)?;
-            let q = to_true * Point3::new(x, y, z);
-            px.push(q.x + sigma * rng.normal());
-            py.push(q.y + sigma * rng.normal());
-        }
-        let actual_tif = ScaledTif::new(tif, 1.0 + e);
-        let actual = assemble_on_surface(
-            &part.surface,
-            &gx,
-            &gy,
-            &px,
-            &py,
-            &actual_tif,
-            TifFrame::PathTangent,
-            observer,
-        )?;
-        let removal = actual.removal_nm(&plan.dwell_s)?;
-        for (t, h) in truth.iter_mut().zip(&removal) {
-            *t -= h;
-        }
+        let e = shop.polish(&plan, &measured.transform, &mut truth, &mut rng)?;
         row.time_s = plan.dwell_s.iter().sum();
         row.predicted_rms_nm = Some(predicted);
         row.tif_rate_error = Some(e);
         records.push(row);
         observer.advance(Stage::Loop, 1);
-        let next = measure(
-            part,
-            &installation_inv,
-            &design,
-            &normals,
-            &truth,
-            &mut rng,
-            &settings.register,
-        )?;
+        let next = shop.measure(&truth, &mut rng)?;
         not_converged.extend(registration_failure(k + 1, next.failed));
-        // What this run removed, as measured, against its plan: the rate it actually had.
-        let measured_removal: Vec<f64> = measured
-            .map
-            .z_nm()
-            .iter()
-            .zip(next.map.z_nm())
-            .map(|(a, b)| a - b)
-            .collect();
-        if let Some(o) = rate::observe(
-            measured.map.x_mm(),
-            measured.map.y_mm(),
-            &plan.predicted_removal_nm,
-            &measured_removal,
-            plan.rate_factor,
-        ) {
-            observations.push(o);
-        }
+        observations.extend(observe_rate(&measured, &next, &plan));
         measured = next;
         last_run = Some(plan);
         if k + 1 == settings.max_iterations {
@@ -961,6 +880,145 @@ pub fn run_virtual(
         last_run,
         final_measured: measured.map,
     })
+}
+
+/// The virtual shop of one loop: the part as installed, its measurement grid on the design
+/// surface with the design points and normals there, the nominal TIF and the loop's settings.
+struct Shop<'a> {
+    part: &'a VirtualPart,
+    tif: &'a Tif,
+    settings: &'a LoopSettings,
+    observer: &'a dyn Observer,
+    installation: Isometry3<f64>,
+    installation_inv: Isometry3<f64>,
+    gx: Vec<f64>,
+    gy: Vec<f64>,
+    design: Vec<[f64; 3]>,
+    normals: Vec<[f64; 3]>,
+}
+
+impl<'a> Shop<'a> {
+    /// Checks the settings and the part, and lays the measurement grid on the design surface.
+    fn new(
+        part: &'a VirtualPart,
+        tif: &'a Tif,
+        settings: &'a LoopSettings,
+        observer: &'a dyn Observer,
+    ) -> Result<Self> {
+        settings.validate()?;
+        part.surface.validate()?;
+        if !(part.measurement_noise_nm.is_finite() && part.measurement_noise_nm >= 0.0) {
+            return Err(Error::invalid(
+                "measurement_noise_nm",
+                format!("must be >= 0, got {}", part.measurement_noise_nm),
+            ));
+        }
+        let rot = Vector3::from(part.rotation_arcsec) * RAD_PER_ARCSEC;
+        let trans = Vector3::from(part.translation_um) * 1e-3;
+        if !(rot.iter().chain(trans.iter()).all(|v| v.is_finite())) {
+            return Err(Error::invalid("installation error", "must be finite"));
+        }
+        let installation = Isometry3::new(trans, rot);
+        let installation_inv = installation.inverse();
+        let (gx, gy) = grid_points(&settings.aperture, settings.grid);
+        let mut design = Vec::with_capacity(gx.len());
+        let mut normals = Vec::with_capacity(gx.len());
+        for (&x, &y) in gx.iter().zip(&gy) {
+            let d = part.surface.derivs(x, y)?;
+            design.push([x, y, d.z]);
+            normals.push(d.normal());
+        }
+        Ok(Self {
+            part,
+            tif,
+            settings,
+            observer,
+            installation,
+            installation_inv,
+            gx,
+            gy,
+            design,
+            normals,
+        })
+    }
+
+    /// Measures the part carrying the form error `truth` and registers the points.
+    fn measure(&self, truth: &[f64], rng: &mut SplitMix64) -> Result<Measurement> {
+        measure(
+            self.part,
+            &self.installation_inv,
+            &self.design,
+            &self.normals,
+            truth,
+            rng,
+            &self.settings.register,
+        )
+    }
+
+    /// Polishes the run `plan` with disturbances, taking its removal off `truth`; returns the
+    /// TIF rate error drawn for the run. The machine places the path through the registered
+    /// transform: a design-frame point p is driven to M_est^-1 p, which lies on the true part
+    /// at installation * M_est^-1 p.
+    fn polish(
+        &self,
+        plan: &RunArtifacts,
+        registered: &Isometry3<f64>,
+        truth: &mut [f64],
+        rng: &mut SplitMix64,
+    ) -> Result<f64> {
+        let part = self.part;
+        let disturbances = &self.settings.disturbances;
+        let to_true = self.installation * registered.inverse();
+        let e = disturbances.tif_rate_error * (2.0 * rng.uniform() - 1.0);
+        let sigma = disturbances.positioning_noise_mm;
+        let mut px = Vec::with_capacity(plan.path.len());
+        let mut py = Vec::with_capacity(plan.path.len());
+        for (&x, &y) in plan.path.x_mm().iter().zip(plan.path.y_mm()) {
+            let z = part.surface.sag_mm(x, y)?;
+            let q = to_true * Point3::new(x, y, z);
+            px.push(q.x + sigma * rng.normal());
+            py.push(q.y + sigma * rng.normal());
+        }
+        let actual_tif = ScaledTif::new(self.tif, 1.0 + e);
+        let actual = assemble_on_surface(
+            &part.surface,
+            &self.gx,
+            &self.gy,
+            &px,
+            &py,
+            &actual_tif,
+            TifFrame::PathTangent,
+            self.observer,
+        )?;
+        let removal = actual.removal_nm(&plan.dwell_s)?;
+        for (t, h) in truth.iter_mut().zip(&removal) {
+            *t -= h;
+        }
+        Ok(e)
+    }
+}
+
+/// What the run `plan` removed, as measured (`before` less `after`), against its plan: the
+/// rate it actually had.
+fn observe_rate(
+    before: &Measurement,
+    after: &Measurement,
+    plan: &RunArtifacts,
+) -> Option<RateObservation> {
+    let measured_removal: Vec<f64> = before
+        .map
+        .z_nm()
+        .iter()
+        .zip(after.map.z_nm())
+        .map(|(a, b)| a - b)
+        .collect();
+    rate::observe(
+        before.map.x_mm(),
+        before.map.y_mm(),
+        &plan.predicted_removal_nm,
+        &measured_removal,
+        plan.rate_factor,
+    )
 }
 
 #[cfg(test)]

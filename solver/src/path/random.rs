@@ -261,46 +261,11 @@ pub fn longest_run(path: &DwellPath) -> usize {
 /// one stroke of unit steps, except the last column or row where that count is odd.
 pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> Result<RandomPath> {
     let p = settings.pitch_mm;
-    if !(p.is_finite() && p > 0.0) {
-        return Err(Error::invalid(
-            "pitch_mm",
-            format!("must be positive, got {p}"),
-        ));
-    }
-    if !(settings.jitter.is_finite() && (0.0..=1.0).contains(&settings.jitter)) {
-        return Err(Error::invalid(
-            "jitter",
-            format!(
-                "must be in [0, 1] (a fraction of the pitch), got {}",
-                settings.jitter
-            ),
-        ));
-    }
-    if settings.max_run < 3 {
-        return Err(Error::invalid(
-            "max_run",
-            format!("must be at least 3 steps, got {}", settings.max_run),
-        ));
-    }
-    let count = |lo: f64, hi: f64, what: &str| -> Result<usize> {
-        let w = hi - lo;
-        if !(w.is_finite() && w >= 0.0) {
-            return Err(Error::invalid(
-                "random path region",
-                format!("bad {what} extent [{lo}, {hi}] mm"),
-            ));
-        }
-        let steps = (w / p + 1e-9).floor();
-        if steps > MAX_POINTS as f64 {
-            return Err(Error::invalid(
-                "pitch_mm",
-                format!("{p} mm gives more than {MAX_POINTS} nodes across {w} mm"),
-            ));
-        }
-        Ok(steps as usize + 1)
-    };
-    let nx = count(region.x_min_mm, region.x_max_mm, "x")?;
-    let ny = count(region.y_min_mm, region.y_max_mm, "y")?;
+    check_settings(settings)?;
+    let (nx, ny) = (
+        grid_nodes(region.x_min_mm, region.x_max_mm, p, "x")?,
+        grid_nodes(region.y_min_mm, region.y_max_mm, p, "y")?,
+    );
     let (mx, my) = (nx / 2, ny / 2);
     if mx < 2 || my < 2 {
         return Err(Error::invalid(
@@ -354,46 +319,9 @@ pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> 
             ));
         }
         for (start, len) in long {
-            // The block edges crossed by this run: steps from an odd to an even coordinate.
-            let n = cycle.len();
-            let mut crossings = Vec::new();
-            for k in 0..len {
-                let a = cycle[(start + k) % n];
-                let b = cycle[(start + k + 1) % n];
-                let (ax, ay, bx, by) = (a % w, a / w, b % w, b / w);
-                let (ba, bb) = (ax / 2 + mx * (ay / 2), bx / 2 + mx * (by / 2));
-                if ba != bb && tree.has(ba, bb) {
-                    crossings.push((k, ba, bb));
-                }
+            if exchange_edge(&mut tree, &cycle, (start, len), &mut rng) {
+                swaps += 1;
             }
-            let Some(&(_, ba, bb)) = crossings.iter().min_by_key(|(k, _, _)| k.abs_diff(len / 2))
-            else {
-                continue;
-            };
-            if !tree.has(ba, bb) {
-                continue;
-            }
-            tree.set(ba, bb, false);
-            let side = component(&tree, ba);
-            let mut cands = Vec::new();
-            for u in 0..mx * my {
-                if !side[u] {
-                    continue;
-                }
-                for v in tree.neighbours(u) {
-                    let removed = (u == ba && v == bb) || (u == bb && v == ba);
-                    if !side[v] && !removed {
-                        cands.push((u, v));
-                    }
-                }
-            }
-            if cands.is_empty() {
-                tree.set(ba, bb, true);
-                continue;
-            }
-            let k = ((rng.uniform() * cands.len() as f64) as usize).min(cands.len() - 1);
-            tree.set(cands[k].0, cands[k].1, true);
-            swaps += 1;
         }
     }
     let (x, y): (Vec<f64>, Vec<f64>) = cycle
@@ -408,22 +336,7 @@ pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> 
     let mut path = DwellPath::new(x, y)?;
     let longest = longest_run(&path);
     if settings.jitter > 0.0 {
-        let mut jr = SplitMix64::new(settings.seed ^ 0x6a09_e667_f3bc_c909);
-        let h = 0.5 * settings.jitter * p;
-        let (x, y): (Vec<f64>, Vec<f64>) = path
-            .x_mm()
-            .iter()
-            .zip(path.y_mm())
-            .map(|(&x, &y)| {
-                let dx = h * (2.0 * jr.uniform() - 1.0);
-                let dy = h * (2.0 * jr.uniform() - 1.0);
-                (
-                    (x + dx).clamp(region.x_min_mm, region.x_max_mm),
-                    (y + dy).clamp(region.y_min_mm, region.y_max_mm),
-                )
-            })
-            .unzip();
-        path = DwellPath::new(x, y)?;
+        path = jittered(&path, region, settings)?;
     }
     Ok(RandomPath {
         path,
@@ -432,6 +345,130 @@ pub fn random_unicursal(region: &BoundingBox, settings: &RandomPathSettings) -> 
         longest_run: longest,
         swaps,
     })
+}
+
+/// The settings' own checks: a positive pitch, a jitter in [0, 1], runs of at least 3 steps.
+fn check_settings(settings: &RandomPathSettings) -> Result<()> {
+    let p = settings.pitch_mm;
+    if !(p.is_finite() && p > 0.0) {
+        return Err(Error::invalid(
+            "pitch_mm",
+            format!("must be positive, got {p}"),
+        ));
+    }
+    if !(settings.jitter.is_finite() && (0.0..=1.0).contains(&settings.jitter)) {
+        return Err(Error::invalid(
+            "jitter",
+            format!(
+                "must be in [0, 1] (a fraction of the pitch), got {}",
+                settings.jitter
+            ),
+        ));
+    }
+    if settings.max_run < 3 {
+        return Err(Error::invalid(
+            "max_run",
+            format!("must be at least 3 steps, got {}", settings.max_run),
+        ));
+    }
+    Ok(())
+}
+
+/// Grid nodes across `[lo, hi]` mm at pitch `p` (`floor(extent / p) + 1`), or an input error
+/// for a bad extent or more than [`MAX_POINTS`] nodes.
+fn grid_nodes(lo: f64, hi: f64, p: f64, what: &str) -> Result<usize> {
+    let w = hi - lo;
+    if !(w.is_finite() && w >= 0.0) {
+        return Err(Error::invalid(
+            "random path region",
+            format!("bad {what} extent [{lo}, {hi}] mm"),
+        ));
+    }
+    let steps = (w / p + 1e-9).floor();
+    if steps > MAX_POINTS as f64 {
+        return Err(Error::invalid(
+            "pitch_mm",
+            format!("{p} mm gives more than {MAX_POINTS} nodes across {w} mm"),
+        ));
+    }
+    Ok(steps as usize + 1)
+}
+
+/// Breaks the straight run of `len` steps from `start` along `cycle`: removes the tree edge it
+/// crosses nearest its middle and joins the two components again by a random other edge
+/// between them. Returns whether an edge was exchanged.
+fn exchange_edge(
+    tree: &mut Tree,
+    cycle: &[usize],
+    (start, len): (usize, usize),
+    rng: &mut SplitMix64,
+) -> bool {
+    let (mx, my) = (tree.mx, tree.my);
+    let w = 2 * mx;
+    // The block edges crossed by this run: steps from an odd to an even coordinate.
+    let n = cycle.len();
+    let mut crossings = Vec::new();
+    for k in 0..len {
+        let a = cycle[(start + k) % n];
+        let b = cycle[(start + k + 1) % n];
+        let (ax, ay, bx, by) = (a % w, a / w, b % w, b / w);
+        let (ba, bb) = (ax / 2 + mx * (ay / 2), bx / 2 + mx * (by / 2));
+        if ba != bb && tree.has(ba, bb) {
+            crossings.push((k, ba, bb));
+        }
+    }
+    let Some(&(_, ba, bb)) = crossings.iter().min_by_key(|(k, _, _)| k.abs_diff(len / 2)) else {
+        return false;
+    };
+    if !tree.has(ba, bb) {
+        return false;
+    }
+    tree.set(ba, bb, false);
+    let side = component(tree, ba);
+    let mut cands = Vec::new();
+    for u in 0..mx * my {
+        if !side[u] {
+            continue;
+        }
+        for v in tree.neighbours(u) {
+            let removed = (u == ba && v == bb) || (u == bb && v == ba);
+            if !side[v] && !removed {
+                cands.push((u, v));
+            }
+        }
+    }
+    if cands.is_empty() {
+        tree.set(ba, bb, true);
+        return false;
+    }
+    let k = ((rng.uniform() * cands.len() as f64) as usize).min(cands.len() - 1);
+    tree.set(cands[k].0, cands[k].1, true);
+    true
+}
+
+/// `path` with each node moved by up to half the jitter times the pitch along x and y (its own
+/// generator seeded from the path's seed), clamped to `region`.
+fn jittered(
+    path: &DwellPath,
+    region: &BoundingBox,
+    settings: &RandomPathSettings,
+) -> Result<DwellPath> {
+    let mut jr = SplitMix64::new(settings.seed ^ 0x6a09_e667_f3bc_c909);
+    let h = 0.5 * settings.jitter * settings.pitch_mm;
+    let (x, y): (Vec<f64>, Vec<f64>) = path
+        .x_mm()
+        .iter()
+        .zip(path.y_mm())
+        .map(|(&x, &y)| {
+            let dx = h * (2.0 * jr.uniform() - 1.0);
+            let dy = h * (2.0 * jr.uniform() - 1.0);
+            (
+                (x + dx).clamp(region.x_min_mm, region.x_max_mm),
+                (y + dy).clamp(region.y_min_mm, region.y_max_mm),
+            )
+        })
+        .unzip();
+    DwellPath::new(x, y)
 }
 
 /// Blocks reachable from `b` in the tree.

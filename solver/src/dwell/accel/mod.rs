@@ -396,157 +396,41 @@ pub(crate) fn solve_validated(
     let bounds = problem.bounds();
     let (lo_u, hi_u) = speed_boxes(&kin, bounds)?;
     let reachable = forward_reachable(&kin, &lo_u, &hi_u, limits)?;
-
-    // The feed-limited optimum is the start and the price-of-the-limit reference; for the
-    // squared-speed method a first-order reference is solved to that method's own tolerance.
-    let reference_settings = match limits.method {
-        AccelMethod::SquaredSpeed | AccelMethod::SquaredSpeedThenScpQp => Settings {
-            first_order_tolerance: settings.first_order_tolerance.max(limits.kkt_tolerance),
-            ..settings.clone()
-        },
-        AccelMethod::ScpQp | AccelMethod::CorrectionPasses => settings.clone(),
+    let limited = Limited {
+        problem,
+        kin: &kin,
+        reachable: &reachable,
+        limits,
+        settings,
+        observer,
     };
-    let reference = super::solve_validated(problem, &reference_settings, observer, None)?;
-    let mut scp_iterations = 0;
-    let mut gradient_steps = 0;
-    let mut kkt_residual = None;
-    let mut qp_iterations = reference.iterations;
-    let (best_t, status, solver) = if limits.method == AccelMethod::CorrectionPasses {
-        // The controller holds the limit on the feed-limited optimum.
-        (
-            reference.dwell_s.clone(),
-            reference.status,
-            reference.solver,
-        )
-    } else if kin.violation(&reference.dwell_s) <= REFERENCE_MEETS_LIMIT {
-        // The feed-limited optimum meets the limit (to round-off): nothing to constrain. One
-        // that exceeds it at all, even within the constraint tolerance, is solved for below.
-        (
-            reference.dwell_s.clone(),
-            reference.status,
-            reference.solver,
-        )
-    } else {
-        match limits.method {
-            AccelMethod::ScpQp => {
-                let start = feasible_start(&kin, &reachable, &reference.dwell_s, bounds);
-                let r = scp(problem, &kin, start, limits, settings, observer)?;
-                scp_iterations = r.iterations;
-                qp_iterations += r.qp_iterations;
-                (
-                    onto_the_limit(&kin, &reachable, r.dwell_s, bounds),
-                    r.status,
-                    SolverKind::Qp,
-                )
-            }
-            AccelMethod::SquaredSpeed
-            | AccelMethod::SquaredSpeedThenScpQp
-            | AccelMethod::CorrectionPasses => {
-                let speed_limits = speed::SpeedLimits {
-                    tolerance: limits.kkt_tolerance,
-                    max_steps: limits.max_gradient_steps,
-                    time_limit_s: settings.time_limit_s,
-                };
-                // The power iteration alone pays for a Gram matrix where the first-order
-                // solvers form one.
-                let products = super::first_order::POWER_STEPS;
-                let r =
-                    super::with_solver_operator(problem, products, limits.kkt_tolerance, |op| {
-                        let (data, mut work, kkt_scale) = Data::prepare(
-                            op,
-                            problem.z_nm(),
-                            bounds,
-                            problem.rho(),
-                            problem.lambda(),
-                        );
-                        // On a worker of the pool, as the first-order solvers run: called
-                        // from outside it, every parallel loop would wait on a futex.
-                        Ok(rayon::scope(|_| {
-                            speed::minimise(
-                                &data,
-                                &mut work,
-                                kkt_scale,
-                                &kin,
-                                &reference.dwell_s,
-                                &speed_limits,
-                                observer,
-                                Some(problem.scaled_hessian_norm()),
-                            )
-                        }))
-                    })?;
-                gradient_steps = r.iterations;
-                qp_iterations += r.iterations;
-                if limits.method == AccelMethod::SquaredSpeedThenScpQp {
-                    // The squared-speed result meets the limit exactly: the SCP starts there.
-                    let start = r.dwell_s.clone();
-                    let polished = scp(problem, &kin, r.dwell_s, limits, settings, observer)?;
-                    scp_iterations = polished.iterations;
-                    qp_iterations += polished.qp_iterations;
-                    // Clamping an SCP iterate that overshoots the limit can cost more than the
-                    // SCP gained: keep whichever of it and the squared-speed start (exactly on
-                    // the limit) has the lower objective, so the refinement never loses.
-                    let clamped = onto_the_limit(&kin, &reachable, polished.dwell_s, bounds);
-                    let best = if problem.evaluate(&clamped)?.objective
-                        <= problem.evaluate(&start)?.objective
-                    {
-                        clamped
-                    } else {
-                        start
-                    };
-                    (best, polished.status, SolverKind::Qp)
-                } else {
-                    kkt_residual = Some(r.kkt_residual);
-                    (r.dwell_s, r.status, SolverKind::FirstOrder)
-                }
-            }
-        }
-    };
+    let reference = super::solve_validated(
+        problem,
+        &reference_settings(limits, settings),
+        observer,
+        None,
+    )?;
+    let run = limited.constrain(&reference)?;
 
     // The status speaks for the dwell times returned: a result whose acceleration, recomputed
     // from the dwell times as every report does, exceeds the limit beyond the constraint
     // tolerance is not converged, whatever the method's own stopping test said.
-    let status = if status.is_converged() && kin.violation(&best_t) > limits.constraint_tolerance {
-        Status::Stalled
-    } else {
-        status
-    };
-    let eval = problem.evaluate(&best_t)?;
-    let ref_eval_obj = reference.objective;
-    let m = problem.m() as f64;
-    let max_a = max_acceleration_mm_per_s2(path, &best_t, limits.corner_angle_deg);
-    let accels = segment_accelerations_mm_per_s2(path, &best_t, limits.corner_angle_deg);
-    let report = AccelReport {
-        a_max_mm_per_s2: limits.a_max_mm_per_s2,
-        max_accel_mm_per_s2: max_a,
-        max_accel_reference_mm_per_s2: max_acceleration_mm_per_s2(
-            path,
-            &reference.dwell_s,
-            limits.corner_angle_deg,
-        ),
-        method: limits.method,
-        scp_iterations,
-        gradient_steps,
-        kkt_residual,
-        constrained_segments: kin.constrained.iter().filter(|&&c| c).count(),
-        binding_segments: accels
-            .iter()
-            .flatten()
-            .filter(|&&a| a >= 0.99 * limits.a_max_mm_per_s2)
-            .count(),
-        rms_after_nm: (2.0 * eval.objective / m).max(0.0).sqrt(),
-        rms_after_reference_nm: (2.0 * ref_eval_obj / m).max(0.0).sqrt(),
-        objective: eval.objective,
-        objective_reference: ref_eval_obj,
-        objective_gap: eval.objective - ref_eval_obj,
-        status,
-    };
+    let status =
+        if run.status.is_converged() && kin.violation(&run.dwell_s) > limits.constraint_tolerance {
+            Status::Stalled
+        } else {
+            run.status
+        };
+    let eval = problem.evaluate(&run.dwell_s)?;
+    let report = accel_report(&limited, path, &run, &reference, eval.objective, status);
+    let kkt_residual = run.kkt_residual;
     let solution = Solution {
         status,
-        solver,
+        solver: run.solver,
         piston_nm: eval.piston_nm,
         objective: eval.objective,
-        dwell_s: best_t,
-        iterations: qp_iterations,
+        dwell_s: run.dwell_s,
+        iterations: reference.iterations + run.qp_iterations,
         solve_seconds: start.elapsed().as_secs_f64(),
         kkt_residual,
         objective_gap_bound: None,
@@ -560,6 +444,211 @@ pub(crate) fn solve_validated(
         report,
         reference,
     })
+}
+
+/// The settings of the feed-limited reference solve. The feed-limited optimum is the start and
+/// the price-of-the-limit reference; for the squared-speed method a first-order reference is
+/// solved to that method's own tolerance.
+fn reference_settings(limits: &AccelLimits, settings: &Settings) -> Settings {
+    match limits.method {
+        AccelMethod::SquaredSpeed | AccelMethod::SquaredSpeedThenScpQp => Settings {
+            first_order_tolerance: settings.first_order_tolerance.max(limits.kkt_tolerance),
+            ..settings.clone()
+        },
+        AccelMethod::ScpQp | AccelMethod::CorrectionPasses => settings.clone(),
+    }
+}
+
+/// One acceleration-limited solve: the problem, the path's kinematics and the reachable speed
+/// boxes along it, the limits and settings.
+struct Limited<'a> {
+    problem: &'a Problem,
+    kin: &'a Kinematics,
+    reachable: &'a [(f64, f64)],
+    limits: &'a AccelLimits,
+    settings: &'a Settings,
+    observer: &'a dyn Observer,
+}
+
+/// What the limited solve returned beyond the reference: the dwell times, their status and
+/// solver, and the iterations it took.
+struct LimitedRun {
+    dwell_s: Vec<f64>,
+    status: Status,
+    solver: SolverKind,
+    scp_iterations: usize,
+    gradient_steps: usize,
+    kkt_residual: Option<f64>,
+    /// QP iterations or gradient steps on top of the reference's iterations.
+    qp_iterations: usize,
+}
+
+impl LimitedRun {
+    /// The reference's dwell times kept as they are.
+    fn reference(reference: &Solution) -> Self {
+        Self {
+            dwell_s: reference.dwell_s.clone(),
+            status: reference.status,
+            solver: reference.solver,
+            scp_iterations: 0,
+            gradient_steps: 0,
+            kkt_residual: None,
+            qp_iterations: 0,
+        }
+    }
+}
+
+impl Limited<'_> {
+    /// The dwell times under the limit, from the feed-limited `reference` by the method of
+    /// the limits.
+    fn constrain(&self, reference: &Solution) -> Result<LimitedRun> {
+        if self.limits.method == AccelMethod::CorrectionPasses {
+            // The controller holds the limit on the feed-limited optimum.
+            return Ok(LimitedRun::reference(reference));
+        }
+        if self.kin.violation(&reference.dwell_s) <= REFERENCE_MEETS_LIMIT {
+            // The feed-limited optimum meets the limit (to round-off): nothing to constrain. One
+            // that exceeds it at all, even within the constraint tolerance, is solved for below.
+            return Ok(LimitedRun::reference(reference));
+        }
+        match self.limits.method {
+            AccelMethod::ScpQp => self.scp_qp(&reference.dwell_s),
+            AccelMethod::SquaredSpeed
+            | AccelMethod::SquaredSpeedThenScpQp
+            | AccelMethod::CorrectionPasses => self.squared_speed(&reference.dwell_s),
+        }
+    }
+
+    /// The SCP around the QP, from the feasible start nearest the reference.
+    fn scp_qp(&self, reference_dwell_s: &[f64]) -> Result<LimitedRun> {
+        let (problem, kin, bounds) = (self.problem, self.kin, self.problem.bounds());
+        let start = feasible_start(kin, self.reachable, reference_dwell_s, bounds);
+        let r = scp(
+            problem,
+            kin,
+            start,
+            self.limits,
+            self.settings,
+            self.observer,
+        )?;
+        Ok(LimitedRun {
+            dwell_s: onto_the_limit(kin, self.reachable, r.dwell_s, bounds),
+            status: r.status,
+            solver: SolverKind::Qp,
+            scp_iterations: r.iterations,
+            gradient_steps: 0,
+            kkt_residual: None,
+            qp_iterations: r.qp_iterations,
+        })
+    }
+
+    /// The squared-speed method from the reference, then (`SquaredSpeedThenScpQp`) the SCP
+    /// from its result.
+    fn squared_speed(&self, reference_dwell_s: &[f64]) -> Result<LimitedRun> {
+        let (problem, kin, limits, observer) = (self.problem, self.kin, self.limits, self.observer);
+        let bounds = problem.bounds();
+        let speed_limits = speed::SpeedLimits {
+            tolerance: limits.kkt_tolerance,
+            max_steps: limits.max_gradient_steps,
+            time_limit_s: self.settings.time_limit_s,
+        };
+        // The power iteration alone pays for a Gram matrix where the first-order
+        // solvers form one.
+        let products = super::first_order::POWER_STEPS;
+        let r = super::with_solver_operator(problem, products, limits.kkt_tolerance, |op| {
+            let (data, mut work, kkt_scale) =
+                Data::prepare(op, problem.z_nm(), bounds, problem.rho(), problem.lambda());
+            // On a worker of the pool, as the first-order solvers run: called
+            // from outside it, every parallel loop would wait on a futex.
+            Ok(rayon::scope(|_| {
+                speed::minimise(
+                    &data,
+                    &mut work,
+                    kkt_scale,
+                    kin,
+                    reference_dwell_s,
+                    &speed_limits,
+                    observer,
+                    Some(problem.scaled_hessian_norm()),
+                )
+            }))
+        })?;
+        if limits.method != AccelMethod::SquaredSpeedThenScpQp {
+            return Ok(LimitedRun {
+                dwell_s: r.dwell_s,
+                status: r.status,
+                solver: SolverKind::FirstOrder,
+                scp_iterations: 0,
+                gradient_steps: r.iterations,
+                kkt_residual: Some(r.kkt_residual),
+                qp_iterations: r.iterations,
+            });
+        }
+        // The squared-speed result meets the limit exactly: the SCP starts there.
+        let start = r.dwell_s.clone();
+        let polished = scp(problem, kin, r.dwell_s, limits, self.settings, observer)?;
+        // Clamping an SCP iterate that overshoots the limit can cost more than the
+        // SCP gained: keep whichever of it and the squared-speed start (exactly on
+        // the limit) has the lower objective, so the refinement never loses.
+        let clamped = onto_the_limit(kin, self.reachable, polished.dwell_s, bounds);
+        let best = if problem.evaluate(&clamped)?.objective <= problem.evaluate(&start)?.objective {
+            clamped
+        } else {
+            start
+        };
+        Ok(LimitedRun {
+            dwell_s: best,
+            status: polished.status,
+            solver: SolverKind::Qp,
+            scp_iterations: polished.iterations,
+            gradient_steps: r.iterations,
+            kkt_residual: None,
+            qp_iterations: r.iterations + polished.qp_iterations,
+        })
+    }
+}
+
+/// What the limited solve achieved next to the feed-limited `reference` (`objective`: the
+/// limited run's objective; `status`: its final status).
+fn accel_report(
+    limited: &Limited<'_>,
+    path: &DwellPath,
+    run: &LimitedRun,
+    reference: &Solution,
+    objective: f64,
+    status: Status,
+) -> AccelReport {
+    let limits = limited.limits;
+    let best_t = &run.dwell_s;
+    let ref_eval_obj = reference.objective;
+    let m = limited.problem.m() as f64;
+    let max_a = max_acceleration_mm_per_s2(path, best_t, limits.corner_angle_deg);
+    let accels = segment_accelerations_mm_per_s2(path, best_t, limits.corner_angle_deg);
+    AccelReport {
+        a_max_mm_per_s2: limits.a_max_mm_per_s2,
+        max_accel_mm_per_s2: max_a,
+        max_accel_reference_mm_per_s2: max_acceleration_mm_per_s2(
+            path,
+            &reference.dwell_s,
+            limits.corner_angle_deg,
+        ),
+        method: limits.method,
+        scp_iterations: run.scp_iterations,
+        gradient_steps: run.gradient_steps,
+        kkt_residual: run.kkt_residual,
+        constrained_segments: limited.kin.constrained.iter().filter(|&&c| c).count(),
+        binding_segments: accels
+            .iter()
+            .flatten()
+            .filter(|&&a| a >= 0.99 * limits.a_max_mm_per_s2)
+            .count(),
+        rms_after_nm: (2.0 * objective / m).max(0.0).sqrt(),
+        rms_after_reference_nm: (2.0 * ref_eval_obj / m).max(0.0).sqrt(),
+        objective,
+        objective_gap: objective - ref_eval_obj,
+        objective_reference: ref_eval_obj,
+        status,
+    }
 }
 
 /// What the SCP returns.

@@ -27,17 +27,8 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
     } = it;
     let n = x.len();
     let rho = data.rho;
-    let mut s_mem = vec![vec![0.0; n]; mem];
-    let mut y_mem = vec![vec![0.0; n]; mem];
-    let mut inv_sy = vec![0.0; mem];
-    let mut gamma_of = vec![0.0; mem];
-    let mut coef = vec![0.0; mem];
-    let (mut stored, mut newest) = (0usize, 0usize);
-    let mut q = vec![0.0; n];
-    let mut d = vec![0.0; n];
-    let mut p = vec![0.0; n];
-    let mut hp = vec![0.0; n];
-    let mut free = vec![true; n];
+    let mut pairs = Pairs::new(n, mem);
+    let mut v = Vectors::new(n);
     let mut pair_partials = Vec::new();
     let mut status = Status::MaxIterations;
     let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
@@ -53,7 +44,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             .zip(work.g.par_iter().zip(&data.s))
             .for_each(|(q, (g, s))| *q = s * (g + rho));
     };
-    scaled_gradient(work, &mut q);
+    scaled_gradient(work, &mut v.q);
     let mut it = 1;
     let mut reports = Reports::new(it);
     // The iteration at which `q` and `cert` were last computed exactly.
@@ -70,20 +61,16 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
         let step = 1.0 / lip;
         // Two-loop recursion on the free variables; `d` stays zero on the binding ones, so its
         // dot products with the stored pairs are the restricted ones.
-        let order = |k: usize| (newest + mem - k) % mem;
-        let (mut dot, carried_kkt2) = {
-            let newest_s = (stored > 0).then(|| s_mem[order(0)].as_slice());
-            free_gradient(
-                data,
-                &x,
-                &q,
-                step,
-                newest_s,
-                &mut free,
-                &mut d,
-                &mut pair_partials,
-            )
-        };
+        let (dot, carried_kkt2) = free_gradient(
+            data,
+            &x,
+            &v.q,
+            step,
+            pairs.newest_s(),
+            &mut v.free,
+            &mut v.d,
+            &mut pair_partials,
+        );
         if it != exact_at {
             // The carried gradient `q` follows the exact one to rounding (`q += tau S H S p`
             // each step), so its KKT residual tells when to form the certificate that decides.
@@ -92,7 +79,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             let out_of_time = limits.began.elapsed().as_secs_f64() > limits.time_limit_s;
             if carried_kkt <= limits.tol || (periodic && report) || out_of_time {
                 cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-                scaled_gradient(work, &mut q);
+                scaled_gradient(work, &mut v.q);
                 exact_at = it;
                 carried_f = cert.f;
                 reports.report(observer, it, (cert.f, cert.kkt), true);
@@ -107,78 +94,12 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
                 reports.report(observer, it, (carried_f, carried_kkt), false);
             }
         }
-        let gamma = if stored > 0 && gamma_of[order(0)] > 0.0 {
-            gamma_of[order(0)]
-        } else {
-            step
-        };
-        // The first loop's last update also scales `d` by `gamma` and takes the second loop's
-        // first dot product (one pass for the two).
-        for k in 0..stored {
-            let i = order(k);
-            let a = inv_sy[i] * dot;
-            coef[i] = a;
-            let (next, scale) = if k + 1 < stored {
-                (s_mem[order(k + 1)].as_slice(), None)
-            } else {
-                (y_mem[order(k)].as_slice(), Some(gamma))
-            };
-            dot = masked_axpy_dot(
-                &mut d,
-                -a,
-                &y_mem[i],
-                &free,
-                scale,
-                Some(next),
-                &mut work.partials,
-            );
-        }
-        if stored == 0 {
-            scale(&mut d, gamma);
-        }
-        // The second loop's last update is left to the projection's pass: `(c, i)`.
-        let mut last_update = None;
-        for k in (0..stored).rev() {
-            let i = order(k);
-            let c = coef[i] - inv_sy[i] * dot;
-            if k == 0 {
-                last_update = Some((c, i));
-                break;
-            }
-            let next = Some(y_mem[order(k - 1)].as_slice());
-            dot = masked_axpy_dot(&mut d, c, &s_mem[i], &free, None, next, &mut work.partials);
-        }
-        // The projected step, and the projected gradient step when it does not descend.
-        // The direction is `-d` on the free variables (`d` the recursion's `H q`, finished here
-        // by its last update) and the gradient step on the binding ones.
-        let mut qp = match last_update {
-            Some((c, i)) => {
-                let s_last = &s_mem[i];
-                project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
-                    if free[j] {
-                        -(d[j] + c * s_last[j])
-                    } else {
-                        -step * q[j]
-                    }
-                })
-            }
-            None => project_along(data, &x, &mut p, &q, &mut work.partials, |j| {
-                if free[j] {
-                    -d[j]
-                } else {
-                    -step * q[j]
-                }
-            }),
-        };
-        if !(qp < 0.0) {
-            stored = 0;
-            qp = project_along(data, &x, &mut p, &q, &mut work.partials, |j| -step * q[j]);
-        }
+        let qp = pairs.projected_step(data, &x, &mut v, step, dot, &mut work.partials);
         if !(qp < 0.0) {
             // No descent along the updated gradient: take the exact one, and stop if that
             // shows none either (stationary to rounding).
             cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-            scaled_gradient(work, &mut q);
+            scaled_gradient(work, &mut v.q);
             let fresh = it == exact_at;
             exact_at = it;
             carried_f = cert.f;
@@ -196,22 +117,19 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             }
             continue;
         }
-        let php = data.hessian_product_dot(&p, work, &mut hp);
+        let php = data.hessian_product_dot(&v.p, work, &mut v.hp);
         it += 1;
         let tau = if php > 0.0 { (-qp / php).min(1.0) } else { 1.0 };
         carried_f += tau * qp + 0.5 * tau * tau * php;
-        let yy = move_along(&mut x, &mut p, &mut hp, &mut q, tau, &mut work.partials);
-        // The new pair: s = tau p, y = tau H p (exact for the quadratic). `p` and `hp` are
-        // overwritten in full by the next step, so the pair's vectors are swapped in.
-        let sy = tau * tau * php;
-        if sy > 0.0 && sy.is_finite() {
-            newest = (newest + 1) % mem;
-            std::mem::swap(&mut s_mem[newest], &mut p);
-            std::mem::swap(&mut y_mem[newest], &mut hp);
-            inv_sy[newest] = 1.0 / sy;
-            gamma_of[newest] = if yy > 0.0 { sy / yy } else { 0.0 };
-            stored = (stored + 1).min(mem);
-        }
+        let yy = move_along(
+            &mut x,
+            &mut v.p,
+            &mut v.hp,
+            &mut v.q,
+            tau,
+            &mut work.partials,
+        );
+        pairs.push(&mut v, tau * tau * php, yy);
     }
     if it != exact_at {
         cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
@@ -221,6 +139,157 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
     }
     observer.advance(Stage::Solve, (it - reports.last) as u64);
     (status, x, it, cert)
+}
+
+/// The iteration's vectors of `n`: the scaled gradient `q`, the recursion's `d`, the step `p`,
+/// its Hessian product `hp`, and the free-set mask.
+struct Vectors {
+    q: Vec<f64>,
+    d: Vec<f64>,
+    p: Vec<f64>,
+    hp: Vec<f64>,
+    free: Vec<bool>,
+}
+
+impl Vectors {
+    fn new(n: usize) -> Self {
+        Self {
+            q: vec![0.0; n],
+            d: vec![0.0; n],
+            p: vec![0.0; n],
+            hp: vec![0.0; n],
+            free: vec![true; n],
+        }
+    }
+}
+
+/// The stored L-BFGS pairs `s = tau p`, `y = tau H p` in a ring of `mem`, newest at `newest`,
+/// with `1 / s'y`, the scaling `gamma = s'y / y'y` of each and the first loop's coefficients.
+struct Pairs {
+    s: Vec<Vec<f64>>,
+    y: Vec<Vec<f64>>,
+    inv_sy: Vec<f64>,
+    gamma_of: Vec<f64>,
+    coef: Vec<f64>,
+    stored: usize,
+    newest: usize,
+}
+
+impl Pairs {
+    fn new(n: usize, mem: usize) -> Self {
+        Self {
+            s: vec![vec![0.0; n]; mem],
+            y: vec![vec![0.0; n]; mem],
+            inv_sy: vec![0.0; mem],
+            gamma_of: vec![0.0; mem],
+            coef: vec![0.0; mem],
+            stored: 0,
+            newest: 0,
+        }
+    }
+
+    /// The ring index of the `k`-th newest pair.
+    fn order(&self, k: usize) -> usize {
+        let mem = self.s.len();
+        (self.newest + mem - k) % mem
+    }
+
+    /// The newest `s`, when a pair is stored.
+    fn newest_s(&self) -> Option<&[f64]> {
+        (self.stored > 0).then(|| self.s[self.order(0)].as_slice())
+    }
+
+    /// Stores the pair `(p, hp)` of `s'y = sy` and `y'y = yy` when `sy` is positive and
+    /// finite. `p` and `hp` are overwritten in full by the next step, so the pair's vectors
+    /// are swapped in.
+    fn push(&mut self, v: &mut Vectors, sy: f64, yy: f64) {
+        if sy > 0.0 && sy.is_finite() {
+            let mem = self.s.len();
+            self.newest = (self.newest + 1) % mem;
+            let newest = self.newest;
+            std::mem::swap(&mut self.s[newest], &mut v.p);
+            std::mem::swap(&mut self.y[newest], &mut v.hp);
+            self.inv_sy[newest] = 1.0 / sy;
+            self.gamma_of[newest] = if yy > 0.0 { sy / yy } else { 0.0 };
+            self.stored = (self.stored + 1).min(mem);
+        }
+    }
+
+    /// The two-loop recursion on `v.d` (started by [`free_gradient`], `dot` its first dot
+    /// product) and the projected step along it into `v.p`; the projected gradient step (the
+    /// memory cleared) when it does not descend. Returns `q'p`.
+    fn projected_step(
+        &mut self,
+        data: &Data<'_>,
+        x: &[f64],
+        v: &mut Vectors,
+        step: f64,
+        mut dot: f64,
+        partials: &mut Vec<f64>,
+    ) -> f64 {
+        let Vectors { q, d, p, free, .. } = v;
+        let stored = self.stored;
+        let gamma = if stored > 0 && self.gamma_of[self.order(0)] > 0.0 {
+            self.gamma_of[self.order(0)]
+        } else {
+            step
+        };
+        // The first loop's last update also scales `d` by `gamma` and takes the second loop's
+        // first dot product (one pass for the two).
+        for k in 0..stored {
+            let i = self.order(k);
+            let a = self.inv_sy[i] * dot;
+            self.coef[i] = a;
+            let (next, scale) = if k + 1 < stored {
+                (self.s[self.order(k + 1)].as_slice(), None)
+            } else {
+                (self.y[self.order(k)].as_slice(), Some(gamma))
+            };
+            dot = masked_axpy_dot(d, -a, &self.y[i], free, scale, Some(next), partials);
+        }
+        if stored == 0 {
+            scale(d, gamma);
+        }
+        // The second loop's last update is left to the projection's pass: `(c, i)`.
+        let mut last_update = None;
+        for k in (0..stored).rev() {
+            let i = self.order(k);
+            let c = self.coef[i] - self.inv_sy[i] * dot;
+            if k == 0 {
+                last_update = Some((c, i));
+                break;
+            }
+            let next = Some(self.y[self.order(k - 1)].as_slice());
+            dot = masked_axpy_dot(d, c, &self.s[i], free, None, next, partials);
+        }
+        // The projected step, and the projected gradient step when it does not descend.
+        // The direction is `-d` on the free variables (`d` the recursion's `H q`, finished here
+        // by its last update) and the gradient step on the binding ones.
+        let mut qp = match last_update {
+            Some((c, i)) => {
+                let s_last = &self.s[i];
+                project_along(data, x, p, q, partials, |j| {
+                    if free[j] {
+                        -(d[j] + c * s_last[j])
+                    } else {
+                        -step * q[j]
+                    }
+                })
+            }
+            None => project_along(data, x, p, q, partials, |j| {
+                if free[j] {
+                    -d[j]
+                } else {
+                    -step * q[j]
+                }
+            }),
+        };
+        if !(qp < 0.0) {
+            self.stored = 0;
+            qp = project_along(data, x, p, q, partials, |j| -step * q[j]);
+        }
+        qp
+    }
 }
 
 /// The start of the two-loop recursion, in one pass over fixed chunks: `free[j]` = whether a

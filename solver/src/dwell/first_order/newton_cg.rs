@@ -47,15 +47,7 @@ pub(super) fn newton_cg(
     } = it;
     let n = x.len();
     let rho = data.rho;
-    let inv_s: Vec<f64> = data.s.iter().map(|s| 1.0 / s).collect();
-    let mut grad = vec![0.0; n];
-    let mut free = vec![true; n];
-    let mut d = vec![0.0; n];
-    let mut r = vec![0.0; n];
-    let mut zr = vec![0.0; n];
-    let mut p = vec![0.0; n];
-    let mut hp = vec![0.0; n];
-    let mut x_new = vec![0.0; n];
+    let mut v = CgVectors::new(data, n);
     let mut status = Status::MaxIterations;
     let mut it = 1;
     let mut cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
@@ -71,69 +63,29 @@ pub(super) fn newton_cg(
             break;
         }
         // Scaled gradient (certificate() left g = grad_t f - rho in work.g).
-        grad.par_iter_mut()
+        v.grad
+            .par_iter_mut()
             .zip(work.g.par_iter().zip(&data.s))
             .for_each(|(gw, (g, s))| *gw = s * (g + rho));
         // The binding set: variables a projected-gradient step of length 1 / L puts on a bound.
         // They take that step (to the bound); the others the Newton-CG step (Bertsekas 1982).
         let (lo, hi) = (&data.lo_w, &data.hi_w);
         let step = 1.0 / lip;
-        free.par_iter_mut().enumerate().for_each(|(j, f)| {
+        let grad = &v.grad;
+        v.free.par_iter_mut().enumerate().for_each(|(j, f)| {
             *f = !binds(grad[j], x[j], lo[j], hi[j], step);
         });
         // Truncated CG on the free variables.
-        d.iter_mut().for_each(|v| *v = 0.0);
-        r.par_iter_mut()
-            .zip(grad.par_iter().zip(free.par_iter()))
-            .for_each(|(r, (g, f))| *r = if *f { -g } else { 0.0 });
-        let mut precondition = |r: &[f64], zr: &mut [f64]| match precond.as_deref_mut() {
-            Some(m) => m.apply_scaled(r, &inv_s, &free, zr),
-            None => zr.copy_from_slice(r),
-        };
-        precondition(&r, &mut zr);
-        p.copy_from_slice(&zr);
-        let mut rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
-        let mut rz = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
-        let target = rs.sqrt() * cert.kkt.sqrt().min(0.5);
-        let mut best_decrease = 0.0_f64;
-        for _ in 0..MAX_CG_STEPS {
-            if rs.sqrt() <= target || it >= limits.max_it {
-                break;
-            }
-            data.hessian_product(&p, work, &mut hp);
-            it += 1;
-            hp.par_iter_mut().zip(free.par_iter()).for_each(|(h, f)| {
-                if !*f {
-                    *h = 0.0;
-                }
-            });
-            let php = fixed_sum(n, &mut work.partials, |j| p[j] * hp[j]);
-            if !(php > 0.0 && rz > 0.0) {
-                break;
-            }
-            let a = rz / php;
-            // Model decrease of this step: 0.5 a r'z (More & Toraldo 1991: stop CG when a step
-            // gains less than a fraction of the best step).
-            let decrease = 0.5 * a * rz;
-            best_decrease = best_decrease.max(decrease);
-            d.par_iter_mut()
-                .zip(p.par_iter())
-                .for_each(|(d, p)| *d += a * p);
-            r.par_iter_mut()
-                .zip(hp.par_iter())
-                .for_each(|(r, h)| *r -= a * h);
-            rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
-            if decrease <= CG_STALL * best_decrease {
-                break;
-            }
-            precondition(&r, &mut zr);
-            let rz_new = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
-            let beta = rz_new / rz;
-            rz = rz_new;
-            p.par_iter_mut()
-                .zip(zr.par_iter())
-                .for_each(|(p, z)| *p = z + beta * *p);
-        }
+        let kkt = cert.kkt;
+        truncated_cg(
+            data,
+            work,
+            &mut v,
+            precond.as_deref_mut(),
+            kkt,
+            (&mut it, limits.max_it),
+        );
+        let CgVectors { d, grad, free, .. } = &mut v;
         d.par_iter_mut()
             .zip(grad.par_iter().zip(free.par_iter()))
             .for_each(|(d, (g, f))| {
@@ -143,35 +95,10 @@ pub(super) fn newton_cg(
             });
         // Projected line search along d, then along -grad; a projected gradient step of length
         // 1 / L (a guaranteed decrease for an L-smooth f) if both fail.
-        let mut accepted = false;
-        for direction in [Direction::Newton, Direction::Gradient] {
-            if direction == Direction::Gradient {
-                d.par_iter_mut()
-                    .zip(grad.par_iter())
-                    .for_each(|(d, g)| *d = -g);
-            }
-            let mut alpha = 1.0;
-            for _ in 0..MAX_HALVINGS {
-                trial(data, &x, &d, alpha, &mut x_new);
-                let decrease = fixed_sum(n, &mut work.partials, |j| grad[j] * (x_new[j] - x[j]));
-                if !(decrease < 0.0) {
-                    break;
-                }
-                let f_new = data.objective(&x_new, work);
-                it += 1;
-                if f_new <= cert.f + ARMIJO * decrease {
-                    accepted = true;
-                    break;
-                }
-                alpha *= 0.5;
-            }
-            if accepted {
-                break;
-            }
-        }
+        let accepted = line_search(data, work, &x, &mut v, cert.f, &mut it);
         if !accepted {
-            trial(data, &x, &d, 1.0 / lip, &mut x_new);
-            let f_new = data.objective(&x_new, work);
+            trial(data, &x, &v.d, 1.0 / lip, &mut v.x_new);
+            let f_new = data.objective(&v.x_new, work);
             it += 1;
             if !(f_new < cert.f) {
                 // No descent left at rounding level: the point cannot be improved here.
@@ -183,12 +110,157 @@ pub(super) fn newton_cg(
                 break;
             }
         }
-        std::mem::swap(&mut x, &mut x_new);
+        std::mem::swap(&mut x, &mut v.x_new);
         cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
         it += 1;
         observer.advance(Stage::Solve, (it - it_before) as u64);
     }
     (status, x, it, cert)
+}
+
+/// The vectors of `n` a Newton-CG iteration works in: the scaled gradient, the free set, the
+/// step `d`, the CG residual `r`, its preconditioned `zr`, direction `p` and product `hp`, the
+/// trial point and the inverse scaling.
+struct CgVectors {
+    grad: Vec<f64>,
+    free: Vec<bool>,
+    d: Vec<f64>,
+    r: Vec<f64>,
+    zr: Vec<f64>,
+    p: Vec<f64>,
+    hp: Vec<f64>,
+    x_new: Vec<f64>,
+    inv_s: Vec<f64>,
+}
+
+impl CgVectors {
+    fn new(data: &Data<'_>, n: usize) -> Self {
+        Self {
+            inv_s: data.s.iter().map(|s| 1.0 / s).collect(),
+            grad: vec![0.0; n],
+            free: vec![true; n],
+            d: vec![0.0; n],
+            r: vec![0.0; n],
+            zr: vec![0.0; n],
+            p: vec![0.0; n],
+            hp: vec![0.0; n],
+            x_new: vec![0.0; n],
+        }
+    }
+}
+
+/// Truncated CG on the free variables for `d` (`H_FF d_F = -grad_F`), preconditioned by
+/// `precond` when given: to a residual of `min(sqrt(kkt), 0.5)` of its start, a stalling step
+/// (More & Toraldo 1991) or the iteration limit; `it` counts the Hessian products.
+fn truncated_cg(
+    data: &Data<'_>,
+    work: &mut Work,
+    v: &mut CgVectors,
+    mut precond: Option<&mut CirculantPreconditioner>,
+    kkt: f64,
+    (it, max_it): (&mut usize, usize),
+) {
+    let CgVectors {
+        grad,
+        free,
+        d,
+        r,
+        zr,
+        p,
+        hp,
+        inv_s,
+        ..
+    } = v;
+    let n = d.len();
+    d.iter_mut().for_each(|v| *v = 0.0);
+    r.par_iter_mut()
+        .zip(grad.par_iter().zip(free.par_iter()))
+        .for_each(|(r, (g, f))| *r = if *f { -g } else { 0.0 });
+    let mut precondition = |r: &[f64], zr: &mut [f64]| match precond.as_deref_mut() {
+        Some(m) => m.apply_scaled(r, inv_s, free, zr),
+        None => zr.copy_from_slice(r),
+    };
+    precondition(r, zr);
+    p.copy_from_slice(zr);
+    let mut rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
+    let mut rz = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
+    let target = rs.sqrt() * kkt.sqrt().min(0.5);
+    let mut best_decrease = 0.0_f64;
+    for _ in 0..MAX_CG_STEPS {
+        if rs.sqrt() <= target || *it >= max_it {
+            break;
+        }
+        data.hessian_product(p, work, hp);
+        *it += 1;
+        hp.par_iter_mut().zip(free.par_iter()).for_each(|(h, f)| {
+            if !*f {
+                *h = 0.0;
+            }
+        });
+        let php = fixed_sum(n, &mut work.partials, |j| p[j] * hp[j]);
+        if !(php > 0.0 && rz > 0.0) {
+            break;
+        }
+        let a = rz / php;
+        // Model decrease of this step: 0.5 a r'z (More & Toraldo 1991: stop CG when a step
+        // gains less than a fraction of the best step).
+        let decrease = 0.5 * a * rz;
+        best_decrease = best_decrease.max(decrease);
+        d.par_iter_mut()
+            .zip(p.par_iter())
+            .for_each(|(d, p)| *d += a * p);
+        r.par_iter_mut()
+            .zip(hp.par_iter())
+            .for_each(|(r, h)| *r -= a * h);
+        rs = fixed_sum(n, &mut work.partials, |j| r[j] * r[j]);
+        if decrease <= CG_STALL * best_decrease {
+            break;
+        }
+        precondition(r, zr);
+        let rz_new = fixed_sum(n, &mut work.partials, |j| r[j] * zr[j]);
+        let beta = rz_new / rz;
+        rz = rz_new;
+        p.par_iter_mut()
+            .zip(zr.par_iter())
+            .for_each(|(p, z)| *p = z + beta * *p);
+    }
+}
+
+/// Projected line search (Armijo, halving) from `x` of objective `f0` along `v.d`, then along
+/// `-grad`; the accepted point in `v.x_new`. Returns whether one was accepted; `it` counts the
+/// objective evaluations.
+fn line_search(
+    data: &Data<'_>,
+    work: &mut Work,
+    x: &[f64],
+    v: &mut CgVectors,
+    f0: f64,
+    it: &mut usize,
+) -> bool {
+    let CgVectors { grad, d, x_new, .. } = v;
+    let n = x.len();
+    for direction in [Direction::Newton, Direction::Gradient] {
+        if direction == Direction::Gradient {
+            d.par_iter_mut()
+                .zip(grad.par_iter())
+                .for_each(|(d, g)| *d = -g);
+        }
+        let mut alpha = 1.0;
+        for _ in 0..MAX_HALVINGS {
+            trial(data, x, d, alpha, x_new);
+            let decrease = fixed_sum(n, &mut work.partials, |j| grad[j] * (x_new[j] - x[j]));
+            if !(decrease < 0.0) {
+                break;
+            }
+            let f_new = data.objective(x_new, work);
+            *it += 1;
+            if f_new <= f0 + ARMIJO * decrease {
+                return true;
+            }
+            alpha *= 0.5;
+        }
+    }
+    false
 }
 
 /// Search directions of a Newton-CG step.

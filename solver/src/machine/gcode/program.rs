@@ -499,8 +499,30 @@ impl State {
     }
 
     fn apply(&mut self, line: usize, w: Words) -> Result<()> {
+        if self.modes(line, &w.g)? {
+            return self.pause(line, &w);
+        }
+        if self.feed_mode == FeedMode::PerMinute {
+            if let Some(f) = w.f {
+                self.feed = Some(f * self.mm_per_unit);
+            }
+        }
+        let moves = w.axes.iter().any(Option::is_some)
+            || w.rotary.is_some()
+            || (self.motion == Some(BlockKind::Circular) && w.centre.iter().any(Option::is_some));
+        if moves {
+            self.motion_block(line, &w)?;
+        }
+        if w.m_end {
+            self.ended = true;
+        }
+        Ok(())
+    }
+
+    /// Applies the block's G words to the modal state; true when the block is a `G4` pause.
+    fn modes(&mut self, line: usize, g: &[u32]) -> Result<bool> {
         let mut pause = false;
-        for &g in &w.g {
+        for &g in g {
             match g {
                 0 => self.motion = Some(BlockKind::Rapid),
                 1 => self.motion = Some(BlockKind::Linear),
@@ -529,164 +551,170 @@ impl State {
                 other => return Err(program_error(line, format!("G{other} is not supported"))),
             }
         }
-        if pause {
-            let seconds = match self.dialect {
-                Dialect::Sinumerik => w.f,
-                Dialect::Fanuc => w.x_for_pause.or(w.p.map(|ms| ms / 1000.0)),
-                Dialect::Iso | Dialect::Linuxcnc => w.p,
-            };
-            let t = seconds
-                .filter(|t| *t >= 0.0)
-                .ok_or_else(|| program_error(line, "G4 pause without a non-negative time"))?;
-            let at = self
-                .position_mm
-                .ok_or_else(|| program_error(line, "G4 pause before any position is known"))?;
-            self.blocks.push(Block {
-                kind: BlockKind::Pause,
-                line,
-                start_mm: at,
-                end_mm: at,
-                rotary_deg: [self.rotary_deg; 2],
-                programmed_time_s: t,
-                contact: false,
-                arc: None,
-            });
-            if w.m_end {
-                self.ended = true;
-            }
-            return Ok(());
-        }
-        if self.feed_mode == FeedMode::PerMinute {
-            if let Some(f) = w.f {
-                self.feed = Some(f * self.mm_per_unit);
-            }
-        }
-        let moves = w.axes.iter().any(Option::is_some)
-            || w.rotary.is_some()
-            || (self.motion == Some(BlockKind::Circular) && w.centre.iter().any(Option::is_some));
-        if moves {
-            let kind = self.motion.ok_or_else(|| {
-                program_error(line, "axis words before any G0, G1, G2 or G3 motion mode")
-            })?;
-            let start = match self.position_mm {
-                Some(p) => p,
-                None if kind == BlockKind::Rapid || self.absolute => {
-                    // The first positioning move starts wherever the machine is; axes it does
-                    // not name are taken as unchanged.
-                    [0.0; 3]
-                }
-                None => {
-                    return Err(program_error(
-                        line,
-                        "incremental move from an unknown position",
-                    ))
-                }
-            };
-            let first = self.position_mm.is_none();
-            let mut end = start;
-            for (k, a) in w.axes.iter().enumerate() {
-                if let Some(v) = a {
-                    let v = v * self.mm_per_unit;
-                    end[k] = if self.absolute { v } else { start[k] + v };
-                }
-            }
-            let b0 = self.rotary_deg;
-            let b1 = match w.rotary {
-                Some(v) if self.absolute => v,
-                Some(v) => b0 + v,
-                None => b0,
-            };
-            let arc = if kind == BlockKind::Circular {
-                if w.rotary.is_some() {
-                    return Err(program_error(
-                        line,
-                        "a rotary axis on a circular move is not supported by the read-back",
-                    ));
-                }
-                if w.centre.iter().all(Option::is_none) {
-                    return Err(program_error(line, "a circular move needs I or J"));
-                }
-                let centre = [
-                    start[0] + w.centre[0].unwrap_or(0.0) * self.mm_per_unit,
-                    start[1] + w.centre[1].unwrap_or(0.0) * self.mm_per_unit,
-                ];
-                let a = ArcMove {
-                    centre_mm: centre,
-                    ccw: self.ccw,
-                };
-                let [r0, r1, _, _] =
-                    arc_sweep([start[0], start[1]], [end[0], end[1]], centre, a.ccw);
-                if !(r0 > 0.0) || (r1 - r0).abs() > ARC_RADIUS_TOLERANCE_MM {
-                    return Err(program_error(
-                        line,
-                        format!(
-                            "circular move: start radius {r0} mm and end radius {r1} mm differ by \
-                             more than {ARC_RADIUS_TOLERANCE_MM} mm"
-                        ),
-                    ));
-                }
-                Some(a)
-            } else {
-                if w.centre.iter().any(Option::is_some) {
-                    return Err(program_error(line, "I or J words outside a circular move"));
-                }
-                None
-            };
-            let time = match kind {
-                BlockKind::Rapid => 0.0,
-                _ if first => {
-                    return Err(program_error(
-                        line,
-                        "the first move is a feed move from an unknown position; position with G0 first",
-                    ))
-                }
-                _ => {
-                    let len = match &arc {
-                        Some(a) => arc_length_mm(start, end, a),
-                        None => {
-                            let d = [end[0] - start[0], end[1] - start[1], end[2] - start[2]];
-                            self.dialect.path_length_mm(d, b1 - b0)
-                        }
-                    };
-                    match self.feed_mode {
-                        FeedMode::PerMinute => {
-                            let f = self.feed.ok_or_else(|| {
-                                program_error(line, "feed move before any F word")
-                            })?;
-                            if !(f > 0.0) {
-                                return Err(program_error(line, format!("feed F{f} is not positive")));
-                            }
-                            60.0 * len / f
-                        }
-                        FeedMode::InverseTime => {
-                            let f = w.f.ok_or_else(|| {
-                                program_error(line, "a G93 (inverse time) move needs its own F word")
-                            })?;
-                            if !(f > 0.0) {
-                                return Err(program_error(line, format!("inverse-time F{f} is not positive")));
-                            }
-                            60.0 / f
-                        }
-                    }
-                }
-            };
-            self.blocks.push(Block {
-                kind,
-                line,
-                start_mm: start,
-                end_mm: end,
-                rotary_deg: [b0, b1],
-                programmed_time_s: time,
-                contact: false,
-                arc,
-            });
-            self.position_mm = Some(end);
-            self.rotary_deg = b1;
-        }
+        Ok(pause)
+    }
+
+    /// A `G4` pause at the current position, its time in the dialect's word.
+    fn pause(&mut self, line: usize, w: &Words) -> Result<()> {
+        let seconds = match self.dialect {
+            Dialect::Sinumerik => w.f,
+            Dialect::Fanuc => w.x_for_pause.or(w.p.map(|ms| ms / 1000.0)),
+            Dialect::Iso | Dialect::Linuxcnc => w.p,
+        };
+        let t = seconds
+            .filter(|t| *t >= 0.0)
+            .ok_or_else(|| program_error(line, "G4 pause without a non-negative time"))?;
+        let at = self
+            .position_mm
+            .ok_or_else(|| program_error(line, "G4 pause before any position is known"))?;
+        self.blocks.push(Block {
+            kind: BlockKind::Pause,
+            line,
+            start_mm: at,
+            end_mm: at,
+            rotary_deg: [self.rotary_deg; 2],
+            programmed_time_s: t,
+            contact: false,
+            arc: None,
+        });
         if w.m_end {
             self.ended = true;
         }
         Ok(())
+    }
+
+    /// A move in the current motion mode: its end, rotary angle, circle and programmed time.
+    fn motion_block(&mut self, line: usize, w: &Words) -> Result<()> {
+        let kind = self.motion.ok_or_else(|| {
+            program_error(line, "axis words before any G0, G1, G2 or G3 motion mode")
+        })?;
+        let start = match self.position_mm {
+            Some(p) => p,
+            None if kind == BlockKind::Rapid || self.absolute => {
+                // The first positioning move starts wherever the machine is; axes it does
+                // not name are taken as unchanged.
+                [0.0; 3]
+            }
+            None => {
+                return Err(program_error(
+                    line,
+                    "incremental move from an unknown position",
+                ))
+            }
+        };
+        let first = self.position_mm.is_none();
+        let mut end = start;
+        for (k, a) in w.axes.iter().enumerate() {
+            if let Some(v) = a {
+                let v = v * self.mm_per_unit;
+                end[k] = if self.absolute { v } else { start[k] + v };
+            }
+        }
+        let b0 = self.rotary_deg;
+        let b1 = match w.rotary {
+            Some(v) if self.absolute => v,
+            Some(v) => b0 + v,
+            None => b0,
+        };
+        let arc = if kind == BlockKind::Circular {
+            Some(self.arc_move(line, w, start, end)?)
+        } else {
+            if w.centre.iter().any(Option::is_some) {
+                return Err(program_error(line, "I or J words outside a circular move"));
+            }
+            None
+        };
+        let time = match kind {
+            BlockKind::Rapid => 0.0,
+            _ if first => return Err(program_error(
+                line,
+                "the first move is a feed move from an unknown position; position with G0 first",
+            )),
+            _ => {
+                let len = match &arc {
+                    Some(a) => arc_length_mm(start, end, a),
+                    None => {
+                        let d = [end[0] - start[0], end[1] - start[1], end[2] - start[2]];
+                        self.dialect.path_length_mm(d, b1 - b0)
+                    }
+                };
+                self.feed_time(line, w.f, len)?
+            }
+        };
+        self.blocks.push(Block {
+            kind,
+            line,
+            start_mm: start,
+            end_mm: end,
+            rotary_deg: [b0, b1],
+            programmed_time_s: time,
+            contact: false,
+            arc,
+        });
+        self.position_mm = Some(end);
+        self.rotary_deg = b1;
+        Ok(())
+    }
+
+    /// The circle of a `G2`/`G3` move from `start` to `end` (I J offsets from the start),
+    /// refused when its radii at the two ends differ beyond the tolerance.
+    fn arc_move(&self, line: usize, w: &Words, start: [f64; 3], end: [f64; 3]) -> Result<ArcMove> {
+        if w.rotary.is_some() {
+            return Err(program_error(
+                line,
+                "a rotary axis on a circular move is not supported by the read-back",
+            ));
+        }
+        if w.centre.iter().all(Option::is_none) {
+            return Err(program_error(line, "a circular move needs I or J"));
+        }
+        let centre = [
+            start[0] + w.centre[0].unwrap_or(0.0) * self.mm_per_unit,
+            start[1] + w.centre[1].unwrap_or(0.0) * self.mm_per_unit,
+        ];
+        let a = ArcMove {
+            centre_mm: centre,
+            ccw: self.ccw,
+        };
+        let [r0, r1, _, _] = arc_sweep([start[0], start[1]], [end[0], end[1]], centre, a.ccw);
+        if !(r0 > 0.0) || (r1 - r0).abs() > ARC_RADIUS_TOLERANCE_MM {
+            return Err(program_error(
+                line,
+                format!(
+                    "circular move: start radius {r0} mm and end radius {r1} mm differ by \
+                     more than {ARC_RADIUS_TOLERANCE_MM} mm"
+                ),
+            ));
+        }
+        Ok(a)
+    }
+
+    /// Programmed time of a feed move of `len` mm, s: from the modal feed (`G94`) or the
+    /// block's own `F` (`G93`).
+    fn feed_time(&self, line: usize, f_word: Option<f64>, len: f64) -> Result<f64> {
+        Ok(match self.feed_mode {
+            FeedMode::PerMinute => {
+                let f = self
+                    .feed
+                    .ok_or_else(|| program_error(line, "feed move before any F word"))?;
+                if !(f > 0.0) {
+                    return Err(program_error(line, format!("feed F{f} is not positive")));
+                }
+                60.0 * len / f
+            }
+            FeedMode::InverseTime => {
+                let f = f_word.ok_or_else(|| {
+                    program_error(line, "a G93 (inverse time) move needs its own F word")
+                })?;
+                if !(f > 0.0) {
+                    return Err(program_error(
+                        line,
+                        format!("inverse-time F{f} is not positive"),
+                    ));
+                }
+                60.0 / f
+            }
+        })
     }
 
     fn finish(self) -> Result<Program> {

@@ -52,7 +52,7 @@ use super::dialect::{Dialect, FeedMode};
 use super::program::{arc_length_mm, ArcMove};
 use crate::error::{Error, Result};
 use crate::machine::fixed;
-use crate::machine::nc::NcProgram;
+use crate::machine::nc::{NcProgram, NcSettings};
 
 /// Smallest number of decimals of `F`.
 pub const MIN_FEED_DECIMALS: usize = 3;
@@ -344,47 +344,109 @@ fn spindle_word(rpm: f64) -> String {
 
 /// Writes the program (module documentation).
 pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
-    let s = &program.settings;
-    let (d, fm, dec) = (s.dialect, s.feed_mode, s.decimals);
-    let pts = &program.points;
-    let n = pts.len();
-    if n == 0 || program.boundaries.len() != n + 1 {
-        return Err(Error::invalid("program", "no dwell points to write"));
+    let mut w = Writer::new(program)?;
+    w.place_arcs();
+    for j in 0..w.at.len() {
+        w.stretch(j)?;
     }
-    let bnd: Vec<Pose> = program
-        .boundaries
-        .iter()
-        .map(|b| Pose::new(b.tool_mm, b.b_deg, dec))
-        .collect();
-    let at: Vec<Pose> = pts
-        .iter()
-        .map(|p| Pose::new(p.tool_mm, p.b_deg, dec))
-        .collect();
-    let lin = d.linear_word();
-    let min_block_s = 1e-3 * s.min_block_time_ms;
-    let mut body: Vec<String> = Vec::with_capacity(3 * n + 8);
-    let mut written = Written {
-        text: String::new(),
-        feed_blocks: 0,
-        slowed_stretches: 0,
-        merged_stretches: 0,
-        max_slowdown: 1.0,
-        stretch_time_s: 0.0,
-        plunge_time_s: 0.0,
-        arc_blocks: 0,
-        arc_runs: 0,
-    };
-    // Circular runs: boundaries inside a run move onto its circle; `arc_of[j]` is the run of
-    // dwell point j (module documentation).
-    let mut bnd = bnd;
-    let mut arc_of: Vec<Option<ArcRun>> = vec![None; n];
-    if let Some(tol) = s.arc_tolerance_mm {
+    let plane = w.clearance_plane();
+    let plunge_word = w.plunge_word(plane)?;
+    let code = w.blocks(plane, &plunge_word);
+    let header = w.header(notes, plane);
+    let text = w.numbered_text(&header, &code);
+    w.written.text = text;
+    Ok(w.written)
+}
+
+/// The writer's state while it turns one program into text: the poses as written, the
+/// circular runs, the stretches' blocks so far and what had to change.
+struct Writer<'a> {
+    program: &'a NcProgram,
+    s: &'a NcSettings,
+    d: Dialect,
+    fm: FeedMode,
+    dec: usize,
+    /// Stretch boundaries as written (moved onto the circle inside a circular run).
+    bnd: Vec<Pose>,
+    /// Dwell points as written.
+    at: Vec<Pose>,
+    /// The circular run of each dwell point.
+    arc_of: Vec<Option<ArcRun>>,
+    /// The dwell blocks and their comments, unnumbered.
+    body: Vec<String>,
+    written: Written,
+    /// Smallest and largest programmed tool-centre feed of a stretch, mm/min.
+    f_lo: f64,
+    f_hi: f64,
+}
+
+/// The feed blocks of one stretch before they are written: their lengths, feed words and
+/// times, and whether the stretch is one block (boundary to boundary) instead of two.
+struct StretchBlocks {
+    lens: [f64; 2],
+    words: [String; 2],
+    times: [f64; 2],
+    count: usize,
+    merged: bool,
+}
+
+impl<'a> Writer<'a> {
+    fn new(program: &'a NcProgram) -> Result<Self> {
+        let s = &program.settings;
+        let dec = s.decimals;
+        let n = program.points.len();
+        if n == 0 || program.boundaries.len() != n + 1 {
+            return Err(Error::invalid("program", "no dwell points to write"));
+        }
+        let bnd: Vec<Pose> = program
+            .boundaries
+            .iter()
+            .map(|b| Pose::new(b.tool_mm, b.b_deg, dec))
+            .collect();
+        let at: Vec<Pose> = program
+            .points
+            .iter()
+            .map(|p| Pose::new(p.tool_mm, p.b_deg, dec))
+            .collect();
+        Ok(Self {
+            program,
+            s,
+            d: s.dialect,
+            fm: s.feed_mode,
+            dec,
+            bnd,
+            at,
+            arc_of: vec![None; n],
+            body: Vec::with_capacity(3 * n + 8),
+            written: Written {
+                text: String::new(),
+                feed_blocks: 0,
+                slowed_stretches: 0,
+                merged_stretches: 0,
+                max_slowdown: 1.0,
+                stretch_time_s: 0.0,
+                plunge_time_s: 0.0,
+                arc_blocks: 0,
+                arc_runs: 0,
+            },
+            f_lo: f64::INFINITY,
+            f_hi: 0.0,
+        })
+    }
+
+    /// Circular runs: boundaries inside a run move onto its circle; `arc_of[j]` is the run of
+    /// dwell point j (module documentation).
+    fn place_arcs(&mut self) {
+        let Some(tol) = self.s.arc_tolerance_mm else {
+            return;
+        };
+        let at = &self.at;
         let xy: Vec<[f64; 2]> = at.iter().map(|p| [p.xyz[0], p.xyz[1]]).collect();
         let level: Vec<(f64, Option<f64>)> = at.iter().map(|p| (p.xyz[2], p.b)).collect();
         for run in find_arc_runs(&xy, &level, tol) {
-            written.arc_runs += 1;
+            self.written.arc_runs += 1;
             let c = run.centre_mm;
-            arc_of[run.first..=run.last].fill(Some(run));
+            self.arc_of[run.first..=run.last].fill(Some(run));
             for j in run.first + 1..=run.last {
                 let (p, q) = (xy[j - 1], xy[j]);
                 let (ap, aq) = (
@@ -395,24 +457,26 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                 d -= std::f64::consts::TAU * (d / std::f64::consts::TAU).round();
                 let ang = ap + 0.5 * d;
                 let r = 0.5 * ((p[0] - c[0]).hypot(p[1] - c[1]) + (q[0] - c[0]).hypot(q[1] - c[1]));
-                bnd[j] = Pose::new(
+                self.bnd[j] = Pose::new(
                     [c[0] + r * ang.cos(), c[1] + r * ang.sin(), at[j].xyz[2]],
                     at[j].b,
-                    dec,
+                    self.dec,
                 );
             }
         }
     }
-    // The circle of the block from `a` to `b` when both lie on one run, with its I J words.
-    let arc_block = |j: usize, second: bool| -> Option<(ArcMove, String)> {
-        let run = arc_of[j]?;
+
+    /// The circle of the first (`second == false`) or second block of stretch `j` when both
+    /// its ends lie on one run, with its I J words.
+    fn arc_block(&self, j: usize, second: bool) -> Option<(ArcMove, String)> {
+        let run = self.arc_of[j]?;
         let inside = if second { j < run.last } else { j > run.first };
         if !inside {
             return None;
         }
-        let start = if second { &at[j] } else { &bnd[j] };
-        let (is, iv) = as_written(run.centre_mm[0] - start.xyz[0], dec);
-        let (js, jv) = as_written(run.centre_mm[1] - start.xyz[1], dec);
+        let start = if second { &self.at[j] } else { &self.bnd[j] };
+        let (is, iv) = as_written(run.centre_mm[0] - start.xyz[0], self.dec);
+        let (js, jv) = as_written(run.centre_mm[1] - start.xyz[1], self.dec);
         Some((
             ArcMove {
                 centre_mm: [start.xyz[0] + iv, start.xyz[1] + jv],
@@ -420,26 +484,20 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             },
             format!(" I{is} J{js}"),
         ))
-    };
-    let (mut f_lo, mut f_hi) = (f64::INFINITY, 0.0f64);
-    for (j, p) in pts.iter().enumerate() {
+    }
+
+    /// Writes stretch `j`: its dwell comment and its feed blocks.
+    fn stretch(&mut self, j: usize) -> Result<()> {
+        let p = &self.program.points[j];
         let t = p.dwell_s;
-        body.push(d.comment(&format!(
+        self.body.push(self.d.comment(&format!(
             "DWELL {j} {} S AT {} {}",
             time_text(t),
-            fixed(p.x_mm, dec),
-            fixed(p.y_mm, dec)
+            fixed(p.x_mm, self.dec),
+            fixed(p.y_mm, self.dec)
         )));
-        let halves = [(&bnd[j], &at[j]), (&at[j], &bnd[j + 1])];
-        let arcs = [arc_block(j, false), arc_block(j, true)];
-        let mut lens = [0.0; 2];
-        for k in 0..2 {
-            let (a, b) = halves[k];
-            lens[k] = match &arcs[k] {
-                Some((m, _)) => arc_length_mm(a.xyz, b.xyz, m),
-                None => a.length_to(b, d),
-            };
-        }
+        let arcs = [self.arc_block(j, false), self.arc_block(j, true)];
+        let lens = self.half_lengths(j, &arcs);
         let len = lens[0] + lens[1];
         if len == 0.0 {
             if t > 0.0 {
@@ -451,7 +509,7 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                     ),
                 ));
             }
-            continue;
+            return Ok(());
         }
         if !(t > 0.0 && t.is_finite()) {
             return Err(Error::invalid(
@@ -459,22 +517,57 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                 format!("dwell point {j}: {t} s over {len} mm needs an infinite feed"),
             ));
         }
+        let t_run = self.run_time(t, len);
+        let blocks = self.feed_blocks(j, lens, t_run, &arcs)?;
+        self.emit(j, &blocks, &arcs)
+    }
+
+    /// Programmed lengths of the two blocks of stretch `j` (boundary -> point -> boundary).
+    fn half_lengths(&self, j: usize, arcs: &[Option<(ArcMove, String)>; 2]) -> [f64; 2] {
+        let halves = [(&self.bnd[j], &self.at[j]), (&self.at[j], &self.bnd[j + 1])];
+        let mut lens = [0.0; 2];
+        for k in 0..2 {
+            let (a, b) = halves[k];
+            lens[k] = match &arcs[k] {
+                Some((m, _)) => arc_length_mm(a.xyz, b.xyz, m),
+                None => a.length_to(b, self.d),
+            };
+        }
+        lens
+    }
+
+    /// The time the stretch of planned time `t` and length `len` runs: `t`, or longer when its
+    /// feed would exceed `v_max` (counted as slowed).
+    fn run_time(&mut self, t: f64, len: f64) -> f64 {
         let mut t_run = t;
         let need = 60.0 * len / t;
-        if let Some(v_max) = s.v_max_mm_per_min {
+        if let Some(v_max) = self.s.v_max_mm_per_min {
             if need > v_max {
                 t_run = 60.0 * len / v_max;
                 // Within the rounding of F (a solver's bound met to its tolerance) this is the
                 // cap of the F word, not a slowed stretch.
                 if need > v_max * (1.0 + FEED_ROUNDING) {
-                    written.slowed_stretches += 1;
-                    written.max_slowdown = written.max_slowdown.max(t_run / t);
+                    self.written.slowed_stretches += 1;
+                    self.written.max_slowdown = self.written.max_slowdown.max(t_run / t);
                 }
             }
         }
-        // The blocks of the stretch: boundary -> point -> boundary, or one block boundary ->
-        // boundary when a half would be shorter than the controller's block time and the point
-        // lies on the straight line between the boundaries (within the written resolution).
+        t_run
+    }
+
+    /// The blocks of stretch `j`: boundary -> point -> boundary, or one block boundary ->
+    /// boundary when a half would be shorter than the controller's block time and the point
+    /// lies on the straight line between the boundaries (within the written resolution); with
+    /// their feed words and times.
+    fn feed_blocks(
+        &mut self,
+        j: usize,
+        lens: [f64; 2],
+        t_run: f64,
+        arcs: &[Option<(ArcMove, String)>; 2],
+    ) -> Result<StretchBlocks> {
+        let min_block_s = 1e-3 * self.s.min_block_time_ms;
+        let len = lens[0] + lens[1];
         let shortest_s = lens
             .iter()
             .filter(|&&l| l > 0.0)
@@ -482,20 +575,20 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             .fold(f64::INFINITY, f64::min);
         let merged = shortest_s < min_block_s * (1.0 - FEED_ROUNDING)
             && arcs.iter().all(Option::is_none)
-            && collinear(&bnd[j], &at[j], &bnd[j + 1], dec);
-        let (ends, blens, count) = if merged {
-            written.merged_stretches += 1;
-            let l = bnd[j].length_to(&bnd[j + 1], d);
-            ([&bnd[j + 1], &bnd[j + 1]], [l, 0.0], 1)
+            && collinear(&self.bnd[j], &self.at[j], &self.bnd[j + 1], self.dec);
+        let (blens, count) = if merged {
+            self.written.merged_stretches += 1;
+            let l = self.bnd[j].length_to(&self.bnd[j + 1], self.d);
+            ([l, 0.0], 1)
         } else {
-            ([&at[j], &bnd[j + 1]], lens, 2)
+            (lens, 2)
         };
         let len_run: f64 = blens.iter().sum();
         let mut times = [0.0; 2];
         let mut words = [String::new(), String::new()];
-        match fm {
+        match self.fm {
             FeedMode::PerMinute => {
-                let (w, f) = feed_word(60.0 * len_run / t_run, s.v_max_mm_per_min)?;
+                let (w, f) = feed_word(60.0 * len_run / t_run, self.s.v_max_mm_per_min)?;
                 for k in 0..count {
                     times[k] = 60.0 * blens[k] / f;
                     words[k] = w.clone();
@@ -511,7 +604,39 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
                 }
             }
         }
-        for k in 0..count {
+        Ok(StretchBlocks {
+            lens: blens,
+            words,
+            times,
+            count,
+            merged,
+        })
+    }
+
+    /// Appends the blocks of stretch `j` to the body, refusing a block shorter than the
+    /// controller's block time.
+    fn emit(
+        &mut self,
+        j: usize,
+        blocks: &StretchBlocks,
+        arcs: &[Option<(ArcMove, String)>; 2],
+    ) -> Result<()> {
+        let (s, d) = (self.s, self.d);
+        let p = &self.program.points[j];
+        let min_block_s = 1e-3 * s.min_block_time_ms;
+        let ends = if blocks.merged {
+            [&self.bnd[j + 1], &self.bnd[j + 1]]
+        } else {
+            [&self.at[j], &self.bnd[j + 1]]
+        };
+        let StretchBlocks {
+            lens: blens,
+            words,
+            times,
+            count,
+            merged,
+        } = blocks;
+        for k in 0..*count {
             if blens[k] == 0.0 {
                 continue;
             }
@@ -531,193 +656,231 @@ pub fn write_program(program: &NcProgram, notes: &[String]) -> Result<Written> {
             }
             match (&arcs[k], merged) {
                 (Some((m, ij)), false) => {
-                    body.push(format!(
+                    self.body.push(format!(
                         "{} {}{ij} F{}",
                         d.arc_word(m.ccw),
                         ends[k].words,
                         words[k]
                     ));
-                    written.arc_blocks += 1;
+                    self.written.arc_blocks += 1;
                 }
-                _ => body.push(format!("{lin} {} F{}", ends[k].words, words[k])),
+                _ => self.body.push(format!(
+                    "{} {} F{}",
+                    d.linear_word(),
+                    ends[k].words,
+                    words[k]
+                )),
             }
-            written.feed_blocks += 1;
-            written.stretch_time_s += times[k];
+            self.written.feed_blocks += 1;
+            self.written.stretch_time_s += times[k];
         }
+        let len_run: f64 = blens.iter().sum();
         let programmed = 60.0 * len_run / (times[0] + times[1]);
-        f_lo = f_lo.min(programmed);
-        f_hi = f_hi.max(programmed);
+        self.f_lo = self.f_lo.min(programmed);
+        self.f_hi = self.f_hi.max(programmed);
+        Ok(())
     }
-    // Approach and retract.
-    let top = pts
-        .iter()
-        .map(|p| p.tool_mm[2])
-        .chain(program.boundaries.iter().map(|b| b.tool_mm[2]))
-        .fold(f64::NEG_INFINITY, f64::max);
-    let plane = as_written(top + s.clearance_mm, dec).1;
-    let start = &bnd[0];
-    let drop = plane - start.xyz[2];
-    let plunge_word = match fm {
-        FeedMode::PerMinute => {
-            let (w, f) = feed_word(s.plunge_feed_mm_per_min, None)?;
-            written.plunge_time_s = 60.0 * drop / f;
-            w
-        }
-        FeedMode::InverseTime => {
-            let (w, f) = feed_word(s.plunge_feed_mm_per_min / drop, None)?;
-            written.plunge_time_s = 60.0 / f;
-            w
-        }
-    };
-    let mut code: Vec<String> = Vec::with_capacity(body.len() + 12);
-    // Safe start (or the profile's start blocks), then plane, units, work offset, absolute and
-    // the feed mode whatever the start blocks left; spindle and coolant one M word a block (the
-    // Fanuc default allows one M code per block).
-    code.extend(s.start_blocks_or_default());
-    let mut modes = format!("G17 {}", d.metric_word());
-    if let Some(w) = s.work_offset.word() {
-        modes.push(' ');
-        modes.push_str(w);
-    }
-    modes.push_str(&format!(" G90 {}", fm.word()));
-    code.push(modes);
-    if let Some(rpm) = s.spindle_rpm {
-        code.push(format!(
-            "S{} {}",
-            spindle_word(rpm),
-            s.spindle_direction.word()
-        ));
-    }
-    if let Some(m) = s.coolant.word() {
-        code.push(m.to_string());
-    }
-    code.push(format!("{} Z{}", d.rapid_word(), fixed(plane, dec)));
-    let mut above = format!(
-        "{} X{} Y{}",
-        d.rapid_word(),
-        fixed(start.xyz[0], dec),
-        fixed(start.xyz[1], dec)
-    );
-    if let Some(b) = start.b {
-        above.push_str(&format!(" B{}", fixed(b, dec)));
-    }
-    code.push(above);
-    code.push(format!(
-        "{lin} Z{} F{plunge_word}",
-        fixed(start.xyz[2], dec)
-    ));
-    code.extend(body);
-    code.push(d.comment("END DWELL"));
-    code.push(format!("{} Z{}", d.rapid_word(), fixed(plane, dec)));
-    // Modal states back to the safe-start state: feed per minute after inverse time.
-    if fm == FeedMode::InverseTime {
-        code.push(FeedMode::PerMinute.word().to_string());
-    }
-    if s.coolant.word().is_some() {
-        code.push("M9".into());
-    }
-    if s.spindle_rpm.is_some() {
-        code.push("M5".into());
-    }
-    code.extend(s.end_blocks.iter().cloned());
-    code.push(d.program_end().to_string());
 
-    // Header, then the numbered blocks.
-    let mut out = String::with_capacity(40 * code.len() + 1024);
-    let mut line = |text: &str| {
-        out.push_str(text);
-        out.push('\n');
-    };
-    if d.percent_wrapped() {
-        line("%");
+    /// The clearance plane as written: the highest tool-centre Z plus the clearance.
+    fn clearance_plane(&self) -> f64 {
+        let program = self.program;
+        let top = program
+            .points
+            .iter()
+            .map(|p| p.tool_mm[2])
+            .chain(program.boundaries.iter().map(|b| b.tool_mm[2]))
+            .fold(f64::NEG_INFINITY, f64::max);
+        as_written(top + self.s.clearance_mm, self.dec).1
     }
-    match d {
-        Dialect::Fanuc => line(&format!("O{:04}", s.program_number)),
-        Dialect::Sinumerik => {
-            line(&format!("%_N_{}_MPF", s.program_name.to_uppercase()));
-            line(";$PATH=/_N_MPF_DIR");
-        }
-        _ => {}
-    }
-    let sched = &program.schedule;
-    let mut header = vec![
-        "PRESTON DWELL PROGRAM".to_string(),
-        format!(
-            "DIALECT {} FEED MODE {}",
-            d.name().to_uppercase(),
-            fm.name().to_uppercase()
-        ),
-        match fm {
-            FeedMode::PerMinute => "UNITS MM, F MM/MIN, TIME S, ANGLE DEG".into(),
-            FeedMode::InverseTime => {
-                "UNITS MM, F = 1 / BLOCK TIME IN MINUTES, TIME S, ANGLE DEG".into()
+
+    /// The `F` word of the plunge from the clearance plane to the first boundary, with its
+    /// time counted.
+    fn plunge_word(&mut self, plane: f64) -> Result<String> {
+        let s = self.s;
+        let drop = plane - self.bnd[0].xyz[2];
+        Ok(match self.fm {
+            FeedMode::PerMinute => {
+                let (w, f) = feed_word(s.plunge_feed_mm_per_min, None)?;
+                self.written.plunge_time_s = 60.0 * drop / f;
+                w
             }
-        },
-    ];
-    header.extend(notes.iter().cloned());
-    header.push(format!("POINTS {n}"));
-    header.push(format!(
-        "TOOL RADIUS {} MM, TOOL CENTRE = CONTACT + R * NORMAL",
-        fixed(s.tool_radius_mm, dec)
-    ));
-    if let Some(t) = s.arc_tolerance_mm {
-        header.push(format!(
-            "CIRCULAR MOVES G17 I J: {} RUNS, {} BLOCKS, TOLERANCE {} MM",
-            written.arc_runs,
-            written.arc_blocks,
-            fixed(t, 6)
-        ));
+            FeedMode::InverseTime => {
+                let (w, f) = feed_word(s.plunge_feed_mm_per_min / drop, None)?;
+                self.written.plunge_time_s = 60.0 / f;
+                w
+            }
+        })
     }
-    if s.compensation.is_some() {
-        let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
-            (a.min(p.delta_mm), b.max(p.delta_mm))
-        });
-        header.push(format!(
-            "NORMAL DISPLACEMENT {} .. {} MM",
-            fixed(lo, dec),
-            fixed(hi, dec)
-        ));
-    }
-    header.push(format!("TOTAL DWELL {} S", fixed(sched.total_dwell_s, 3)));
-    header.push(format!(
-        "MACHINING TIME {} S: DWELL STRETCHES {} S, PLUNGE {} S, RAPIDS NOT INCLUDED",
-        fixed(written.stretch_time_s + written.plunge_time_s, 3),
-        fixed(written.stretch_time_s, 3),
-        fixed(written.plunge_time_s, 3)
-    ));
-    if f_hi > 0.0 {
-        header.push(format!(
-            "TOOL-CENTRE FEED {} .. {} MM/MIN",
-            fixed(f_lo, 3),
-            fixed(f_hi, 3)
-        ));
-    }
-    header.push(format!("CLEARANCE PLANE Z {} MM", fixed(plane, dec)));
-    header.push(format!(
-        "WORK OFFSET {}",
-        s.work_offset
-            .word()
-            .unwrap_or("AS ACTIVE ON THE CONTROLLER")
-    ));
-    header.push("EACH DWELL COMMENT: POINT, PLANNED S, CONTACT X Y MM, ITS BLOCKS FOLLOW".into());
-    for h in &header {
-        line(&d.comment(h));
-    }
-    let numbered = code.len() as u64 <= d.max_block_number();
-    let mut k = 0u64;
-    for c in &code {
-        if c.starts_with('(') || c.starts_with(';') || !numbered {
-            line(c);
-        } else {
-            k += 1;
-            line(&format!("N{k} {c}"));
+
+    /// The program's blocks, unnumbered: start, approach, the dwell body, retract and end.
+    fn blocks(&mut self, plane: f64, plunge_word: &str) -> Vec<String> {
+        let (s, d, fm, dec) = (self.s, self.d, self.fm, self.dec);
+        let start = &self.bnd[0];
+        let body = std::mem::take(&mut self.body);
+        let mut code: Vec<String> = Vec::with_capacity(body.len() + 12);
+        // Safe start (or the profile's start blocks), then plane, units, work offset, absolute and
+        // the feed mode whatever the start blocks left; spindle and coolant one M word a block (the
+        // Fanuc default allows one M code per block).
+        code.extend(s.start_blocks_or_default());
+        let mut modes = format!("G17 {}", d.metric_word());
+        if let Some(w) = s.work_offset.word() {
+            modes.push(' ');
+            modes.push_str(w);
         }
+        modes.push_str(&format!(" G90 {}", fm.word()));
+        code.push(modes);
+        if let Some(rpm) = s.spindle_rpm {
+            code.push(format!(
+                "S{} {}",
+                spindle_word(rpm),
+                s.spindle_direction.word()
+            ));
+        }
+        if let Some(m) = s.coolant.word() {
+            code.push(m.to_string());
+        }
+        code.push(format!("{} Z{}", d.rapid_word(), fixed(plane, dec)));
+        let mut above = format!(
+            "{} X{} Y{}",
+            d.rapid_word(),
+            fixed(start.xyz[0], dec),
+            fixed(start.xyz[1], dec)
+        );
+        if let Some(b) = start.b {
+            above.push_str(&format!(" B{}", fixed(b, dec)));
+        }
+        code.push(above);
+        code.push(format!(
+            "{} Z{} F{plunge_word}",
+            d.linear_word(),
+            fixed(start.xyz[2], dec)
+        ));
+        code.extend(body);
+        code.push(d.comment("END DWELL"));
+        code.push(format!("{} Z{}", d.rapid_word(), fixed(plane, dec)));
+        // Modal states back to the safe-start state: feed per minute after inverse time.
+        if fm == FeedMode::InverseTime {
+            code.push(FeedMode::PerMinute.word().to_string());
+        }
+        if s.coolant.word().is_some() {
+            code.push("M9".into());
+        }
+        if s.spindle_rpm.is_some() {
+            code.push("M5".into());
+        }
+        code.extend(s.end_blocks.iter().cloned());
+        code.push(d.program_end().to_string());
+        code
     }
-    if d.percent_wrapped() {
-        line("%");
+
+    /// The header comments (without their comment delimiters).
+    fn header(&self, notes: &[String], plane: f64) -> Vec<String> {
+        let (s, d, fm, dec) = (self.s, self.d, self.fm, self.dec);
+        let written = &self.written;
+        let pts = &self.program.points;
+        let sched = &self.program.schedule;
+        let mut header = vec![
+            "PRESTON DWELL PROGRAM".to_string(),
+            format!(
+                "DIALECT {} FEED MODE {}",
+                d.name().to_uppercase(),
+                fm.name().to_uppercase()
+            ),
+            match fm {
+                FeedMode::PerMinute => "UNITS MM, F MM/MIN, TIME S, ANGLE DEG".into(),
+                FeedMode::InverseTime => {
+                    "UNITS MM, F = 1 / BLOCK TIME IN MINUTES, TIME S, ANGLE DEG".into()
+                }
+            },
+        ];
+        header.extend(notes.iter().cloned());
+        header.push(format!("POINTS {}", pts.len()));
+        header.push(format!(
+            "TOOL RADIUS {} MM, TOOL CENTRE = CONTACT + R * NORMAL",
+            fixed(s.tool_radius_mm, dec)
+        ));
+        if let Some(t) = s.arc_tolerance_mm {
+            header.push(format!(
+                "CIRCULAR MOVES G17 I J: {} RUNS, {} BLOCKS, TOLERANCE {} MM",
+                written.arc_runs,
+                written.arc_blocks,
+                fixed(t, 6)
+            ));
+        }
+        if s.compensation.is_some() {
+            let (lo, hi) = pts.iter().fold((f64::INFINITY, 0.0f64), |(a, b), p| {
+                (a.min(p.delta_mm), b.max(p.delta_mm))
+            });
+            header.push(format!(
+                "NORMAL DISPLACEMENT {} .. {} MM",
+                fixed(lo, dec),
+                fixed(hi, dec)
+            ));
+        }
+        header.push(format!("TOTAL DWELL {} S", fixed(sched.total_dwell_s, 3)));
+        header.push(format!(
+            "MACHINING TIME {} S: DWELL STRETCHES {} S, PLUNGE {} S, RAPIDS NOT INCLUDED",
+            fixed(written.stretch_time_s + written.plunge_time_s, 3),
+            fixed(written.stretch_time_s, 3),
+            fixed(written.plunge_time_s, 3)
+        ));
+        if self.f_hi > 0.0 {
+            header.push(format!(
+                "TOOL-CENTRE FEED {} .. {} MM/MIN",
+                fixed(self.f_lo, 3),
+                fixed(self.f_hi, 3)
+            ));
+        }
+        header.push(format!("CLEARANCE PLANE Z {} MM", fixed(plane, dec)));
+        header.push(format!(
+            "WORK OFFSET {}",
+            s.work_offset
+                .word()
+                .unwrap_or("AS ACTIVE ON THE CONTROLLER")
+        ));
+        header
+            .push("EACH DWELL COMMENT: POINT, PLANNED S, CONTACT X Y MM, ITS BLOCKS FOLLOW".into());
+        header
     }
-    written.text = out;
-    Ok(written)
+
+    /// The program text: the dialect's wrapper, the header as comments, then the blocks,
+    /// numbered when the dialect's block numbers reach.
+    fn numbered_text(&self, header: &[String], code: &[String]) -> String {
+        let (s, d) = (self.s, self.d);
+        let mut out = String::with_capacity(40 * code.len() + 1024);
+        let mut line = |text: &str| {
+            out.push_str(text);
+            out.push('\n');
+        };
+        if d.percent_wrapped() {
+            line("%");
+        }
+        match d {
+            Dialect::Fanuc => line(&format!("O{:04}", s.program_number)),
+            Dialect::Sinumerik => {
+                line(&format!("%_N_{}_MPF", s.program_name.to_uppercase()));
+                line(";$PATH=/_N_MPF_DIR");
+            }
+            _ => {}
+        }
+        for h in header {
+            line(&d.comment(h));
+        }
+        let numbered = code.len() as u64 <= d.max_block_number();
+        let mut k = 0u64;
+        for c in code {
+            if c.starts_with('(') || c.starts_with(';') || !numbered {
+                line(c);
+            } else {
+                k += 1;
+                line(&format!("N{k} {c}"));
+            }
+        }
+        if d.percent_wrapped() {
+            line("%");
+        }
+        out
+    }
 }
 
 /// The program's G-code, where the program model meets the writer.
