@@ -21,7 +21,8 @@ use preston_solver::setup::robust::{self, RobustBasis, RobustSummary};
 use preston_solver::setup::{
     Checked, DwellPoints, Outcome, Setup, SetupData, SetupError, SetupInput,
 };
-use preston_solver::tif::{HertzTif, InfluenceFunction, Tif};
+use preston_solver::tif::model::{HertzPart, ProcessModel};
+use preston_solver::tif::{InfluenceFunction, Tif};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -98,7 +99,7 @@ pub fn load_tif(job: &Job, job_path: &Path) -> Result<Tif> {
 }
 
 /// The TIF of one resolved source; `job_path` names the job in messages. A Hertzian tool is its
-/// model on a flat part ([`HertzTif::flat`]) sampled on the grid of `pitch_mm`, as
+/// model on a flat part ([`ProcessModel::hertz`], the TIF-model service) sampled on the grid of `pitch_mm`, as
 /// `preston tif hertz` writes it; with `curvature_dependent` the set-up stage replaces it per
 /// dwell point ([`preston_solver::setup::TifModel::CurvatureDependent`]) and this one sets the
 /// raster margin, the edge band and the TIF figure.
@@ -113,8 +114,8 @@ pub fn load_tif_input(input: TifInput, job_path: &Path) -> Result<Tif> {
         TifInput::Hertz {
             params, pitch_mm, ..
         } => {
-            let grid = HertzTif::flat(&params)
-                .and_then(|t| t.to_grid(pitch_mm))
+            let grid = ProcessModel::hertz(&params, HertzPart::Flat)
+                .and_then(|m| m.grid(pitch_mm))
                 .map_err(engine)?;
             Ok(Tif::Grid(grid))
         }
@@ -146,45 +147,63 @@ pub fn check_job(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<
 /// and the dwell file (none when the job asks for a raster).
 pub fn read_inputs(job: &Job, job_path: &Path) -> Result<Inputs> {
     check_job(job, job_path, &preston_solver::observer::Silent)?;
-    read_checked(job, job_path)
+    read_checked(job, job_path, Given::default())
 }
 
-fn read_checked(job: &Job, job_path: &Path) -> Result<Inputs> {
-    if job.map.file.is_none() {
-        return Err(Error::Job {
-            file: job_path.to_path_buf(),
-            why: "no map: set [map] file (or --map)".into(),
-        });
-    }
-    let map = job.map.read()?;
-    let tif = load_tif(job, job_path)?;
-    let dwell = match job.dwell.resolve(job_path)? {
-        DwellInput::File(f) => Some(read_dwell(&f)?),
-        DwellInput::Raster { .. } => None,
+/// Inputs handed over already read (the Python package's arrays) in place of the job's files.
+#[derive(Debug, Clone, Default)]
+pub struct Given {
+    /// The map.
+    pub map: Option<MapRead>,
+    /// The TIF.
+    pub tif: Option<Tif>,
+    /// The dwell points.
+    pub dwell: Option<DwellFile>,
+}
+
+/// The inputs: each one given, or read from the file the job names.
+fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
+    let map = match given.map {
+        Some(m) => m,
+        None if job.map.file.is_none() => {
+            return Err(Error::Job {
+                file: job_path.to_path_buf(),
+                why: "no map: set [map] file (--map; Python: map= or map_xyz=)".into(),
+            })
+        }
+        None => job.map.read()?,
+    };
+    let tif = match given.tif {
+        Some(t) => t,
+        None => load_tif(job, job_path)?,
+    };
+    let dwell = match given.dwell {
+        Some(d) => Some(d),
+        None => match job.dwell.resolve(job_path)? {
+            DwellInput::File(f) => Some(read_dwell(&f)?),
+            DwellInput::Raster { .. } => None,
+        },
     };
     Ok(Inputs { map, tif, dwell })
 }
 
 /// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
 pub fn prepare(job: &Job, job_path: &Path, observer: &dyn Observer) -> Result<Prepared> {
-    let start = Instant::now();
-    let checked = check_job(job, job_path, observer)?;
-    let inputs = read_checked(job, job_path)?;
-    prepare_checked(job, job_path, checked, inputs, start, observer)
+    prepare_given(job, job_path, Given::default(), observer)
 }
 
-/// Builds the problem from inputs already read (`started`: when reading began, for the report's
-/// build time). `job_path` names the job in messages; the job's `[dwell]` decides between the
-/// given points and a generated raster, exactly one of which must be set.
-pub fn prepare_inputs(
+/// [`prepare`] with some inputs handed over already read: the job's choices are checked first,
+/// then what is not given is read from the files the job names.
+pub fn prepare_given(
     job: &Job,
     job_path: &Path,
-    inputs: Inputs,
-    started: Instant,
+    given: Given,
     observer: &dyn Observer,
 ) -> Result<Prepared> {
+    let start = Instant::now();
     let checked = check_job(job, job_path, observer)?;
-    prepare_checked(job, job_path, checked, inputs, started, observer)
+    let inputs = read_checked(job, job_path, given)?;
+    prepare_checked(job, job_path, checked, inputs, start, observer)
 }
 
 /// The file a set-up failure is about.

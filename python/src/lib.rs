@@ -24,8 +24,8 @@ pub(crate) use solve::SolveResult;
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2};
 use preston_io::job::Job;
 use preston_io::metrology::{MapFormat, MapInput, MapRead, MapSource};
-use preston_io::pipeline::{self, Inputs, Solved};
-use preston_io::readers::{read_dwell, DwellFile};
+use preston_io::pipeline::{self, Given, Solved};
+use preston_io::readers::DwellFile;
 use preston_io::surface::{read_surface, FitSummary};
 use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
 use preston_solver::machine::gcode::write_and_check;
@@ -47,7 +47,6 @@ use pyo3::types::{PyTuple, PyType};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
-use std::time::Instant;
 
 /// Runs `f` on a rayon pool of `threads` threads (the engine's parallel loops and faer's
 /// factorisations then use that many), or on the global pool (`RAYON_NUM_THREADS`, else one

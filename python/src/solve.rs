@@ -283,13 +283,12 @@ pub(crate) fn prepare_arrays(
     arrays: ArrayInputs,
     observer: &dyn Observer,
 ) -> preston_io::Result<pipeline::Prepared> {
-    let started = Instant::now();
     let map = match arrays.map {
         Some(c) => {
             let [x, y, z]: [Vec<f64>; 3] = c
                 .try_into()
                 .map_err(|_| preston_io::Error::option("map_xyz", "needs three columns"))?;
-            MapRead {
+            Some(MapRead {
                 map: HeightMap::new(x, y, z)
                     .map_err(|e| preston_io::Error::engine("map_xyz", e))?,
                 // Arrays carry no file format; the report leaves `map_input` out for them.
@@ -301,27 +300,19 @@ pub(crate) fn prepare_arrays(
                     notes: Vec::new(),
                     removed: None,
                 },
-            }
+            })
         }
-        None => {
-            if job.map.file.is_none() {
-                return Err(preston_io::Error::Job {
-                    file: job_path.to_path_buf(),
-                    why: "no map: give map= (a file) or map_xyz= (an (N, 3) array)".into(),
-                });
-            }
-            job.map.read()?
-        }
+        None => None,
     };
     let tif = match arrays.tif {
-        Some(c) => Tif::Grid(
+        Some(c) => Some(Tif::Grid(
             GridTif::from_samples(&c[0], &c[1], &c[2])
                 .map_err(|e| preston_io::Error::engine("tif_xyr", e))?,
-        ),
-        None => pipeline::load_tif(job, job_path)?,
+        )),
+        None => None,
     };
-    let dwell = match (arrays.dwell, &job.dwell.file, job.dwell.raster_pitch_mm) {
-        (Some(mut c), _, _) => {
+    let dwell = match arrays.dwell {
+        Some(mut c) => {
             let y = c.pop().unwrap_or_default();
             let x = c.pop().unwrap_or_default();
             Some(DwellFile {
@@ -329,10 +320,9 @@ pub(crate) fn prepare_arrays(
                 dwell_s: None,
             })
         }
-        (None, Some(f), None) => Some(read_dwell(f)?),
-        _ => None,
+        None => None,
     };
-    pipeline::prepare_inputs(job, job_path, Inputs { map, tif, dwell }, started, observer)
+    pipeline::prepare_given(job, job_path, Given { map, tif, dwell }, observer)
 }
 
 /// Reads what the job names and takes the rest from the arrays, then prepares and solves.

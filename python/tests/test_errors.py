@@ -155,3 +155,12 @@ def test_keywords_go_through_the_engines_override_layer(small_job):
         preston.solve(small_job, vmax=3000.0)
     with pytest.raises(preston.InputError, match="not both"):
         preston.solve(small_job, dwell="d.csv", raster_pitch_mm=1.0)
+
+
+def test_a_dwell_section_with_a_file_and_a_raster_is_refused_as_by_the_cli(small_job, tmp_path):
+    # The package reads what it is not given through the engine's one reader of a job's inputs.
+    d = tmp_path / "d.csv"
+    d.write_text("x_mm,y_mm\n0,0\n1,0\n")
+    job = dict(small_job, dwell={"file": str(d), "raster_pitch_mm": 1.0})
+    with pytest.raises(preston.InputError, match="raster_pitch_mm"):
+        preston.solve(job)
