@@ -125,6 +125,18 @@ pub(crate) fn to_py(e: preston_io::Error) -> PyErr {
 /// A job's JSON as Python gave it, the error in Python's terms: the keyword of `solve` (or the
 /// job key) at fault and serde's message without its position in the internal JSON.
 pub(crate) fn json_error_in_python_terms(json: &str, e: &serde_json::Error) -> String {
+    let (msg, path) = message_and_key_path(json, e);
+    let dotted = path.join(".");
+    match python_keyword(&dotted) {
+        Some(kw) => format!("{kw}: {msg} (job key {dotted})"),
+        None if dotted.is_empty() => msg,
+        None => format!("key {dotted}: {msg}"),
+    }
+}
+
+/// serde's message without its position in the JSON, and the keys leading to the value at fault
+/// (an unknown field's path is its object's plus the field).
+pub(crate) fn message_and_key_path(json: &str, e: &serde_json::Error) -> (String, Vec<String>) {
     let mut msg = e.to_string();
     if let Some(k) = msg.rfind(" at line ") {
         msg.truncate(k);
@@ -136,7 +148,6 @@ pub(crate) fn json_error_in_python_terms(json: &str, e: &serde_json::Error) -> S
         .sum::<usize>()
         + e.column().saturating_sub(1);
     let mut path = key_path_at(json, offset);
-    // An unknown field is named by the message; its path is the object's plus the field.
     if let Some(field) = msg
         .strip_prefix("unknown field `")
         .and_then(|r| r.split('`').next())
@@ -145,12 +156,7 @@ pub(crate) fn json_error_in_python_terms(json: &str, e: &serde_json::Error) -> S
             path.push(field.to_string());
         }
     }
-    let dotted = path.join(".");
-    match python_keyword(&dotted) {
-        Some(kw) => format!("{kw}: {msg} (job key {dotted})"),
-        None if dotted.is_empty() => msg,
-        None => format!("key {dotted}: {msg}"),
-    }
+    (msg, path)
 }
 
 /// The keyword of `preston.solve` a job key comes from, where there is one.

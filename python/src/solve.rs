@@ -242,25 +242,11 @@ pub(crate) fn apply_overrides(
 /// A keyword's value that is not an override, in the keyword's terms: `solver=: unknown variant
 /// ...`, `gaussian=: unknown field `peak` ...`, or `unknown keyword `vmax`, expected one of ...`.
 fn keyword_error(json: &str, e: &serde_json::Error) -> String {
-    let mut msg = e.to_string();
-    if let Some(k) = msg.rfind(" at line ") {
-        msg.truncate(k);
-    }
-    let offset = json
-        .split_inclusive('\n')
-        .take(e.line().saturating_sub(1))
-        .map(str::len)
-        .sum::<usize>()
-        + e.column().saturating_sub(1);
-    let mut path = crate::errors::key_path_at(json, offset);
-    let unknown = msg
-        .strip_prefix("unknown field `")
-        .and_then(|r| r.split('`').next())
-        .map(str::to_string);
-    if let Some(field) = &unknown {
-        if path.last() == Some(field) {
-            path.pop();
-        }
+    let (msg, mut path) = crate::errors::message_and_key_path(json, e);
+    // An unknown keyword's path is the keyword alone.
+    let unknown_keyword = msg.starts_with("unknown field") && path.len() == 1;
+    if unknown_keyword {
+        path.pop();
     }
     match (path.first(), msg.strip_prefix("unknown field")) {
         (None, Some(rest)) => format!("unknown keyword{rest}"),
