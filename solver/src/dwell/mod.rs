@@ -258,13 +258,20 @@ impl Problem {
 
     /// The same problem (operator, bounds, weights) with another target `z_nm` (one per row).
     pub fn with_target_nm(&self, z_nm: Vec<f64>) -> Result<Self> {
-        Self::build(
+        let mut p = Self::build(
             Arc::clone(&self.operator),
             z_nm,
             self.bounds.clone(),
             self.rho,
             self.lambda,
-        )
+        )?;
+        p.dwell_lattice.clone_from(&self.dwell_lattice);
+        // The scaled Hessian `S (R^T P R + lambda D^T D) S` does not depend on the target: a
+        // norm estimated for this problem serves the new one.
+        if let Some(&norm) = self.scaled_hessian_norm.get() {
+            let _ = p.scaled_hessian_norm.set(norm);
+        }
+        Ok(p)
     }
 
     /// The same problem with other weights (used by the minimum-time mode).
