@@ -198,18 +198,18 @@ pub(crate) fn solve_validated(
     }
     let t0 = Instant::now();
     let res = with_solver_operator(problem, POWER_STEPS, settings.first_order_tolerance, |op| {
-        minimise_validated(
+        minimise_validated(&Request {
             op,
-            problem.z_nm(),
-            problem.bounds(),
-            problem.rho(),
-            problem.lambda(),
+            z_nm: problem.z_nm(),
+            bounds: problem.bounds(),
+            rho: problem.rho(),
+            lambda: problem.lambda(),
             settings,
             start,
             observer,
-            problem.dwell_lattice(),
-            Some(problem.scaled_hessian_norm()),
-        )
+            lattice: problem.dwell_lattice(),
+            norm_cache: Some(problem.scaled_hessian_norm()),
+        })
     })?;
     let mut dwell_s = res.dwell_s;
     problem.bounds().project(&mut dwell_s);
@@ -514,26 +514,40 @@ pub fn minimise_with(
     lattice: Option<&DwellLattice>,
 ) -> Result<FirstOrderResult> {
     settings.validate()?;
-    minimise_validated(
-        op, z_nm, bounds, rho, lambda, settings, start, observer, lattice, None,
-    )
+    minimise_validated(&Request {
+        op,
+        z_nm,
+        bounds,
+        rho,
+        lambda,
+        settings,
+        start,
+        observer,
+        lattice,
+        norm_cache: None,
+    })
 }
 
-/// As [`minimise_with`], with `settings` already validated; the scaled Hessian's norm is taken
-/// from `norm_cache` when it holds one and kept there otherwise ([`Problem`]'s cache).
-#[allow(clippy::too_many_arguments)]
-fn minimise_validated(
-    op: &dyn LinearOperator,
-    z_nm: &[f64],
-    bounds: &DwellBounds,
+/// One first-order minimisation asked for: the problem's data, the settings (validated) and
+/// where to start. The scaled Hessian's norm is taken from `norm_cache` when it holds one and
+/// kept there otherwise ([`Problem`]'s cache).
+struct Request<'a> {
+    op: &'a dyn LinearOperator,
+    z_nm: &'a [f64],
+    bounds: &'a DwellBounds,
     rho: f64,
     lambda: f64,
-    settings: &Settings,
-    start: Option<&[f64]>,
-    observer: &dyn Observer,
-    lattice: Option<&DwellLattice>,
-    norm_cache: Option<&OnceLock<f64>>,
-) -> Result<FirstOrderResult> {
+    settings: &'a Settings,
+    start: Option<&'a [f64]>,
+    observer: &'a dyn Observer,
+    lattice: Option<&'a DwellLattice>,
+    norm_cache: Option<&'a OnceLock<f64>>,
+}
+
+/// As [`minimise_with`], with `settings` already validated: on one thread for a small problem,
+/// else on a worker of the pool.
+fn minimise_validated(request: &Request<'_>) -> Result<FirstOrderResult> {
+    let op = request.op;
     if op.nrows() + op.ncols() < SMALL_PROBLEM && rayon::current_num_threads() > 1 {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
@@ -542,35 +556,27 @@ fn minimise_validated(
                 stage: "first-order thread pool",
                 why: e.to_string(),
             })?;
-        return pool.install(|| {
-            minimise_here(
-                op, z_nm, bounds, rho, lambda, settings, start, observer, lattice, norm_cache,
-            )
-        });
+        return pool.install(|| minimise_here(request));
     }
     // Run on a worker of the pool: called from outside it, every parallel loop of the iteration
     // would be injected into the pool and waited for on a futex (a few microseconds each, and
     // one thread more than there are workers competing for the cores).
-    rayon::scope(|_| {
-        minimise_here(
-            op, z_nm, bounds, rho, lambda, settings, start, observer, lattice, norm_cache,
-        )
-    })
+    rayon::scope(|_| minimise_here(request))
 }
 
-#[allow(clippy::too_many_arguments)]
-fn minimise_here(
-    op: &dyn LinearOperator,
-    z_nm: &[f64],
-    bounds: &DwellBounds,
-    rho: f64,
-    lambda: f64,
-    settings: &Settings,
-    start: Option<&[f64]>,
-    observer: &dyn Observer,
-    lattice: Option<&DwellLattice>,
-    norm_cache: Option<&OnceLock<f64>>,
-) -> Result<FirstOrderResult> {
+fn minimise_here(request: &Request<'_>) -> Result<FirstOrderResult> {
+    let &Request {
+        op,
+        z_nm,
+        bounds,
+        rho,
+        lambda,
+        settings,
+        start,
+        observer,
+        lattice,
+        norm_cache,
+    } = request;
     let (m, n) = (op.nrows(), op.ncols());
     if z_nm.len() != m {
         return Err(Error::LengthMismatch {
