@@ -27,6 +27,16 @@ fn the_sample_job_as_shipped_delivers_its_part_as_executed() {
     ok(&preston(&["solve", "--job", &job, "--out", s(&out)]));
     let r = report(&out);
     assert_eq!(r["influence"], "swept");
+    // The raster at the map's own pitch, placed on its lattice: the FFT operator serves it.
+    assert_eq!(r["operator"], "fft");
+    let raster = &r["raster"];
+    assert_eq!(
+        raster["phase_cells"],
+        serde_json::json!([0.0, 0.0]),
+        "{raster}"
+    );
+    let lattice = raster["map_lattice_pitch_mm"].as_f64().unwrap();
+    assert!((lattice - 0.32).abs() <= 1e-9, "{raster}");
     let planned_rms = r["rms_after_nm"].as_f64().unwrap();
     // The correction passes against the executed program are what bring the part down: the
     // model's own residual is far above the executed one.

@@ -419,6 +419,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
         report.warnings.push(a.warning());
     }
     report.influence = Some(prepared.setup.influence_model());
+    report.raster = prepared.setup.raster;
     match &outcome.executed {
         Some(Ok(e)) => {
             let planned = report.rms_after_nm;

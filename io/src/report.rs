@@ -146,6 +146,11 @@ pub struct Report {
     /// of its removal (`point` for discrete motion, `swept` for continuous motion and programs).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub influence: Option<InfluenceModel>,
+    /// A generated raster's placement: `pitch_mm`, `origin_mm` (its lower corner), the map's
+    /// `map_lattice_pitch_mm` and the raster's `phase_cells` on that lattice (zero: Preston put
+    /// the raster on the lattice, so the FFT or phase-stencil operator serves it).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub raster: Option<preston_solver::path::raster::RasterPlacement>,
     /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`
     /// are the program's as executed at the acceleration limit (a limit on a flat part). Absent
     /// otherwise.
@@ -528,6 +533,7 @@ impl Report {
             executed: None,
             operator_error: None,
             influence: None,
+            raster: None,
             model: None,
             sensitivity: None,
             robust: None,

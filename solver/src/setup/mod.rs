@@ -229,6 +229,8 @@ pub struct Setup {
     /// With the swept influence model in the plane: every dwell point's stretch sampled for the
     /// assembled `R`, and the kernel the lattice operators share ([`crate::influence::swept`]).
     pub swept: Option<(Stretches, SweptTif<Tif>)>,
+    /// A generated raster's placement on the map's lattice (`None`: given dwell points).
+    pub raster: Option<raster::RasterPlacement>,
 }
 
 /// How `R` is held for a problem.

@@ -3,10 +3,27 @@
 
 use super::choices::WARM_START_WITH_ACCEL;
 use super::*;
+use crate::influence::lattice::lattice_index;
+use crate::path::raster::RasterPlacement;
 
 /// Values held per dwell point through a solve (path, lengths, dwell, feeds, solver work
 /// vectors), not counting the influence matrix: the memory budget's lower bound.
 pub(super) const DWELL_POINT_VALUES: f64 = 16.0;
+
+/// The regular lattice the map's points lie on, if any: its pitch, mm, and the node through the
+/// map's lowest x and y (the lattice the FFT and phase-stencil operators use).
+fn map_lattice(map: &HeightMap) -> Option<(f64, [f64; 2])> {
+    let (x, y) = (map.x_mm(), map.y_mm());
+    let h = FftOperator::lattice_pitch_mm(x, y)?;
+    let origin = [
+        x.iter().copied().fold(f64::INFINITY, f64::min),
+        y.iter().copied().fold(f64::INFINITY, f64::min),
+    ];
+    let on = x.iter().zip(y).all(|(&x, &y)| {
+        lattice_index(x, origin[0], h).is_some() && lattice_index(y, origin[1], h).is_some()
+    });
+    on.then_some((h, origin))
+}
 
 impl Setup {
     /// Resolves the data under the checked choices: the dwell points (generating the raster),
@@ -44,6 +61,7 @@ impl Setup {
         if let Some(s) = &surface {
             s.validate().at(SetupInput::Surface)?;
         }
+        let mut raster_placement = None;
         let path = match dwell {
             DwellPoints::Given(p) => {
                 // A plan to solve for needs feeds; one evaluated as given (no limits) may be a
@@ -78,6 +96,19 @@ impl Setup {
                     )
                     .at(SetupInput::None)?;
                 }
+                let lattice = map_lattice(&map);
+                let bbox = match lattice {
+                    Some((h, origin)) => raster::snapped_to_lattice(&bbox, h, origin),
+                    None => bbox,
+                };
+                let origin_mm = [bbox.x_min_mm, bbox.y_min_mm];
+                raster_placement = Some(RasterPlacement {
+                    pitch_mm,
+                    origin_mm,
+                    map_lattice_pitch_mm: lattice.map(|(h, _)| h),
+                    phase_cells: lattice
+                        .map(|(h, origin)| raster::lattice_phase_cells(origin_mm, h, origin)),
+                });
                 raster::serpentine(&bbox, pitch_mm, along).at(SetupInput::Job)?
             }
         };
@@ -113,6 +144,7 @@ impl Setup {
         };
         Ok(Self {
             swept,
+            raster: raster_placement,
             map,
             tif,
             tif_model: choices.tif_model,

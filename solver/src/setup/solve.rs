@@ -3,11 +3,14 @@
 //! sensitivity; and the plans evaluated as given ([`Setup::removal_of`], [`Setup::run_program`]).
 
 use super::*;
+use crate::dwell::first_order::FIT_RMS_SETTLED_NM;
 
 /// Most correction passes against the executed program.
 pub const MAX_CORRECTION_PASSES: usize = 4;
 
-/// Smallest relative fall of the executed RMS for which a correction pass is kept.
+/// Smallest relative fall of the executed RMS for which a correction pass is kept. A kept pass
+/// that lowered it by less than [`FIT_RMS_SETTLED_NM`] (the fall the solver counts as settled)
+/// is the last.
 pub const PASS_GAIN: f64 = 1e-3;
 
 /// The exact removal and the operator's error on it.
@@ -258,12 +261,17 @@ impl Setup {
             if e.after.rms_nm >= current.after.rms_nm * (1.0 - PASS_GAIN) {
                 break;
             }
+            let gain_nm = current.after.rms_nm - e.after.rms_nm;
             removal_all = problem.removal_nm(&s.dwell_s)?;
             solution = s;
             current = Executed {
                 correction_passes: current.correction_passes + 1,
                 ..e
             };
+            // A pass that gained less than the solver's settled fall is the last one.
+            if gain_nm < FIT_RMS_SETTLED_NM {
+                break;
+            }
         }
         Ok((solution, removal_all, Some(Ok(current))))
     }

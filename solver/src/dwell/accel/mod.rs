@@ -414,13 +414,16 @@ pub(crate) fn solve_validated(
 
     // The status speaks for the dwell times returned: a result whose acceleration, recomputed
     // from the dwell times as every report does, exceeds the limit beyond the constraint
-    // tolerance is not converged, whatever the method's own stopping test said.
-    let status =
-        if run.status.is_converged() && kin.violation(&run.dwell_s) > limits.constraint_tolerance {
-            Status::Stalled
-        } else {
-            run.status
-        };
+    // tolerance is not converged, whatever the method's own stopping test said. Under
+    // correction passes the controller holds the limit, not the dwell times.
+    let status = if limits.method != AccelMethod::CorrectionPasses
+        && run.status.is_converged()
+        && kin.violation(&run.dwell_s) > limits.constraint_tolerance
+    {
+        Status::Stalled
+    } else {
+        run.status
+    };
     let eval = problem.evaluate(&run.dwell_s)?;
     let report = accel_report(&limited, path, &run, &reference, eval.objective, status);
     let kkt_residual = run.kkt_residual;

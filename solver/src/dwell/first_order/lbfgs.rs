@@ -54,7 +54,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
         objective: cert.f,
         kkt_residual: Some(cert.kkt),
     });
-    if let Some(st) = limits.stop(&cert) {
+    if let Some(st) = limits.stop(&cert, it) {
         return (st, x, it, cert);
     }
     while it < limits.max_it {
@@ -77,13 +77,16 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             let carried_kkt = carried_kkt2.sqrt() / limits.kkt_norm.at(carried_f);
             let report = reports.due(it);
             let out_of_time = limits.began.elapsed().as_secs_f64() > limits.time_limit_s;
-            if carried_kkt <= limits.tol || (periodic && report) || out_of_time {
+            if (carried_kkt <= limits.tol && limits.recheck_due(it))
+                || (periodic && report)
+                || out_of_time
+            {
                 cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
                 scaled_gradient(work, &mut v.q);
                 exact_at = it;
                 carried_f = cert.f;
                 reports.report(observer, it, (cert.f, cert.kkt), true);
-                if let Some(st) = limits.stop(&cert) {
+                if let Some(st) = limits.stop(&cert, it) {
                     status = st;
                     break;
                 }
@@ -92,6 +95,11 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             }
             if report {
                 reports.report(observer, it, (carried_f, carried_kkt), false);
+                if rho == 0.0 {
+                    // Without a time term the carried objective is the fit: a point of its
+                    // history between the certificates.
+                    limits.record_fit(carried_f, it);
+                }
             }
         }
         let qp = pairs.projected_step(data, &x, &mut v, step, dot, &mut work.partials);
@@ -103,12 +111,16 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             let fresh = it == exact_at;
             exact_at = it;
             carried_f = cert.f;
-            if let Some(st) = limits.stop(&cert) {
+            if let Some(st) = limits.stop(&cert, it) {
                 status = st;
                 break;
             }
             if fresh {
-                status = if cert.kkt <= limits.tol.sqrt() {
+                // Stationary to rounding: no further step can lower the fit, so a KKT residual
+                // within the tolerance is convergence whether or not the fit has settled.
+                status = if cert.kkt <= limits.tol {
+                    Status::Converged
+                } else if cert.kkt <= limits.tol.sqrt() {
                     Status::AlmostConverged
                 } else {
                     Status::NumericalError
@@ -133,7 +145,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
     }
     if it != exact_at {
         cert = certificate(data, &x, work, bounds, &limits.kkt_norm);
-        if status == Status::MaxIterations && limits.met(&cert).is_some() {
+        if status == Status::MaxIterations && limits.met(&cert, it).is_some() {
             status = Status::Converged;
         }
     }

@@ -58,7 +58,7 @@ pub(super) fn newton_cg(
             objective: cert.f,
             kkt_residual: Some(cert.kkt),
         });
-        if let Some(s) = limits.stop(&cert) {
+        if let Some(s) = limits.stop(&cert, it) {
             status = s;
             break;
         }
