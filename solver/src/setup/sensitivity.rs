@@ -11,9 +11,10 @@
 //!   (`o` = 0.05 mm along x and along y).
 
 use crate::error::Result;
+use crate::influence::direct::removals_nm;
 use crate::map::HeightStats;
 use crate::observer::Observer;
-use crate::simulate::{removal_of_samples, SampledProgram};
+use crate::simulate::SampledProgram;
 use crate::tif::InfluenceFunction;
 use serde::{Deserialize, Serialize};
 
@@ -123,21 +124,38 @@ pub fn of_executed<T: InfluenceFunction + ?Sized>(
             pv_nm: s.pv_nm,
         }
     };
-    let run = |width: f64, offset: (f64, f64)| -> Result<ScenarioFigures> {
-        let perturbed = PerturbedTif::new(tif, width, 1.0, offset);
-        let h = removal_of_samples(map_x_mm, map_y_mm, contact, &perturbed, observer)?;
-        Ok(figures(&h))
-    };
     let rate: Vec<f64> = removal_nm
         .iter()
         .map(|h| h * (1.0 + RELATIVE_CHANGE))
         .collect();
+    // The four motion scenarios in one pass over the motion's samples.
+    let perturbed = [
+        PerturbedTif::new(tif, 1.0 + RELATIVE_CHANGE, 1.0, (0.0, 0.0)),
+        PerturbedTif::new(tif, 1.0 / (1.0 + RELATIVE_CHANGE), 1.0, (0.0, 0.0)),
+        PerturbedTif::new(tif, 1.0, 1.0, (OFFSET_MM, 0.0)),
+        PerturbedTif::new(tif, 1.0, 1.0, (0.0, OFFSET_MM)),
+    ];
+    let h = removals_nm(
+        map_x_mm,
+        map_y_mm,
+        &contact.x_mm,
+        &contact.y_mm,
+        &contact.dwell_s,
+        &perturbed,
+        observer,
+    )?;
+    let [wider, narrower, offset_x, offset_y] = h.as_slice() else {
+        return Err(crate::error::Error::invalid(
+            "sensitivity",
+            "four scenario removals expected",
+        ));
+    };
     Ok(Sensitivity {
-        tif_wider_3pct: run(1.0 + RELATIVE_CHANGE, (0.0, 0.0))?,
-        tif_narrower_3pct: run(1.0 / (1.0 + RELATIVE_CHANGE), (0.0, 0.0))?,
+        tif_wider_3pct: figures(wider),
+        tif_narrower_3pct: figures(narrower),
         rate_plus_3pct: figures(&rate),
-        offset_x_0p05mm: run(1.0, (OFFSET_MM, 0.0))?,
-        offset_y_0p05mm: run(1.0, (0.0, OFFSET_MM))?,
+        offset_x_0p05mm: figures(offset_x),
+        offset_y_0p05mm: figures(offset_y),
     })
 }
 
@@ -198,7 +216,7 @@ mod tests {
                 my.push(-1.0 + 0.5 * j as f64);
             }
         }
-        let h = removal_of_samples(&mx, &my, &contact, &g, &NoObserver).unwrap();
+        let h = crate::simulate::removal_of_samples(&mx, &my, &contact, &g, &NoObserver).unwrap();
         let s = of_executed(&mx, &my, &h, &contact, &h, &g, &NoObserver).unwrap();
         let expect = HeightStats::of(&super::super::centred_residual_nm(
             &h,
