@@ -22,9 +22,15 @@ def test_discrete_simulation_is_the_solvers_removal(small_job):
 
 def test_raster_is_the_solvers_path(small_job):
     r = preston.solve(small_job)
-    # The map's box extended by the TIF's nominal radius (the truncation radius of a Gaussian).
+    # The map's box extended by the TIF's nominal radius (the truncation radius of a Gaussian),
+    # its lower corner moved down onto the map's 0.8 mm lattice (report.json raster).
     ext = small_job["tif"]["gaussian"]["truncation_radius_mm"]
-    x, y = preston.raster((0.0 - ext, 24.0 + ext), (0.0 - ext, 16.0 + ext), 1.0, "x")
+    lo = np.floor((0.0 - ext) / 0.8 + 1e-6) * 0.8
+    assert r.report["raster"]["phase_cells"] == [0.0, 0.0]
+    assert r.report["raster"]["origin_mm"] == pytest.approx([lo, lo], abs=1e-9)
+    # The lattice's pitch as the solver finds it (the smallest step between map coordinates).
+    ox, oy = r.report["raster"]["origin_mm"]
+    x, y = preston.raster((ox, 24.0 + ext), (oy, 16.0 + ext), 1.0, "x")
     np.testing.assert_array_equal(x, r.dwell_x_mm)
     np.testing.assert_array_equal(y, r.dwell_y_mm)
     with pytest.raises(preston.InputError, match="pitch"):
