@@ -17,18 +17,14 @@ use rayon::prelude::*;
 /// Map points summed by one rayon task.
 const POINTS_PER_TASK: usize = 256;
 
-/// `h = R t`, nm, at the map points `(map_x_mm, map_y_mm)` of dwell times `dwell_s` (s) at
-/// `(dwell_x_mm, dwell_y_mm)` with `tif`, without assembling `R` (module documentation).
-pub fn removal_nm<T: InfluenceFunction + ?Sized>(
-    map_x_mm: &[f64],
+/// The map's y, the dwell points' y and the dwell times against the `m` map and `n` dwell x.
+fn check_lengths(
+    m: usize,
+    n: usize,
     map_y_mm: &[f64],
-    dwell_x_mm: &[f64],
     dwell_y_mm: &[f64],
     dwell_s: &[f64],
-    tif: &T,
-    observer: &dyn Observer,
-) -> Result<Vec<f64>> {
-    let (m, n) = (map_x_mm.len(), dwell_x_mm.len());
+) -> Result<()> {
     for (what, got, expected) in [
         ("map y_mm", map_y_mm.len(), m),
         ("dwell y_mm", dwell_y_mm.len(), n),
@@ -42,6 +38,22 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
             });
         }
     }
+    Ok(())
+}
+
+/// `h = R t`, nm, at the map points `(map_x_mm, map_y_mm)` of dwell times `dwell_s` (s) at
+/// `(dwell_x_mm, dwell_y_mm)` with `tif`, without assembling `R` (module documentation).
+pub fn removal_nm<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    dwell_s: &[f64],
+    tif: &T,
+    observer: &dyn Observer,
+) -> Result<Vec<f64>> {
+    let (m, n) = (map_x_mm.len(), dwell_x_mm.len());
+    check_lengths(m, n, map_y_mm, dwell_y_mm, dwell_s)?;
     let radius = tif.support_radius_mm();
     if !(radius.is_finite() && radius > 0.0) {
         return Err(Error::invalid(
@@ -88,19 +100,7 @@ pub fn removals_nm<T: InfluenceFunction>(
     observer: &dyn Observer,
 ) -> Result<Vec<Vec<f64>>> {
     let (m, n, k) = (map_x_mm.len(), dwell_x_mm.len(), tifs.len());
-    for (what, got, expected) in [
-        ("map y_mm", map_y_mm.len(), m),
-        ("dwell y_mm", dwell_y_mm.len(), n),
-        ("dwell_s", dwell_s.len(), n),
-    ] {
-        if got != expected {
-            return Err(Error::LengthMismatch {
-                what,
-                got,
-                expected,
-            });
-        }
-    }
+    check_lengths(m, n, map_y_mm, dwell_y_mm, dwell_s)?;
     let r2: Vec<f64> = tifs.iter().map(|t| t.support_radius_mm().powi(2)).collect();
     let radius = r2.iter().copied().fold(0.0, f64::max).sqrt();
     if !(radius.is_finite() && radius > 0.0) || r2.iter().any(|r| !(*r > 0.0)) {

@@ -138,7 +138,7 @@ fn dwell_cell_and_phase(
 }
 
 /// The map's lowest x and y: the lattice runs through them.
-fn lattice_origin(map_x_mm: &[f64], map_y_mm: &[f64]) -> (f64, f64) {
+pub(crate) fn lattice_origin(map_x_mm: &[f64], map_y_mm: &[f64]) -> (f64, f64) {
     (
         map_x_mm.iter().copied().fold(f64::INFINITY, f64::min),
         map_y_mm.iter().copied().fold(f64::INFINITY, f64::min),

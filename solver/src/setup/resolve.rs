@@ -4,6 +4,7 @@
 use super::choices::WARM_START_WITH_ACCEL;
 use super::*;
 use crate::influence::lattice::lattice_index;
+use crate::influence::stencil::lattice_origin;
 use crate::path::raster::RasterPlacement;
 
 /// Values held per dwell point through a solve (path, lengths, dwell, feeds, solver work
@@ -15,10 +16,8 @@ pub(super) const DWELL_POINT_VALUES: f64 = 16.0;
 fn map_lattice(map: &HeightMap) -> Option<(f64, [f64; 2])> {
     let (x, y) = (map.x_mm(), map.y_mm());
     let h = FftOperator::lattice_pitch_mm(x, y)?;
-    let origin = [
-        x.iter().copied().fold(f64::INFINITY, f64::min),
-        y.iter().copied().fold(f64::INFINITY, f64::min),
-    ];
+    let (x0, y0) = lattice_origin(x, y);
+    let origin = [x0, y0];
     let on = x.iter().zip(y).all(|(&x, &y)| {
         lattice_index(x, origin[0], h).is_some() && lattice_index(y, origin[1], h).is_some()
     });
