@@ -80,6 +80,10 @@ pub enum OperatorChoice {
     /// tolerance). Needs map points on a regular lattice and the first-order solver; pays where
     /// the dwell raster's pitch is a rational multiple of the map's (few distinct positions).
     Stencil,
+    /// Never form R: dwell points spread by the exponential-of-semicircle kernel onto a fine
+    /// lattice, then FFT (map on a lattice, dwell points anywhere, first-order solver; its error
+    /// against the exact R measured and reported).
+    ///
     /// Never form `R`: dwell points spread by the exponential-of-semicircle kernel onto a fine
     /// lattice, then a deconvolved FFT convolution ([`crate::influence::NufftOperator`]; the
     /// error against the exact `R` measured, within
