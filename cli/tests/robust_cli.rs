@@ -104,9 +104,38 @@ fn robust_plan_trades_nominal_for_the_worst_scenario() {
         robust["nominal_plan_rms_after_nm"].as_f64().unwrap(),
         nom[0]
     ));
+    assert_eq!(robust["weighting"], "mean");
+    assert_eq!(rms_list(&robust["scenario_weights"]), vec![1.0; 5]);
     let mut refused = args.to_vec();
     refused.extend(["--operator", "fft"]);
     expect_failure(&refused, &["robust"]);
+
+    // Minimax weights: the worst scenario as planned no higher than the mean plan's, the
+    // weights summing to the scenario count with the most on a scenario the mean plan left
+    // worst (the weights follow the residuals). Without --robust the weighting is refused.
+    let out = d.path().join("minimax");
+    let o = preston_cmd()
+        .arg("solve")
+        .args(args)
+        .args(["--robust-weighting", "minimax", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    let minimax = &r["robust"];
+    assert_eq!(minimax["weighting"], "minimax", "{minimax}");
+    let mm = rms_list(&minimax["robust_plan_rms_nm"]);
+    assert!(worst(&mm) <= worst(&rob) * (1.0 + 1e-9), "{mm:?} against {rob:?}");
+    let w = rms_list(&minimax["scenario_weights"]);
+    assert!((w.iter().sum::<f64>() - 5.0).abs() < 1e-9, "{w:?}");
+    let heaviest = (0..5).fold(0, |k, i| if w[i] > w[k] { i } else { k });
+    assert!(rob[heaviest] > rob.iter().sum::<f64>() / 5.0, "{w:?} against {rob:?}");
+    let warned = r["warnings"].to_string();
+    assert!(warned.contains("robust minimax"), "{warned}");
+    let mut no_robust: Vec<&str> = args.iter().copied().filter(|a| *a != "--robust").collect();
+    no_robust.extend(["--robust-weighting", "minimax"]);
+    expect_failure(&no_robust, &["robust_weighting"]);
 }
 
 /// The shipped job with `--robust`: both programs executed at the job's acceleration limit, the

@@ -12,7 +12,7 @@
 use crate::error::{Error, Result};
 use crate::job::{Job, TifSource};
 use preston_solver::dwell::accel::AccelMethod;
-use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, SolverChoice};
+use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, RobustWeighting, SolverChoice};
 use preston_solver::edge::EdgeMethod;
 use preston_solver::influence::surface::TifFrame;
 use preston_solver::influence::InfluenceModel;
@@ -148,6 +148,11 @@ pub struct Overrides {
         arg(long, num_args = 0..=1, default_missing_value = "true", value_name = "BOOL")
     )]
     pub robust: Option<bool>,
+    /// How a robust plan weighs its scenarios: mean (equal weights, the default) or minimax
+    /// (weights moved towards the worst scenario over up to 6 rounds, each a solve: the plan
+    /// whose worst scenario is smallest) (job: `[solver] robust_weighting`).
+    #[cfg_attr(feature = "clap", arg(long, value_enum))]
+    pub robust_weighting: Option<RobustWeighting>,
     /// Largest estimated relative error of the off-lattice spreading operator against the
     /// assembled R (default: the job's, else 1e-4).
     #[cfg_attr(feature = "clap", arg(long))]
@@ -222,6 +227,7 @@ impl Overrides {
         set(&mut solver.operator, self.operator);
         set(&mut solver.influence, self.influence);
         set(&mut solver.robust, self.robust);
+        set(&mut solver.robust_weighting, self.robust_weighting);
         set(&mut solver.spread_tolerance, self.spread_tolerance);
         set_some(&mut job.surface.file, self.surface);
         set(&mut job.surface.tif_frame, self.tif_frame);

@@ -43,6 +43,8 @@ pub struct Prepared {
     pub build_seconds: f64,
     /// Warnings about the inputs, for the report and stderr.
     pub warnings: Vec<String>,
+    /// A robust plan's scenario weights (`None` for a nominal plan).
+    pub scenario_weights: Option<Vec<f64>>,
 }
 
 impl Prepared {
@@ -295,6 +297,7 @@ fn prepare_checked(
         edge_points: built.edge_points,
         build_seconds: started.elapsed().as_secs_f64(),
         warnings,
+        scenario_weights: built.scenario_weights,
     })
 }
 
@@ -391,6 +394,11 @@ fn robust_report(
     };
     Ok(RobustReport {
         planned,
+        weighting: prepared.setup.settings.robust_weighting,
+        scenario_weights: prepared
+            .scenario_weights
+            .clone()
+            .unwrap_or_else(|| vec![1.0; robust::SCENARIOS.len()]),
         nominal_plan_rms_after_nm,
         nominal_plan_sensitivity: plan.sensitivity,
     })

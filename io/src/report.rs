@@ -174,6 +174,11 @@ pub struct RobustReport {
     /// worst scenario.
     #[serde(flatten)]
     pub planned: preston_solver::setup::robust::RobustSummary,
+    /// How the scenarios were weighed: `mean` or `minimax`.
+    pub weighting: preston_solver::dwell::RobustWeighting,
+    /// The scenarios' weights in the plan, in the order of `scenarios`, summing to their count
+    /// (all 1 for `mean`).
+    pub scenario_weights: Vec<f64>,
     /// The nominal plan's residual RMS, nm: as executed where the program is executed, else
     /// its model's.
     pub nominal_plan_rms_after_nm: f64,

@@ -514,6 +514,23 @@ pub struct Settings {
     /// narrower, the tool 0.05 mm off in x and y, and the nominal) instead of the nominal alone
     /// ([`crate::setup::robust`]); needs the assembled `R`. Read where the problem is built.
     pub robust: bool,
+    /// How a robust plan weighs its scenarios: their mean (the default) or, by reweighting
+    /// rounds, the worst of them ([`RobustWeighting`]). Read where the problem is built.
+    pub robust_weighting: RobustWeighting,
+}
+
+/// How a robust plan ([`Settings::robust`]) weighs its scenarios' squared residuals.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
+pub enum RobustWeighting {
+    /// Equal weights: the mean squared residual over the scenarios (the sample-average
+    /// counterpart).
+    #[default]
+    Mean,
+    /// Weights moved towards the worst scenario over a few rounds, each a solve
+    /// ([`crate::setup::robust::minimax_weights`]): the plan whose worst scenario is smallest.
+    Minimax,
 }
 
 /// The preconditioner of the projected Newton-CG's conjugate gradients.
@@ -580,6 +597,7 @@ impl Default for Settings {
             spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
             influence: crate::influence::InfluenceModel::default(),
             robust: false,
+            robust_weighting: RobustWeighting::Mean,
         }
     }
 }
@@ -639,6 +657,12 @@ impl Settings {
             return Err(Error::invalid(
                 "time_limit_s",
                 format!("must be positive, got {}", self.time_limit_s),
+            ));
+        }
+        if self.robust_weighting == RobustWeighting::Minimax && !self.robust {
+            return Err(Error::invalid(
+                "robust_weighting",
+                "\"minimax\" weighs the scenarios of a robust plan: set robust = true (--robust)",
             ));
         }
         Ok(())

@@ -254,6 +254,9 @@ pub struct Built {
     pub edge_points: usize,
     /// Warnings about the operator choice.
     pub warnings: Vec<String>,
+    /// A robust plan's scenario weights ([`robust::SCENARIOS`] order, summing to their count);
+    /// `None` for a nominal plan.
+    pub scenario_weights: Option<Vec<f64>>,
 }
 
 /// The default program executed at the acceleration limit on the map: what the machine would

@@ -219,13 +219,15 @@ impl Setup {
             && self.feed.is_some()
         {
             warnings.push(
-                "influence swept: not built on a curved part (tangent frame) or with a                  curvature-dependent TIF; the plan uses the point model"
+                "influence swept: not built on a curved part (tangent frame) or with a curvature-dependent TIF; the plan uses the point model"
                     .to_string(),
             );
         }
         if self.settings.robust {
-            let problem = self.robust_problem(&rows, &mut warnings, observer)?;
-            return self.built(problem, edge_points, warnings);
+            let (problem, weights) = self.robust_problem(&rows, &mut warnings, observer)?;
+            let mut built = self.built(problem, edge_points, warnings)?;
+            built.scenario_weights = Some(weights);
+            return Ok(built);
         }
         let fft = match self.operator_plan(&rows, &mut warnings)? {
             OperatorPlan::Assembled => None,
@@ -287,19 +289,22 @@ impl Setup {
             problem,
             edge_points,
             warnings,
+            scenario_weights: None,
         })
     }
 
-    /// The robust plan's problem over `rows` ([`robust`]): the scenarios' assembled matrices
-    /// stacked against the target repeated, `rho` and `lambda` times the scenario count (the
-    /// mean over the scenarios). Refused on a curved part or with a curvature-dependent TIF, and
-    /// with an operator other than the assembled `R`.
+    /// The robust plan's problem over `rows` ([`robust`]) and its scenario weights: the
+    /// scenarios' assembled matrices stacked against the target repeated, `rho` and `lambda`
+    /// times the scenario count, each block weighted (equal weights: the mean over the
+    /// scenarios; `robust_weighting = "minimax"`: the weights of [`robust::minimax_weights`],
+    /// whose rounds solve the weighted problem here). Refused on a curved part or with a
+    /// curvature-dependent TIF, and with an operator other than the assembled `R`.
     pub(super) fn robust_problem(
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
         observer: &dyn Observer,
-    ) -> SetupResult<Problem> {
+    ) -> SetupResult<(Problem, Vec<f64>)> {
         if self.surface.is_some() || !matches!(self.tif_model, TifModel::ShiftInvariant) {
             return Err(Error::invalid(
                 "robust",
@@ -329,23 +334,56 @@ impl Setup {
         )
         .at(SetupInput::None)?;
         warnings.push(format!(
-            "robust: the plan minimises the mean residual over {scenarios} scenarios (nominal, \
+            "robust: the plan minimises the {} residual over {scenarios} scenarios (nominal, \
              TIF 3% wider and narrower, tool 0.05 mm off in x and y), {:.2e} non-zeros in the \
              stacked R",
+            match self.settings.robust_weighting {
+                crate::dwell::RobustWeighting::Mean => "mean",
+                crate::dwell::RobustWeighting::Minimax => "worst",
+            },
             stacked.nnz() as f64
         ));
-        let z_nm = rows.z_nm().repeat(scenarios);
         let s = scenarios as f64;
-        Problem::new(
-            stacked,
-            z_nm,
-            self.bounds.clone(),
-            self.rho * s,
-            self.lambda * s,
-        )
-        .and_then(|p| {
-            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
-        })
-        .at(SetupInput::Job)
+        let weighted = |weights: &[f64]| -> crate::error::Result<Problem> {
+            Problem::new(
+                robust::weighted_rows(&stacked, weights)?,
+                robust::weighted_target(rows.z_nm(), weights),
+                self.bounds.clone(),
+                self.rho * s,
+                self.lambda * s,
+            )?
+            .with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+        };
+        let weights = match self.settings.robust_weighting {
+            crate::dwell::RobustWeighting::Mean => vec![1.0; scenarios],
+            crate::dwell::RobustWeighting::Minimax => {
+                let rounds = robust::minimax_weights(|weights, warm| {
+                    let problem = weighted(weights)?;
+                    let warm = warm.or(self.warm_start_s.as_deref());
+                    let plan = crate::dwell::solve_validated(&problem, &self.settings, observer, warm)?;
+                    let removal = stacked.removal_nm(&plan.dwell_s)?;
+                    let rms = robust::scenario_rms_nm(self.map.z_nm(), &removal);
+                    Ok((plan.dwell_s, rms))
+                })
+                .at(SetupInput::None)?;
+                let best = rounds
+                    .worst_rms_nm
+                    .iter()
+                    .copied()
+                    .fold(f64::INFINITY, f64::min);
+                let equal = rounds.worst_rms_nm.first().copied().unwrap_or(f64::NAN);
+                let listed: Vec<String> = rounds.weights.iter().map(|w| format!("{w:.3}")).collect();
+                warnings.push(format!(
+                    "robust minimax: scenario weights {} after {} solves; worst scenario as \
+                     planned {best:.4} nm (equal weights: {equal:.4} nm; no plan below {:.4} nm)",
+                    listed.join(", "),
+                    rounds.worst_rms_nm.len(),
+                    rounds.bound_rms_nm,
+                ));
+                rounds.weights
+            }
+        };
+        let problem = weighted(&weights).at(SetupInput::Job)?;
+        Ok((problem, weights))
     }
 }
