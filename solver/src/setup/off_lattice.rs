@@ -1,17 +1,19 @@
 //! When a solve uses an off-lattice matrix-free operator: map points on a regular lattice, dwell
 //! points off it, a plane TIF and the first-order solver.
 //!
-//! - The phase-stencil operator ([`StencilOperator`], exact) when `operator = "stencil"` asks for
-//!   it, or `auto` finds few distinct dwell positions within a map cell (at most one per
-//!   [`MIN_DWELL_POINTS_PER_STENCIL`] dwell points: a raster whose pitch is a rational multiple
-//!   of the map's) and the cost model below finds it cheaper than the assembled `R`.
-//! - Otherwise the NUFFT operator ([`NufftOperator`], error measured against the exact `R`) when
-//!   `operator = "nufft"` asks for it, or `auto` finds its estimated relative operator error
-//!   within [`DEFAULT_NUFFT_TOLERANCE`] at some refinement and the cost model below finds it
-//!   cheaper than the assembled `R`.
-//! - Otherwise the spreading operator ([`SpreadOperator`], approximate) when
-//!   `operator = "fft-spread"` asks for it, or `auto` finds it both accurate enough (estimated
-//!   relative operator error within `spread_tolerance`) and cheaper than the assembled `R`.
+//! - The operator the settings ask for (`stencil`, `nufft`, `fft-spread`), or an error naming
+//!   why it cannot serve.
+//! - With `auto`, the cheapest by the cost model below of those that reproduce the exact `R`:
+//!   the phase-stencil operator ([`StencilOperator`], exact) where the dwell points take few
+//!   distinct positions within a map cell (at most one per [`MIN_DWELL_POINTS_PER_STENCIL`]
+//!   dwell points: a raster whose pitch is a rational multiple of the map's), the NUFFT
+//!   operator ([`NufftOperator`]) where its estimated relative operator error is within
+//!   [`DEFAULT_NUFFT_TOLERANCE`] at some refinement, and the spreading operator
+//!   ([`SpreadOperator`]) where its estimated error is within that same tolerance (dwell points
+//!   on an oversampled lattice, a rational pitch, spread exactly); each only where it is
+//!   predicted cheaper than the assembled `R`.
+//! - With `auto` and none of those, the spreading operator at `spread_tolerance` (approximate,
+//!   the residual reported the exact `R`'s) where it is predicted cheaper than the assembled `R`.
 //!
 //! Cost model (per `R^T R t`, the first-order solver's product): the sparse operator makes two
 //! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
@@ -61,6 +63,34 @@ struct OffLattice {
     /// Estimated non-zeros of `R`: the map points inside one TIF disc (at most all of them),
     /// times the dwell points.
     nnz: f64,
+}
+
+/// An off-lattice operator a set-up takes (see the module documentation).
+pub(super) enum OffLatticeOperator {
+    /// The phase-stencil operator.
+    Stencil(StencilOperator),
+    /// The NUFFT operator.
+    Nufft(NufftOperator),
+    /// The spreading operator.
+    Spread(SpreadOperator),
+}
+
+/// An operator one of the plans built: its predicted nanoseconds per normal product (0 when the
+/// settings asked for it) and, under `auto`, the note saying why it would be taken.
+pub(super) struct Planned<T> {
+    op: T,
+    ns: f64,
+    note: Option<String>,
+}
+
+impl<T> Planned<T> {
+    fn forced(op: T) -> Self {
+        Self {
+            op,
+            ns: 0.0,
+            note: None,
+        }
+    }
 }
 
 /// Why an off-lattice operator does not serve a set-up.
@@ -156,6 +186,33 @@ impl Setup {
         })
     }
 
+    /// The off-lattice operator over the problem rows `rows` (module documentation), `None` to
+    /// assemble `R`: each plan in turn, a later one taken under `auto` only when predicted
+    /// cheaper than the one before; the note of the one taken goes to `warnings`.
+    pub(super) fn off_lattice_operator(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<Option<OffLatticeOperator>> {
+        let mut taken: Option<(OffLatticeOperator, f64, Option<String>)> = None;
+        let cap = |t: &Option<(OffLatticeOperator, f64, Option<String>)>| {
+            t.as_ref().map_or(f64::INFINITY, |t| t.1)
+        };
+        if let Some(p) = self.stencil_plan(rows, warnings)? {
+            taken = Some((OffLatticeOperator::Stencil(p.op), p.ns, p.note));
+        }
+        if let Some(p) = self.nufft_plan(rows, warnings, cap(&taken))? {
+            taken = Some((OffLatticeOperator::Nufft(p.op), p.ns, p.note));
+        }
+        if let Some(p) = self.spread_plan(rows, warnings, cap(&taken))? {
+            taken = Some((OffLatticeOperator::Spread(p.op), p.ns, p.note));
+        }
+        Ok(taken.map(|(op, _, note)| {
+            warnings.extend(note);
+            op
+        }))
+    }
+
     /// The phase-stencil operator over the problem rows `rows` when it applies (see the module
     /// documentation); `None` otherwise. With `operator = "stencil"` inputs it cannot serve are
     /// an error naming why. Notes on the choice go to `warnings`.
@@ -163,7 +220,7 @@ impl Setup {
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
-    ) -> SetupResult<Option<StencilOperator>> {
+    ) -> SetupResult<Option<Planned<StencilOperator>>> {
         let forced = self.settings.operator == OperatorChoice::Stencil;
         if !forced && self.settings.operator != OperatorChoice::Auto {
             return Ok(None);
@@ -206,7 +263,7 @@ impl Setup {
             if stencil_ns >= sparse_ns {
                 return Ok(None);
             }
-            warnings.push(format!(
+            let note = format!(
                 "operator auto: dwell points off the map lattice, at {classes} distinct positions \
                  within a {:.4} mm cell; products use one tabulated stencil per position (exact), \
                  predicted {:.1}x cheaper than R's {:.2e} non-zeros (operator = \"sparse\" \
@@ -214,10 +271,26 @@ impl Setup {
                 case.pitch_mm,
                 sparse_ns / stencil_ns,
                 case.nnz
-            ));
+            );
+            return Ok(
+                match StencilOperator::new(mx, my, dx, dy, case.pitch_mm, self.lattice_kernel()) {
+                    Ok(op) => Some(Planned {
+                        op,
+                        ns: stencil_ns,
+                        note: Some(note),
+                    }),
+                    Err(e) => {
+                        warnings.push(format!(
+                            "operator auto: the stencil operator does not apply ({e}); \
+                             assembling R"
+                        ));
+                        None
+                    }
+                },
+            );
         }
         match StencilOperator::new(mx, my, dx, dy, case.pitch_mm, self.lattice_kernel()) {
-            Ok(op) => Ok(Some(op)),
+            Ok(op) => Ok(Some(Planned::forced(op))),
             Err(e) if forced => Err(e).at(SetupInput::Map),
             Err(e) => {
                 warnings.push(format!(
@@ -268,7 +341,8 @@ impl Setup {
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
-    ) -> SetupResult<Option<NufftOperator>> {
+        cap_ns: f64,
+    ) -> SetupResult<Option<Planned<NufftOperator>>> {
         let forced = self.settings.operator == OperatorChoice::Nufft;
         if !forced && self.settings.operator != OperatorChoice::Auto {
             return Ok(None);
@@ -301,7 +375,8 @@ impl Setup {
                 + SPREAD_NS_PER_CELL_LOG * cells * cells.max(2.0).log2()
         };
         let sparse_ns = self.sparse_normal_ns(rows, &case);
-        if !forced && nufft_ns(1) >= sparse_ns {
+        let beat_ns = sparse_ns.min(cap_ns);
+        if !forced && nufft_ns(1) >= beat_ns {
             return Ok(None);
         }
         let chosen = match NufftOperator::refinement_for(
@@ -336,21 +411,27 @@ impl Setup {
             }
             Err(_) => return Ok(None),
         };
-        if !forced {
-            if nufft_ns(s) >= sparse_ns {
+        let note = if forced {
+            None
+        } else {
+            if nufft_ns(s) >= beat_ns {
                 return Ok(None);
             }
-            warnings.push(format!(
+            Some(format!(
                 "operator auto: dwell points off the map lattice; products spread them by a \
                  smooth kernel onto a {:.4} mm lattice (NUFFT, estimated operator error \
                  {error:.1e} <= {tolerance:.0e}), predicted {:.1}x cheaper per product than R \
                  (operator = \"sparse\" assembles R)",
                 pitch / s as f64,
                 sparse_ns / nufft_ns(s)
-            ));
-        }
+            ))
+        };
         match NufftOperator::new(mx, my, dx, dy, pitch, s, tolerance, self.lattice_kernel()) {
-            Ok(op) => Ok(Some(op)),
+            Ok(op) => Ok(Some(Planned {
+                op,
+                ns: nufft_ns(s),
+                note,
+            })),
             Err(e) if forced => Err(e).at(SetupInput::Map),
             Err(e) => {
                 warnings.push(format!(
@@ -368,7 +449,8 @@ impl Setup {
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
-    ) -> SetupResult<Option<SpreadOperator>> {
+        cap_ns: f64,
+    ) -> SetupResult<Option<Planned<SpreadOperator>>> {
         let forced = self.settings.operator == OperatorChoice::FftSpread;
         if !forced && self.settings.operator != OperatorChoice::Auto {
             return Ok(None);
@@ -384,7 +466,7 @@ impl Setup {
         } = case;
         let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
         let r = self.tif.support_radius_mm();
-        let sparse_ns = 2.0 * SPARSE_NS_PER_NNZ * nnz;
+        let sparse_ns = (2.0 * SPARSE_NS_PER_NNZ * nnz).min(cap_ns);
         let spread_ns = |s: usize| {
             let fine = pitch / s as f64;
             let pad = 2.0 * r / fine;
@@ -395,7 +477,12 @@ impl Setup {
         if !forced && spread_ns(1) >= sparse_ns {
             return Ok(None);
         }
-        let tolerance = self.settings.spread_tolerance;
+        // Against an operator that reproduces `R`, only a spreading that does as well.
+        let tolerance = if cap_ns.is_finite() && !forced {
+            self.settings.spread_tolerance.min(DEFAULT_NUFFT_TOLERANCE)
+        } else {
+            self.settings.spread_tolerance
+        };
         let chosen = match SpreadOperator::oversampling_for(
             mx,
             my,
@@ -409,6 +496,9 @@ impl Setup {
             Err(e) => return refusal(forced, "fft-spread", NotServed::Cannot(e.to_string())),
         };
         let Some((s, error)) = chosen else {
+            if !forced && cap_ns.is_finite() {
+                return Ok(None);
+            }
             return refusal(
                 forced,
                 "fft-spread",
@@ -418,21 +508,27 @@ impl Setup {
                 )),
             );
         };
-        if !forced {
+        let note = if forced {
+            None
+        } else {
             if spread_ns(s) >= sparse_ns {
                 return Ok(None);
             }
-            warnings.push(format!(
+            Some(format!(
                 "operator auto: dwell points off the map lattice; products spread them onto a \
                  {:.4} mm lattice (oversampling {s}, estimated operator error {error:.1e} <= \
                  {tolerance:.0e}) and use the FFT, about {:.0}x cheaper per product than R's \
                  {nnz:.2e} non-zeros (operator = \"sparse\" assembles R)",
                 pitch / s as f64,
                 sparse_ns / spread_ns(s)
-            ));
-        }
+            ))
+        };
         match SpreadOperator::new(mx, my, dx, dy, pitch, s, self.lattice_kernel()) {
-            Ok(op) => Ok(Some(op)),
+            Ok(op) => Ok(Some(Planned {
+                op,
+                ns: spread_ns(s),
+                note,
+            })),
             Err(e) if forced => Err(e).at(SetupInput::Map),
             Err(e) => {
                 warnings.push(format!(

@@ -1,6 +1,7 @@
 //! [`Setup::problem`]: the rows (map and edge model), how `R` is held (assembled, FFT, off-lattice
 //! operators, or the robust plan's stacked scenarios) and the [`Problem`] built on them.
 
+use super::off_lattice::OffLatticeOperator;
 use super::*;
 
 /// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
@@ -93,8 +94,8 @@ impl Setup {
         warnings: &mut Vec<String>,
     ) -> SetupResult<OperatorPlan> {
         let choice = self.settings.operator;
-        // The off-lattice operators are planned by `stencil_plan` and `spread_plan` where the
-        // lattice one is not.
+        // The off-lattice operators are planned by `off_lattice_operator` where the lattice one
+        // is not.
         if matches!(
             choice,
             OperatorChoice::Sparse
@@ -255,14 +256,13 @@ impl Setup {
         let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
         let problem = if let Some(op) = fft {
             Problem::new(op, z_nm, bounds, rho, lambda)
-        } else if let Some(op) = self.stencil_plan(&rows, &mut warnings)? {
-            Problem::new(op, z_nm, bounds, rho, lambda)
-        } else if let Some(op) = self.nufft_plan(&rows, &mut warnings)? {
-            Problem::new(op, z_nm, bounds, rho, lambda)
-        } else if let Some(op) = self.spread_plan(&rows, &mut warnings)? {
-            Problem::new(op, z_nm, bounds, rho, lambda)
         } else {
-            Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda)
+            match self.off_lattice_operator(&rows, &mut warnings)? {
+                Some(OffLatticeOperator::Stencil(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
+                Some(OffLatticeOperator::Nufft(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
+                Some(OffLatticeOperator::Spread(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
+                None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+            }
         }
         .and_then(|p| {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
