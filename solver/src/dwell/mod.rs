@@ -108,6 +108,17 @@ impl Problem {
         Self::build(Arc::new(operator), z_nm, bounds, rho, lambda)
     }
 
+    /// [`Problem::new`] over an operator already boxed (one chosen at run time).
+    pub fn from_boxed(
+        operator: Box<dyn InfluenceOperator>,
+        z_nm: Vec<f64>,
+        bounds: DwellBounds,
+        rho: f64,
+        lambda: f64,
+    ) -> Result<Self> {
+        Self::build(Arc::from(operator), z_nm, bounds, rho, lambda)
+    }
+
     fn build(
         operator: Arc<dyn InfluenceOperator>,
         z_nm: Vec<f64>,

@@ -18,6 +18,8 @@
 //! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
 //!   programs);
 //! - [`swept`]: the motion-true model, the TIF averaged along each dwell point's stretch of path;
+//! - [`swept_correction`]: the lattice operators' shared swept kernel corrected, column by
+//!   column, at the dwell points whose stretch differs (row ends, the path's ends);
 //! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
 //! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
 //! - [`operator`]: the traits: [`InfluenceOperator`] (`R` as a dwell problem holds it, whichever of
@@ -37,6 +39,7 @@ pub mod stacked;
 pub mod stencil;
 pub mod surface;
 pub mod swept;
+pub mod swept_correction;
 
 pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
 pub use fft::FftOperator;

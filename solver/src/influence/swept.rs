@@ -156,20 +156,37 @@ impl Stretches {
     /// it is the interior stretch along the lines; the row ends (an L-shaped stretch, a TIF
     /// radius off the map) and the path's ends differ.
     pub fn dominant(&self) -> (Vec<[f64; 3]>, usize) {
-        let key = |s: &[[f64; 3]]| -> Vec<[i64; 3]> {
-            let mut k: Vec<[i64; 3]> = s
-                .iter()
-                .map(|p| {
-                    [
-                        (p[0] * 1e9).round() as i64,
-                        (p[1] * 1e9).round() as i64,
-                        (p[2] * 1e12).round() as i64,
-                    ]
-                })
-                .collect();
-            k.sort_unstable();
-            k
-        };
+        let (samples, count, _) = self.dominant_and_key();
+        (samples, count)
+    }
+
+    /// The dwell points whose stretch is not the dominant one ([`Stretches::dominant`]),
+    /// ascending: the columns the lattice operators' shared kernel does not reproduce.
+    pub fn outside_dominant(&self) -> Vec<usize> {
+        let (_, _, dominant) = self.dominant_and_key();
+        (0..self.len())
+            .filter(|&j| Self::key(self.of(j)) != dominant)
+            .collect()
+    }
+
+    /// A stretch's samples up to order, to 1e-9 mm and 1e-12 of weight.
+    fn key(s: &[[f64; 3]]) -> Vec<[i64; 3]> {
+        let mut k: Vec<[i64; 3]> = s
+            .iter()
+            .map(|p| {
+                [
+                    (p[0] * 1e9).round() as i64,
+                    (p[1] * 1e9).round() as i64,
+                    (p[2] * 1e12).round() as i64,
+                ]
+            })
+            .collect();
+        k.sort_unstable();
+        k
+    }
+
+    fn dominant_and_key(&self) -> (Vec<[f64; 3]>, usize, Vec<[i64; 3]>) {
+        let key = Self::key;
         let mut counts: HashMap<Vec<[i64; 3]>, (usize, usize)> = HashMap::new();
         for j in 0..self.len() {
             let e = counts.entry(key(self.of(j))).or_insert((0, j));
@@ -181,8 +198,8 @@ impl Stretches {
             .max_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)))
             .copied();
         match best {
-            Some((count, j)) => (self.of(j).to_vec(), count),
-            None => (vec![[0.0, 0.0, 1.0]], 0),
+            Some((count, j)) => (self.of(j).to_vec(), count, key(self.of(j))),
+            None => (vec![[0.0, 0.0, 1.0]], 0, key(&[[0.0, 0.0, 1.0]])),
         }
     }
 }

@@ -696,10 +696,10 @@ mod tests {
     }
 
     #[test]
-    fn the_lattice_kernel_is_the_assembled_swept_column_inside_the_raster() {
-        // Map and raster on one 0.5 mm lattice: the FFT operator with the swept kernel gives the
-        // assembled swept R's removal wherever only interior stretches reach (the row ends and
-        // the path's ends, whose stretches differ, carry no dwell here).
+    fn the_lattice_operator_is_the_assembled_swept_matrix_row_ends_included() {
+        // Map and raster on one 0.5 mm lattice: the FFT operator with the swept kernel, its row
+        // ends' and path ends' columns corrected (`swept_correction`), gives the assembled swept
+        // R's removal for dwell on every point.
         let mut d = data();
         d.dwell = DwellPoints::Raster {
             pitch_mm: 0.5,
@@ -717,20 +717,10 @@ mod tests {
         let pl = lattice.problem(&Silent).unwrap().problem;
         assert_eq!(pl.operator_kind(), crate::influence::OperatorKind::Fft);
         let (x, y) = (assembled.path.x_mm(), assembled.path.y_mm());
-        let (x0, x1) = (
-            x.iter().cloned().fold(f64::INFINITY, f64::min),
-            x.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
-        );
         let t: Vec<f64> = x
             .iter()
             .zip(y)
-            .map(|(&px, &py)| {
-                if px > x0 + 0.25 && px < x1 - 0.25 {
-                    1.0 + 0.1 * (px + 2.0 * py).sin()
-                } else {
-                    0.0
-                }
-            })
+            .map(|(&px, &py)| 1.0 + 0.1 * (px + 2.0 * py).sin())
             .collect();
         let ha = pa.removal_nm(&t).unwrap();
         let hl = pl.removal_nm(&t).unwrap();

@@ -3,6 +3,8 @@
 
 use super::off_lattice::OffLatticeOperator;
 use super::*;
+use crate::influence::operator::InfluenceOperator;
+use crate::influence::swept_correction::SweptCorrected;
 
 /// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
 /// per map point (a round aperture fills 79% of its square, i.e. 1.27 cells per point).
@@ -254,15 +256,21 @@ impl Setup {
         };
         let z_nm = rows.z_nm().to_vec();
         let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
-        let problem = if let Some(op) = fft {
-            Problem::new(op, z_nm, bounds, rho, lambda)
-        } else {
-            match self.off_lattice_operator(&rows, &mut warnings)? {
-                Some(OffLatticeOperator::Stencil(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
-                Some(OffLatticeOperator::Nufft(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
-                Some(OffLatticeOperator::Spread(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
-                None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+        let lattice: Option<Box<dyn InfluenceOperator>> = match fft {
+            Some(op) => Some(Box::new(op)),
+            None => match self.off_lattice_operator(&rows, &mut warnings)? {
+                Some(OffLatticeOperator::Stencil(op)) => Some(Box::new(op)),
+                Some(OffLatticeOperator::Nufft(op)) => Some(Box::new(op)),
+                Some(OffLatticeOperator::Spread(op)) => Some(Box::new(op)),
+                None => None,
+            },
+        };
+        let problem = match lattice {
+            Some(op) => {
+                let op = self.swept_corrected(op, &rows, &mut warnings, observer)?;
+                Problem::from_boxed(op, z_nm, bounds, rho, lambda)
             }
+            None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
         }
         .and_then(|p| {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
@@ -291,6 +299,45 @@ impl Setup {
             warnings,
             scenario_weights: None,
         })
+    }
+
+    /// A lattice operator `op` over the rows `rows` with the swept model's exact columns where
+    /// a dwell point's stretch is not the shared kernel's
+    /// ([`crate::influence::swept_correction`]); `op` itself under the point model or when
+    /// every stretch is the kernel's.
+    fn swept_corrected(
+        &self,
+        op: Box<dyn InfluenceOperator>,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Box<dyn InfluenceOperator>> {
+        let Some((stretches, kernel)) = &self.swept else {
+            return Ok(op);
+        };
+        match SweptCorrected::new(
+            op,
+            rows.x_mm(),
+            rows.y_mm(),
+            &self.path,
+            stretches,
+            &self.tif,
+            kernel,
+            observer,
+        )
+        .at(SetupInput::None)?
+        {
+            Ok(corrected) => {
+                warnings.push(format!(
+                    "influence swept: {} dwell points whose stretch differs from the lattice \
+                     operator's shared kernel (row ends, the path's ends) have their exact \
+                     columns",
+                    corrected.corrected_columns()
+                ));
+                Ok(Box::new(corrected))
+            }
+            Err(op) => Ok(op),
+        }
     }
 
     /// The robust plan's problem over `rows` ([`robust`]) and its scenario weights: the
@@ -360,7 +407,8 @@ impl Setup {
                 let rounds = robust::minimax_weights(|weights, warm| {
                     let problem = weighted(weights)?;
                     let warm = warm.or(self.warm_start_s.as_deref());
-                    let plan = crate::dwell::solve_validated(&problem, &self.settings, observer, warm)?;
+                    let plan =
+                        crate::dwell::solve_validated(&problem, &self.settings, observer, warm)?;
                     let removal = stacked.removal_nm(&plan.dwell_s)?;
                     let rms = robust::scenario_rms_nm(self.map.z_nm(), &removal);
                     Ok((plan.dwell_s, rms))
@@ -372,7 +420,8 @@ impl Setup {
                     .copied()
                     .fold(f64::INFINITY, f64::min);
                 let equal = rounds.worst_rms_nm.first().copied().unwrap_or(f64::NAN);
-                let listed: Vec<String> = rounds.weights.iter().map(|w| format!("{w:.3}")).collect();
+                let listed: Vec<String> =
+                    rounds.weights.iter().map(|w| format!("{w:.3}")).collect();
                 warnings.push(format!(
                     "robust minimax: scenario weights {} after {} solves; worst scenario as \
                      planned {best:.4} nm (equal weights: {equal:.4} nm; no plan below {:.4} nm)",

@@ -1,0 +1,383 @@
+//! The swept model on the lattice operators, exact at every dwell point.
+//!
+//! The FFT, stencil, NUFFT and spreading operators apply one shift-invariant kernel: the TIF
+//! averaged along the dominant stretch ([`super::swept::Stretches::dominant`], on a serpentine
+//! raster the interior stretch along the lines). The dwell points whose stretch differs (the
+//! row ends' L-shaped stretches, the path's ends) have columns `R_j = R~_j + D_j` with `D_j` the
+//! difference of their exact swept column and the kernel's. With `E` the `n x k` selection of
+//! those `k` columns,
+//!
+//! `R = R~ + D E^T`, `R^T y = R~^T y + E D^T y`,
+//! `R^T R = R~^T R~ + C E^T + E C^T + E (D^T D) E^T`, `C = R~^T D` (`n x k`),
+//!
+//! so the normal product keeps the inner operator's own (fused) one and adds sparse terms. `D`
+//! is assembled directly (`k` columns over the map points in reach), `C` by `k` transposed
+//! products of the inner operator at set-up, `D^T D` over the pairs of columns whose reaches
+//! meet. The centred column norms (Jacobi scaling) of the corrected columns follow from the
+//! inner operator's: `||R~_j + D_j||² - (1'R~_j + 1'D_j)² / m` with `||R~_j||² = N~_j + s_j² / m`,
+//! `s = R~^T 1`, and `R~_j' D_j = C[j, k]`.
+
+use super::matrix::InfluenceMatrix;
+use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
+use super::swept::Stretches;
+use crate::error::{Error, Result};
+use crate::observer::Observer;
+use crate::path::DwellPath;
+use crate::tif::InfluenceFunction;
+
+/// Entries of `C = R~^T D` below this share of the column's largest are the inner operator's
+/// rounding (FFT products leave about 1e-16 of the peak everywhere) and are not kept.
+const C_DROP_TOLERANCE: f64 = 1e-14;
+
+/// A lattice operator with the swept model's exact columns for the dwell points whose stretch
+/// is not the kernel's (module documentation).
+pub struct SweptCorrected {
+    inner: Box<dyn InfluenceOperator>,
+    /// The corrected columns `j` (ascending).
+    columns: Vec<usize>,
+    /// `D`: m x k, column `k` the exact swept column of `columns[k]` less the kernel's.
+    d: InfluenceMatrix,
+    /// `C = R~^T D`: for each corrected column, the dwell points `j` and values kept.
+    c: Vec<Vec<(usize, f64)>>,
+    /// `D^T D` over the pairs `(a, b)` whose reaches meet (both orders listed).
+    dtd: Vec<Vec<(usize, f64)>>,
+    /// Centred squared column norms of `R~ + D E^T`.
+    norms: Vec<f64>,
+}
+
+impl std::fmt::Debug for SweptCorrected {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SweptCorrected")
+            .field("inner", &self.inner)
+            .field("corrected_columns", &self.columns.len())
+            .finish()
+    }
+}
+
+impl SweptCorrected {
+    /// `inner` (a lattice operator over the rows `(x, y)` and the dwell points of `path`, with
+    /// the kernel `kernel`: `tif` swept along the dominant stretch) corrected at the dwell points
+    /// whose stretch in `stretches` differs from the dominant one. `None` when every stretch is
+    /// the dominant one (nothing to correct).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new<T: InfluenceFunction + ?Sized, K: InfluenceFunction + ?Sized>(
+        inner: Box<dyn InfluenceOperator>,
+        map_x_mm: &[f64],
+        map_y_mm: &[f64],
+        path: &DwellPath,
+        stretches: &Stretches,
+        tif: &T,
+        kernel: &K,
+        observer: &dyn Observer,
+    ) -> Result<std::result::Result<Self, Box<dyn InfluenceOperator>>> {
+        let (m, n) = inner.shape();
+        if stretches.len() != n || path.len() != n || map_x_mm.len() != m {
+            return Err(Error::LengthMismatch {
+                what: "swept correction: stretches, path and operator",
+                got: stretches.len(),
+                expected: n,
+            });
+        }
+        let columns = stretches.outside_dominant();
+        if columns.is_empty() {
+            return Ok(Err(inner));
+        }
+        let (cx, cy): (Vec<f64>, Vec<f64>) = columns
+            .iter()
+            .map(|&j| (path.x_mm()[j], path.y_mm()[j]))
+            .unzip();
+        let radius =
+            (tif.support_radius_mm() + stretches.reach_mm()).max(kernel.support_radius_mm());
+        let d = InfluenceMatrix::assemble_with(
+            map_x_mm,
+            map_y_mm,
+            &cx,
+            &cy,
+            radius,
+            |k, _i, dx, dy| {
+                let exact: f64 = stretches
+                    .of(columns[k])
+                    .iter()
+                    .map(|s| s[2] * tif.rate_nm_per_s(dx - s[0], dy - s[1]))
+                    .sum();
+                exact - kernel.rate_nm_per_s(dx, dy)
+            },
+            observer,
+        )?;
+        let k_count = columns.len();
+        let products = inner.products(None);
+        // C = R~^T D, one transposed product per corrected column.
+        let mut dense = vec![0.0; m];
+        let mut out = vec![0.0; n];
+        let mut c = Vec::with_capacity(k_count);
+        let mut d_sums = Vec::with_capacity(k_count);
+        let mut d_norms = Vec::with_capacity(k_count);
+        for k in 0..k_count {
+            let col = d.csc().col(k);
+            dense.iter_mut().for_each(|v| *v = 0.0);
+            for (&i, &v) in col.row_indices().iter().zip(col.values()) {
+                dense[i] = v;
+            }
+            d_sums.push(col.values().iter().sum::<f64>());
+            d_norms.push(col.values().iter().map(|v| v * v).sum::<f64>());
+            products.apply_transpose(&dense, &mut out);
+            let peak = out.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            c.push(
+                out.iter()
+                    .enumerate()
+                    .filter(|(_, v)| v.abs() > C_DROP_TOLERANCE * peak)
+                    .map(|(j, &v)| (j, v))
+                    .collect::<Vec<_>>(),
+            );
+        }
+        // D^T D over the pairs whose reaches meet.
+        let reach2 = (2.0 * radius) * (2.0 * radius);
+        let mut dtd = vec![Vec::new(); k_count];
+        for a in 0..k_count {
+            dense.iter_mut().for_each(|v| *v = 0.0);
+            let ca = d.csc().col(a);
+            for (&i, &v) in ca.row_indices().iter().zip(ca.values()) {
+                dense[i] = v;
+            }
+            for b in 0..k_count {
+                let (dx, dy) = (cx[a] - cx[b], cy[a] - cy[b]);
+                if dx * dx + dy * dy > reach2 {
+                    continue;
+                }
+                let cb = d.csc().col(b);
+                let v: f64 = cb
+                    .row_indices()
+                    .iter()
+                    .zip(cb.values())
+                    .map(|(&i, &w)| dense[i] * w)
+                    .sum();
+                if v != 0.0 {
+                    dtd[a].push((b, v));
+                }
+            }
+        }
+        // Centred norms of the corrected columns from the inner operator's.
+        let mut norms = products.centred_column_norms_sq();
+        let ones = vec![1.0; m];
+        let mut s = vec![0.0; n];
+        products.apply_transpose(&ones, &mut s);
+        let mf = m as f64;
+        for (k, &j) in columns.iter().enumerate() {
+            let cross = c[k]
+                .iter()
+                .find(|(jj, _)| *jj == j)
+                .map_or(0.0, |&(_, v)| v);
+            let plain = norms[j] + s[j] * s[j] / mf;
+            let sum = s[j] + d_sums[k];
+            norms[j] = (plain + 2.0 * cross + d_norms[k] - sum * sum / mf).max(0.0);
+        }
+        drop(products);
+        Ok(Ok(Self {
+            inner,
+            columns,
+            d,
+            c,
+            dtd,
+            norms,
+        }))
+    }
+
+    /// The dwell points whose columns are corrected.
+    pub fn corrected_columns(&self) -> usize {
+        self.columns.len()
+    }
+}
+
+impl InfluenceOperator for SweptCorrected {
+    fn kind(&self) -> OperatorKind {
+        self.inner.kind()
+    }
+
+    fn shape(&self) -> (usize, usize) {
+        self.inner.shape()
+    }
+
+    fn nnz(&self) -> usize {
+        self.inner.nnz()
+    }
+
+    fn empty_columns(&self) -> Vec<usize> {
+        let mut empty = self.inner.empty_columns();
+        empty.retain(|j| match self.columns.binary_search(j) {
+            Ok(k) => self.d.csc().col(k).nnz() == 0,
+            Err(_) => true,
+        });
+        empty
+    }
+
+    fn products(&self, _normal_products: Option<usize>) -> Products<'_> {
+        Products::Direct(self)
+    }
+}
+
+impl LinearOperator for SweptCorrected {
+    fn nrows(&self) -> usize {
+        self.inner.shape().0
+    }
+
+    fn ncols(&self) -> usize {
+        self.inner.shape().1
+    }
+
+    fn apply(&self, t: &[f64], out: &mut [f64]) {
+        self.inner.products(None).apply(t, out);
+        for (k, &j) in self.columns.iter().enumerate() {
+            let tj = t[j];
+            if tj != 0.0 {
+                let col = self.d.csc().col(k);
+                for (&i, &v) in col.row_indices().iter().zip(col.values()) {
+                    out[i] += v * tj;
+                }
+            }
+        }
+    }
+
+    fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
+        self.inner.products(None).apply_transpose(y, out);
+        for (k, &j) in self.columns.iter().enumerate() {
+            let col = self.d.csc().col(k);
+            out[j] += col
+                .row_indices()
+                .iter()
+                .zip(col.values())
+                .map(|(&i, &v)| v * y[i])
+                .sum::<f64>();
+        }
+    }
+
+    fn apply_normal(&self, t: &[f64], scratch: &mut [f64], out: &mut [f64]) {
+        self.inner.products(None).apply_normal(t, scratch, out);
+        // C E^T t, then E (C^T t + D^T D E^T t), in a fixed order.
+        for (k, &j) in self.columns.iter().enumerate() {
+            let tj = t[j];
+            if tj != 0.0 {
+                for &(r, v) in &self.c[k] {
+                    out[r] += v * tj;
+                }
+            }
+        }
+        for (k, &j) in self.columns.iter().enumerate() {
+            let ct: f64 = self.c[k].iter().map(|&(r, v)| v * t[r]).sum();
+            let dd: f64 = self.dtd[k]
+                .iter()
+                .map(|&(b, v)| v * t[self.columns[b]])
+                .sum();
+            out[j] += ct + dd;
+        }
+    }
+
+    fn products_cheap_per_dwell_point(&self) -> bool {
+        self.inner.products(None).products_cheap_per_dwell_point()
+    }
+
+    fn centred_column_norms_sq(&self) -> Vec<f64> {
+        self.norms.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::influence::fft::FftOperator;
+    use crate::influence::swept::{assemble_swept, SweptTif};
+    use crate::observer::Silent;
+    use crate::tif::GaussianTif;
+
+    /// Products of the corrected operator against the assembled swept `R`, relative to the
+    /// largest entry of the exact product: both sum the same entries, in different orders.
+    const PRODUCT_TOL: f64 = 1e-11;
+
+    /// A 15 x 10 mm map and a serpentine raster on its 0.5 mm lattice whose row ends lie a
+    /// millimetre outside it, well within the TIF's reach: the FFT operator with the dominant
+    /// stretch's kernel misses the row ends' L-shaped stretches; corrected, its `R t`, `R^T y`,
+    /// `R^T R t` and centred column norms are the assembled swept `R`'s.
+    #[test]
+    fn the_corrected_lattice_operator_is_the_assembled_swept_matrix() {
+        let (mut mx, mut my) = (Vec::new(), Vec::new());
+        for j in 0..21 {
+            for i in 0..31 {
+                mx.push(i as f64 * 0.5);
+                my.push(j as f64 * 0.5);
+            }
+        }
+        let (mut dx, mut dy) = (Vec::new(), Vec::new());
+        for row in 0..25 {
+            for k in 0..35 {
+                let i = if row % 2 == 0 { k } else { 34 - k };
+                dx.push(-1.0 + 0.5 * i as f64);
+                dy.push(-1.0 + 0.5 * row as f64);
+            }
+        }
+        let path = DwellPath::new(dx.clone(), dy.clone()).unwrap();
+        let tif = GaussianTif::new(1.0, 5.0, 3.0).unwrap();
+        let stretches = Stretches::of_path(&path, 0.05).unwrap();
+        let (samples, _) = stretches.dominant();
+        let kernel = SweptTif::new(tif.clone(), samples);
+        let fft = FftOperator::new(&mx, &my, &dx, &dy, 0.5, &kernel).unwrap();
+        let exact = assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent).unwrap();
+        let plain_t: Vec<f64> = (0..dx.len())
+            .map(|j| 1.0 + 0.3 * ((j as f64) * 0.37).sin())
+            .collect();
+        let plain = fft.removal_nm(&plain_t).unwrap();
+        let want = exact.removal_nm(&plain_t).unwrap();
+        let peak = want.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let worst = plain
+            .iter()
+            .zip(&want)
+            .fold(0.0f64, |a, (p, w)| a.max((p - w).abs()));
+        assert!(
+            worst > 1e-4 * peak,
+            "the uncorrected kernel should miss the row ends"
+        );
+        let corrected = match SweptCorrected::new(
+            Box::new(fft),
+            &mx,
+            &my,
+            &path,
+            &stretches,
+            &tif,
+            &kernel,
+            &Silent,
+        )
+        .unwrap()
+        {
+            Ok(c) => c,
+            Err(_) => panic!("the row ends differ from the dominant stretch"),
+        };
+        assert_eq!(
+            corrected.corrected_columns(),
+            stretches.outside_dominant().len()
+        );
+        // Both ends of every row but the path's own two, which are mirrored straight.
+        assert_eq!(corrected.corrected_columns(), 2 * 25 - 2);
+        let close = |got: &[f64], want: &[f64]| {
+            let peak = want.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+            for (g, w) in got.iter().zip(want) {
+                assert!((g - w).abs() <= PRODUCT_TOL * peak, "{g} against {w}");
+            }
+        };
+        let (m, n) = (mx.len(), dx.len());
+        let ep = exact.products(None);
+        let cp = corrected.products(None);
+        let mut a = vec![0.0; m];
+        let mut b = vec![0.0; m];
+        cp.apply(&plain_t, &mut a);
+        ep.apply(&plain_t, &mut b);
+        close(&a, &b);
+        let y: Vec<f64> = (0..m).map(|i| ((i as f64) * 0.11).cos()).collect();
+        let (mut a, mut b) = (vec![0.0; n], vec![0.0; n]);
+        cp.apply_transpose(&y, &mut a);
+        ep.apply_transpose(&y, &mut b);
+        close(&a, &b);
+        let (mut s1, mut s2) = (vec![0.0; m], vec![0.0; m]);
+        cp.apply_normal(&plain_t, &mut s1, &mut a);
+        ep.apply_normal(&plain_t, &mut s2, &mut b);
+        close(&a, &b);
+        close(&cp.centred_column_norms_sq(), &ep.centred_column_norms_sq());
+    }
+}
