@@ -409,6 +409,63 @@ fn operator_stencil_matches_the_assembled_matrix_and_auto_takes_it_off_the_latti
     assert!(!out.join("report.json").exists());
 }
 
+/// A raster at 1.5 times the map's pitch puts every dwell point on the lattice of half cells:
+/// spreading onto it (oversampling 2) reproduces `R` (bilinear weights at a node are exact), and
+/// its FFT products are predicted cheaper than the 2 x 2 phase stencils, so `auto` takes it,
+/// with an operator error on the returned dwell within the NUFFT's design tolerance (1e-6) and
+/// the same residual as the assembled `R`'s plan.
+#[test]
+fn operator_auto_takes_the_exact_spreading_for_a_half_cell_raster() {
+    let dir = tempfile::tempdir().unwrap();
+    let (map, _) = off_lattice_case(dir.path());
+    let mut text = String::from("x_mm,y_mm\n");
+    for row in 0..45 {
+        for k in 0..61 {
+            let i = if row % 2 == 0 { k } else { 60 - k };
+            text.push_str(&format!(
+                "{},{}\n",
+                -3.0 + 0.6 * i as f64,
+                -3.0 + 0.6 * row as f64
+            ));
+        }
+    }
+    let dwell = dir.path().join("raster_06.csv");
+    std::fs::write(&dwell, text).unwrap();
+    let dwell = dwell.to_str().unwrap();
+    let run = |operator: &str| {
+        let out = dir.path().join(operator);
+        let args = [
+            "--dwell",
+            dwell,
+            "--gaussian-truncation-mm",
+            "5.905",
+            "--operator",
+            operator,
+        ];
+        let o = solve_gaussian(&map, &args, &out);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        (report(&out), String::from_utf8_lossy(&o.stderr).to_string())
+    };
+    let (auto, err) = run("auto");
+    assert_eq!(auto["operator"], "fft-spread", "{err}");
+    assert!(err.contains("oversampling 2"), "{err}");
+    let error = auto["operator_error"]["relative_removal_error"]
+        .as_f64()
+        .unwrap();
+    assert!(error <= 1e-6, "{error}");
+    let (sparse, _) = run("sparse");
+    let (a, s) = (
+        auto["rms_after_nm"].as_f64().unwrap(),
+        sparse["rms_after_nm"].as_f64().unwrap(),
+    );
+    let before = sparse["rms_before_nm"].as_f64().unwrap();
+    assert!(a < 0.2 * before, "{a} of {before}");
+    assert!(
+        (a - s).abs() <= SAMPLE_REL_TOL * s.max(1e-3 * before),
+        "{a} against {s}"
+    );
+}
+
 /// Dwell points far from the map make the stencils' image of the lattice huge (its clearing
 /// dominates each product): `auto` assembles `R` instead, and the far points stay unreachable.
 #[test]

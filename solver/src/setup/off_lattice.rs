@@ -281,8 +281,7 @@ impl Setup {
                     }),
                     Err(e) => {
                         warnings.push(format!(
-                            "operator auto: the stencil operator does not apply ({e}); \
-                             assembling R"
+                            "operator auto: the stencil operator does not apply ({e})"
                         ));
                         None
                     }
@@ -312,9 +311,11 @@ impl Setup {
         // formation (`k^2` multiply-adds per map point, `k` the dwell points in its reach)
         // costs at most the products the solver declares, through its Gram matrix (one pass
         // over `G`: each dwell point against those within `2 r`).
-        // Dwell points per mm^2 where there are any: over the squares of side `2 r` they
-        // occupy (a few stray points far out do not thin the estimate).
-        let square = 2.0 * r;
+        // Dwell points per mm^2 where there are any: over the squares of side `r / 2` they
+        // occupy (a few stray points far out do not thin the estimate, nor do the half-empty
+        // squares along the path's outline, which at side `2 r` halved it on a 1 mm raster and
+        // had the Gram matrix predicted where `GramMatrix::worthwhile` declines it).
+        let square = 0.5 * r;
         let occupied: std::collections::HashSet<(i64, i64)> = dx
             .iter()
             .zip(dy)
