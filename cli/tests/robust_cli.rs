@@ -126,11 +126,17 @@ fn robust_plan_trades_nominal_for_the_worst_scenario() {
     let minimax = &r["robust"];
     assert_eq!(minimax["weighting"], "minimax", "{minimax}");
     let mm = rms_list(&minimax["robust_plan_rms_nm"]);
-    assert!(worst(&mm) <= worst(&rob) * (1.0 + 1e-9), "{mm:?} against {rob:?}");
+    assert!(
+        worst(&mm) <= worst(&rob) * (1.0 + 1e-9),
+        "{mm:?} against {rob:?}"
+    );
     let w = rms_list(&minimax["scenario_weights"]);
     assert!((w.iter().sum::<f64>() - 5.0).abs() < 1e-9, "{w:?}");
     let heaviest = (0..5).fold(0, |k, i| if w[i] > w[k] { i } else { k });
-    assert!(rob[heaviest] > rob.iter().sum::<f64>() / 5.0, "{w:?} against {rob:?}");
+    assert!(
+        rob[heaviest] > rob.iter().sum::<f64>() / 5.0,
+        "{w:?} against {rob:?}"
+    );
     let warned = r["warnings"].to_string();
     assert!(warned.contains("robust minimax"), "{warned}");
     let mut no_robust: Vec<&str> = args.iter().copied().filter(|a| *a != "--robust").collect();

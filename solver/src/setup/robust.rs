@@ -114,7 +114,7 @@ const MINIMAX_STEP_CUT: f64 = 0.3;
 /// [`weighted_target`]).
 pub fn weighted_rows(stacked: &InfluenceMatrix, weights: &[f64]) -> Result<InfluenceMatrix> {
     let rows = stacked.csc().nrows();
-    if weights.is_empty() || rows % weights.len() != 0 {
+    if weights.is_empty() || !rows.is_multiple_of(weights.len()) {
         return Err(crate::error::Error::LengthMismatch {
             what: "scenario weights",
             got: weights.len(),
@@ -345,7 +345,10 @@ mod tests {
         let kept = worst(&rms(plan(&rounds.weights)));
         let mean_plan = rounds.worst_rms_nm[0];
         assert!(mean_plan > optimum * 1.05, "{mean_plan} against {optimum}");
-        assert!(kept <= optimum * 1.02, "{kept} against {optimum}: {rounds:?}");
+        assert!(
+            kept <= optimum * 1.02,
+            "{kept} against {optimum}: {rounds:?}"
+        );
         assert!(kept >= optimum * (1.0 - 1e-12));
         assert!(rounds.bound_rms_nm <= optimum * (1.0 + 1e-12), "{rounds:?}");
         assert!((rounds.weights.iter().sum::<f64>() - 5.0).abs() < 1e-9);
@@ -394,9 +397,15 @@ mod tests {
         let reference = worst(&plan(&w).1);
         let rounds = minimax_weights(|w, _| Ok(plan(w))).unwrap();
         let kept = worst(&plan(&rounds.weights).1);
-        assert!(kept <= reference * 1.005, "{kept} against {reference}: {rounds:?}");
+        assert!(
+            kept <= reference * 1.005,
+            "{kept} against {reference}: {rounds:?}"
+        );
         assert!(kept < rounds.worst_rms_nm[0], "{rounds:?}");
-        assert!(rounds.bound_rms_nm <= reference * (1.0 + 1e-9), "{rounds:?}");
+        assert!(
+            rounds.bound_rms_nm <= reference * (1.0 + 1e-9),
+            "{rounds:?}"
+        );
     }
 
     /// Each block of the stacked matrix is the scenario's own assembled `R`: its products are
