@@ -321,20 +321,26 @@ fn off_lattice_case(dir: &Path) -> (PathBuf, PathBuf) {
     }
     let map = dir.join("map_04.csv");
     std::fs::write(&map, text).unwrap();
+    let dwell = dir.join("raster_05.csv");
+    std::fs::write(&dwell, serpentine_csv(53, 73, 0.5)).unwrap();
+    (map, dwell)
+}
+
+/// A serpentine raster from (-3, -3) mm: `rows` lines along x of `per_row` points at `pitch_mm`,
+/// as a dwell CSV.
+fn serpentine_csv(rows: usize, per_row: usize, pitch_mm: f64) -> String {
     let mut text = String::from("x_mm,y_mm\n");
-    for row in 0..53 {
-        for k in 0..73 {
-            let i = if row % 2 == 0 { k } else { 72 - k };
+    for row in 0..rows {
+        for k in 0..per_row {
+            let i = if row % 2 == 0 { k } else { per_row - 1 - k };
             text.push_str(&format!(
                 "{},{}\n",
-                -3.0 + 0.5 * i as f64,
-                -3.0 + 0.5 * row as f64
+                -3.0 + pitch_mm * i as f64,
+                -3.0 + pitch_mm * row as f64
             ));
         }
     }
-    let dwell = dir.join("raster_05.csv");
-    std::fs::write(&dwell, text).unwrap();
-    (map, dwell)
+    text
 }
 
 /// `preston solve` of the off-lattice case with `args` (Gaussian sigma 2 mm cut at 5.905 mm, a
@@ -424,19 +430,8 @@ fn operator_stencil_matches_the_assembled_matrix_and_auto_takes_the_cheapest_exa
 fn operator_auto_takes_the_exact_spreading_for_a_half_cell_raster() {
     let dir = tempfile::tempdir().unwrap();
     let (map, _) = off_lattice_case(dir.path());
-    let mut text = String::from("x_mm,y_mm\n");
-    for row in 0..45 {
-        for k in 0..61 {
-            let i = if row % 2 == 0 { k } else { 60 - k };
-            text.push_str(&format!(
-                "{},{}\n",
-                -3.0 + 0.6 * i as f64,
-                -3.0 + 0.6 * row as f64
-            ));
-        }
-    }
     let dwell = dir.path().join("raster_06.csv");
-    std::fs::write(&dwell, text).unwrap();
+    std::fs::write(&dwell, serpentine_csv(45, 61, 0.6)).unwrap();
     let dwell = dwell.to_str().unwrap();
     let run = |operator: &str| {
         let out = dir.path().join(operator);
