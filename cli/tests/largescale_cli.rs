@@ -467,6 +467,57 @@ fn operator_auto_takes_the_exact_spreading_for_a_half_cell_raster() {
     assert!(a <= 1.05 * s, "{a} against {s}");
 }
 
+/// On a spiral every dwell point's stretch points its own way: no shared swept kernel serves,
+/// and correcting every column would cost more than the assembled `R`. `auto`, which would take
+/// the NUFFT operator for the point model (estimate within 1e-6), assembles `R` and says why.
+#[test]
+fn operator_auto_assembles_r_for_a_spiral_under_the_swept_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let (map, _) = off_lattice_case(dir.path());
+    let mut text = String::from("x_mm,y_mm\n");
+    let mut theta: f64 = 0.0;
+    loop {
+        // Archimedes spiral about (15, 10) mm, 0.7 mm between turns and along the curve.
+        let r = 0.7 * theta / (2.0 * std::f64::consts::PI);
+        if r > 14.0 {
+            break;
+        }
+        text.push_str(&format!(
+            "{},{}\n",
+            15.0 + r * theta.cos(),
+            10.0 + r * theta.sin()
+        ));
+        theta += 0.7 / r.max(0.7);
+    }
+    let dwell = dir.path().join("spiral.csv");
+    std::fs::write(&dwell, text).unwrap();
+    let dwell = dwell.to_str().unwrap();
+    let run = |influence: &str| {
+        let out = dir.path().join(influence);
+        let args = [
+            "--dwell",
+            dwell,
+            "--gaussian-truncation-mm",
+            "12",
+            "--tolerance",
+            "1e-4",
+            "--influence",
+            influence,
+            "--max-iterations",
+            "50",
+            "--accept-best-iterate",
+        ];
+        let o = solve_gaussian(&map, &args, &out);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        (report(&out), String::from_utf8_lossy(&o.stderr).to_string())
+    };
+    let (point, _) = run("point");
+    assert_eq!(point["operator"], "nufft");
+    let (swept, err) = run("swept");
+    assert_eq!(swept["operator"], "sparse", "{err}");
+    assert!(err.contains("stretches differ"), "{err}");
+}
+
 /// Dwell points far from the map make the stencils' image of the lattice huge (its clearing
 /// dominates each product): `auto` assembles `R` instead, and the far points stay unreachable.
 #[test]

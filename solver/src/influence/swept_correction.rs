@@ -61,8 +61,8 @@ impl std::fmt::Debug for SweptCorrected {
 impl SweptCorrected {
     /// `inner` (a lattice operator over the rows `(x, y)` and the dwell points of `path`, with
     /// the kernel `kernel`: `tif` swept along the dominant stretch) corrected at the dwell points
-    /// whose stretch in `stretches` differs from the dominant one. `None` when every stretch is
-    /// the dominant one (nothing to correct).
+    /// whose stretch in `stretches` differs from the dominant one. `Err(inner)`, the operator
+    /// unchanged, when every stretch is the dominant one (nothing to correct).
     #[allow(clippy::too_many_arguments)]
     pub fn new<T: InfluenceFunction + ?Sized, K: InfluenceFunction + ?Sized>(
         inner: Box<dyn InfluenceOperator>,

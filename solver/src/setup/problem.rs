@@ -6,6 +6,11 @@ use super::*;
 use crate::influence::operator::InfluenceOperator;
 use crate::influence::swept_correction::SweptCorrected;
 
+/// Under `operator = "auto"`, the largest share of dwell points whose swept columns a lattice
+/// operator corrects one by one (a raster's row ends are a few per cent; a spiral's points all
+/// differ).
+pub const MAX_CORRECTED_SHARE: f64 = 0.2;
+
 /// The FFT operator is used only when the map's bounding box holds at most this many lattice cells
 /// per map point (a round aperture fills 79% of its square, i.e. 1.27 cells per point).
 pub(super) const MAX_LATTICE_CELLS_PER_MAP_POINT: f64 = 4.0;
@@ -265,11 +270,12 @@ impl Setup {
                 None => None,
             },
         };
+        let lattice = match lattice {
+            Some(op) => self.swept_corrected(op, &rows, &mut warnings, observer)?,
+            None => None,
+        };
         let problem = match lattice {
-            Some(op) => {
-                let op = self.swept_corrected(op, &rows, &mut warnings, observer)?;
-                Problem::from_boxed(op, z_nm, bounds, rho, lambda)
-            }
+            Some(op) => Problem::from_boxed(op, z_nm, bounds, rho, lambda),
             None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
         }
         .and_then(|p| {
@@ -304,17 +310,30 @@ impl Setup {
     /// A lattice operator `op` over the rows `rows` with the swept model's exact columns where
     /// a dwell point's stretch is not the shared kernel's
     /// ([`crate::influence::swept_correction`]); `op` itself under the point model or when
-    /// every stretch is the kernel's.
+    /// every stretch is the kernel's. `None` (assemble `R`) under `operator = "auto"` when more
+    /// than [`MAX_CORRECTED_SHARE`] of the dwell points need their own columns (a spiral, a
+    /// random path: the shared kernel is not the path's, and the correction would cost more
+    /// than the assembled `R`).
     fn swept_corrected(
         &self,
         op: Box<dyn InfluenceOperator>,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
         observer: &dyn Observer,
-    ) -> SetupResult<Box<dyn InfluenceOperator>> {
+    ) -> SetupResult<Option<Box<dyn InfluenceOperator>>> {
         let Some((stretches, kernel)) = &self.swept else {
-            return Ok(op);
+            return Ok(Some(op));
         };
+        let n = self.path.len().max(1);
+        let share = stretches.outside_dominant().len() as f64 / n as f64;
+        if self.settings.operator == OperatorChoice::Auto && share > MAX_CORRECTED_SHARE {
+            warnings.push(format!(
+                "operator auto: {:.0}% of the dwell points' stretches differ from the lattice \
+                 operator's shared swept kernel; assembling R",
+                100.0 * share
+            ));
+            return Ok(None);
+        }
         match SweptCorrected::new(
             op,
             rows.x_mm(),
@@ -334,9 +353,9 @@ impl Setup {
                      columns",
                     corrected.corrected_columns()
                 ));
-                Ok(Box::new(corrected))
+                Ok(Some(Box::new(corrected)))
             }
-            Err(op) => Ok(op),
+            Err(op) => Ok(Some(op)),
         }
     }
 
