@@ -61,8 +61,9 @@ impl std::fmt::Debug for SweptCorrected {
 impl SweptCorrected {
     /// `inner` (a lattice operator over the rows `(x, y)` and the dwell points of `path`, with
     /// the kernel `kernel`: `tif` swept along the dominant stretch) corrected at the dwell points
-    /// whose stretch in `stretches` differs from the dominant one. `Err(inner)`, the operator
-    /// unchanged, when every stretch is the dominant one (nothing to correct).
+    /// `columns` whose stretch in `stretches` differs from the dominant one
+    /// ([`Stretches::outside_dominant`], ascending). `Err(inner)`, the operator unchanged, when
+    /// there are none (nothing to correct).
     #[allow(clippy::too_many_arguments)]
     pub fn new<T: InfluenceFunction + ?Sized, K: InfluenceFunction + ?Sized>(
         inner: Box<dyn InfluenceOperator>,
@@ -70,6 +71,7 @@ impl SweptCorrected {
         map_y_mm: &[f64],
         path: &DwellPath,
         stretches: &Stretches,
+        columns: Vec<usize>,
         tif: &T,
         kernel: &K,
         observer: &dyn Observer,
@@ -82,7 +84,12 @@ impl SweptCorrected {
                 expected: n,
             });
         }
-        let columns = stretches.outside_dominant();
+        if columns.windows(2).any(|w| w[0] >= w[1]) || columns.last().is_some_and(|&j| j >= n) {
+            return Err(Error::invalid(
+                "swept correction columns",
+                format!("must be ascending dwell indices below {n}"),
+            ));
+        }
         if columns.is_empty() {
             return Ok(Err(inner));
         }
@@ -414,6 +421,7 @@ mod tests {
             &my,
             &path,
             &stretches,
+            stretches.outside_dominant(),
             &tif,
             &kernel,
             &Silent,

@@ -324,8 +324,8 @@ impl Setup {
         let Some((stretches, kernel)) = &self.swept else {
             return Ok(Some(op));
         };
-        let n = self.path.len().max(1);
-        let share = stretches.outside_dominant().len() as f64 / n as f64;
+        let columns = stretches.outside_dominant();
+        let share = columns.len() as f64 / self.path.len().max(1) as f64;
         if self.settings.operator == OperatorChoice::Auto && share > MAX_CORRECTED_SHARE {
             warnings.push(format!(
                 "operator auto: {:.0}% of the dwell points' stretches differ from the lattice \
@@ -340,6 +340,7 @@ impl Setup {
             rows.y_mm(),
             &self.path,
             stretches,
+            columns,
             &self.tif,
             kernel,
             observer,
