@@ -107,8 +107,33 @@ fn robust_plan_trades_nominal_for_the_worst_scenario() {
     assert_eq!(robust["weighting"], "mean");
     assert_eq!(rms_list(&robust["scenario_weights"]), vec![1.0; 5]);
     let mut refused = args.to_vec();
-    refused.extend(["--operator", "fft"]);
+    refused.extend(["--operator", "fft-spread"]);
     expect_failure(&refused, &["robust"]);
+
+    // The scenarios' FFT operators stacked matrix-free: the same plan as the stacked matrices.
+    let out_fft = d.path().join("robust_fft");
+    let o = preston_cmd()
+        .arg("solve")
+        .args(args)
+        .args(["--operator", "fft", "--out"])
+        .arg(&out_fft)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let rf = report(&out_fft);
+    assert_eq!(rf["operator"], "fft", "{rf}");
+    assert!(
+        rf["warnings"].to_string().contains("matrix-free"),
+        "{}",
+        rf["warnings"]
+    );
+    let fft = rms_list(&rf["robust"]["robust_plan_rms_nm"]);
+    for (a, b) in rob.iter().zip(&fft) {
+        assert!(
+            (a - b).abs() <= 1e-3 * a.max(1e-3),
+            "{rob:?} against {fft:?}"
+        );
+    }
 
     // Minimax weights: the worst scenario as planned no higher than the mean plan's (the rounds
     // keep the best; here the two width scenarios pull against each other and the mean plan is
@@ -133,6 +158,7 @@ fn robust_plan_trades_nominal_for_the_worst_scenario() {
     );
     let w = rms_list(&minimax["scenario_weights"]);
     assert!((w.iter().sum::<f64>() - 5.0).abs() < 1e-9, "{w:?}");
+    assert!(close(r["rms_after_nm"].as_f64().unwrap(), mm[0]), "{r}");
     let warned = r["warnings"].to_string();
     assert!(warned.contains("robust minimax"), "{warned}");
     let mut no_robust: Vec<&str> = args.iter().copied().filter(|a| *a != "--robust").collect();
@@ -176,4 +202,42 @@ fn robust_sample_job_holds_every_scenario_within_4_nm() {
             .unwrap(),
         rob[3]
     );
+}
+
+/// The shipped job with minimax weights (here far from equal): the rows of each scenario are
+/// weighted, but the report's figures are the nominal scenario's own. The error before is the
+/// map's, the plan's model residual is the executed one within 5% (the plan is the part), and
+/// the worst executed scenario is no worse than the mean plan's 4 nm bound.
+#[test]
+fn minimax_sample_job_reports_the_nominal_scenario_unweighted() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("minimax");
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args([
+            "--robust",
+            "--robust-weighting",
+            "minimax",
+            "--quiet",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    assert_eq!(r["operator"], "fft", "{}", r["warnings"]);
+    let w = rms_list(&r["robust"]["scenario_weights"]);
+    assert!(w.iter().any(|w| (w - 1.0).abs() > 0.1), "{w:?}");
+    let before = r["rms_before_nm"].as_f64().unwrap();
+    assert!((before - 922.373).abs() < 1e-3, "{before}");
+    let executed = r["executed"]["rms_after_nm"].as_f64().unwrap();
+    let model = r["model"]["rms_nm"].as_f64().unwrap();
+    assert!(
+        (model - executed).abs() <= 0.05 * executed,
+        "{model} vs {executed}"
+    );
+    let rob = rms_list(&r["robust"]["robust_plan_rms_nm"]);
+    assert!(worst(&rob) <= 4.0, "{rob:?}");
 }

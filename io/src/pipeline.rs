@@ -373,8 +373,15 @@ fn robust_report(
         .map_err(|e| Error::Solver(e.source))?;
     let plan = nominal.solve(&built.problem, observer)?;
     let z = prepared.setup.map.z_nm();
+    // Each scenario's removal: its block of the robust problem's rows over the block's scale.
     let per_scenario = |t: &[f64]| -> Result<Vec<f64>> {
-        Ok(robust::scenario_rms_nm(z, &prepared.problem.removal_nm(t)?))
+        let mut h = prepared.problem.removal_nm(t)?;
+        let scales = prepared.problem.scenario_scales();
+        let block = h.len() / scales.len();
+        for (part, a) in h.chunks_mut(block).zip(scales) {
+            part.iter_mut().for_each(|v| *v /= a);
+        }
+        Ok(robust::scenario_rms_nm(z, &h))
     };
     let executed = |o: &Outcome| match (&o.executed, &o.sensitivity) {
         (Some(Ok(e)), Some(s)) => Some(robust::executed_scenario_rms_nm(e.after.rms_nm, s)),

@@ -485,8 +485,13 @@ impl Report {
             piston_nm,
             objective,
         } = fit;
-        let z = &problem.z_nm()[..residual_nm.len().min(problem.m())];
-        let before = HeightStats::of(z);
+        // The measured rows (of the nominal block, over its scale, in a robust plan).
+        let a0 = problem.scenario_scales()[0];
+        let z: Vec<f64> = problem.z_nm()[..residual_nm.len().min(problem.m())]
+            .iter()
+            .map(|v| v / a0)
+            .collect();
+        let before = HeightStats::of(&z);
         let after = HeightStats::of(residual_nm);
         let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
         let empty = problem.empty_columns();

@@ -33,6 +33,9 @@ pub struct Problem {
     rho: f64,
     lambda: f64,
     dwell_lattice: Option<Arc<precond::DwellLattice>>,
+    /// The robust plan's rows: scenario blocks of equal height, block `s` scaled by `a_s`
+    /// (`[a_1 R_1; ...]` against `[a_1 z; ...]`); `None` for one unscaled block.
+    scenario_scales: Option<Arc<[f64]>>,
     /// The largest eigenvalue of the Jacobi-scaled Hessian `S (R^T P R + lambda D^T D) S` (a
     /// property of `R` and `lambda` alone), estimated by the first solve that needs it and kept
     /// for the next (the acceleration-limited stage after its feed-limited reference).
@@ -163,6 +166,7 @@ impl Problem {
             rho,
             lambda,
             dwell_lattice: None,
+            scenario_scales: None,
             scaled_hessian_norm: OnceLock::new(),
         })
     }
@@ -182,6 +186,33 @@ impl Problem {
         }
         self.dwell_lattice = lattice.map(Arc::new);
         Ok(self)
+    }
+
+    /// The same problem knowing that its rows are scenario blocks of equal height, block `s`
+    /// scaled by `scales[s]` (the robust plan's `[a_1 R_1; ...]` against `[a_1 z; ...]`). Scales
+    /// that are not positive and finite, or whose count does not divide the rows, are an error.
+    pub fn with_scenario_scales(mut self, scales: Vec<f64>) -> Result<Self> {
+        if scales.is_empty() || !self.m().is_multiple_of(scales.len()) {
+            return Err(Error::LengthMismatch {
+                what: "scenario blocks",
+                got: scales.len(),
+                expected: self.m(),
+            });
+        }
+        if let Some(a) = scales.iter().find(|a| !(a.is_finite() && **a > 0.0)) {
+            return Err(Error::invalid(
+                "scenario scale",
+                format!("must be positive and finite, got {a}"),
+            ));
+        }
+        self.scenario_scales = Some(Arc::from(scales));
+        Ok(self)
+    }
+
+    /// The scale of each block of rows (`[1.0]` unless [`Problem::with_scenario_scales`] says
+    /// otherwise): the rows are `scenario_scales().len()` blocks of equal height.
+    pub fn scenario_scales(&self) -> &[f64] {
+        self.scenario_scales.as_deref().unwrap_or(&[1.0])
     }
 
     /// The dwell points' lattice, when they lie on one and the caller said so.
@@ -281,6 +312,7 @@ impl Problem {
             self.lambda,
         )?;
         p.dwell_lattice.clone_from(&self.dwell_lattice);
+        p.scenario_scales.clone_from(&self.scenario_scales);
         // The scaled Hessian `S (R^T P R + lambda D^T D) S` does not depend on the target: a
         // norm estimated for this problem serves the new one.
         if let Some(&norm) = self.scaled_hessian_norm.get() {
@@ -299,6 +331,7 @@ impl Problem {
             lambda,
         )?;
         p.dwell_lattice.clone_from(&self.dwell_lattice);
+        p.scenario_scales.clone_from(&self.scenario_scales);
         Ok(p)
     }
 

@@ -48,6 +48,7 @@ pub use matrix::{InfluenceMatrix, NNZ_BYTES};
 pub use nufft::NufftOperator;
 pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, SparseOperator};
 pub use spread::SpreadOperator;
+pub use stacked::StackedRows;
 pub use stencil::StencilOperator;
 pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};
 pub use swept::{assemble_swept, InfluenceModel, Stretches, SweptTif};

@@ -4,9 +4,16 @@
 //! time by `w_k`; `R_k t_k = (R_k / w_k) u_k`). Several scenarios of one path (the robust plan):
 //! `[R_1; R_2; ...]`, one above the other over the same dwell points.
 
+//!
+//! [`StackedRows`] is the scenarios' stack without assembling it: matrix-free blocks (the
+//! lattice operators with each scenario's kernel), each scaled by `a_s`,
+//! `[a_1 R_1; ...; a_S R_S] t`, `R^T y = Σ a_s R_s^T y_s`, `R^T R t = Σ a_s² R_s^T R_s t`.
+
 use super::matrix::InfluenceMatrix;
+use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use nalgebra_sparse::CscMatrix;
+use std::sync::{Arc, Mutex};
 
 /// `[R_1 / w_1, R_2 / w_2, ...]`; every block must have the same rows and every weight be
 /// positive and finite.
@@ -84,6 +91,213 @@ pub fn stack_rows(blocks: &[InfluenceMatrix]) -> Result<InfluenceMatrix> {
     Ok(InfluenceMatrix::from_csc(csc))
 }
 
+/// Matrix-free scenario blocks, shared by the stacks that scale them.
+pub type ScenarioOperators = Arc<[Box<dyn InfluenceOperator>]>;
+
+/// `[a_1 R_1; ...; a_S R_S]`: matrix-free blocks over the same map points and dwell points, one
+/// above the other, block `s` scaled by `a_s` (module documentation). The blocks are shared, so
+/// the same scenarios serve several scalings (the minimax rounds) without being built again.
+pub struct StackedRows {
+    blocks: ScenarioOperators,
+    scales: Vec<f64>,
+    /// Space for one block's `R_s^T y` (the products add the blocks' in a fixed order).
+    column_scratch: Mutex<Vec<f64>>,
+}
+
+impl std::fmt::Debug for StackedRows {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StackedRows")
+            .field("blocks", &self.blocks.len())
+            .field("kind", &self.kind())
+            .field("scales", &self.scales)
+            .finish()
+    }
+}
+
+impl StackedRows {
+    /// The blocks `blocks` (at least one, all matrix-free and of one shape) scaled by `scales`
+    /// (one per block, positive and finite).
+    pub fn new(blocks: ScenarioOperators, scales: Vec<f64>) -> Result<Self> {
+        let Some(first) = blocks.first() else {
+            return Err(Error::invalid("robust", "no scenario"));
+        };
+        let shape = first.shape();
+        if let Some(b) = blocks.iter().find(|b| b.shape() != shape) {
+            return Err(Error::LengthMismatch {
+                what: "scenario operator rows and columns",
+                got: b.shape().0 * b.shape().1,
+                expected: shape.0 * shape.1,
+            });
+        }
+        if blocks.iter().any(|b| b.matrix().is_some()) {
+            return Err(Error::invalid(
+                "robust",
+                "the stacked operator takes matrix-free blocks (stack assembled ones with \
+                 stack_rows)",
+            ));
+        }
+        if scales.len() != blocks.len() {
+            return Err(Error::LengthMismatch {
+                what: "scenario scales",
+                got: scales.len(),
+                expected: blocks.len(),
+            });
+        }
+        if let Some(a) = scales.iter().find(|a| !(a.is_finite() && **a > 0.0)) {
+            return Err(Error::invalid(
+                "scenario scale",
+                format!("must be positive and finite, got {a}"),
+            ));
+        }
+        Ok(Self {
+            column_scratch: Mutex::new(vec![0.0; shape.1]),
+            blocks,
+            scales,
+        })
+    }
+
+    /// Rows of one block (the map's rows).
+    fn block_rows(&self) -> usize {
+        self.blocks[0].shape().0
+    }
+
+    /// `out = Σ_s w_s P_s`, with `product(s, part)` writing block `s`'s `P_s` into `part`, the
+    /// blocks added in order (results independent of the thread count).
+    fn weighted_sum(
+        &self,
+        out: &mut [f64],
+        mut product: impl FnMut(usize, &mut [f64]),
+        weight: impl Fn(usize) -> f64,
+    ) {
+        let mut guard = self
+            .column_scratch
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let tmp = guard.as_mut_slice();
+        product(0, out);
+        let w0 = weight(0);
+        out.iter_mut().for_each(|v| *v *= w0);
+        for s in 1..self.blocks.len() {
+            product(s, tmp);
+            let w = weight(s);
+            out.iter_mut()
+                .zip(tmp.iter())
+                .for_each(|(o, v)| *o += w * v);
+        }
+    }
+}
+
+impl InfluenceOperator for StackedRows {
+    fn kind(&self) -> OperatorKind {
+        self.blocks[0].kind()
+    }
+
+    fn shape(&self) -> (usize, usize) {
+        let (m, n) = self.blocks[0].shape();
+        (m * self.blocks.len(), n)
+    }
+
+    fn nnz(&self) -> usize {
+        self.blocks.iter().map(|b| b.nnz()).sum()
+    }
+
+    fn empty_columns(&self) -> Vec<usize> {
+        let mut empty = self.blocks[0].empty_columns();
+        for b in self.blocks.iter().skip(1) {
+            let other = b.empty_columns();
+            empty.retain(|j| other.binary_search(j).is_ok());
+        }
+        empty
+    }
+
+    fn products(&self, _normal_products: Option<usize>) -> Products<'_> {
+        Products::Direct(self)
+    }
+}
+
+impl LinearOperator for StackedRows {
+    fn nrows(&self) -> usize {
+        self.shape().0
+    }
+
+    fn ncols(&self) -> usize {
+        self.shape().1
+    }
+
+    fn apply(&self, t: &[f64], out: &mut [f64]) {
+        let m = self.block_rows();
+        for ((b, a), o) in self.blocks.iter().zip(&self.scales).zip(out.chunks_mut(m)) {
+            b.products(None).apply(t, o);
+            o.iter_mut().for_each(|v| *v *= a);
+        }
+    }
+
+    fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
+        let m = self.block_rows();
+        self.weighted_sum(
+            out,
+            |s, o| {
+                self.blocks[s]
+                    .products(None)
+                    .apply_transpose(&y[s * m..(s + 1) * m], o)
+            },
+            |s| self.scales[s],
+        );
+    }
+
+    fn apply_normal(&self, t: &[f64], scratch: &mut [f64], out: &mut [f64]) {
+        let m = self.block_rows();
+        // Each block's own (fused) normal product, with its part of `scratch`.
+        self.weighted_sum(
+            out,
+            |s, o| {
+                self.blocks[s]
+                    .products(None)
+                    .apply_normal(t, &mut scratch[s * m..(s + 1) * m], o)
+            },
+            |s| self.scales[s] * self.scales[s],
+        );
+    }
+
+    fn products_cheap_per_dwell_point(&self) -> bool {
+        self.blocks[0]
+            .products(None)
+            .products_cheap_per_dwell_point()
+    }
+
+    /// `Σ a_s² ||R_s,j||² - (Σ a_s 1'R_s,j)² / (S m)`, from each block's centred norms `N_s` and
+    /// column sums: `||R_s,j||² = N_s + (1'R_s,j)² / m`.
+    fn centred_column_norms_sq(&self) -> Vec<f64> {
+        let (m, n) = self.blocks[0].shape();
+        let ones = vec![1.0; m];
+        let mut total = vec![0.0; n];
+        let mut sum = vec![0.0; n];
+        let mut col_sum = vec![0.0; n];
+        let mf = m as f64;
+        for (b, a) in self.blocks.iter().zip(&self.scales) {
+            let products = b.products(None);
+            let norms = products.centred_column_norms_sq();
+            products.apply_transpose(&ones, &mut col_sum);
+            // An empty column's sum is exactly zero (a matrix-free transposed product leaves
+            // rounding there, which would make its norm a tiny positive one and its Jacobi scale
+            // enormous).
+            for j in b.empty_columns() {
+                col_sum[j] = 0.0;
+            }
+            for j in 0..n {
+                total[j] += a * a * (norms[j] + col_sum[j] * col_sum[j] / mf);
+                sum[j] += a * col_sum[j];
+            }
+        }
+        let rows = mf * self.blocks.len() as f64;
+        total
+            .iter()
+            .zip(&sum)
+            .map(|(t, s)| (t - s * s / rows).max(0.0))
+            .collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -117,5 +331,76 @@ mod tests {
             assert!((h[i] - h1[i] - h2[i]).abs() <= 1e-12 * (h1[i] + h2[i]).abs().max(1.0));
         }
         assert!(stack_scaled(&[(&r1, 1.0), (&r2, 0.0)]).is_err());
+    }
+
+    /// Relative tolerance of matrix-free products against the assembled ones (the same sums,
+    /// FFT rounding).
+    const STACK_TOL: f64 = 1e-10;
+
+    #[test]
+    fn scaled_matrix_free_rows_are_the_scaled_stacked_matrices() {
+        // Two FFT blocks (different TIFs) over one lattice with dwell points off the map at the
+        // corner (empty columns in both), scales 0.5 and 2: every product and the centred
+        // norms are those of `[0.5 R_1; 2 R_2]` assembled.
+        let (mx, my): (Vec<f64>, Vec<f64>) =
+            (0..400).map(|k| ((k % 20) as f64, (k / 20) as f64)).unzip();
+        let (dx, dy): (Vec<f64>, Vec<f64>) = (0..24 * 24)
+            .map(|k| ((k % 24) as f64 - 2.0, (k / 24) as f64 - 2.0))
+            .chain([(40.0, 40.0)])
+            .unzip();
+        let tifs = [
+            GaussianTif::new(1.5, 2.0, 4.5).unwrap(),
+            GaussianTif::new(1.0, 3.0, 3.0).unwrap(),
+        ];
+        let scales = [0.5, 2.0];
+        let blocks: Vec<Box<dyn InfluenceOperator>> = tifs
+            .iter()
+            .map(|t| {
+                Box::new(super::super::FftOperator::new(&mx, &my, &dx, &dy, 1.0, t).unwrap())
+                    as Box<dyn InfluenceOperator>
+            })
+            .collect();
+        let op = StackedRows::new(Arc::from(blocks), scales.to_vec()).unwrap();
+        let mats: Vec<InfluenceMatrix> = tifs
+            .iter()
+            .map(|t| InfluenceMatrix::assemble(&mx, &my, &dx, &dy, t, &Silent).unwrap())
+            .collect();
+        // The assembled robust plan's rows: block `s` scaled by `sqrt(w_s)`.
+        let weights: Vec<f64> = scales.iter().map(|a| a * a).collect();
+        let stacked =
+            crate::setup::robust::weighted_rows(&stack_rows(&mats).unwrap(), &weights).unwrap();
+        let reference = stacked.products(None);
+        let n = dx.len();
+        assert_eq!(op.shape(), (800, n));
+        let t: Vec<f64> = (0..n).map(|j| 1.0 + (0.3 * j as f64).sin()).collect();
+        let y: Vec<f64> = (0..800).map(|i| (0.11 * i as f64).cos()).collect();
+        let close = |a: &[f64], b: &[f64], what: &str| {
+            let peak = a.iter().fold(0.0f64, |p, v| p.max(v.abs()));
+            for (k, (u, v)) in a.iter().zip(b).enumerate() {
+                assert!((u - v).abs() <= STACK_TOL * peak, "{what} {k}: {u} vs {v}");
+            }
+        };
+        let (mut h, mut h_ref) = (vec![0.0; 800], vec![0.0; 800]);
+        op.apply(&t, &mut h);
+        reference.apply(&t, &mut h_ref);
+        close(&h_ref, &h, "R t");
+        let (mut g, mut g_ref) = (vec![0.0; n], vec![0.0; n]);
+        op.apply_transpose(&y, &mut g);
+        reference.apply_transpose(&y, &mut g_ref);
+        close(&g_ref, &g, "R^T y");
+        op.apply_normal(&t, &mut h, &mut g);
+        reference.apply_normal(&t, &mut h_ref, &mut g_ref);
+        close(&g_ref, &g, "R^T R t");
+        let norms = op.centred_column_norms_sq();
+        close(
+            &reference.centred_column_norms_sq(),
+            &norms,
+            "centred norms",
+        );
+        // The far dwell point reaches nothing in either block: empty, with an exact zero norm.
+        assert_eq!(op.empty_columns(), vec![n - 1]);
+        assert_eq!(norms[n - 1], 0.0);
+        assert!(StackedRows::new(Arc::clone(&op.blocks), vec![1.0]).is_err());
+        assert!(StackedRows::new(Arc::clone(&op.blocks), vec![1.0, 0.0]).is_err());
     }
 }

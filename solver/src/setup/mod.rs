@@ -730,6 +730,75 @@ mod tests {
         }
     }
 
+    #[test]
+    fn the_robust_lattice_stack_is_the_stacked_assembled_scenario_matrices() {
+        // Map and raster on one 0.5 mm lattice, the swept model: the robust plan's scenario
+        // blocks, each the FFT operator with the scenario's swept kernel and its exact row-end
+        // columns, give the stacked assembled scenario matrices' products, transposes, normal
+        // products and centred column norms; both plans are the same.
+        let mut d = data();
+        d.dwell = DwellPoints::Raster {
+            pitch_mm: 0.5,
+            along: RasterAxis::X,
+        };
+        let resolve = |operator| {
+            let mut c = choices();
+            c.settings.influence = InfluenceModel::Swept;
+            c.settings.operator = operator;
+            c.settings.robust = true;
+            Setup::resolve(c.check(&Silent).unwrap(), d.clone(), &Silent).unwrap()
+        };
+        let assembled = resolve(OperatorChoice::Sparse);
+        let lattice = resolve(OperatorChoice::Fft);
+        let pa = assembled.problem(&Silent).unwrap().problem;
+        let pl = lattice.problem(&Silent).unwrap().problem;
+        assert_eq!(pa.operator_kind(), crate::influence::OperatorKind::Sparse);
+        assert_eq!(pl.operator_kind(), crate::influence::OperatorKind::Fft);
+        assert_eq!((pa.m(), pa.n()), (pl.m(), pl.n()));
+        assert_eq!(pa.m(), robust::SCENARIOS.len() * lattice.map.len());
+        let close = |a: &[f64], b: &[f64], what: &str| {
+            let peak = a.iter().fold(0.0f64, |p, v| p.max(v.abs()));
+            for (k, (u, v)) in a.iter().zip(b).enumerate() {
+                assert!((u - v).abs() <= 1e-9 * peak, "{what} {k}: {u} vs {v}");
+            }
+        };
+        let (x, y) = (lattice.path.x_mm(), lattice.path.y_mm());
+        let t: Vec<f64> = x
+            .iter()
+            .zip(y)
+            .map(|(&px, &py)| 1.0 + 0.1 * (px + 2.0 * py).sin())
+            .collect();
+        close(
+            &pa.removal_nm(&t).unwrap(),
+            &pl.removal_nm(&t).unwrap(),
+            "R t",
+        );
+        let (oa, ol) = (pa.operator().products(None), pl.operator().products(None));
+        let yv: Vec<f64> = (0..pa.m()).map(|i| (0.37 * i as f64).cos()).collect();
+        let (mut ta, mut tl) = (vec![0.0; pa.n()], vec![0.0; pa.n()]);
+        oa.apply_transpose(&yv, &mut ta);
+        ol.apply_transpose(&yv, &mut tl);
+        close(&ta, &tl, "R^T y");
+        let mut scratch = vec![0.0; pa.m()];
+        oa.apply_normal(&t, &mut scratch, &mut ta);
+        ol.apply_normal(&t, &mut scratch, &mut tl);
+        close(&ta, &tl, "R^T R t");
+        close(
+            &oa.centred_column_norms_sq(),
+            &ol.centred_column_norms_sq(),
+            "centred norms",
+        );
+        let (sa, sl) = (
+            assembled.solve(&pa, &Silent).unwrap(),
+            lattice.solve(&pl, &Silent).unwrap(),
+        );
+        let (ra, rl) = (
+            HeightStats::of(&sa.residual_nm).rms_nm,
+            HeightStats::of(&sl.residual_nm).rms_nm,
+        );
+        assert!((ra - rl).abs() <= 1e-3 * ra.max(1e-3), "{ra} vs {rl}");
+    }
+
     /// A solve that ran away (a piston of 1e155 nm, a non-finite dwell or removal) is no answer:
     /// the guard that turns it into `numerical_error` rejects each, and accepts a real solve.
     #[test]

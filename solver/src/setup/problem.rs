@@ -2,9 +2,14 @@
 //! operators, or the robust plan's stacked scenarios) and the [`Problem`] built on them.
 
 use super::off_lattice::OffLatticeOperator;
+use super::sensitivity::PerturbedTif;
 use super::*;
 use crate::influence::operator::InfluenceOperator;
+use crate::influence::operator::OperatorKind;
+use crate::influence::stacked::ScenarioOperators;
 use crate::influence::swept_correction::SweptCorrected;
+use crate::influence::{StackedRows, StencilOperator, SweptTif};
+use std::sync::Arc;
 
 /// Under `operator = "auto"`, the largest share of dwell points whose swept columns a lattice
 /// operator corrects one by one (a raster's row ends are a few per cent; a spiral's points all
@@ -237,7 +242,36 @@ impl Setup {
             built.scenario_weights = Some(weights);
             return Ok(built);
         }
-        let fft = match self.operator_plan(&rows, &mut warnings)? {
+        let z_nm = rows.z_nm().to_vec();
+        let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
+        let lattice = self.lattice_operator(&rows, &mut warnings)?;
+        let lattice = match (lattice, &self.swept) {
+            (Some(op), Some((_, kernel))) => {
+                self.swept_corrected(op, &rows, &self.tif, kernel, &mut warnings, observer)?
+            }
+            (lattice, _) => lattice,
+        };
+        let problem = match lattice {
+            Some(op) => Problem::from_boxed(op, z_nm, bounds, rho, lambda),
+            None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+        }
+        .and_then(|p| {
+            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+        })
+        .at(SetupInput::Job)?;
+        self.built(problem, edge_points, warnings)
+    }
+
+    /// The matrix-free operator over the problem rows `rows` with the lattice kernel
+    /// ([`Setup::lattice_kernel`]): the FFT operator where [`Setup::operator_plan`] takes it,
+    /// else the off-lattice operator [`Setup::off_lattice_operator`] takes; `None` to assemble
+    /// `R`. Notes on the choice go to `warnings`.
+    fn lattice_operator(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+    ) -> SetupResult<Option<Box<dyn InfluenceOperator>>> {
+        let fft = match self.operator_plan(rows, warnings)? {
             OperatorPlan::Assembled => None,
             OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
                 rows.x_mm(),
@@ -259,30 +293,15 @@ impl Setup {
                 }
             },
         };
-        let z_nm = rows.z_nm().to_vec();
-        let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
-        let lattice: Option<Box<dyn InfluenceOperator>> = match fft {
+        Ok(match fft {
             Some(op) => Some(Box::new(op)),
-            None => match self.off_lattice_operator(&rows, &mut warnings)? {
+            None => match self.off_lattice_operator(rows, warnings)? {
                 Some(OffLatticeOperator::Stencil(op)) => Some(Box::new(op)),
                 Some(OffLatticeOperator::Nufft(op)) => Some(Box::new(op)),
                 Some(OffLatticeOperator::Spread(op)) => Some(Box::new(op)),
                 None => None,
             },
-        };
-        let lattice = match lattice {
-            Some(op) => self.swept_corrected(op, &rows, &mut warnings, observer)?,
-            None => None,
-        };
-        let problem = match lattice {
-            Some(op) => Problem::from_boxed(op, z_nm, bounds, rho, lambda),
-            None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
-        }
-        .and_then(|p| {
-            p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
         })
-        .at(SetupInput::Job)?;
-        self.built(problem, edge_points, warnings)
     }
 
     /// `problem` with its checks: refused when no dwell point reaches the map, warned when a
@@ -314,14 +333,18 @@ impl Setup {
     /// than [`MAX_CORRECTED_SHARE`] of the dwell points need their own columns (a spiral, a
     /// random path: the shared kernel is not the path's, and the correction would cost more
     /// than the assembled `R`).
-    fn swept_corrected(
+    /// `tif` is the TIF swept along each stretch and `kernel` the operator's shared kernel (the
+    /// nominal ones, or a robust scenario's).
+    fn swept_corrected<T: InfluenceFunction + ?Sized, K: InfluenceFunction + ?Sized>(
         &self,
         op: Box<dyn InfluenceOperator>,
         rows: &HeightMap,
+        tif: &T,
+        kernel: &K,
         warnings: &mut Vec<String>,
         observer: &dyn Observer,
     ) -> SetupResult<Option<Box<dyn InfluenceOperator>>> {
-        let Some((stretches, kernel)) = &self.swept else {
+        let Some((stretches, _)) = &self.swept else {
             return Ok(Some(op));
         };
         let columns = stretches.outside_dominant();
@@ -341,7 +364,7 @@ impl Setup {
             &self.path,
             stretches,
             columns,
-            &self.tif,
+            tif,
             kernel,
             observer,
         )
@@ -360,12 +383,85 @@ impl Setup {
         }
     }
 
+    /// The robust scenarios' matrix-free operators over the problem rows `rows`, the nominal
+    /// first ([`robust::SCENARIOS`]): where the nominal plan takes the FFT or the stencil
+    /// operator, the same operator with each scenario's kernel (its TIF, [`PerturbedTif`],
+    /// swept along the dominant stretch under the swept model), each with its exact swept
+    /// columns where stretches differ. `None` to stack the assembled matrices (`operator =
+    /// "sparse"`, or a nominal plan on another operator or on `R`).
+    fn robust_lattice_blocks(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Option<ScenarioOperators>> {
+        if self.settings.operator == OperatorChoice::Sparse {
+            return Ok(None);
+        }
+        let mut notes = Vec::new();
+        let Some(nominal) = self.lattice_operator(rows, &mut notes)? else {
+            warnings.extend(notes);
+            return Ok(None);
+        };
+        let kind = nominal.kind();
+        if !matches!(kind, OperatorKind::Fft | OperatorKind::Stencil) {
+            warnings.push(format!(
+                "robust: the scenarios' matrices are assembled (the nominal plan's {} operator \
+                 is not stacked per scenario)",
+                kind_label(kind)
+            ));
+            return Ok(None);
+        }
+        warnings.extend(notes);
+        let Some(pitch_mm) = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()) else {
+            return Ok(None);
+        };
+        let dominant = self
+            .swept
+            .as_ref()
+            .map(|(stretches, _)| stretches.dominant().0);
+        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        let mut blocks: Vec<Box<dyn InfluenceOperator>> =
+            Vec::with_capacity(robust::SCENARIOS.len());
+        let mut nominal = Some(nominal);
+        for (s, scenario) in robust::SCENARIOS.iter().enumerate() {
+            let tif = PerturbedTif::new(&self.tif, scenario.width_factor, 1.0, scenario.offset_mm);
+            let swept_kernel = dominant.clone().map(|d| SweptTif::new(tif.clone(), d));
+            let kernel: &dyn InfluenceFunction = match &swept_kernel {
+                Some(k) => k,
+                None => &tif,
+            };
+            let op: Box<dyn InfluenceOperator> = match (nominal.take(), kind) {
+                (Some(op), _) => op,
+                (None, OperatorKind::Fft) => Box::new(
+                    FftOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?,
+                ),
+                (None, _) => Box::new(
+                    StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?,
+                ),
+            };
+            // The nominal scenario's notes are the plan's; the others' repeat them.
+            let mut scenario_notes = Vec::new();
+            let notes = if s == 0 {
+                &mut *warnings
+            } else {
+                &mut scenario_notes
+            };
+            match self.swept_corrected(op, rows, &tif, kernel, notes, observer)? {
+                Some(op) => blocks.push(op),
+                None => return Ok(None),
+            }
+        }
+        Ok(Some(Arc::from(blocks)))
+    }
+
     /// The robust plan's problem over `rows` ([`robust`]) and its scenario weights: the
-    /// scenarios' assembled matrices stacked against the target repeated, `rho` and `lambda`
-    /// times the scenario count, each block weighted (equal weights: the mean over the
-    /// scenarios; `robust_weighting = "minimax"`: the weights of [`robust::minimax_weights`],
-    /// whose rounds solve the weighted problem here). Refused on a curved part or with a
-    /// curvature-dependent TIF, and with an operator other than the assembled `R`.
+    /// scenarios' operators ([`Setup::robust_lattice_blocks`], else their assembled matrices)
+    /// stacked against the target repeated, `rho` and `lambda` times the scenario count, the
+    /// rows of block `s` scaled by `sqrt(w_s)` (equal weights: the mean over the scenarios;
+    /// `robust_weighting = "minimax"`: the weights of [`robust::minimax_weights`], whose rounds
+    /// solve the weighted problem here). Refused on a curved part or with a curvature-dependent
+    /// TIF, and with the NUFFT or spreading operator asked for.
     pub(super) fn robust_problem(
         &self,
         rows: &HeightMap,
@@ -381,45 +477,87 @@ impl Setup {
         }
         if !matches!(
             self.settings.operator,
-            OperatorChoice::Auto | OperatorChoice::Sparse
+            OperatorChoice::Auto
+                | OperatorChoice::Sparse
+                | OperatorChoice::Fft
+                | OperatorChoice::Stencil
         ) {
             return Err(Error::invalid(
                 "robust",
-                "the robust plan stacks the scenarios' assembled matrices: use operator = \
-                 \"auto\" or \"sparse\"",
+                "the robust plan stacks the scenarios' FFT or stencil operators, or their \
+                 assembled matrices: use operator = \"auto\", \"fft\", \"stencil\" or \
+                 \"sparse\"",
             ))
             .at(SetupInput::Job);
         }
         let scenarios = robust::SCENARIOS.len();
-        let stacked = robust::stacked_matrix(
-            rows.x_mm(),
-            rows.y_mm(),
-            &self.path,
-            self.swept.as_ref().map(|s| &s.0),
-            &self.tif,
-            observer,
-        )
-        .at(SetupInput::None)?;
-        warnings.push(format!(
-            "robust: the plan minimises the {} residual over {scenarios} scenarios (nominal, \
-             TIF 3% wider and narrower, tool 0.05 mm off in x and y), {:.2e} non-zeros in the \
-             stacked R",
-            match self.settings.robust_weighting {
-                crate::dwell::RobustWeighting::Mean => "mean",
-                crate::dwell::RobustWeighting::Minimax => "worst",
-            },
-            stacked.nnz() as f64
-        ));
+        let what = match self.settings.robust_weighting {
+            crate::dwell::RobustWeighting::Mean => "mean",
+            crate::dwell::RobustWeighting::Minimax => "worst",
+        };
+        let stack = match self.robust_lattice_blocks(rows, warnings, observer)? {
+            Some(blocks) => {
+                warnings.push(format!(
+                    "robust: the plan minimises the {what} residual over {scenarios} scenarios \
+                     (nominal, TIF 3% wider and narrower, tool 0.05 mm off in x and y), each \
+                     scenario's {} operator stacked (matrix-free)",
+                    kind_label(blocks[0].kind())
+                ));
+                RobustStack::Operators(blocks)
+            }
+            None => {
+                let stacked = robust::stacked_matrix(
+                    rows.x_mm(),
+                    rows.y_mm(),
+                    &self.path,
+                    self.swept.as_ref().map(|s| &s.0),
+                    &self.tif,
+                    observer,
+                )
+                .at(SetupInput::None)?;
+                warnings.push(format!(
+                    "robust: the plan minimises the {what} residual over {scenarios} scenarios \
+                     (nominal, TIF 3% wider and narrower, tool 0.05 mm off in x and y), \
+                     {:.2e} non-zeros in the stacked R",
+                    stacked.nnz() as f64
+                ));
+                RobustStack::Matrix(Box::new(stacked))
+            }
+        };
         let s = scenarios as f64;
         let weighted = |weights: &[f64]| -> crate::error::Result<Problem> {
-            Problem::new(
-                robust::weighted_rows(&stacked, weights)?,
-                robust::weighted_target(rows.z_nm(), weights),
-                self.bounds.clone(),
-                self.rho * s,
-                self.lambda * s,
-            )?
-            .with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
+            let target = robust::weighted_target(rows.z_nm(), weights);
+            let (bounds, rho, lambda) = (self.bounds.clone(), self.rho * s, self.lambda * s);
+            match &stack {
+                RobustStack::Matrix(stacked) => Problem::new(
+                    robust::weighted_rows(stacked, weights)?,
+                    target,
+                    bounds,
+                    rho,
+                    lambda,
+                ),
+                RobustStack::Operators(blocks) => Problem::new(
+                    StackedRows::new(
+                        Arc::clone(blocks),
+                        weights.iter().map(|w| w.sqrt()).collect(),
+                    )?,
+                    target,
+                    bounds,
+                    rho,
+                    lambda,
+                ),
+            }?
+            .with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))?
+            .with_scenario_scales(weights.iter().map(|w| w.sqrt()).collect())
+        };
+        // Every scenario's removal `[R_1 t; ...; R_S t]`, unweighted.
+        let removal = |t: &[f64]| -> crate::error::Result<Vec<f64>> {
+            match &stack {
+                RobustStack::Matrix(stacked) => stacked.removal_nm(t),
+                RobustStack::Operators(blocks) => {
+                    StackedRows::new(Arc::clone(blocks), vec![1.0; scenarios])?.removal_nm(t)
+                }
+            }
         };
         let weights = match self.settings.robust_weighting {
             crate::dwell::RobustWeighting::Mean => vec![1.0; scenarios],
@@ -430,8 +568,7 @@ impl Setup {
                     let warm = warm.or(self.warm_start_s.as_deref());
                     let plan =
                         crate::dwell::solve_validated(&problem, &self.settings, observer, warm)?;
-                    let removal = stacked.removal_nm(&plan.dwell_s)?;
-                    let rms = robust::scenario_rms_nm(self.map.z_nm(), &removal);
+                    let rms = robust::scenario_rms_nm(self.map.z_nm(), &removal(&plan.dwell_s)?);
                     Ok((plan.dwell_s, rms))
                 })
                 .at(SetupInput::None)?;
@@ -456,5 +593,24 @@ impl Setup {
         };
         let problem = weighted(&weights).at(SetupInput::Job)?;
         Ok((problem, weights))
+    }
+}
+
+/// How the robust plan's scenarios are held: matrix-free blocks or the stacked assembled `R`.
+enum RobustStack {
+    /// Each scenario's lattice operator.
+    Operators(ScenarioOperators),
+    /// `[R_1; ...; R_S]` assembled.
+    Matrix(Box<InfluenceMatrix>),
+}
+
+/// The operator's name in the notes.
+fn kind_label(kind: OperatorKind) -> &'static str {
+    match kind {
+        OperatorKind::Sparse => "assembled",
+        OperatorKind::Fft => "FFT",
+        OperatorKind::FftSpread => "spreading",
+        OperatorKind::Stencil => "stencil",
+        OperatorKind::Nufft => "NUFFT",
     }
 }

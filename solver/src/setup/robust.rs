@@ -7,7 +7,9 @@
 //!
 //! `min_t  (1/S) Σ_s ½ ||R_s t + c − z||² + ρ Σ t   (+ λ)`,  `t` within its bounds,
 //!
-//! i.e. the rows `[R_1; ...; R_S]` stacked against `[z; ...; z]` with `ρ` and `λ` times `S`: the
+//! i.e. the rows `[R_1; ...; R_S]` stacked against `[z; ...; z]` with `ρ` and `λ` times `S` (each
+//! `R_s` the nominal plan's lattice operator with scenario `s`'s kernel where that is the FFT or
+//! stencil operator, [`crate::influence::StackedRows`], else assembled, [`stacked_matrix`]): the
 //! mean squared residual over the scenarios (Ben-Tal, El Ghaoui and Nemirovski, *Robust
 //! Optimization*, 2009: the scenario (sample-average) counterpart). One piston `c` serves every
 //! scenario (a width change keeps the volume, an offset moves nothing in or out).

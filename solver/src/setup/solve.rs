@@ -47,8 +47,10 @@ impl Setup {
                 let removal = problem.removal_nm(&a.solution.dwell_s)?;
                 if edge_rows {
                     // The SCP's RMS figures are over every row; give them on the measured map.
+                    let a0 = problem.scenario_scales()[0];
                     let on_map = |h: &[f64]| {
-                        HeightStats::of(&centred_residual_nm(self.map.z_nm(), &h[..m])).rms_nm
+                        let h: Vec<f64> = h[..m].iter().map(|v| v / a0).collect();
+                        HeightStats::of(&centred_residual_nm(self.map.z_nm(), &h)).rms_nm
                     };
                     report.rms_after_nm = on_map(&removal);
                     report.rms_after_reference_nm =
@@ -79,9 +81,23 @@ impl Setup {
             }
             _ => (solution, removal_all, None),
         };
+        // The nominal scenario's removal (the first block of a robust plan's rows, over its
+        // scale) on the measured map.
         let mut removal_nm = removal_all;
         removal_nm.truncate(m);
+        let nominal_scale = problem.scenario_scales()[0];
         let mut solution = solution;
+        if nominal_scale != 1.0 {
+            removal_nm.iter_mut().for_each(|h| *h /= nominal_scale);
+            // The solver's piston serves the scaled blocks together; the nominal scenario's
+            // own is its mean departure.
+            let departure: f64 = removal_nm
+                .iter()
+                .zip(self.map.z_nm())
+                .map(|(h, z)| h - z)
+                .sum();
+            solution.piston_nm = departure / m.max(1) as f64;
+        }
         // A solve that ran away (a non-finite or astronomically large figure) is no answer.
         if !solution_is_finite(&solution, &removal_nm) {
             solution.status = Status::NumericalError;
@@ -237,18 +253,16 @@ impl Setup {
         let (mut solution, mut removal_all) = (solution, removal_all);
         let m = self.map.len();
         for _ in 0..MAX_CORRECTION_PASSES {
-            // The executed departure from the plan, on the measured rows of every scenario's
-            // block (one block unless the plan is robust).
-            let blocks = if self.settings.robust {
-                robust::SCENARIOS.len()
-            } else {
-                1
-            };
-            let block = problem.m() / blocks;
+            // The executed departure from the plan (the nominal block's removal over its
+            // scale), on the measured rows of every scenario's block, each at its scale (one
+            // unscaled block unless the plan is robust).
+            let scales = problem.scenario_scales();
+            let block = problem.m() / scales.len();
             let mut target = problem.z_nm().to_vec();
-            for b in 0..blocks {
+            for (b, a) in scales.iter().enumerate() {
                 for i in 0..m {
-                    target[b * block + i] -= current.run.removal_nm[i] - removal_all[i];
+                    let departure = current.run.removal_nm[i] - removal_all[i] / scales[0];
+                    target[b * block + i] -= a * departure;
                 }
             }
             let pass = problem.with_target_nm(target)?;
