@@ -7,7 +7,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SHARED="${1:-../shared/data}"
-BIN=target/release/preston
+BIN="${PRESTON_BIN:-target/release/preston}"
 OUT="${TMPDIR:-/tmp}/preston-defaults-study"
 mkdir -p "$OUT"
 row() { # name, then solve flags
@@ -36,7 +36,7 @@ echo "| --- | --- | --- | --- | --- | --- | --- | --- |"
 row "sample: as shipped"
 for e in zero-band gaussian polynomial gerchberg-papoulis; do row "sample: edge $e" --edge "$e"; done
 row "sample: no feed floor" --v-min 0
-for p in 1.0 0.75 0.32; do row "sample: pitch $p mm" --raster-pitch-mm "$p"; done
+for p in 1.0 0.75 0.5; do row "sample: pitch $p mm" --raster-pitch-mm "$p"; done
 # Another mirror, the same measured TIF.
 M2="$SHARED/mirror_sim_210x30mm.csv"
 for p in 1.0 0.75; do row "210x30 mirror: pitch $p mm" --map "$M2" --raster-pitch-mm "$p"; done

@@ -156,6 +156,7 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         build_seconds,
     );
     report.map_input = Some(map_read.input);
+    report.influence = Some(setup.influence_model());
     report.machining_time_s = report.total_dwell_s;
     if job.edge.method != preston_solver::edge::EdgeMethod::None {
         report.warnings.push(

@@ -24,7 +24,7 @@ use super::{At, Checked, SetupInput, SetupResult, SetupStep, TifModel};
 use crate::dwell::{self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution};
 use crate::error::{Error, Result};
 use crate::influence::stacked::stack_scaled;
-use crate::influence::InfluenceMatrix;
+use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches};
 use crate::map::HeightMap;
 use crate::observer::Observer;
 use crate::path::DwellPath;
@@ -162,20 +162,32 @@ impl ToolsSetup {
         })
     }
 
-    /// The stacked problem `[R_1 / w_1, R_2 / w_2, ...]` over the map with bounds `w_k ds / v`.
+    /// The stacked problem `[R_1 / w_1, R_2 / w_2, ...]` over the map with bounds `w_k ds / v`,
+    /// each `R_k` under the settings' influence model (swept: tool `k`'s TIF averaged along
+    /// each stretch of its own path, [`crate::influence::swept`]).
     pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Problem> {
         observer.setup_step(SetupStep::BuildProblem);
         let mut blocks = Vec::with_capacity(self.tools.len());
         let (mut lower, mut upper, mut any_upper) = (Vec::new(), Vec::new(), false);
         for tool in &self.tools {
-            let r = InfluenceMatrix::assemble(
-                self.map.x_mm(),
-                self.map.y_mm(),
-                tool.path.x_mm(),
-                tool.path.y_mm(),
-                &tool.tif,
-                observer,
-            )
+            let (mx, my) = (self.map.x_mm(), self.map.y_mm());
+            let r = match self.settings.influence {
+                // Each tool's TIF swept along its own path's stretches, as its program runs it.
+                InfluenceModel::Swept => {
+                    let stretches =
+                        Stretches::of_path(&tool.path, super::default_sample_step_mm(&tool.tif))
+                            .at(SetupInput::Dwell)?;
+                    assemble_swept(mx, my, &tool.path, &stretches, &tool.tif, observer)
+                }
+                InfluenceModel::Point => InfluenceMatrix::assemble(
+                    mx,
+                    my,
+                    tool.path.x_mm(),
+                    tool.path.y_mm(),
+                    &tool.tif,
+                    observer,
+                ),
+            }
             .at(SetupInput::Map)?;
             let w = tool.time_weight;
             blocks.push((r, w));
@@ -193,6 +205,11 @@ impl ToolsSetup {
         let stacked = stack_scaled(&refs).at(SetupInput::Job)?;
         let bounds = DwellBounds::new(lower, any_upper.then_some(upper)).at(SetupInput::Job)?;
         Problem::new(stacked, self.map.z_nm().to_vec(), bounds, self.rho, 0.0).at(SetupInput::Map)
+    }
+
+    /// The influence model every tool's `R_k` is built with.
+    pub fn influence_model(&self) -> InfluenceModel {
+        self.settings.influence
     }
 
     /// Solves `problem` (built by [`ToolsSetup::problem`]) and splits the answer by tool: each
@@ -267,30 +284,68 @@ mod tests {
         (map, tools)
     }
 
+    /// Agreement of a tool's swept removal with its program swept by the simulator's midpoint
+    /// rule (`SWEPT_SAMPLES` samples per stretch), relative to the largest removal: two
+    /// quadratures of one integral, within the swept model's contract of 0.1% (3.5e-4 here).
+    const SWEPT_TOL: f64 = 1e-3;
+    const SWEPT_SAMPLES: usize = 256;
+
     #[test]
     fn each_tools_removal_is_its_own_assembled_r_times_its_dwell_and_they_sum() {
+        for model in [InfluenceModel::Point, InfluenceModel::Swept] {
+            tools_removal_under(model);
+        }
+    }
+
+    /// Under `model`, each tool's removal is its dwell times its own `R_k` (point model: an
+    /// independent assembly; swept model: the simulator sweeping the tool's TIF along its own
+    /// path at constant feed per stretch), and the tools' removals sum to the total.
+    fn tools_removal_under(model: InfluenceModel) {
         let (map, tools) = two_tools();
-        let checked = ToolChoices::check(choices().check(&Silent).unwrap()).unwrap();
+        let mut c = choices();
+        c.settings.influence = model;
+        let checked = ToolChoices::check(c.check(&Silent).unwrap()).unwrap();
         let setup = ToolsSetup::resolve(&checked, map, tools).unwrap();
         let problem = setup.problem(&Silent).unwrap();
         let out = setup.solve(&problem, &Silent).unwrap();
         let m = setup.map.len();
         let mut sum = vec![0.0; m];
         for (k, tool) in setup.tools.iter().enumerate() {
-            // An independent assembly of R_k (unscaled) times the tool's dwell in seconds.
-            let r = InfluenceMatrix::assemble(
-                setup.map.x_mm(),
-                setup.map.y_mm(),
-                tool.path.x_mm(),
-                tool.path.y_mm(),
-                &tool.tif,
-                &Silent,
-            )
-            .unwrap();
-            let h = r.removal_nm(&out.dwell_s[k]).unwrap();
+            let (h, tol) = match model {
+                InfluenceModel::Point => {
+                    let r = InfluenceMatrix::assemble(
+                        setup.map.x_mm(),
+                        setup.map.y_mm(),
+                        tool.path.x_mm(),
+                        tool.path.y_mm(),
+                        &tool.tif,
+                        &Silent,
+                    )
+                    .unwrap();
+                    (r.removal_nm(&out.dwell_s[k]).unwrap(), REMOVAL_TOL)
+                }
+                InfluenceModel::Swept => (
+                    crate::simulate::removal_nm(
+                        setup.map.x_mm(),
+                        setup.map.y_mm(),
+                        &tool.path,
+                        &out.dwell_s[k],
+                        &tool.tif,
+                        crate::simulate::Motion::Continuous {
+                            samples_per_point: SWEPT_SAMPLES,
+                        },
+                        &Silent,
+                    )
+                    .unwrap(),
+                    SWEPT_TOL,
+                ),
+            };
             let scale = h.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-300);
             for (a, b) in h.iter().zip(&out.tool_removal_nm[k]) {
-                assert!((a - b).abs() <= REMOVAL_TOL * scale, "tool {k}: {a} vs {b}");
+                assert!(
+                    (a - b).abs() <= tol * scale,
+                    "{model:?} tool {k}: {a} vs {b}"
+                );
             }
             for (s, v) in sum.iter_mut().zip(&h) {
                 *s += v;
@@ -300,8 +355,12 @@ mod tests {
             assert!(b.max_violation_s(&out.dwell_s[k]) <= 1e-12);
         }
         let scale = sum.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let tol = match model {
+            InfluenceModel::Point => REMOVAL_TOL,
+            InfluenceModel::Swept => SWEPT_TOL,
+        };
         for (a, b) in sum.iter().zip(&out.removal_nm) {
-            assert!((a - b).abs() <= REMOVAL_TOL * scale, "{a} vs {b}");
+            assert!((a - b).abs() <= tol * scale, "{model:?}: {a} vs {b}");
         }
     }
 
