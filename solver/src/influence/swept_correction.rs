@@ -10,7 +10,9 @@
 //! `R = R~ + D E^T`, `R^T y = R~^T y + E D^T y`,
 //! `R^T R = R~^T R~ + C E^T + E C^T + E (D^T D) E^T`, `C = R~^T D` (`n x k`),
 //!
-//! so the normal product keeps the inner operator's own (fused) one and adds sparse terms. `D`
+//! so the normal product keeps the inner operator's own (fused) one and adds sparse terms, or,
+//! where those would cost more than fusing saves ([`UNFUSED_ENTRIES_PER_DWELL_POINT`]), is
+//! `R^T (R t)` through the two corrected products. `D`
 //! is assembled directly (`k` columns over the map points in reach), `C` by transposed products
 //! of the inner operator at set-up, one per batch of corrected points far enough apart that
 //! their columns of `C` do not meet, `D^T D` over the pairs of columns whose reaches meet. The centred column norms (Jacobi scaling) of the corrected columns follow from the
@@ -33,6 +35,15 @@ const C_DROP_TOLERANCE: f64 = 1e-14;
 /// cells beyond the TIF's support).
 const SUPPORT_MARGIN: f64 = 1.1;
 
+/// The normal product is the inner operator's fused one plus the sparse terms `C` and `D^T D`
+/// until those exceed the unfused passes' (`D E^T t`, `D^T y`) by this many entries per dwell
+/// point; beyond it, `R^T (R t)` through the corrected `R` and `R^T`. Unfusing an FFT product
+/// costs 12-28% of a product of 30-50 ns per dwell point (`docs/benchmarks.md`), a sparse entry
+/// about 2 ns: on the generated 2e4 raster (6.8 entries per point) unfused is 22% faster a
+/// product, on the 2e5 one (2.0) 25% slower. Where the row ends lie off the map, `D` holds
+/// little and `C` (its columns' every dwell point in reach) far more.
+const UNFUSED_ENTRIES_PER_DWELL_POINT: f64 = 4.0;
+
 /// A lattice operator with the swept model's exact columns for the dwell points whose stretch
 /// is not the kernel's (module documentation).
 pub struct SweptCorrected {
@@ -47,6 +58,10 @@ pub struct SweptCorrected {
     dtd: Vec<Vec<(usize, f64)>>,
     /// Centred squared column norms of `R~ + D E^T`.
     norms: Vec<f64>,
+    /// Normal products as `R^T (R t)` through the corrected `R` and `R^T` (rather than the inner
+    /// operator's fused one plus `C` and `D^T D`), where `C` holds far more than `D`
+    /// ([`UNFUSED_ENTRIES_PER_DWELL_POINT`]).
+    unfused: bool,
 }
 
 impl std::fmt::Debug for SweptCorrected {
@@ -74,6 +89,31 @@ impl SweptCorrected {
         columns: Vec<usize>,
         tif: &T,
         kernel: &K,
+        observer: &dyn Observer,
+    ) -> Result<std::result::Result<Self, Box<dyn InfluenceOperator>>> {
+        Self::build(
+            inner,
+            (map_x_mm, map_y_mm),
+            path,
+            stretches,
+            columns,
+            (tif, kernel),
+            UNFUSED_ENTRIES_PER_DWELL_POINT,
+            observer,
+        )
+    }
+
+    /// [`SweptCorrected::new`] with the fused normal product kept while its sparse terms exceed
+    /// the unfused passes' by at most `unfused_above` entries per dwell point.
+    #[allow(clippy::too_many_arguments)]
+    fn build<T: InfluenceFunction + ?Sized, K: InfluenceFunction + ?Sized>(
+        inner: Box<dyn InfluenceOperator>,
+        (map_x_mm, map_y_mm): (&[f64], &[f64]),
+        path: &DwellPath,
+        stretches: &Stretches,
+        columns: Vec<usize>,
+        (tif, kernel): (&T, &K),
+        unfused_above: f64,
         observer: &dyn Observer,
     ) -> Result<std::result::Result<Self, Box<dyn InfluenceOperator>>> {
         let (m, n) = inner.shape();
@@ -240,6 +280,15 @@ impl SweptCorrected {
             norms[j] = (plain + 2.0 * cross + d_norms[k] - sum * sum / mf).max(0.0);
         }
         drop(products);
+        let c_entries: usize = c.iter().map(Vec::len).sum();
+        let dtd_entries: usize = dtd.iter().map(Vec::len).sum();
+        let unfused =
+            (2 * c_entries + dtd_entries) as f64 - (2 * d.nnz()) as f64 > unfused_above * n as f64;
+        let (c, dtd) = if unfused {
+            (Vec::new(), Vec::new())
+        } else {
+            (c, dtd)
+        };
         Ok(Ok(Self {
             inner,
             columns,
@@ -247,6 +296,7 @@ impl SweptCorrected {
             c,
             dtd,
             norms,
+            unfused,
         }))
     }
     /// The dwell points whose columns are corrected.
@@ -318,6 +368,11 @@ impl LinearOperator for SweptCorrected {
     }
 
     fn apply_normal(&self, t: &[f64], scratch: &mut [f64], out: &mut [f64]) {
+        if self.unfused {
+            self.apply(t, scratch);
+            self.apply_transpose(scratch, out);
+            return;
+        }
         self.inner.products(None).apply_normal(t, scratch, out);
         // C E^T t, then E (C^T t + D^T D E^T t), in a fixed order.
         for (k, &j) in self.columns.iter().enumerate() {
@@ -362,20 +417,23 @@ mod tests {
     /// A 15 x 10 mm map and a serpentine raster on its 0.5 mm lattice whose row ends lie a
     /// millimetre outside it, well within the TIF's reach: the FFT operator with the dominant
     /// stretch's kernel misses the row ends' L-shaped stretches; corrected, its `R t`, `R^T y`,
-    /// `R^T R t` and centred column norms are the assembled swept `R`'s.
+    /// `R^T R t` and centred column norms are the assembled swept `R`'s, with the normal product
+    /// fused (the inner operator's plus `C` and `D^T D`) and unfused (`R^T (R t)`).
     #[test]
     fn the_corrected_lattice_operator_is_the_assembled_swept_matrix() {
-        corrected_against_assembled(1);
+        corrected_against_assembled(1, f64::INFINITY);
+        corrected_against_assembled(1, 0.0);
     }
 
     /// The same with the map on a lattice twice as fine as the raster's (the FFT operator's
     /// dwell points on a sub-lattice).
     #[test]
     fn the_corrected_lattice_operator_is_the_assembled_swept_matrix_on_a_finer_map() {
-        corrected_against_assembled(2);
+        corrected_against_assembled(2, f64::INFINITY);
+        corrected_against_assembled(2, 0.0);
     }
 
-    fn corrected_against_assembled(refine: usize) {
+    fn corrected_against_assembled(refine: usize, unfused_above: f64) {
         let (mut mx, mut my) = (Vec::new(), Vec::new());
         let h = 0.5 / refine as f64;
         for j in 0..(20 * refine + 1) {
@@ -415,15 +473,14 @@ mod tests {
             worst > 1e-4 * peak,
             "the uncorrected kernel should miss the row ends"
         );
-        let corrected = match SweptCorrected::new(
+        let corrected = match SweptCorrected::build(
             Box::new(fft),
-            &mx,
-            &my,
+            (&mx, &my),
             &path,
             &stretches,
             stretches.outside_dominant(),
-            &tif,
-            &kernel,
+            (&tif, &kernel),
+            unfused_above,
             &Silent,
         )
         .unwrap()
@@ -431,6 +488,7 @@ mod tests {
             Ok(c) => c,
             Err(_) => panic!("the row ends differ from the dominant stretch"),
         };
+        assert_eq!(corrected.unfused, unfused_above == 0.0);
         assert_eq!(
             corrected.corrected_columns(),
             stretches.outside_dominant().len()
