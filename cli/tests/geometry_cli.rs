@@ -432,8 +432,9 @@ fn solve_on_a_surface_reduces_to_the_flat_solve_on_a_plane() {
         ok(&preston(&args));
         out
     };
-    // The tangent frame plans with the point model: the flat solve too.
-    let flat = run(&["--influence", "point"], "flat");
+    // The swept model in the tangent frame: on a plane, with the machine-x frame, the flat swept
+    // solve on the assembled R, byte for byte.
+    let flat = run(&["--operator", "sparse"], "flat");
     let on_plane = run(
         &["--surface", s(&plane), "--tif-frame", "machine-x"],
         "plane",
@@ -454,6 +455,7 @@ fn solve_on_a_surface_reduces_to_the_flat_solve_on_a_plane() {
         serde_json::from_str(&std::fs::read_to_string(on_sphere.join("report.json")).unwrap())
             .unwrap();
     assert_eq!(report["status"], "converged");
+    assert_eq!(report["influence"], "swept", "{}", report["warnings"]);
 }
 
 /// The shipped freeform's design points on a 2.5 mm grid over +-25 mm, raised by 2 um (a

@@ -50,5 +50,8 @@ pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, Sp
 pub use spread::SpreadOperator;
 pub use stacked::StackedRows;
 pub use stencil::StencilOperator;
-pub use surface::{assemble_on_surface, assemble_on_surface_with, TifFrame, SEARCH_RADIUS_FACTOR};
+pub use surface::{
+    assemble_on_surface, assemble_on_surface_swept, assemble_on_surface_with, TifFrame,
+    SEARCH_RADIUS_FACTOR,
+};
 pub use swept::{assemble_swept, InfluenceModel, Stretches, SweptTif};

@@ -24,7 +24,9 @@
 //! 7. *Polish*: the machine runs the path through the registered transform, so the tool lands on
 //!    the true part off by the registration's error; the removal uses the TIF rate scaled by
 //!    `1 + e` (`e` uniform in `[-tif_rate_error, tif_rate_error]`, drawn once per iteration) and
-//!    dwell positions moved by Gaussian noise of `positioning_noise_mm` per axis.
+//!    dwell positions moved by Gaussian noise of `positioning_noise_mm` per axis; the tool sweeps
+//!    along each stretch of the path it actually follows (the swept model in each point's tangent
+//!    frame, [`crate::influence::surface::assemble_on_surface_swept`]).
 //!
 //! Statistics are those of the registered (measured) form error, which is what the shop sees:
 //! piston and tilt of the true error are indistinguishable from the installation error.
@@ -38,7 +40,8 @@ pub use rate::{RateEstimate, RateObservation};
 use crate::dwell::{FeedLimits, OperatorChoice, Settings, Status};
 use crate::edge::{EdgeMethod, EdgeSettings};
 use crate::error::{Error, Result};
-use crate::influence::surface::{assemble_on_surface, TifFrame};
+use crate::influence::surface::{assemble_on_surface_swept, TifFrame};
+use crate::influence::Stretches;
 use crate::map::{BoundingBox, HeightMap, HeightStats};
 use crate::observer::{Observer, Stage};
 use crate::path::DwellPath;
@@ -980,12 +983,15 @@ impl<'a> Shop<'a> {
             py.push(q.y + sigma * rng.normal());
         }
         let actual_tif = ScaledTif::new(self.tif, 1.0 + e);
-        let actual = assemble_on_surface(
+        // The machine sweeps the tool along each stretch of the path it actually follows.
+        let actual_path = DwellPath::new(px, py)?;
+        let stretches = Stretches::of_path(&actual_path, self.tif.support_radius_mm() / 64.0)?;
+        let actual = assemble_on_surface_swept(
             &part.surface,
             &self.gx,
             &self.gy,
-            &px,
-            &py,
+            &actual_path,
+            &stretches,
             &actual_tif,
             TifFrame::PathTangent,
             self.observer,

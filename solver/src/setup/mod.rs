@@ -40,7 +40,7 @@ use crate::edge::{self, EdgeSettings};
 use crate::error::{Error, Result};
 use crate::influence::curvature::assemble_curvature_dependent;
 use crate::influence::fft::FftOperator;
-use crate::influence::surface::{assemble_on_surface, TifFrame};
+use crate::influence::surface::{assemble_on_surface, assemble_on_surface_swept, TifFrame};
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches, SweptTif};
 use crate::machine::feeds::FeedSchedule;
 use crate::machine::gcode::motion::Kinematics;
@@ -226,8 +226,10 @@ pub struct Setup {
     pub edge: EdgeSettings,
     /// The warm start, checked against the dwell points.
     pub warm_start_s: Option<Vec<f64>>,
-    /// With the swept influence model in the plane: every dwell point's stretch sampled for the
-    /// assembled `R`, and the kernel the lattice operators share ([`crate::influence::swept`]).
+    /// With the swept influence model (in the plane, or on a curved part in each dwell point's
+    /// tangent frame, [`crate::influence::surface::assemble_on_surface_swept`]): every dwell
+    /// point's stretch sampled for the assembled `R`, and the kernel the lattice operators share
+    /// ([`crate::influence::swept`]).
     pub swept: Option<(Stretches, SweptTif<Tif>)>,
     /// A generated raster's placement on the map's lattice (`None`: given dwell points).
     pub raster: Option<raster::RasterPlacement>,

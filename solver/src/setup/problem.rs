@@ -210,10 +210,21 @@ impl Setup {
             (None, _) => {
                 InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer).at(SetupInput::None)
             }
-            (Some(s), TifModel::ShiftInvariant) => {
-                assemble_on_surface(s, mx, my, px, py, &self.tif, self.tif_frame, observer)
-                    .at(SetupInput::Surface)
-            }
+            (Some(s), TifModel::ShiftInvariant) => match &self.swept {
+                Some((stretches, _)) => assemble_on_surface_swept(
+                    s,
+                    mx,
+                    my,
+                    &self.path,
+                    stretches,
+                    &self.tif,
+                    self.tif_frame,
+                    observer,
+                )
+                .at(SetupInput::Surface),
+                None => assemble_on_surface(s, mx, my, px, py, &self.tif, self.tif_frame, observer)
+                    .at(SetupInput::Surface),
+            },
             (Some(s), TifModel::CurvatureDependent(params)) => {
                 assemble_curvature_dependent(s, mx, my, px, py, params, self.tif_frame, observer)
                     .at(SetupInput::Surface)
@@ -232,7 +243,7 @@ impl Setup {
             && self.feed.is_some()
         {
             warnings.push(
-                "influence swept: not built on a curved part (tangent frame) or with a curvature-dependent TIF; the plan uses the point model"
+                "influence swept: not built with a curvature-dependent TIF; the plan uses the point model"
                     .to_string(),
             );
         }

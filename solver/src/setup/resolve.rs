@@ -130,10 +130,12 @@ impl Setup {
                 .at(SetupInput::WarmStart);
             }
         }
-        // The swept model in the plane: a given plan evaluated (no feed limits) keeps the point
-        // model, whose `R t` simulate's discrete motion is.
-        let swept = match (choices.settings.influence, &surface, &choices.feed) {
-            (InfluenceModel::Swept, None, Some(_)) => {
+        // The swept model in the plane and, with one TIF, on a curved part (each stretch in its
+        // dwell point's tangent frame): a given plan evaluated (no feed limits) keeps the point
+        // model, whose `R t` simulate's discrete motion is; so does a curvature-dependent TIF.
+        let one_tif = matches!(choices.tif_model, TifModel::ShiftInvariant);
+        let swept = match (choices.settings.influence, &choices.feed) {
+            (InfluenceModel::Swept, Some(_)) if surface.is_none() || one_tif => {
                 let stretches = Stretches::of_path(&path, default_sample_step_mm(&tif))
                     .at(SetupInput::Dwell)?;
                 let kernel = SweptTif::new(tif.clone(), stretches.dominant().0);
