@@ -80,8 +80,11 @@ for name, op, rc, t0, t1, d in rows:
     rec = {"op": op, "rc": int(rc), "wall": float(t1) - float(t0)}
     if rec["rc"] in (0, 3):
         r = json.load(open(f"{d}/report.json"))
-        rec.update(used=r.get("operator", "?"), rms=r["rms_after_nm"], its=r.get("iterations"),
+        rec.update(used=r.get("operator", "?"), its=r.get("iterations"),
                    status=r.get("status", "?"))
+        # A run that ended without an answer (a numerical error) has no residual.
+        if r.get("rms_after_nm") is not None:
+            rec["rms"] = r["rms_after_nm"]
     cases.setdefault(name, []).append(rec)
 print("| case | `--operator` | operator used | wall (s) | iterations | status | exact RMS after (nm) | over the best |")
 print("| --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -90,6 +93,10 @@ for name, recs in cases.items():
     solved = [r for r in recs if "rms" in r]
     best = min(r["rms"] for r in solved) if solved else None
     for r in recs:
+        if "rms" not in r and "status" in r:
+            print(f"| {name} | {r['op']} | {r['used']} | {r['wall']:.1f} | {r['its']} | "
+                  f"{r['status']} | none | |")
+            continue
         if "rms" not in r:
             print(f"| {name} | {r['op']} | refused (exit {r['rc']}) | | | | | |")
             continue
