@@ -377,7 +377,7 @@ fn robust_report(
     let per_scenario = |t: &[f64]| -> Result<Vec<f64>> {
         let mut h = prepared.problem.removal_nm(t)?;
         let scales = prepared.problem.scenario_scales();
-        let block = h.len() / scales.len();
+        let block = (h.len() / scales.len()).max(1);
         for (part, a) in h.chunks_mut(block).zip(scales) {
             part.iter_mut().for_each(|v| *v /= a);
         }
