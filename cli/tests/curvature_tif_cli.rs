@@ -184,9 +184,15 @@ fn check_surface(dir: &Path, surface_json: &str, curv: impl Fn(f64) -> (f64, f64
     let surface = write(dir, "surface.json", surface_json);
     let (flat_a, flat_rate) = hertz_by_hand(0.0, 0.0);
     let curved = dir.join("curved");
-    solve(&map, &dwell, &surface, &["--curvature-dependent"], &curved);
-    // The curvature-dependent TIF plans with the point model; the shift-invariant one is
-    // compared at the points too (the swept model would spread it along the stretches).
+    // Both compared at the points: the point model (the swept model would spread each TIF
+    // along its 6 mm stretch).
+    solve(
+        &map,
+        &dwell,
+        &surface,
+        &["--curvature-dependent", "--influence", "point"],
+        &curved,
+    );
     let flat = dir.join("flat");
     solve(&map, &dwell, &surface, &["--influence", "point"], &flat);
     let curved_at = at_dwell_points(&curved);
@@ -430,4 +436,130 @@ fn bad_hertz_combinations_exit_2_and_write_nothing() {
         );
         expect_failure(&["--job", s(&job)], &[needle]);
     }
+}
+
+/// With the swept model a curvature-dependent plan sweeps each dwell point's own Hertz TIF along
+/// its stretch, and with an acceleration limit the solve executes its program on the part, each
+/// contact sample applying the Hertz TIF of the curvature where it lands: the report's residual
+/// is that run, and `simulate --program --job` (the job's TIF model and surface) leaves it too.
+/// The same program simulated with the flat part's Hertz TIF leaves another residual.
+#[test]
+fn a_curvature_dependent_plan_sweeps_and_runs_its_program() {
+    /// The solve's program and `nc`'s differ only in their number formatting.
+    const PROGRAM_REL_TOL: f64 = 1e-3;
+    let dir = tempfile::tempdir().unwrap();
+    let mut map = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..25 {
+        for ix in 0..25 {
+            let (x, y) = (ix as f64 * 0.5 - 6.0, iy as f64 * 0.5 - 6.0);
+            map.push_str(&format!(
+                "{x},{y},{}\n",
+                30.0 + 8.0 * (0.5 * x).cos() * (0.35 * y).sin()
+            ));
+        }
+    }
+    write(dir.path(), "map.csv", &map);
+    write(
+        dir.path(),
+        "surface.json",
+        &format!(r#"{{"type": "conic", "curvature_per_mm": {SPHERE_C}, "conic": -0.6}}"#),
+    );
+    let job = write(
+        dir.path(),
+        "job.toml",
+        &format!(
+            "[map]\nfile = 'map.csv'\n[dwell]\nraster_pitch_mm = 1.0\n[machine]\n\
+             v_max_mm_per_min = 3000\na_max_mm_per_s2 = 300\n[edge]\nmethod = 'none'\n\
+             [surface]\nfile = 'surface.json'\n\
+             [tif]\npitch_mm = {TIF_PITCH_MM}\ncurvature_dependent = true\n\
+             hertz = {{ force_n = {FORCE_N:?}, tool_radius_mm = {TOOL_RADIUS_MM:?}, \
+             spindle_rad_s = {SPINDLE_RAD_S:?}, tilt_deg = {TILT_DEG:?}, \
+             tool_e_gpa = {TOOL_E_GPA:?}, tool_nu = {TOOL_NU:?}, part_e_gpa = {PART_E_GPA:?}, \
+             part_nu = {PART_NU:?}, preston_k_mm2_per_n = {PRESTON_K:?} }}\n"
+        ),
+    );
+    let out = dir.path().join("out");
+    ok(&preston(&["solve", "--job", s(&job), "--out", s(&out)]));
+    let r = report(&out);
+    assert_eq!(r["influence"], "swept", "{}", r["warnings"]);
+    let executed = r["executed"]["rms_after_nm"].as_f64().unwrap();
+    assert_eq!(r["rms_after_nm"].as_f64().unwrap(), executed);
+    assert!(
+        r["sensitivity"]["tif_wider_3pct"]["rms_nm"]
+            .as_f64()
+            .unwrap()
+            > executed
+    );
+    // Against the point model's plan of the same job: the swept plan executes better.
+    let point = dir.path().join("point");
+    ok(&preston(&[
+        "solve",
+        "--job",
+        s(&job),
+        "--influence",
+        "point",
+        "--out",
+        s(&point),
+    ]));
+    let point_executed = report(&point)["rms_after_nm"].as_f64().unwrap();
+    assert!(
+        executed < point_executed,
+        "swept {executed} nm against point {point_executed} nm"
+    );
+    let prog = dir.path().join("prog.nc");
+    ok(&preston(&[
+        "nc",
+        "--dwell",
+        s(&out.join("dwell.csv")),
+        "--job",
+        s(&job),
+        "--out",
+        s(&prog),
+    ]));
+    let sim = dir.path().join("sim");
+    ok(&preston(&[
+        "simulate",
+        "--job",
+        s(&job),
+        "--program",
+        s(&prog),
+        "--out",
+        s(&sim),
+    ]));
+    let run = report(&sim)["rms_after_nm"].as_f64().unwrap();
+    assert!(
+        (run - executed).abs() <= PROGRAM_REL_TOL * executed,
+        "simulate --program {run} nm against the report's executed {executed} nm"
+    );
+    // The flat part's Hertz TIF (what `preston tif hertz` writes) on the same program.
+    let tif = dir.path().join("tif.csv");
+    let hertz = hertz_flags();
+    let mut args: Vec<&str> = vec!["tif", "hertz"];
+    for pair in hertz[2..].chunks(2) {
+        args.push(if pair[0] == "--tif-pitch-mm" {
+            "--pitch-mm"
+        } else {
+            &pair[0]
+        });
+        args.push(&pair[1]);
+    }
+    args.extend(["--out", s(&tif)]);
+    ok(&preston(&args));
+    let flat_sim = dir.path().join("flat_sim");
+    ok(&preston(&[
+        "simulate",
+        "--job",
+        s(&job),
+        "--tif",
+        s(&tif),
+        "--program",
+        s(&prog),
+        "--out",
+        s(&flat_sim),
+    ]));
+    let flat_run = report(&flat_sim)["rms_after_nm"].as_f64().unwrap();
+    assert!(
+        (flat_run - executed).abs() > 10.0 * PROGRAM_REL_TOL * executed,
+        "flat TIF {flat_run} nm against curvature-dependent {executed} nm"
+    );
 }

@@ -755,3 +755,218 @@ fn conic_fit_converges_on_exact_data_and_exits_3_when_it_stalls() {
     );
     assert!(err.contains("not determined separately"), "{err}");
 }
+
+/// A 17 x 17 map at 1 mm (a smooth 12 nm error on 40 nm) on a sphere of radius 40 mm: the map
+/// and the sphere's file in `dir`.
+fn curved_part(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    let map = dir.join("map.csv");
+    let mut text = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..17 {
+        for ix in 0..17 {
+            let (x, y) = (ix as f64 - 8.0, iy as f64 - 8.0);
+            let _ = writeln!(
+                text,
+                "{x},{y},{}",
+                40.0 + 12.0 * (0.45 * x).cos() * (0.3 * y).sin()
+            );
+        }
+    }
+    std::fs::write(&map, text).unwrap();
+    let sphere = dir.join("sphere.json");
+    std::fs::write(&sphere, r#"{"type":"conic","curvature_per_mm":0.025}"#).unwrap();
+    (map, sphere)
+}
+
+/// The TIF of the curved-part tests: a Gaussian of sigma 1.5 mm, 10 nm/s.
+const CURVED_PART_TIF: [&str; 4] = [
+    "--gaussian-sigma-mm",
+    "1.5",
+    "--gaussian-peak-nm-per-s",
+    "10",
+];
+
+/// The shop's check on a curved part: with an acceleration limit the solve executes its program
+/// on the sphere (the tool following the surface, each contact sample applying the TIF in its
+/// tangent frame) and reports that as its residual, with the sensitivity; the program `nc`
+/// writes for the plan, run by `simulate --program` on the same surface, leaves the residual
+/// the report predicts. On a plane with the machine-x frame the executed run is the flat one.
+#[test]
+fn a_curved_part_reports_the_program_it_runs() {
+    /// The solve's program and `nc`'s differ only in their number formatting.
+    const PROGRAM_REL_TOL: f64 = 1e-3;
+    /// The tangent-frame sum on a plane against the plan's: the same terms, another order.
+    const ORDER_REL_TOL: f64 = 1e-9;
+    let d = tempfile::tempdir().unwrap();
+    let (map, sphere) = curved_part(d.path());
+    let plane = d.path().join("plane.json");
+    std::fs::write(&plane, r#"{"type":"plane"}"#).unwrap();
+    let tif = CURVED_PART_TIF;
+    let solve = |surface: Option<&[&str]>, out: &str| {
+        let out = d.path().join(out);
+        let mut args = vec!["solve", "--map", s(&map)];
+        args.extend_from_slice(&tif);
+        args.extend_from_slice(&[
+            "--raster-pitch-mm",
+            "1",
+            "--v-max",
+            "2000",
+            "--a-max-mm-per-s2",
+            "200",
+            "--operator",
+            "sparse",
+            "--out",
+            s(&out),
+        ]);
+        if let Some(extra) = surface {
+            args.extend_from_slice(extra);
+        }
+        ok(&preston(&args));
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        (out, report)
+    };
+    let (out, report) = solve(Some(&["--surface", s(&sphere)]), "sphere");
+    let executed = &report["executed"];
+    assert!(
+        executed.is_object(),
+        "no executed run: {}",
+        report["warnings"]
+    );
+    let rms = report["rms_after_nm"].as_f64().unwrap();
+    assert_eq!(rms, executed["rms_after_nm"].as_f64().unwrap());
+    assert!(report["model"]["rms_nm"].as_f64().unwrap() > 0.0);
+    assert_eq!(report["influence"], "swept");
+    for key in [
+        "tif_wider_3pct",
+        "tif_narrower_3pct",
+        "rate_plus_3pct",
+        "offset_x_0p05mm",
+        "offset_y_0p05mm",
+    ] {
+        let f = &report["sensitivity"][key];
+        assert!(
+            f["rms_nm"].as_f64().unwrap() > rms && f["pv_nm"].as_f64().unwrap() > 0.0,
+            "{key}: {f}"
+        );
+    }
+    let prog = d.path().join("prog.nc");
+    ok(&preston(&[
+        "nc",
+        "--dwell",
+        s(&out.join("dwell.csv")),
+        "--surface",
+        s(&sphere),
+        "--v-max",
+        "2000",
+        "--a-max-mm-per-s2",
+        "200",
+        "--out",
+        s(&prog),
+    ]));
+    let sim = d.path().join("sim");
+    let mut args = vec!["simulate", "--map", s(&map)];
+    args.extend_from_slice(&tif);
+    args.extend_from_slice(&[
+        "--program",
+        s(&prog),
+        "--surface",
+        s(&sphere),
+        "--a-max-mm-per-s2",
+        "200",
+        "--out",
+        s(&sim),
+    ]);
+    ok(&preston(&args));
+    let simulated: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sim.join("report.json")).unwrap()).unwrap();
+    let run = simulated["rms_after_nm"].as_f64().unwrap();
+    assert!(
+        (run - rms).abs() <= PROGRAM_REL_TOL * rms,
+        "simulate --program {run} nm against the report's executed {rms} nm"
+    );
+    // The same program run as if the part were flat leaves another residual: the curvature is
+    // in the executed run.
+    let flat_sim = d.path().join("flat_sim");
+    let mut args = vec!["simulate", "--map", s(&map)];
+    args.extend_from_slice(&tif);
+    args.extend_from_slice(&[
+        "--program",
+        s(&prog),
+        "--a-max-mm-per-s2",
+        "200",
+        "--out",
+        s(&flat_sim),
+    ]);
+    ok(&preston(&args));
+    let flat_run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(flat_sim.join("report.json")).unwrap())
+            .unwrap();
+    let flat_run = flat_run["rms_after_nm"].as_f64().unwrap();
+    assert!(
+        (flat_run - rms).abs() > 10.0 * PROGRAM_REL_TOL * rms,
+        "flat {flat_run} against curved {rms}"
+    );
+    // On a plane in the machine-x frame: the flat solve's executed run and sensitivity.
+    let (_, flat) = solve(None, "flat");
+    let (_, on_plane) = solve(
+        Some(&["--surface", s(&plane), "--tif-frame", "machine-x"]),
+        "plane",
+    );
+    let close = |a: &serde_json::Value, b: &serde_json::Value| {
+        let (a, b) = (a.as_f64().unwrap(), b.as_f64().unwrap());
+        assert!((a - b).abs() <= ORDER_REL_TOL * b.abs(), "{a} against {b}");
+    };
+    close(&on_plane["rms_after_nm"], &flat["rms_after_nm"]);
+    close(&on_plane["pv_after_nm"], &flat["pv_after_nm"]);
+    for key in ["tif_wider_3pct", "offset_x_0p05mm", "offset_y_0p05mm"] {
+        close(
+            &on_plane["sensitivity"][key]["rms_nm"],
+            &flat["sensitivity"][key]["rms_nm"],
+        );
+    }
+}
+
+/// The robust plan on a curved part: each scenario's matrix in the tangent frames (the tool's
+/// offset moving the dwell points), and the plan lowers the mean square over the scenarios
+/// below the nominal plan's.
+#[test]
+fn a_curved_part_takes_the_robust_plan() {
+    let d = tempfile::tempdir().unwrap();
+    let (map, sphere) = curved_part(d.path());
+    let out = d.path().join("robust");
+    let mut args = vec!["solve", "--map", s(&map)];
+    args.extend_from_slice(&CURVED_PART_TIF);
+    args.extend_from_slice(&[
+        "--raster-pitch-mm",
+        "1.5",
+        "--v-max",
+        "2000",
+        "--surface",
+        s(&sphere),
+        "--robust",
+        "--out",
+        s(&out),
+    ]);
+    ok(&preston(&args));
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let robust = &r["robust"];
+    assert_eq!(robust["basis"], "planned", "{robust}");
+    let list = |v: &serde_json::Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let (rob, nom) = (
+        list(&robust["robust_plan_rms_nm"]),
+        list(&robust["nominal_plan_rms_nm"]),
+    );
+    let mean_sq = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64;
+    assert_eq!(rob.len(), 5);
+    assert!(mean_sq(&rob) < mean_sq(&nom), "{rob:?} against {nom:?}");
+    assert!(rob[0] >= nom[0] * (1.0 - 1e-3), "{rob:?} against {nom:?}");
+    assert!(r["sensitivity"].is_object(), "{r}");
+}

@@ -152,6 +152,12 @@ fn two_tools_on_the_command_line() {
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["influence"], "swept");
+    // Every tool's TIF perturbed alike: the widths and offsets leave more than the plan.
+    let rms = report["rms_after_nm"].as_f64().unwrap();
+    for key in ["tif_wider_3pct", "tif_narrower_3pct", "offset_x_0p05mm"] {
+        let f = report["sensitivity"][key]["rms_nm"].as_f64().unwrap();
+        assert!(f > rms, "{key}: {f} against {rms}");
+    }
     let listed = report["tools"].as_array().unwrap();
     assert_eq!(listed.len(), 2);
     let mut removal = vec![0.0; pts.len()];

@@ -434,6 +434,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
         report.warnings.push(a.warning());
     }
     report.influence = Some(prepared.setup.influence_model());
+    report.sensitivity = outcome.sensitivity;
     report.raster = prepared.setup.raster;
     match &outcome.executed {
         Some(Ok(e)) => {
@@ -455,7 +456,6 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
             });
             report.rms_after_nm = e.after.rms_nm;
             report.pv_after_nm = e.after.pv_nm;
-            report.sensitivity = outcome.sensitivity;
         }
         Some(Err(e)) => report
             .warnings

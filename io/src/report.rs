@@ -133,8 +133,9 @@ pub struct Report {
     /// than the map's pitch). Set by [`Report::set_map_coverage`].
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub dwell_outside_map_s: Option<f64>,
-    /// With an acceleration limit on a flat part: the default program (ISO, G94) executed at
-    /// that limit and its removal integrated along the motion, against the plan.
+    /// With an acceleration limit: the default program (ISO, G94; on a curved part following the
+    /// design surface) executed at that limit and its removal integrated along the motion (on a
+    /// curved part each contact sample applying the TIF in its tangent frame), against the plan.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub executed: Option<ExecutedReport>,
     /// With an approximate (spreading) operator: its measured error on the returned dwell and
@@ -152,13 +153,14 @@ pub struct Report {
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub raster: Option<preston_solver::path::raster::RasterPlacement>,
     /// The plan's model residual `z - R t` (RMS, PV, nm) where `rms_after_nm` / `pv_after_nm`
-    /// are the program's as executed at the acceleration limit (a limit on a flat part). Absent
-    /// otherwise.
+    /// are the program's as executed at the acceleration limit. Absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub model: Option<ResidualFigures>,
-    /// With an executed program: its residual (RMS, PV, nm) with the TIF 3% wider and
-    /// narrower (volume kept), its rate 3% higher and the tool 0.05 mm off in x and in y
-    /// ([`preston_solver::setup::sensitivity`]).
+    /// The residual (RMS, PV, nm) of the plan's program (as executed where the solve executes
+    /// it, else at its programmed feeds) with the TIF 3% wider and narrower (volume kept), its
+    /// rate 3% higher and the tool 0.05 mm off in x and in y
+    /// ([`preston_solver::setup::sensitivity`]). Absent where the plan cannot be written as a
+    /// program.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensitivity: Option<preston_solver::setup::sensitivity::Sensitivity>,
     /// With `robust`: the robust plan against the nominal plan of the same job.

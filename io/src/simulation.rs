@@ -11,7 +11,7 @@ use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Problem};
-use preston_solver::influence::InfluenceModel;
+use preston_solver::influence::{InfluenceModel, TifFrame};
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
@@ -23,8 +23,12 @@ use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
-use preston_solver::setup::{Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput};
-use preston_solver::simulate::{removal_nm, Motion};
+use preston_solver::setup::sensitivity::Sensitivity;
+use preston_solver::setup::{
+    Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput, TifModel,
+};
+use preston_solver::simulate::{removal_nm, sample_program, Motion};
+use preston_solver::surface::Surface;
 use preston_solver::tif::Tif;
 use std::io::Write;
 use std::path::Path;
@@ -100,6 +104,10 @@ pub fn simulate(
         )
         .map_err(|e| Error::engine(dwell_file, e))?,
     };
+    // The same motion's removal with the TIF perturbed.
+    let sensitivity = sample_program(&setup.path, &dwell_s, motion)
+        .and_then(|samples| setup.sensitivity_of(&samples, &removal, observer))
+        .map_err(|e| Error::engine(dwell_file, e))?;
     let label = match motion {
         Motion::Discrete => SolverLabel::Simulate,
         Motion::Continuous { samples_per_point } => {
@@ -118,6 +126,7 @@ pub fn simulate(
             removal_nm: removal,
             problem,
             label,
+            sensitivity,
         },
         build_seconds,
         sim_start,
@@ -133,6 +142,8 @@ struct Sweep {
     /// The points' problem (`R`, the map's heights, the bounds), for the report.
     problem: Problem,
     label: SolverLabel,
+    /// The residual of the same motion with the TIF perturbed.
+    sensitivity: Sensitivity,
 }
 
 /// The report of a simulated sweep (same keys as `preston solve`).
@@ -149,6 +160,7 @@ fn assemble(
         removal_nm: removal,
         problem,
         label,
+        sensitivity,
     } = sweep;
     let ds_mm = path.ds_mm();
     let feeds = feeds_mm_per_min(&ds_mm, &dwell_s);
@@ -163,6 +175,7 @@ fn assemble(
     report.solve_seconds = sim_start.elapsed().as_secs_f64();
     report.map_input = Some(map.input.clone());
     report.solver = label;
+    report.sensitivity = Some(sensitivity);
     // The removal's model: the tool at the points for discrete motion, swept otherwise.
     report.influence = Some(match label {
         SolverLabel::Simulate => InfluenceModel::Point,
@@ -200,7 +213,7 @@ fn assemble(
 }
 
 /// Options of [`simulate_program`].
-#[derive(Clone, Copy)]
+#[derive(Clone)]
 pub struct ProgramOptions<'a> {
     /// Dialect to read the program in (default: the one its header names, else ISO).
     pub dialect: Option<Dialect>,
@@ -208,9 +221,16 @@ pub struct ProgramOptions<'a> {
     pub kinematics: Kinematics,
     /// Largest arc length of a removal sample, mm (default: [`default_sample_step_mm`]).
     pub sample_step_mm: Option<f64>,
-    /// The part and the tool-centre offset along its normal (tool radius), mm, to map tool
-    /// centres back to contact points; none: the program's X, Y are the contact points.
-    pub part: Option<(&'a dyn PartGeometry, f64)>,
+    /// The part's design surface and the tool-centre offset along its normal (tool radius), mm:
+    /// tool centres are mapped back to contact points and each contact sample applies the TIF
+    /// in its tangent frame, oriented by `tif_frame`; none: a flat part, the program's X, Y the
+    /// contact points.
+    pub part: Option<(&'a Surface, f64)>,
+    /// How the TIF is oriented in each tangent plane on a curved part.
+    pub tif_frame: TifFrame,
+    /// How the TIF acts on the part: one TIF, or a Hertz TIF at each contact sample from the
+    /// design surface's curvature there (needs `part`).
+    pub tif_model: TifModel,
 }
 
 pub use preston_solver::setup::default_sample_step_mm;
@@ -294,9 +314,13 @@ pub fn simulate_program(
         _ => Error::engine(program_file, e.source),
     };
     let dwell = DwellPoints::of_program(&program).map_err(|e| Error::engine(program_file, e))?;
-    let checked = Choices::evaluation(None)
-        .check(observer)
-        .map_err(at_fault)?;
+    let checked = Choices {
+        tif_frame: options.tif_frame,
+        tif_model: options.tif_model.clone(),
+        ..Choices::evaluation(None)
+    }
+    .check(observer)
+    .map_err(at_fault)?;
     let MapRead { map, input } = map;
     let setup = Setup::resolve(
         checked,
@@ -304,7 +328,7 @@ pub fn simulate_program(
             map,
             tif: tif.clone(),
             dwell,
-            surface: None,
+            surface: options.part.map(|(s, _)| s.clone()),
             warm_start_s: None,
         },
         observer,
@@ -315,18 +339,22 @@ pub fn simulate_program(
         check,
         removal_nm: removal,
         samples: n_samples,
-        ..
+        contact,
     } = setup
         .run_program(
             &program,
             options.kinematics,
             options.sample_step_mm,
-            options.part,
+            options.part.map(|(s, r)| (s as &dyn PartGeometry, r)),
             observer,
         )
         .map_err(|e| Error::engine(program_file, e))?;
     let problem = setup.problem(observer).map_err(at_fault)?.problem;
     let build_seconds = start.elapsed().as_secs_f64();
+    // The executed motion's removal with the TIF perturbed.
+    let sensitivity = setup
+        .sensitivity_of(&contact, &removal, observer)
+        .map_err(|e| Error::engine(program_file, e))?;
     let label = match options.kinematics {
         Kinematics::ProgrammedFeed => SolverLabel::SimulateProgram,
         Kinematics::Trapezoidal {
@@ -349,6 +377,7 @@ pub fn simulate_program(
             } else {
                 executed.stretch_time_s.clone()
             },
+            sensitivity,
             removal_nm: removal,
             problem,
             label,

@@ -137,6 +137,7 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
         dwell_s,
         removal_nm,
         tool_removal_nm,
+        sensitivity,
     } = setup.solve(&problem, observer)?;
     // The stacked report: dwell and feeds in seconds of each tool (not the scaled variables).
     let ds_all: Vec<f64> = setup
@@ -157,6 +158,7 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
     );
     report.map_input = Some(map_read.input);
     report.influence = Some(setup.influence_model());
+    report.sensitivity = Some(sensitivity);
     report.machining_time_s = report.total_dwell_s;
     if job.edge.method != preston_solver::edge::EdgeMethod::None {
         report.warnings.push(

@@ -9,9 +9,9 @@ use preston_io::metrology::MapSource;
 use preston_io::report::centred_residual_nm;
 use preston_io::simulation::{simulate_program as run_program, ProgramOptions};
 use preston_io::surface::TransformFile;
+use preston_solver::influence::TifFrame;
 use preston_solver::machine::gcode::dialect::Dialect;
 use preston_solver::machine::gcode::motion::Kinematics;
-use preston_solver::machine::PartGeometry;
 use preston_solver::map::{BoundingBox, HeightMap};
 use preston_solver::observer::{Observer, Silent};
 use preston_solver::path::edge_offset::{edge_offset, EdgeOffsetSettings};
@@ -19,6 +19,7 @@ use preston_solver::path::random::{random_unicursal, RandomPathSettings};
 use preston_solver::path::spiral::archimedes;
 use preston_solver::path::PathSummary;
 use preston_solver::registration::{register as icp, RegisterSettings};
+use preston_solver::setup::TifModel;
 use preston_solver::surface::Surface;
 use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions, SpotSummary};
 use preston_solver::tif::{
@@ -360,14 +361,14 @@ pub(crate) fn simulate_program<'py>(
     let surface = surface_json.map(surface_of).transpose()?;
     let observer = progress.map(PyProgress::new);
     let sim = py.detach(|| {
-        let part = surface
-            .as_ref()
-            .map(|s| (s as &dyn PartGeometry, tool_radius_mm));
+        let part = surface.as_ref().map(|s| (s, tool_radius_mm));
         let options = ProgramOptions {
             dialect,
             kinematics,
             sample_step_mm,
             part,
+            tif_frame: TifFrame::default(),
+            tif_model: TifModel::ShiftInvariant,
         };
         let obs: &dyn Observer = match &observer {
             Some(o) => o,

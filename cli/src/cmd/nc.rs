@@ -21,7 +21,8 @@ pub struct Args {
     /// Solved dwell file (`dwell.csv` of `preston solve`: x_mm,y_mm,...,dwell_s,...).
     #[arg(long, value_name = "dwell.csv")]
     pub dwell: PathBuf,
-    /// Part surface JSON (as `preston surface`/`fit` read and write); default: flat z = 0.
+    /// Part surface JSON (as `preston surface`/`fit` read and write); default: the job's
+    /// [surface], else flat z = 0.
     #[arg(long, value_name = "S.json")]
     pub surface: Option<PathBuf>,
     /// Tool radius, mm: tool centre A = P + r n/|n| (default 0, or job [nc] tool_radius_mm).
@@ -183,7 +184,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     settings.validate()?;
     let dwell = read_dwell_times(&args.dwell)?;
-    let surface = args.surface.as_deref().map(read_surface).transpose()?;
+    // The flag's surface, else the job's [surface]: the program follows the part it polishes.
+    let surface_file = args.surface.clone().or_else(|| job.surface.file.clone());
+    let surface = surface_file.as_deref().map(read_surface).transpose()?;
     let geometry: &dyn PartGeometry = match &surface {
         Some(s) => s,
         None => &Flat,
@@ -191,7 +194,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let program = NcProgram::plan(&dwell.path, &dwell.dwell_s, geometry, &settings)
         .with_context(|| format!("planning the program for {}", args.dwell.display()))?;
     let mut notes = vec![format!("INPUT DWELL FILE {}", file_name(&args.dwell))];
-    match &args.surface {
+    match &surface_file {
         Some(p) => notes.push(format!("SURFACE FILE {}", file_name(p))),
         None => notes.push("SURFACE FLAT Z = 0".into()),
     }

@@ -14,6 +14,7 @@ use preston_io::simulation::{
 use preston_io::surface::read_surface;
 use preston_solver::dwell::FeedLimits;
 use preston_solver::machine::gcode::motion::Kinematics;
+use preston_solver::setup::TifModel;
 use preston_solver::simulate::Motion;
 use preston_solver::tif::Tif;
 use std::path::Path;
@@ -124,6 +125,7 @@ pub struct Args {
 struct Inputs {
     map: MapSource,
     tif: Tif,
+    tif_model: TifModel,
     job: Job,
 }
 
@@ -134,9 +136,11 @@ impl Inputs {
         } else {
             Job::default()
         };
-        let tif = match (&args.job, args.tif.given()) {
-            (Some(path), false) => load_tif(&job, path)?,
-            _ => args.tif.load()?,
+        // The job's TIF (and with it its model: a Hertz TIF per point from the curvature) unless
+        // the flags give one.
+        let (tif, tif_model) = match (&args.job, args.tif.given()) {
+            (Some(path), false) => (load_tif(&job, path)?, job.tif.model()?),
+            _ => (args.tif.load()?, TifModel::ShiftInvariant),
         };
         let map = match &args.map {
             Some(file) => args.map_input.source(file.clone(), args.map_pitch.pitch_mm),
@@ -149,7 +153,12 @@ impl Inputs {
                 m
             }
         };
-        Ok(Self { map, tif, job })
+        Ok(Self {
+            map,
+            tif,
+            tif_model,
+            job,
+        })
     }
 }
 
@@ -214,12 +223,9 @@ fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<E
     )?;
     let surface_file = args.surface.clone().or_else(|| job.surface.file.clone());
     let surface = surface_file.as_deref().map(read_surface).transpose()?;
-    let part = surface.as_ref().map(|s| {
-        (
-            s as &dyn preston_solver::machine::PartGeometry,
-            args.tool_radius_mm.unwrap_or(job.nc.tool_radius_mm),
-        )
-    });
+    let part = surface
+        .as_ref()
+        .map(|s| (s, args.tool_radius_mm.unwrap_or(job.nc.tool_radius_mm)));
     let bars = Bars::new();
     let profile_dialect = (args.job.is_some() || args.machine.is_some()).then_some(job.nc.dialect);
     let options = ProgramOptions {
@@ -227,6 +233,8 @@ fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<E
         kinematics,
         sample_step_mm: args.sample_step_mm,
         part,
+        tif_frame: job.surface.tif_frame,
+        tif_model: inputs.tif_model.clone(),
     };
     let sim = simulate_program(&inputs.map, &inputs.tif, program, options, &bars)?;
     if let Some(input) = &sim.sim.report.map_input {

@@ -8,10 +8,11 @@
 //! count. With a constant curvature (plane, sphere) every column equals the shift-invariant
 //! assembly with the one TIF.
 
-use super::surface::{assemble_on_surface_with, TifFrame};
-use super::InfluenceMatrix;
+use super::surface::{assemble_on_surface_swept_with, assemble_on_surface_with, TifFrame};
+use super::{InfluenceMatrix, Stretches};
 use crate::error::{Error, Result};
 use crate::observer::Observer;
+use crate::path::DwellPath;
 use crate::surface::Surface;
 use crate::tif::{HertzParams, HertzTif, InfluenceFunction};
 use rayon::prelude::*;
@@ -64,6 +65,39 @@ pub fn assemble_curvature_dependent(
         map_y_mm,
         dwell_x_mm,
         dwell_y_mm,
+        radius,
+        |j, u, w| tifs.get(j).map_or(0.0, |t| t.rate_nm_per_s(u, w)),
+        frame,
+        observer,
+    )
+}
+
+/// The swept model with a Hertz TIF per dwell point: column `j` is dwell point `j`'s own Hertz
+/// TIF averaged along its stretch in its tangent frame
+/// ([`super::surface::assemble_on_surface_swept_with`]); the curvature is taken at the dwell
+/// point for its whole stretch.
+#[allow(clippy::too_many_arguments)]
+pub fn assemble_curvature_dependent_swept(
+    surface: &Surface,
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    path: &DwellPath,
+    stretches: &Stretches,
+    params: &HertzParams,
+    frame: TifFrame,
+    observer: &dyn Observer,
+) -> Result<InfluenceMatrix> {
+    let tifs = hertz_tifs_on_surface(surface, path.x_mm(), path.y_mm(), params)?;
+    let radius = tifs
+        .iter()
+        .map(|t| t.support_radius_mm())
+        .fold(0.0, f64::max);
+    assemble_on_surface_swept_with(
+        surface,
+        map_x_mm,
+        map_y_mm,
+        path,
+        stretches,
         radius,
         |j, u, w| tifs.get(j).map_or(0.0, |t| t.rate_nm_per_s(u, w)),
         frame,
@@ -181,6 +215,111 @@ mod tests {
             assert_eq!(col.row_indices(), want.row_indices());
             assert_eq!(col.values(), want.values());
             assert!(!col.values().is_empty());
+        }
+    }
+
+    /// The swept model with a Hertz TIF per dwell point: on a plane in the machine-x frame the
+    /// plan's swept assembly of the flat Hertz TIF bit for bit; on a sphere (one curvature) the
+    /// tangent-frame swept assembly of the sphere's Hertz TIF; on an ellipsoid each column its
+    /// own point's TIF swept (assembled alone).
+    #[test]
+    fn swept_columns_carry_each_points_own_tif() {
+        let (mx, my) = grid(50, 0.25, -6.0);
+        let path = DwellPath::new(
+            vec![-2.0, -1.0, 0.0, 1.0, 2.0, 2.0, 1.0, 0.0],
+            vec![0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0],
+        )
+        .unwrap();
+        let stretches = Stretches::of_path(&path, 0.05).unwrap();
+        let p = params();
+        let plane = Surface::Plane(Plane {});
+        let a = assemble_curvature_dependent_swept(
+            &plane,
+            &mx,
+            &my,
+            &path,
+            &stretches,
+            &p,
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let flat = HertzTif::flat(&p).unwrap();
+        let b =
+            crate::influence::assemble_swept(&mx, &my, &path, &stretches, &flat, &Silent).unwrap();
+        assert_eq!(a, b);
+        let sphere = Surface::Conic(Conic {
+            curvature_per_mm: -1.0 / 60.0,
+            conic: 0.0,
+        });
+        let a = assemble_curvature_dependent_swept(
+            &sphere,
+            &mx,
+            &my,
+            &path,
+            &stretches,
+            &p,
+            TifFrame::PathTangent,
+            &Silent,
+        )
+        .unwrap();
+        let t = HertzTif::with_part_radius(&p, 60.0).unwrap();
+        let b = crate::influence::assemble_on_surface_swept(
+            &sphere,
+            &mx,
+            &my,
+            &path,
+            &stretches,
+            &t,
+            TifFrame::PathTangent,
+            &Silent,
+        )
+        .unwrap();
+        assert_eq!(a.nnz(), b.nnz());
+        for (x, y) in a.csc().values().iter().zip(b.csc().values()) {
+            assert!((x - y).abs() <= 1e-12 * y.abs());
+        }
+        let ellipsoid = Surface::Conic(Conic {
+            curvature_per_mm: -1.0 / 40.0,
+            conic: -0.6,
+        });
+        let a = assemble_curvature_dependent_swept(
+            &ellipsoid,
+            &mx,
+            &my,
+            &path,
+            &stretches,
+            &p,
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let tifs = hertz_tifs_on_surface(&ellipsoid, path.x_mm(), path.y_mm(), &p).unwrap();
+        assert!(tifs[2].contact_radius_mm() != tifs[4].contact_radius_mm());
+        for j in [0, 2, 5] {
+            let one = crate::influence::surface::assemble_on_surface_swept_with(
+                &ellipsoid,
+                &mx,
+                &my,
+                &path,
+                &stretches,
+                tifs[j].support_radius_mm(),
+                |k, u, w| {
+                    if k == j {
+                        tifs[j].rate_nm_per_s(u, w)
+                    } else {
+                        0.0
+                    }
+                },
+                TifFrame::MachineX,
+                &Silent,
+            )
+            .unwrap();
+            let mut unit = vec![0.0; path.len()];
+            unit[j] = 1.0;
+            let (got, want) = (a.removal_nm(&unit).unwrap(), one.removal_nm(&unit).unwrap());
+            assert!(want.iter().any(|v| *v > 0.0));
+            assert_eq!(got, want, "column {j}");
         }
     }
 }

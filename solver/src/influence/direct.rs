@@ -18,7 +18,7 @@ use rayon::prelude::*;
 const POINTS_PER_TASK: usize = 256;
 
 /// The map's y, the dwell points' y and the dwell times against the `m` map and `n` dwell x.
-fn check_lengths(
+pub(super) fn check_lengths(
     m: usize,
     n: usize,
     map_y_mm: &[f64],
@@ -109,11 +109,51 @@ pub fn removals_nm<T: InfluenceFunction>(
             format!("must be positive and finite, got {radius} mm"),
         ));
     }
+    let sums = sum_near(
+        map_x_mm,
+        map_y_mm,
+        dwell_x_mm,
+        dwell_y_mm,
+        k,
+        radius,
+        observer,
+        |_, j, dx, dy, sums| {
+            let d2 = dx * dx + dy * dy;
+            for ((sum, tif), r2) in sums.iter_mut().zip(tifs).zip(&r2) {
+                if d2 <= *r2 {
+                    *sum += tif.rate_nm_per_s(dx, dy) * dwell_s[j];
+                }
+            }
+        },
+    );
+    Ok(sums)
+}
+
+/// The traversal of the pairs the direct sums share: for every map point `i`, each dwell point
+/// `j` within `search_radius_mm` of it in plan, in the strip index's fixed order, calls
+/// `add(i, j, x_i - X_j, y_i - Y_j, sums)` with map point `i`'s `kernels` sums. Each map point is
+/// summed by one task, so the sums do not depend on the thread count. Returns the sums kernel by
+/// kernel. Lengths are the caller's to check.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn sum_near<F>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    kernels: usize,
+    search_radius_mm: f64,
+    observer: &dyn Observer,
+    add: F,
+) -> Vec<Vec<f64>>
+where
+    F: Fn(usize, usize, f64, f64, &mut [f64]) + Sync,
+{
+    let (m, n, k) = (map_x_mm.len(), dwell_x_mm.len(), kernels);
     if k == 0 {
-        return Ok(Vec::new());
+        return Vec::new();
     }
     observer.start(Stage::Assembly, n as u64);
-    let index = StripIndex::new(dwell_x_mm, dwell_y_mm, radius);
+    let index = StripIndex::new(dwell_x_mm, dwell_y_mm, search_radius_mm);
     // Point-major: the k sums of map point i at i * k.
     let mut h = vec![0.0; m * k];
     h.par_chunks_mut(POINTS_PER_TASK * k)
@@ -122,22 +162,16 @@ pub fn removals_nm<T: InfluenceFunction>(
             for (p, sums) in chunk.chunks_mut(k).enumerate() {
                 let i = c * POINTS_PER_TASK + p;
                 let (px, py) = (map_x_mm[i], map_y_mm[i]);
-                index.for_each_near(px, py, radius, |j, cx, cy| {
-                    let (dx, dy) = (px - cx, py - cy);
-                    let d2 = dx * dx + dy * dy;
-                    for ((sum, tif), r2) in sums.iter_mut().zip(tifs).zip(&r2) {
-                        if d2 <= *r2 {
-                            *sum += tif.rate_nm_per_s(dx, dy) * dwell_s[j];
-                        }
-                    }
+                index.for_each_near(px, py, search_radius_mm, |j, cx, cy| {
+                    add(i, j, px - cx, py - cy, sums);
                 });
             }
         });
     observer.advance(Stage::Assembly, n as u64);
     observer.finish(Stage::Assembly);
-    Ok((0..k)
+    (0..k)
         .map(|t| h.iter().skip(t).step_by(k).copied().collect())
-        .collect())
+        .collect()
 }
 
 #[cfg(test)]

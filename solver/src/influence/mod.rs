@@ -41,7 +41,9 @@ pub mod surface;
 pub mod swept;
 pub mod swept_correction;
 
-pub use curvature::{assemble_curvature_dependent, hertz_tifs_on_surface};
+pub use curvature::{
+    assemble_curvature_dependent, assemble_curvature_dependent_swept, hertz_tifs_on_surface,
+};
 pub use fft::FftOperator;
 pub use gram::{GramMatrix, GramOperator};
 pub use matrix::{InfluenceMatrix, NNZ_BYTES};

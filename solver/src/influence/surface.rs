@@ -209,6 +209,37 @@ pub fn assemble_on_surface_swept<T: InfluenceFunction + ?Sized>(
     frame: TifFrame,
     observer: &dyn Observer,
 ) -> Result<InfluenceMatrix> {
+    assemble_on_surface_swept_with(
+        surface,
+        map_x_mm,
+        map_y_mm,
+        path,
+        stretches,
+        tif.support_radius_mm(),
+        |_j, u, w| tif.rate_nm_per_s(u, w),
+        frame,
+        observer,
+    )
+}
+
+/// As [`assemble_on_surface_swept`] with a per-dwell-point kernel `rate(j, u_mm, w_mm)` (nm/s)
+/// of the tangent-plane offset, zero beyond `support_radius_mm` (the largest over all `j`):
+/// `R[i, j] = sum_s w_s rate(j, u_ij - u_s, v_ij - v_s)`.
+#[allow(clippy::too_many_arguments)]
+pub fn assemble_on_surface_swept_with<K>(
+    surface: &Surface,
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    path: &DwellPath,
+    stretches: &Stretches,
+    support_radius_mm: f64,
+    kernel: K,
+    frame: TifFrame,
+    observer: &dyn Observer,
+) -> Result<InfluenceMatrix>
+where
+    K: Fn(usize, f64, f64) -> f64 + Sync,
+{
     if stretches.len() != path.len() {
         return Err(Error::LengthMismatch {
             what: "stretches",
@@ -240,16 +271,83 @@ pub fn assemble_on_surface_swept<T: InfluenceFunction + ?Sized>(
         map_y_mm,
         path.x_mm(),
         path.y_mm(),
-        tif.support_radius_mm() + reach,
+        support_radius_mm + reach,
         |j, u, w| {
             local[offsets[j]..offsets[j + 1]]
                 .iter()
-                .map(|l| l[2] * tif.rate_nm_per_s(u - l[0], w - l[1]))
+                .map(|l| l[2] * kernel(j, u - l[0], w - l[1]))
                 .sum()
         },
         frame,
         observer,
     )
+}
+
+/// The removal of dwell times `dwell_s` at points on a curved part without assembling `R` (a
+/// program's contact motion: tens of thousands of samples used once), for `radii_mm.len()`
+/// kernels in one traversal: `h_s,i = sum_k t_k kernel(s, k, u_ik, w_ik)` over the points `k`
+/// with `u_ik^2 + w_ik^2 <= radii_mm[s]^2`, `(u_ik, w_ik)` the offset of map point `i` in point
+/// `k`'s tangent frame as in [`assemble_on_surface`] (each sample its own frame, oriented by
+/// `frame`: along the motion for [`TifFrame::PathTangent`]). On a plane with
+/// [`TifFrame::MachineX`] it is [`super::direct::removals_nm`] to rounding.
+#[allow(clippy::too_many_arguments)]
+pub fn removals_on_surface_with<K>(
+    surface: &Surface,
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    dwell_s: &[f64],
+    radii_mm: &[f64],
+    kernel: K,
+    frame: TifFrame,
+    observer: &dyn Observer,
+) -> Result<Vec<Vec<f64>>>
+where
+    K: Fn(usize, usize, f64, f64) -> f64 + Sync,
+{
+    super::direct::check_lengths(
+        map_x_mm.len(),
+        dwell_x_mm.len(),
+        map_y_mm,
+        dwell_y_mm,
+        dwell_s,
+    )?;
+    let radius = radii_mm.iter().copied().fold(0.0, f64::max);
+    if !(radius.is_finite() && radius > 0.0) || radii_mm.iter().any(|r| !(*r > 0.0)) {
+        return Err(Error::invalid(
+            "TIF support radius",
+            format!("must be positive and finite, got {radius} mm"),
+        ));
+    }
+    let map_z: Vec<f64> = map_x_mm
+        .iter()
+        .zip(map_y_mm)
+        .map(|(&x, &y)| surface.sag_mm(x, y))
+        .collect::<Result<_>>()?;
+    let (origin, axes) = dwell_frames(surface, dwell_x_mm, dwell_y_mm, frame)?;
+    let r2: Vec<f64> = radii_mm.iter().map(|r| r * r).collect();
+    Ok(super::direct::sum_near(
+        map_x_mm,
+        map_y_mm,
+        dwell_x_mm,
+        dwell_y_mm,
+        radii_mm.len(),
+        radius * SEARCH_RADIUS_FACTOR,
+        observer,
+        |i, k, dx, dy, sums| {
+            let (t, b) = axes[k];
+            let dz = map_z[i] - origin[k][2];
+            let u = dx * t[0] + dy * t[1] + dz * t[2];
+            let w = dx * b[0] + dy * b[1] + dz * b[2];
+            let d2 = u * u + w * w;
+            for (s, (sum, r2)) in sums.iter_mut().zip(&r2).enumerate() {
+                if d2 <= *r2 {
+                    *sum += kernel(s, k, u, w) * dwell_s[k];
+                }
+            }
+        },
+    ))
 }
 
 #[cfg(test)]
@@ -479,5 +577,94 @@ mod tests {
             }
         }
         assert!(worst_point > 4.0 * FRAME_TOL, "{worst_point}");
+    }
+
+    /// Direct sum against the assembled product: the same terms in another order.
+    const DIRECT_VS_ASSEMBLED_RTOL: f64 = 1e-12;
+
+    fn assert_close(got: &[f64], want: &[f64], what: &str) {
+        let scale = want.iter().fold(0.0_f64, |a, &b| a.max(b.abs()));
+        assert!(scale > 0.0, "{what}: nothing removed");
+        for (i, (a, b)) in got.iter().zip(want).enumerate() {
+            assert!(
+                (a - b).abs() <= DIRECT_VS_ASSEMBLED_RTOL * scale,
+                "{what}, point {i}: direct {a} against assembled {b}"
+            );
+        }
+    }
+
+    /// The direct tangent-frame sum of a motion is the assembled tangent-frame `R t` of its
+    /// samples on a sphere and on an ellipsoid (each sample its own frame, the path frame from
+    /// its neighbours), for an asymmetric grid TIF in both frames; several kernels in one pass
+    /// are each their own sum; on a plane with the machine-x frame it is the plan's direct sum.
+    #[test]
+    fn direct_sum_on_a_surface_is_the_assembled_product() {
+        let (mx, my) = grid(36, 0.3);
+        // A curved motion crossing the map: samples 0.07 mm apart.
+        let (sx, sy): (Vec<f64>, Vec<f64>) = (0..160)
+            .map(|k| {
+                let a = k as f64 * 0.07;
+                (0.5 + a, 3.0 + 2.0 * (0.4 * a).sin())
+            })
+            .unzip();
+        let t: Vec<f64> = (0..sx.len())
+            .map(|k| 0.2 + 0.1 * (k as f64 * 0.37).cos().abs())
+            .collect();
+        let grid_tif = asymmetric_tif();
+        let gauss = GaussianTif::new(0.9, 4.0, 2.7).unwrap();
+        for surface in [
+            Surface::Conic(Conic {
+                curvature_per_mm: 1.0 / 40.0,
+                conic: 0.0,
+            }),
+            Surface::Conic(Conic {
+                curvature_per_mm: -1.0 / 35.0,
+                conic: -0.5,
+            }),
+        ] {
+            for frame in [TifFrame::PathTangent, TifFrame::MachineX] {
+                let r =
+                    assemble_on_surface(&surface, &mx, &my, &sx, &sy, &grid_tif, frame, &Silent)
+                        .unwrap();
+                let want = r.removal_nm(&t).unwrap();
+                let got = removals_on_surface_with(
+                    &surface,
+                    &mx,
+                    &my,
+                    &sx,
+                    &sy,
+                    &t,
+                    &[grid_tif.support_radius_mm(), gauss.support_radius_mm()],
+                    |s, _, u, w| match s {
+                        0 => grid_tif.rate_nm_per_s(u, w),
+                        _ => gauss.rate_nm_per_s(u, w),
+                    },
+                    frame,
+                    &Silent,
+                )
+                .unwrap();
+                assert_close(&got[0], &want, "grid TIF");
+                let r = assemble_on_surface(&surface, &mx, &my, &sx, &sy, &gauss, frame, &Silent)
+                    .unwrap();
+                assert_close(&got[1], &r.removal_nm(&t).unwrap(), "Gaussian");
+            }
+        }
+        let plane = Surface::Plane(Plane {});
+        let got = removals_on_surface_with(
+            &plane,
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &t,
+            &[grid_tif.support_radius_mm()],
+            |_, _, u, w| grid_tif.rate_nm_per_s(u, w),
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let want =
+            super::super::direct::removal_nm(&mx, &my, &sx, &sy, &t, &grid_tif, &Silent).unwrap();
+        assert_close(&got[0], &want, "plane");
     }
 }

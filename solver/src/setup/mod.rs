@@ -18,6 +18,7 @@
 //! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
 
 mod choices;
+mod contact;
 mod off_lattice;
 pub mod plausible;
 mod problem;
@@ -38,7 +39,9 @@ use crate::dwell::{
 use crate::dwell::{policy, SolverKind};
 use crate::edge::{self, EdgeSettings};
 use crate::error::{Error, Result};
-use crate::influence::curvature::assemble_curvature_dependent;
+use crate::influence::curvature::{
+    assemble_curvature_dependent, assemble_curvature_dependent_swept,
+};
 use crate::influence::fft::FftOperator;
 use crate::influence::surface::{assemble_on_surface, assemble_on_surface_swept, TifFrame};
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches, SweptTif};
@@ -227,7 +230,8 @@ pub struct Setup {
     /// The warm start, checked against the dwell points.
     pub warm_start_s: Option<Vec<f64>>,
     /// With the swept influence model (in the plane, or on a curved part in each dwell point's
-    /// tangent frame, [`crate::influence::surface::assemble_on_surface_swept`]): every dwell
+    /// tangent frame, [`crate::influence::surface::assemble_on_surface_swept`], with a
+    /// curvature-dependent TIF each point's own, [`assemble_curvature_dependent_swept`]): every dwell
     /// point's stretch sampled for the assembled `R`, and the kernel the lattice operators share
     /// ([`crate::influence::swept`]).
     pub swept: Option<(Stretches, SweptTif<Tif>)>,
@@ -298,14 +302,15 @@ pub struct Outcome {
     pub schedule: FeedSchedule,
     /// The acceleration-limited solve's account, with its RMS figures on the measured map.
     pub accel: Option<AccelReport>,
-    /// With an acceleration limit on a flat part: the default program executed at that limit,
-    /// or why no program can deliver the plan.
+    /// With an acceleration limit: the default program (on a curved part following the design
+    /// surface) executed at that limit, or why no program can deliver the plan.
     pub executed: Option<std::result::Result<Executed, Error>>,
     /// With an approximate operator: its measured error on the returned dwell (the removal
     /// above is the exact `R`'s).
     pub approximation: Option<OperatorError>,
-    /// With an executed program: its residual under each scenario of TIF uncertainty
-    /// ([`sensitivity`]).
+    /// The residual of the plan's program (as executed, else at its programmed feeds) under each
+    /// scenario of TIF uncertainty ([`sensitivity`]); `None` where the plan cannot be written
+    /// as a program.
     pub sensitivity: Option<sensitivity::Sensitivity>,
 }
 
@@ -729,6 +734,135 @@ mod tests {
         let peak = ha.iter().fold(0.0f64, |a, &b| a.max(b.abs()));
         for (a, l) in ha.iter().zip(&hl) {
             assert!((a - l).abs() <= 1e-9 * peak, "{a} vs {l}");
+        }
+    }
+
+    /// Without an executed program the sensitivity is the plan's own motion under each
+    /// scenario: on the FFT operator each scenario's operator product, on the assembled `R` the
+    /// stretch samples summed directly; the same figures for the same dwell, and each scenario
+    /// leaves more than the nominal residual.
+    #[test]
+    fn the_plan_sensitivity_on_the_lattice_is_the_direct_sum_of_its_motion() {
+        /// The lattice products against the direct sum (row ends exact, the rest the same
+        /// kernel on the lattice).
+        const LATTICE_REL_TOL: f64 = 1e-9;
+        let mut d = data();
+        d.dwell = DwellPoints::Raster {
+            pitch_mm: 0.5,
+            along: RasterAxis::X,
+        };
+        let setup = |operator| {
+            let mut c = choices();
+            c.settings.influence = InfluenceModel::Swept;
+            c.settings.operator = operator;
+            Setup::resolve(c.check(&Silent).unwrap(), d.clone(), &Silent).unwrap()
+        };
+        let (direct, lattice) = (setup(OperatorChoice::Sparse), setup(OperatorChoice::Fft));
+        let pd = direct.problem(&Silent).unwrap().problem;
+        let pl = lattice.problem(&Silent).unwrap().problem;
+        assert_eq!(pl.operator_kind(), crate::influence::OperatorKind::Fft);
+        let t: Vec<f64> = direct
+            .path
+            .x_mm()
+            .iter()
+            .zip(direct.path.y_mm())
+            .map(|(&px, &py)| 0.3 + 0.1 * (px + 2.0 * py).sin())
+            .collect();
+        let h = pd.removal_nm(&t).unwrap();
+        let h = &h[..direct.map.len()];
+        let a = direct.plan_sensitivity(&pd, &t, h, &Silent).unwrap();
+        let b = lattice.plan_sensitivity(&pl, &t, h, &Silent).unwrap();
+        let nominal = HeightStats::of(&centred_residual_nm(direct.map.z_nm(), h)).rms_nm;
+        for (x, y) in [
+            (a.tif_wider_3pct, b.tif_wider_3pct),
+            (a.tif_narrower_3pct, b.tif_narrower_3pct),
+            (a.rate_plus_3pct, b.rate_plus_3pct),
+            (a.offset_x_0p05mm, b.offset_x_0p05mm),
+            (a.offset_y_0p05mm, b.offset_y_0p05mm),
+        ] {
+            assert!(
+                (x.rms_nm - y.rms_nm).abs() <= LATTICE_REL_TOL * x.rms_nm,
+                "{x:?} against {y:?}"
+            );
+            assert!((x.pv_nm - y.pv_nm).abs() <= LATTICE_REL_TOL * x.pv_nm);
+            assert!(x.rms_nm != nominal);
+        }
+    }
+
+    /// Each robust scenario's assembled `R` is the scenario's closed form: the Gaussian's sigma
+    /// and cut times the width factor and its peak over its square, the tool moved by the
+    /// offset; in the plane the plan distance, on a sphere of radius 30 mm the distance in the
+    /// tangent plane of the moved dwell point, `|P - S'|^2 - ((P - S') . n')^2`.
+    #[test]
+    fn each_robust_scenario_matrix_is_its_closed_form() {
+        /// Two evaluations of one closed form.
+        const CLOSED_FORM_TOL: f64 = 1e-12;
+        let path = DwellPath::new(vec![2.0, 4.5, 7.0], vec![3.0, 5.0, 4.5]).unwrap();
+        let (sigma, peak, cut) = (1.0, 10.0, 3.0);
+        let sphere = crate::surface::Surface::Conic(crate::surface::Conic {
+            curvature_per_mm: 1.0 / 30.0,
+            conic: 0.0,
+        });
+        for surface in [None, Some(sphere)] {
+            let mut c = choices();
+            c.settings.influence = InfluenceModel::Point;
+            let mut d = data();
+            d.dwell = DwellPoints::Given(path.clone());
+            d.surface = surface.clone();
+            let setup = Setup::resolve(c.check(&Silent).unwrap(), d, &Silent).unwrap();
+            let t = [1.0, 0.5, 2.0];
+            let (mx, my) = (setup.map.x_mm(), setup.map.y_mm());
+            let mut nonzero = 0;
+            for s in &robust::SCENARIOS {
+                let p = sensitivity::Perturbation {
+                    width_factor: s.width_factor,
+                    rate_factor: 1.0,
+                    offset_mm: s.offset_mm,
+                };
+                let h = setup
+                    .assemble_scenario(&setup.map, &p, &Silent)
+                    .unwrap()
+                    .removal_nm(&t)
+                    .unwrap();
+                let w = s.width_factor;
+                for i in 0..mx.len() {
+                    let mut want = 0.0;
+                    let mut on_the_cut = false;
+                    for (j, tj) in t.iter().enumerate() {
+                        let (sx, sy) = (
+                            path.x_mm()[j] + s.offset_mm.0,
+                            path.y_mm()[j] + s.offset_mm.1,
+                        );
+                        let (dx, dy) = (mx[i] - sx, my[i] - sy);
+                        let rho2 = match &surface {
+                            None => dx * dx + dy * dy,
+                            Some(f) => {
+                                let dz =
+                                    f.sag_mm(mx[i], my[i]).unwrap() - f.sag_mm(sx, sy).unwrap();
+                                let n = f.normal(sx, sy).unwrap();
+                                let a = dx * n[0] + dy * n[1] + dz * n[2];
+                                dx * dx + dy * dy + dz * dz - a * a
+                            }
+                        };
+                        let r = rho2.sqrt() / w;
+                        on_the_cut |= (r - cut).abs() < 1e-9;
+                        if r <= cut {
+                            want += tj * peak / (w * w) * (-r * r / (2.0 * sigma * sigma)).exp();
+                        }
+                    }
+                    if !on_the_cut {
+                        assert!(
+                            (h[i] - want).abs() <= CLOSED_FORM_TOL * want.abs().max(1.0),
+                            "{:?} {} point {i}: {} against {want}",
+                            surface.is_some(),
+                            s.name,
+                            h[i]
+                        );
+                        nonzero += usize::from(want > 0.0);
+                    }
+                }
+            }
+            assert!(nonzero > 300, "{nonzero}");
         }
     }
 

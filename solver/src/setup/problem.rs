@@ -2,11 +2,13 @@
 //! operators, or the robust plan's stacked scenarios) and the [`Problem`] built on them.
 
 use super::off_lattice::OffLatticeOperator;
-use super::sensitivity::PerturbedTif;
+use super::sensitivity::{Perturbation, PerturbedTif};
 use super::*;
+use crate::influence::curvature::hertz_tifs_on_surface;
 use crate::influence::operator::InfluenceOperator;
 use crate::influence::operator::OperatorKind;
 use crate::influence::stacked::ScenarioOperators;
+use crate::influence::surface::{assemble_on_surface_swept_with, assemble_on_surface_with};
 use crate::influence::swept_correction::SweptCorrected;
 use crate::influence::{StackedRows, StencilOperator, SweptTif};
 use std::sync::Arc;
@@ -196,40 +198,95 @@ impl Setup {
         rows: &HeightMap,
         observer: &dyn Observer,
     ) -> SetupResult<InfluenceMatrix> {
-        let (mx, my, px, py) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
-        match (&self.surface, &self.tif_model) {
-            (None, TifModel::ShiftInvariant) if self.swept.is_some() => {
-                let stretches = self.swept.as_ref().map(|s| &s.0);
-                match stretches {
-                    Some(st) => assemble_swept(mx, my, &self.path, st, &self.tif, observer)
-                        .at(SetupInput::None),
-                    None => InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer)
-                        .at(SetupInput::None),
-                }
-            }
-            (None, _) => {
-                InfluenceMatrix::assemble(mx, my, px, py, &self.tif, observer).at(SetupInput::None)
-            }
-            (Some(s), TifModel::ShiftInvariant) => match &self.swept {
-                Some((stretches, _)) => assemble_on_surface_swept(
-                    s,
+        self.assemble_scenario(rows, &Perturbation::NONE, observer)
+    }
+
+    /// [`Setup::assemble`] with the tool perturbed by `p`: its TIF wider and its rate higher, and
+    /// the tool off by `p.offset_mm` in plan (in the plane the TIF's shift; on a curved part the
+    /// dwell points moved, their frames and curvatures taken where the tool lands).
+    pub(super) fn assemble_scenario(
+        &self,
+        rows: &HeightMap,
+        p: &Perturbation,
+        observer: &dyn Observer,
+    ) -> SetupResult<InfluenceMatrix> {
+        let (mx, my) = (rows.x_mm(), rows.y_mm());
+        let stretches = self.swept.as_ref().map(|s| &s.0);
+        let Some(surface) = &self.surface else {
+            let tif = p.of(&self.tif);
+            return match stretches {
+                Some(st) => assemble_swept(mx, my, &self.path, st, &tif, observer),
+                None => InfluenceMatrix::assemble(
                     mx,
                     my,
-                    &self.path,
-                    stretches,
-                    &self.tif,
-                    self.tif_frame,
+                    self.path.x_mm(),
+                    self.path.y_mm(),
+                    &tif,
                     observer,
-                )
-                .at(SetupInput::Surface),
-                None => assemble_on_surface(s, mx, my, px, py, &self.tif, self.tif_frame, observer)
-                    .at(SetupInput::Surface),
-            },
-            (Some(s), TifModel::CurvatureDependent(params)) => {
-                assemble_curvature_dependent(s, mx, my, px, py, params, self.tif_frame, observer)
-                    .at(SetupInput::Surface)
+                ),
+            }
+            .at(SetupInput::None);
+        };
+        let moved;
+        let path = if p.offset_mm == (0.0, 0.0) {
+            &self.path
+        } else {
+            let (ox, oy) = p.offset_mm;
+            moved = DwellPath::new(
+                self.path.x_mm().iter().map(|x| x + ox).collect(),
+                self.path.y_mm().iter().map(|y| y + oy).collect(),
+            )
+            .at(SetupInput::Surface)?;
+            &moved
+        };
+        let at_tool = Perturbation {
+            offset_mm: (0.0, 0.0),
+            ..*p
+        };
+        let (px, py) = (path.x_mm(), path.y_mm());
+        let frame = self.tif_frame;
+        match &self.tif_model {
+            TifModel::ShiftInvariant => {
+                let tif = at_tool.of(&self.tif);
+                match stretches {
+                    Some(st) => {
+                        assemble_on_surface_swept(surface, mx, my, path, st, &tif, frame, observer)
+                    }
+                    None => assemble_on_surface(surface, mx, my, px, py, &tif, frame, observer),
+                }
+            }
+            TifModel::CurvatureDependent(params) if at_tool == Perturbation::NONE => {
+                match stretches {
+                    Some(st) => assemble_curvature_dependent_swept(
+                        surface, mx, my, path, st, params, frame, observer,
+                    ),
+                    None => assemble_curvature_dependent(
+                        surface, mx, my, px, py, params, frame, observer,
+                    ),
+                }
+            }
+            TifModel::CurvatureDependent(params) => {
+                let tifs =
+                    hertz_tifs_on_surface(surface, px, py, params).at(SetupInput::Surface)?;
+                let radius = tifs
+                    .iter()
+                    .map(|t| at_tool.of(t).support_radius_mm())
+                    .fold(0.0, f64::max);
+                let kernel = |j: usize, u: f64, w: f64| {
+                    tifs.get(j)
+                        .map_or(0.0, |t| at_tool.of(t).rate_nm_per_s(u, w))
+                };
+                match stretches {
+                    Some(st) => assemble_on_surface_swept_with(
+                        surface, mx, my, path, st, radius, kernel, frame, observer,
+                    ),
+                    None => assemble_on_surface_with(
+                        surface, mx, my, px, py, radius, kernel, frame, observer,
+                    ),
+                }
             }
         }
+        .at(SetupInput::Surface)
     }
 
     /// Builds the problem: the edge extension, the operator (assembled or FFT) and the
@@ -238,15 +295,6 @@ impl Setup {
         observer.setup_step(SetupStep::BuildProblem);
         let (rows, edge_points) = self.rows()?;
         let mut warnings = plausible::size_warnings(&self.map, &self.tif);
-        if self.settings.influence == InfluenceModel::Swept
-            && self.swept.is_none()
-            && self.feed.is_some()
-        {
-            warnings.push(
-                "influence swept: not built with a curvature-dependent TIF; the plan uses the point model"
-                    .to_string(),
-            );
-        }
         if self.settings.robust {
             let (problem, weights) = self.robust_problem(&rows, &mut warnings, observer)?;
             let mut built = self.built(problem, edge_points, warnings)?;
@@ -427,30 +475,11 @@ impl Setup {
         let Some(pitch_mm) = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()) else {
             return Ok(None);
         };
-        let dominant = self
-            .swept
-            .as_ref()
-            .map(|(stretches, _)| stretches.dominant().0);
-        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
         let mut blocks: Vec<Box<dyn InfluenceOperator>> =
             Vec::with_capacity(robust::SCENARIOS.len());
         let mut nominal = Some(nominal);
         for (s, scenario) in robust::SCENARIOS.iter().enumerate() {
             let tif = PerturbedTif::new(&self.tif, scenario.width_factor, 1.0, scenario.offset_mm);
-            let swept_kernel = dominant.clone().map(|d| SweptTif::new(tif.clone(), d));
-            let kernel: &dyn InfluenceFunction = match &swept_kernel {
-                Some(k) => k,
-                None => &tif,
-            };
-            let op: Box<dyn InfluenceOperator> = match (nominal.take(), kind) {
-                (Some(op), _) => op,
-                (None, OperatorKind::Fft) => Box::new(
-                    FftOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?,
-                ),
-                (None, _) => Box::new(
-                    StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?,
-                ),
-            };
             // The nominal scenario's notes are the plan's; the others' repeat them.
             let mut scenario_notes = Vec::new();
             let notes = if s == 0 {
@@ -458,7 +487,7 @@ impl Setup {
             } else {
                 &mut scenario_notes
             };
-            match self.swept_corrected(op, rows, &tif, kernel, notes, observer)? {
+            match self.lattice_block(rows, kind, pitch_mm, &tif, nominal.take(), notes, observer)? {
                 Some(op) => blocks.push(op),
                 None => return Ok(None),
             }
@@ -466,26 +495,56 @@ impl Setup {
         Ok(Some(Arc::from(blocks)))
     }
 
+    /// The lattice operator of `kind` (FFT or stencil) over `rows` on the lattice of `pitch_mm`
+    /// with the kernel of `tif` (swept along the dominant stretch under the swept model), with
+    /// its exact swept columns where stretches differ; `built`, when given, is that operator
+    /// already built with the kernel. `None` where the swept columns would be assembled instead.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn lattice_block(
+        &self,
+        rows: &HeightMap,
+        kind: OperatorKind,
+        pitch_mm: f64,
+        tif: &PerturbedTif<'_, Tif>,
+        built: Option<Box<dyn InfluenceOperator>>,
+        notes: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Option<Box<dyn InfluenceOperator>>> {
+        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        let swept_kernel = self
+            .swept
+            .as_ref()
+            .map(|(stretches, _)| SweptTif::new(tif.clone(), stretches.dominant().0));
+        let kernel: &dyn InfluenceFunction = match &swept_kernel {
+            Some(k) => k,
+            None => tif,
+        };
+        let op: Box<dyn InfluenceOperator> = match (built, kind) {
+            (Some(op), _) => op,
+            (None, OperatorKind::Fft) => {
+                Box::new(FftOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?)
+            }
+            (None, _) => Box::new(
+                StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?,
+            ),
+        };
+        self.swept_corrected(op, rows, tif, kernel, notes, observer)
+    }
+
     /// The robust plan's problem over `rows` ([`robust`]) and its scenario weights: the
     /// scenarios' operators ([`Setup::robust_lattice_blocks`], else their assembled matrices)
     /// stacked against the target repeated, `rho` and `lambda` times the scenario count, the
     /// rows of block `s` scaled by `sqrt(w_s)` (equal weights: the mean over the scenarios;
     /// `robust_weighting = "minimax"`: the weights of [`robust::minimax_weights`], whose rounds
-    /// solve the weighted problem here). Refused on a curved part or with a curvature-dependent
-    /// TIF, and with the NUFFT or spreading operator asked for.
+    /// solve the weighted problem here). On a curved part each scenario's matrix is assembled in
+    /// the tangent frames ([`Setup::assemble_scenario`]). Refused with the NUFFT or spreading
+    /// operator asked for.
     pub(super) fn robust_problem(
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
         observer: &dyn Observer,
     ) -> SetupResult<(Problem, Vec<f64>)> {
-        if self.surface.is_some() || !matches!(self.tif_model, TifModel::ShiftInvariant) {
-            return Err(Error::invalid(
-                "robust",
-                "not built on a curved part or with a curvature-dependent TIF",
-            ))
-            .at(SetupInput::Job);
-        }
         if !matches!(
             self.settings.operator,
             OperatorChoice::Auto
@@ -517,15 +576,19 @@ impl Setup {
                 RobustStack::Operators(blocks)
             }
             None => {
-                let stacked = robust::stacked_matrix(
-                    rows.x_mm(),
-                    rows.y_mm(),
-                    &self.path,
-                    self.swept.as_ref().map(|s| &s.0),
-                    &self.tif,
-                    observer,
-                )
-                .at(SetupInput::None)?;
+                let blocks = robust::SCENARIOS
+                    .iter()
+                    .map(|s| {
+                        let p = Perturbation {
+                            width_factor: s.width_factor,
+                            rate_factor: 1.0,
+                            offset_mm: s.offset_mm,
+                        };
+                        self.assemble_scenario(rows, &p, observer)
+                    })
+                    .collect::<SetupResult<Vec<_>>>()?;
+                let stacked =
+                    crate::influence::stacked::stack_rows(&blocks).at(SetupInput::None)?;
                 warnings.push(format!(
                     "robust: the plan minimises the {what} residual over {scenarios} scenarios \
                      (nominal, TIF 3% wider and narrower, tool 0.05 mm off in x and y), \

@@ -130,12 +130,12 @@ impl Setup {
                 .at(SetupInput::WarmStart);
             }
         }
-        // The swept model in the plane and, with one TIF, on a curved part (each stretch in its
-        // dwell point's tangent frame): a given plan evaluated (no feed limits) keeps the point
-        // model, whose `R t` simulate's discrete motion is; so does a curvature-dependent TIF.
-        let one_tif = matches!(choices.tif_model, TifModel::ShiftInvariant);
+        // The swept model in the plane and on a curved part (each stretch in its dwell point's
+        // tangent frame, with the dwell point's own TIF where it depends on the curvature): a
+        // given plan evaluated (no feed limits) keeps the point model, whose `R t` simulate's
+        // discrete motion is.
         let swept = match (choices.settings.influence, &choices.feed) {
-            (InfluenceModel::Swept, Some(_)) if surface.is_none() || one_tif => {
+            (InfluenceModel::Swept, Some(_)) => {
                 let stretches = Stretches::of_path(&path, default_sample_step_mm(&tif))
                     .at(SetupInput::Dwell)?;
                 let kernel = SweptTif::new(tif.clone(), stretches.dominant().0);
@@ -165,8 +165,8 @@ impl Setup {
         })
     }
 
-    /// The influence model the plan uses: swept where the set-up built it (a solve in the plane
-    /// with a shift-invariant TIF), the point model otherwise.
+    /// The influence model the plan uses: swept where the set-up built it (a solve with feed
+    /// limits, unless the job asks for the point model), the point model otherwise.
     pub fn influence_model(&self) -> InfluenceModel {
         if self.swept.is_some() {
             InfluenceModel::Swept

@@ -9,7 +9,8 @@
 //!
 //! i.e. the rows `[R_1; ...; R_S]` stacked against `[z; ...; z]` with `ρ` and `λ` times `S` (each
 //! `R_s` the nominal plan's lattice operator with scenario `s`'s kernel where that is the FFT or
-//! stencil operator, [`crate::influence::StackedRows`], else assembled, [`stacked_matrix`]): the
+//! stencil operator, [`crate::influence::StackedRows`], else assembled, on a curved part in the
+//! tangent frames with the tool's offset moving the dwell points): the
 //! mean squared residual over the scenarios (Ben-Tal, El Ghaoui and Nemirovski, *Robust
 //! Optimization*, 2009: the scenario (sample-average) counterpart). One piston `c` serves every
 //! scenario (a width change keeps the volume, an offset moves nothing in or out).
@@ -30,14 +31,10 @@
 //! best bound or after [`MINIMAX_ROUNDS`] solves. Each solve is to the solver's tolerance, so the
 //! bound is as good as the solves.
 
-use super::sensitivity::{PerturbedTif, OFFSET_MM, RELATIVE_CHANGE};
+use super::sensitivity::{OFFSET_MM, RELATIVE_CHANGE};
 use crate::error::Result;
-use crate::influence::swept::{assemble_swept, Stretches};
 use crate::influence::InfluenceMatrix;
 use crate::map::HeightStats;
-use crate::observer::Observer;
-use crate::path::DwellPath;
-use crate::tif::InfluenceFunction;
 use serde::{Deserialize, Serialize};
 
 /// One scenario of a robust plan: the TIF's width factor (volume kept) and the tool's offset.
@@ -79,28 +76,6 @@ pub const SCENARIOS: [Scenario; 5] = [
         offset_mm: (0.0, OFFSET_MM),
     },
 ];
-
-/// The stacked influence matrix `[R_1; ...; R_S]` of [`SCENARIOS`] over the rows `(x, y)`: each
-/// block assembled with the scenario's TIF, swept along `stretches` (the swept model) or at the
-/// points (the point model, `stretches` `None`).
-pub fn stacked_matrix<T: InfluenceFunction + ?Sized>(
-    x_mm: &[f64],
-    y_mm: &[f64],
-    path: &DwellPath,
-    stretches: Option<&Stretches>,
-    tif: &T,
-    observer: &dyn Observer,
-) -> Result<InfluenceMatrix> {
-    let mut blocks = Vec::with_capacity(SCENARIOS.len());
-    for s in &SCENARIOS {
-        let f = PerturbedTif::new(tif, s.width_factor, 1.0, s.offset_mm);
-        blocks.push(match stretches {
-            Some(st) => assemble_swept(x_mm, y_mm, path, st, &f, observer)?,
-            None => InfluenceMatrix::assemble(x_mm, y_mm, path.x_mm(), path.y_mm(), &f, observer)?,
-        });
-    }
-    crate::influence::stacked::stack_rows(&blocks)
-}
 
 /// Most solves of the minimax rounds (the first is the mean plan).
 pub const MINIMAX_ROUNDS: usize = 6;
@@ -321,9 +296,6 @@ impl RobustSummary {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::influence::operator::InfluenceOperator;
-    use crate::observer::Silent;
-    use crate::tif::GaussianTif;
 
     /// A step keeps the weights' sum, leaves equal residuals where they are and moves weight to
     /// the scenarios above the weighted mean square, by the exponential of the closed form.
@@ -432,42 +404,6 @@ mod tests {
             (1.0 + rounds.duality_gap) * reference * reference >= kept * kept * (1.0 - 1e-9),
             "{rounds:?}"
         );
-    }
-
-    /// Each block of the stacked matrix is the scenario's own assembled `R`: its products are
-    /// those of a directly assembled matrix with the perturbed Gaussian's closed form (the
-    /// wider Gaussian's sigma times 1.03 and peak over 1.03², the offset one moved).
-    #[test]
-    fn each_block_is_the_scenario_matrix() {
-        let (mx, my): (Vec<f64>, Vec<f64>) = (0..144)
-            .map(|k| ((k % 12) as f64 * 0.5, (k / 12) as f64 * 0.5))
-            .unzip();
-        let path = DwellPath::new(vec![1.0, 2.5, 4.0], vec![2.0, 3.0, 2.5]).unwrap();
-        let tif = GaussianTif::new(0.8, 5.0, 6.0).unwrap();
-        let stacked = stacked_matrix(&mx, &my, &path, None, &tif, &Silent).unwrap();
-        assert_eq!(stacked.shape(), (144 * SCENARIOS.len(), 3));
-        let t = [1.0, 0.5, 2.0];
-        let h = stacked.removal_nm(&t).unwrap();
-        for (k, s) in SCENARIOS.iter().enumerate() {
-            let w = s.width_factor;
-            for i in 0..144 {
-                let mut want = 0.0;
-                for (j, tj) in t.iter().enumerate() {
-                    let dx = mx[i] - path.x_mm()[j] - s.offset_mm.0;
-                    let dy = my[i] - path.y_mm()[j] - s.offset_mm.1;
-                    let r2 = (dx * dx + dy * dy) / (w * w);
-                    // Truncated at 6 mm of the unperturbed Gaussian, scaled with the width.
-                    if r2.sqrt() <= 6.0 {
-                        want += tj * 5.0 / (w * w) * (-r2 / (2.0 * 0.8 * 0.8)).exp();
-                    }
-                }
-                let got = h[k * 144 + i];
-                assert!((got - want).abs() <= 1e-12 * want.abs().max(1.0), "{k} {i}");
-            }
-        }
-        let rms = scenario_rms_nm(&vec![1.0; 144], &h);
-        assert_eq!(rms.len(), SCENARIOS.len());
-        assert!(rms.iter().all(|r| r.is_finite() && *r > 0.0));
     }
 
     #[test]

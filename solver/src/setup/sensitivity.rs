@@ -9,12 +9,15 @@
 //! - rate `r`: `f' = r f`, so `h' = r h` (`r` = 1.03);
 //! - tool offset `o`: the tool lands `o` away from where it is programmed, `f'(d) = f(d - o)`
 //!   (`o` = 0.05 mm along x and along y).
+//!
+//! The motion is the executed program's where the solve runs one (an acceleration limit), the
+//! plan's own otherwise (each dwell point's stretch samples under the swept model, the dwell
+//! points under the point model: the program at its programmed feeds). On a curved part each
+//! sample applies the TIF in its tangent frame and an offset moves the samples in plan
+//! ([`super::Setup::contact_removals`]).
 
 use crate::error::Result;
-use crate::influence::direct::removals_nm;
 use crate::map::HeightStats;
-use crate::observer::Observer;
-use crate::simulate::SampledProgram;
 use crate::tif::InfluenceFunction;
 use serde::{Deserialize, Serialize};
 
@@ -105,64 +108,92 @@ impl<T: InfluenceFunction + ?Sized> InfluenceFunction for PerturbedTif<'_, T> {
     }
 }
 
-/// The sensitivity of the executed residual: `contact` is the executed motion, `removal_nm`
-/// its removal with the nominal TIF at the map points `(map_x_mm, map_y_mm)` whose error is
-/// `z_nm`.
-pub fn of_executed<T: InfluenceFunction + ?Sized>(
-    map_x_mm: &[f64],
-    map_y_mm: &[f64],
-    z_nm: &[f64],
-    contact: &SampledProgram,
-    removal_nm: &[f64],
-    tif: &T,
-    observer: &dyn Observer,
-) -> Result<Sensitivity> {
-    let figures = |h: &[f64]| {
-        let s = HeightStats::of(&super::centred_residual_nm(z_nm, h));
-        ScenarioFigures {
-            rms_nm: s.rms_nm,
-            pv_nm: s.pv_nm,
-        }
+/// One scenario of how the tool acts: its TIF `width_factor` times wider (volume kept), its rate
+/// `rate_factor` times higher, and the tool landing `offset_mm` away from where it is
+/// programmed (in plan, machine axes).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Perturbation {
+    /// Width factor of the TIF, its volume kept.
+    pub width_factor: f64,
+    /// Rate factor.
+    pub rate_factor: f64,
+    /// Offset of the tool in plan, mm (x, y).
+    pub offset_mm: (f64, f64),
+}
+
+impl Perturbation {
+    /// The nominal tool.
+    pub const NONE: Self = Self {
+        width_factor: 1.0,
+        rate_factor: 1.0,
+        offset_mm: (0.0, 0.0),
     };
-    let rate: Vec<f64> = removal_nm
-        .iter()
-        .map(|h| h * (1.0 + RELATIVE_CHANGE))
-        .collect();
-    // The four motion scenarios in one pass over the motion's samples.
-    let perturbed = [
-        PerturbedTif::new(tif, 1.0 + RELATIVE_CHANGE, 1.0, (0.0, 0.0)),
-        PerturbedTif::new(tif, 1.0 / (1.0 + RELATIVE_CHANGE), 1.0, (0.0, 0.0)),
-        PerturbedTif::new(tif, 1.0, 1.0, (OFFSET_MM, 0.0)),
-        PerturbedTif::new(tif, 1.0, 1.0, (0.0, OFFSET_MM)),
-    ];
-    let h = removals_nm(
-        map_x_mm,
-        map_y_mm,
-        &contact.x_mm,
-        &contact.y_mm,
-        &contact.dwell_s,
-        &perturbed,
-        observer,
-    )?;
-    let [wider, narrower, offset_x, offset_y] = h.as_slice() else {
-        return Err(crate::error::Error::invalid(
-            "sensitivity",
-            "four scenario removals expected",
-        ));
-    };
-    Ok(Sensitivity {
-        tif_wider_3pct: figures(wider),
-        tif_narrower_3pct: figures(narrower),
-        rate_plus_3pct: figures(&rate),
-        offset_x_0p05mm: figures(offset_x),
-        offset_y_0p05mm: figures(offset_y),
-    })
+
+    /// `tif` under this perturbation, its offset in the TIF's own coordinates (on a flat part
+    /// with the TIF in machine axes, the plan offset).
+    pub fn of<'a, T: InfluenceFunction + ?Sized>(&self, tif: &'a T) -> PerturbedTif<'a, T> {
+        PerturbedTif::new(tif, self.width_factor, self.rate_factor, self.offset_mm)
+    }
+}
+
+/// The four scenarios integrated along the motion, in the order [`Sensitivity::of_removals`]
+/// takes them: TIF wider, narrower, tool off in x, in y (the rate scenario scales the nominal
+/// removal).
+pub const MOTION_SCENARIOS: [Perturbation; 4] = [
+    Perturbation {
+        width_factor: 1.0 + RELATIVE_CHANGE,
+        ..Perturbation::NONE
+    },
+    Perturbation {
+        width_factor: 1.0 / (1.0 + RELATIVE_CHANGE),
+        ..Perturbation::NONE
+    },
+    Perturbation {
+        offset_mm: (OFFSET_MM, 0.0),
+        ..Perturbation::NONE
+    },
+    Perturbation {
+        offset_mm: (0.0, OFFSET_MM),
+        ..Perturbation::NONE
+    },
+];
+
+impl Sensitivity {
+    /// The sensitivity of a residual: `removal_nm` is the nominal removal at the map points whose
+    /// error is `z_nm`, `motion` the removals of the same motion under [`MOTION_SCENARIOS`].
+    pub fn of_removals(z_nm: &[f64], removal_nm: &[f64], motion: &[Vec<f64>]) -> Result<Self> {
+        let figures = |h: &[f64]| {
+            let s = HeightStats::of(&super::centred_residual_nm(z_nm, h));
+            ScenarioFigures {
+                rms_nm: s.rms_nm,
+                pv_nm: s.pv_nm,
+            }
+        };
+        let rate: Vec<f64> = removal_nm
+            .iter()
+            .map(|h| h * (1.0 + RELATIVE_CHANGE))
+            .collect();
+        let [wider, narrower, offset_x, offset_y] = motion else {
+            return Err(crate::error::Error::invalid(
+                "sensitivity",
+                "four scenario removals expected",
+            ));
+        };
+        Ok(Self {
+            tif_wider_3pct: figures(wider),
+            tif_narrower_3pct: figures(narrower),
+            rate_plus_3pct: figures(&rate),
+            offset_x_0p05mm: figures(offset_x),
+            offset_y_0p05mm: figures(offset_y),
+        })
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::observer::Silent as NoObserver;
+    use crate::simulate::SampledProgram;
     use crate::tif::gaussian::GaussianTif;
 
     /// Agreement of two evaluations of one closed form.
@@ -217,7 +248,18 @@ mod tests {
             }
         }
         let h = crate::simulate::removal_of_samples(&mx, &my, &contact, &g, &NoObserver).unwrap();
-        let s = of_executed(&mx, &my, &h, &contact, &h, &g, &NoObserver).unwrap();
+        let tifs: Vec<_> = MOTION_SCENARIOS.iter().map(|p| p.of(&g)).collect();
+        let motion = crate::influence::direct::removals_nm(
+            &mx,
+            &my,
+            &contact.x_mm,
+            &contact.y_mm,
+            &contact.dwell_s,
+            &tifs,
+            &NoObserver,
+        )
+        .unwrap();
+        let s = Sensitivity::of_removals(&h, &h, &motion).unwrap();
         let expect = HeightStats::of(&super::super::centred_residual_nm(
             &h,
             &h.iter().map(|v| v * 1.03).collect::<Vec<_>>(),

@@ -31,6 +31,68 @@ pub(super) fn solution_is_finite(solution: &Solution, removal_nm: &[f64]) -> boo
 }
 
 impl Setup {
+    /// The sensitivity of the motion `samples` (positions and the time the tool spends at each)
+    /// whose nominal removal at the measured map points is `removal_nm`: the motion's removal
+    /// under each of [`sensitivity::MOTION_SCENARIOS`] on the set-up's part
+    /// ([`Setup::contact_removals`]), its residual against the map summarised
+    /// ([`sensitivity::Sensitivity::of_removals`]).
+    pub fn sensitivity_of(
+        &self,
+        samples: &crate::simulate::SampledProgram,
+        removal_nm: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<sensitivity::Sensitivity> {
+        let motion = self.contact_removals(samples, &sensitivity::MOTION_SCENARIOS, observer)?;
+        sensitivity::Sensitivity::of_removals(self.map.z_nm(), removal_nm, &motion)
+    }
+
+    /// The sensitivity of the plan `dwell_s` at its programmed feeds (no program executed),
+    /// whose removal is `removal_nm`: on a flat part whose plan takes the FFT or the stencil
+    /// operator, each scenario's removal by the same operator with the scenario's kernel and
+    /// exact swept columns (the plan's own model, one product each); otherwise the plan's motion
+    /// summed directly ([`Setup::plan_motion`]).
+    pub(super) fn plan_sensitivity(
+        &self,
+        problem: &Problem,
+        dwell_s: &[f64],
+        removal_nm: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<sensitivity::Sensitivity> {
+        use crate::influence::operator::OperatorKind;
+        let kind = problem.operator_kind();
+        let lattice = match kind {
+            OperatorKind::Fft | OperatorKind::Stencil if self.surface.is_none() => {
+                FftOperator::lattice_pitch_mm(self.map.x_mm(), self.map.y_mm())
+            }
+            _ => None,
+        };
+        if let Some(pitch_mm) = lattice {
+            let mut motion = Vec::with_capacity(sensitivity::MOTION_SCENARIOS.len());
+            for p in &sensitivity::MOTION_SCENARIOS {
+                let tif = p.of(&self.tif);
+                let block = self
+                    .lattice_block(
+                        &self.map,
+                        kind,
+                        pitch_mm,
+                        &tif,
+                        None,
+                        &mut Vec::new(),
+                        observer,
+                    )
+                    .map_err(|e| e.source)?;
+                match block {
+                    Some(op) => motion.push(op.removal_nm(dwell_s)?),
+                    None => break,
+                }
+            }
+            if motion.len() == sensitivity::MOTION_SCENARIOS.len() {
+                return sensitivity::Sensitivity::of_removals(self.map.z_nm(), removal_nm, &motion);
+            }
+        }
+        self.sensitivity_of(&self.plan_motion(dwell_s), removal_nm, observer)
+    }
+
     /// Solves `problem` (built by [`Setup::problem`]): the acceleration-limited SCP when the
     /// set-up has a limit, the dwell solver the settings choose otherwise (from the warm start
     /// if there is one). Computes the removal `R t` and the feed schedule once.
@@ -70,8 +132,8 @@ impl Setup {
                 (s, removal, None)
             }
         };
-        let (solution, removal_all, executed) = match (&self.accel, &self.surface) {
-            (Some(l), None) => {
+        let (solution, removal_all, executed) = match &self.accel {
+            Some(l) => {
                 let first = self.executed_at_limit(&solution.dwell_s, l.a_max_mm_per_s2, observer);
                 if l.method == AccelMethod::CorrectionPasses {
                     self.correction_passes(problem, l, solution, removal_all, first, observer)?
@@ -79,7 +141,7 @@ impl Setup {
                     (solution, removal_all, Some(first))
                 }
             }
-            _ => (solution, removal_all, None),
+            None => (solution, removal_all, None),
         };
         // The nominal scenario's removal (the first block of a robust plan's rows, over its
         // scale) on the measured map.
@@ -127,17 +189,16 @@ impl Setup {
             self.accel.as_ref().map(|l| l.a_max_mm_per_s2),
             self.corner_angle_deg,
         )?;
+        // The sensitivity of the executed motion, or of the plan's own where no program is
+        // executed.
         let sensitivity = match &executed {
-            Some(Ok(e)) => Some(sensitivity::of_executed(
-                self.map.x_mm(),
-                self.map.y_mm(),
-                self.map.z_nm(),
-                &e.run.contact,
-                &e.run.removal_nm,
-                &self.tif,
-                observer,
-            )?),
-            _ => None,
+            Some(Ok(e)) => {
+                Some(self.sensitivity_of(&e.run.contact, &e.run.removal_nm, observer)?)
+            }
+            Some(Err(_)) => None,
+            None => {
+                Some(self.plan_sensitivity(problem, &solution.dwell_s, &removal_nm, observer)?)
+            }
         };
         let residual_nm = centred_residual_nm(self.map.z_nm(), &removal_nm);
         let dwell_outside_map_s = crate::machine::machinability::dwell_outside_map_s(
@@ -176,44 +237,12 @@ impl Setup {
             OperatorKind::Nufft => crate::influence::nufft::DEFAULT_NUFFT_TOLERANCE,
             _ => return Ok(None),
         };
-        if self.surface.is_some() {
-            return Ok(None);
-        }
         let m = self.map.len();
         let mut approx = problem.removal_nm(dwell_s)?;
         approx.truncate(m);
         // The exact removal of the plan's own model: with the swept model every dwell point's
         // stretch samples carry its dwell in proportion to their weights.
-        let exact = match &self.swept {
-            Some((stretches, _)) => {
-                let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
-                for (j, &tj) in dwell_s.iter().enumerate() {
-                    for &[dx, dy, w] in stretches.of(j) {
-                        x.push(self.path.x_mm()[j] + dx);
-                        y.push(self.path.y_mm()[j] + dy);
-                        t.push(tj * w);
-                    }
-                }
-                crate::influence::direct::removal_nm(
-                    self.map.x_mm(),
-                    self.map.y_mm(),
-                    &x,
-                    &y,
-                    &t,
-                    &self.tif,
-                    observer,
-                )?
-            }
-            None => crate::influence::direct::removal_nm(
-                self.map.x_mm(),
-                self.map.y_mm(),
-                self.path.x_mm(),
-                self.path.y_mm(),
-                dwell_s,
-                &self.tif,
-                observer,
-            )?,
-        };
+        let exact = self.contact_removal(&self.plan_motion(dwell_s), observer)?;
         let norm = |v: &mut dyn Iterator<Item = f64>| v.map(|x| x * x).sum::<f64>().sqrt();
         let diff = norm(&mut approx.iter().zip(&exact).map(|(a, e)| a - e));
         let size = norm(&mut exact.iter().copied());
@@ -332,22 +361,19 @@ impl Setup {
         part: Option<(&dyn PartGeometry, f64)>,
         observer: &dyn Observer,
     ) -> Result<ProgramRun> {
-        let m = &self.map;
         run_on_map(
             program,
             kinematics,
             step_mm.unwrap_or_else(|| default_sample_step_mm(&self.tif)),
             part,
-            m.x_mm(),
-            m.y_mm(),
-            &self.tif,
-            observer,
+            &|samples| self.contact_removal(samples, observer),
         )
     }
 
-    /// The default program for `dwell_s` (ISO, G94, flat part, the feed limit) executed at
-    /// `a_max` with look-ahead, and the removal integrated along the executed motion
-    /// ([`crate::machine::gcode::motion`]), on the measured map.
+    /// The default program for `dwell_s` (ISO, G94, the feed limit; on a curved part following
+    /// the design surface, the tool's tip at the contact point) executed at `a_max` with
+    /// look-ahead, and the removal integrated along the executed motion
+    /// ([`crate::machine::gcode::motion`], [`Setup::contact_removal`]), on the measured map.
     pub(super) fn executed_at_limit(
         &self,
         dwell_s: &[f64],
@@ -360,13 +386,23 @@ impl Setup {
             v_max_mm_per_min: self.feed.map(|f| f.v_max_mm_per_min),
             ..NcSettings::default()
         };
-        let nc = NcProgram::plan(&self.path, dwell_s, &Flat, &settings)?;
+        // On a curved part the program follows the design surface, the tool's tip at the
+        // contact point.
+        let geometry: &dyn PartGeometry = match &self.surface {
+            Some(s) => s,
+            None => &Flat,
+        };
+        let nc = NcProgram::plan(&self.path, dwell_s, geometry, &settings)?;
         let check = write_and_check(&nc, &[])?;
         let kinematics = Kinematics::Trapezoidal {
             a_max_mm_per_s2,
             corner_angle_deg: settings.corner_angle_deg,
         };
-        let run = self.run_on_map(&check.program, kinematics, None, None, observer)?;
+        let part = self
+            .surface
+            .as_ref()
+            .map(|s| (s as &dyn PartGeometry, settings.tool_radius_mm));
+        let run = self.run_on_map(&check.program, kinematics, None, part, observer)?;
         let after = HeightStats::of(&centred_residual_nm(self.map.z_nm(), &run.removal_nm));
         Ok(Executed {
             a_max_mm_per_s2,

@@ -20,9 +20,11 @@
 //! next), an acceleration limit, a warm start, a curvature-dependent TIF and a matrix-free
 //! operator (the stacked `R` is assembled). The map is used as measured: no edge extension.
 
+use super::sensitivity::Sensitivity;
 use super::{At, Checked, SetupInput, SetupResult, SetupStep, TifModel};
 use crate::dwell::{self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution};
 use crate::error::{Error, Result};
+use crate::influence::direct::removals_nm;
 use crate::influence::stacked::stack_scaled;
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches};
 use crate::map::HeightMap;
@@ -100,6 +102,8 @@ pub struct ToolsOutcome {
     pub removal_nm: Vec<f64>,
     /// Each tool's removal `R_k t_k` at the map points, nm.
     pub tool_removal_nm: Vec<Vec<f64>>,
+    /// The plan's residual with every tool's TIF perturbed ([`super::sensitivity`]).
+    pub sensitivity: Sensitivity,
 }
 
 /// Why `what` cannot be part of a multi-tool solve.
@@ -239,12 +243,53 @@ impl ToolsSetup {
             tool_removal_nm.push(problem.removal_nm(&u_k)?);
             start = end;
         }
+        let sensitivity = self.sensitivity(&dwell_s, &removal_nm, observer)?;
         Ok(ToolsOutcome {
             solution,
             dwell_s,
             removal_nm,
             tool_removal_nm,
+            sensitivity,
         })
+    }
+
+    /// The sensitivity of the plan (each tool's `dwell_s`, total removal `removal_nm`): every
+    /// tool's TIF perturbed alike ([`super::sensitivity::MOTION_SCENARIOS`]) along its own
+    /// motion at its programmed feeds (its stretch samples under the swept model), summed over
+    /// the tools.
+    fn sensitivity(
+        &self,
+        dwell_s: &[Vec<f64>],
+        removal_nm: &[f64],
+        observer: &dyn Observer,
+    ) -> Result<Sensitivity> {
+        let (mx, my) = (self.map.x_mm(), self.map.y_mm());
+        let scenarios = &super::sensitivity::MOTION_SCENARIOS;
+        let mut motion = vec![vec![0.0; mx.len()]; scenarios.len()];
+        for (tool, t) in self.tools.iter().zip(dwell_s) {
+            let stretches = match self.settings.influence {
+                InfluenceModel::Swept => Some(Stretches::of_path(
+                    &tool.path,
+                    super::default_sample_step_mm(&tool.tif),
+                )?),
+                InfluenceModel::Point => None,
+            };
+            let samples = super::contact::path_motion(&tool.path, stretches.as_ref(), t);
+            let tifs: Vec<_> = scenarios.iter().map(|p| p.of(&tool.tif)).collect();
+            let h = removals_nm(
+                mx,
+                my,
+                &samples.x_mm,
+                &samples.y_mm,
+                &samples.dwell_s,
+                &tifs,
+                observer,
+            )?;
+            for (sum, h) in motion.iter_mut().zip(h) {
+                sum.iter_mut().zip(h).for_each(|(s, v)| *s += v);
+            }
+        }
+        Sensitivity::of_removals(self.map.z_nm(), removal_nm, &motion)
     }
 }
 
@@ -282,6 +327,47 @@ mod tests {
             Tool::new(2, small, line(17, 0.5, 4.0), limits, 3.0).unwrap(),
         ];
         (map, tools)
+    }
+
+    /// The sensitivity of several tools sums their motions: one tool split into two identical
+    /// tools sharing its dwell has the same figures (each scenario's removal the sum of the
+    /// tools' own).
+    #[test]
+    fn the_tools_sensitivity_sums_their_motions() {
+        /// The same sums in another order.
+        const SUM_REL_TOL: f64 = 1e-12;
+        let (map, tools) = two_tools();
+        let mut c = choices();
+        c.settings.influence = InfluenceModel::Swept;
+        let checked = ToolChoices::check(c.check(&Silent).unwrap()).unwrap();
+        let one = ToolsSetup::resolve(&checked, map.clone(), vec![tools[0].clone()]).unwrap();
+        let twice =
+            ToolsSetup::resolve(&checked, map, vec![tools[0].clone(), tools[0].clone()]).unwrap();
+        let t: Vec<f64> = (0..tools[0].path.len())
+            .map(|j| 1.0 + 0.3 * j as f64)
+            .collect();
+        let half: Vec<f64> = t.iter().map(|v| v / 2.0).collect();
+        let removal = vec![15.0; one.map.len()];
+        let a = one.sensitivity(&[t], &removal, &Silent).unwrap();
+        let b = twice
+            .sensitivity(&[half.clone(), half], &removal, &Silent)
+            .unwrap();
+        for (x, y) in [
+            (a.tif_wider_3pct, b.tif_wider_3pct),
+            (a.tif_narrower_3pct, b.tif_narrower_3pct),
+            (a.offset_x_0p05mm, b.offset_x_0p05mm),
+            (a.offset_y_0p05mm, b.offset_y_0p05mm),
+        ] {
+            assert!(x.rms_nm > 0.0);
+            assert!(
+                (x.rms_nm - y.rms_nm).abs() <= SUM_REL_TOL * x.rms_nm,
+                "{x:?} {y:?}"
+            );
+            assert!(
+                (x.pv_nm - y.pv_nm).abs() <= SUM_REL_TOL * x.pv_nm,
+                "{x:?} {y:?}"
+            );
+        }
     }
 
     /// Agreement of a tool's swept removal with its program swept by the simulator's midpoint

@@ -69,17 +69,14 @@ pub struct ProgramRun {
 /// Executes `program` under `kinematics`, samples the contact motion with pieces of at most
 /// `step_mm` ([`motion::sample_contact`]), maps tool centres back to contact points on `part`
 /// (a surface and the tool-centre offset along its normal; none: X, Y are the contact points),
-/// and integrates the removal of `tif` at the map points.
-#[allow(clippy::too_many_arguments)]
-pub fn run_on_map<T: crate::tif::InfluenceFunction + ?Sized>(
+/// and integrates the removal of the contact motion with `removal` (the TIF summed along the
+/// samples at the map points: [`crate::simulate::removal_of_samples`] on a flat part).
+pub fn run_on_map(
     program: &Program,
     kinematics: Kinematics,
     step_mm: f64,
     part: Option<(&dyn crate::machine::PartGeometry, f64)>,
-    map_x_mm: &[f64],
-    map_y_mm: &[f64],
-    tif: &T,
-    observer: &dyn crate::observer::Observer,
+    removal: &dyn Fn(&crate::simulate::SampledProgram) -> Result<Vec<f64>>,
 ) -> Result<ProgramRun> {
     let executed = execute(program, kinematics)?;
     let check = check_stretches(program, &executed);
@@ -95,8 +92,7 @@ pub fn run_on_map<T: crate::tif::InfluenceFunction + ?Sized>(
         y_mm: samples.y_mm,
         dwell_s: samples.time_s,
     };
-    let removal_nm =
-        crate::simulate::removal_of_samples(map_x_mm, map_y_mm, &sampled, tif, observer)?;
+    let removal_nm = removal(&sampled)?;
     Ok(ProgramRun {
         executed,
         check,

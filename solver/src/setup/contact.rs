@@ -1,0 +1,167 @@
+//! The removal of a contact motion on the set-up's part: samples `p_k` of the motion carrying
+//! time `tau_k`, `h_i = sum_k f_k(x_i - p_k) tau_k`, summed directly (a motion's samples are used
+//! once). On a flat part `f_k` is the TIF in plan ([`crate::influence::direct`]); on a curved
+//! part each sample applies the TIF in its own tangent frame of the design surface, oriented as
+//! the plan's columns are ([`crate::influence::surface::removals_on_surface_with`]), with the
+//! sample's own Hertz TIF where the TIF depends on the curvature. The same under the
+//! [`Perturbation`]s of the sensitivity: a tool offset moves the samples in plan, where the
+//! curved part's frames are then taken.
+
+use super::sensitivity::Perturbation;
+use super::{Setup, TifModel};
+use crate::error::Result;
+use crate::influence::curvature::hertz_tifs_on_surface;
+use crate::influence::direct::removals_nm;
+use crate::influence::surface::removals_on_surface_with;
+use crate::influence::Stretches;
+use crate::observer::Observer;
+use crate::path::DwellPath;
+use crate::simulate::SampledProgram;
+use crate::tif::InfluenceFunction;
+
+impl Setup {
+    /// The removal of the motion `samples` at the measured map points, nm.
+    pub(super) fn contact_removal(
+        &self,
+        samples: &SampledProgram,
+        observer: &dyn Observer,
+    ) -> Result<Vec<f64>> {
+        let mut h = self.contact_removals(samples, &[Perturbation::NONE], observer)?;
+        Ok(h.pop().unwrap_or_default())
+    }
+
+    /// The removals of the motion `samples` at the measured map points under each of
+    /// `scenarios`, nm, in their order (module documentation).
+    pub(super) fn contact_removals(
+        &self,
+        samples: &SampledProgram,
+        scenarios: &[Perturbation],
+        observer: &dyn Observer,
+    ) -> Result<Vec<Vec<f64>>> {
+        let (mx, my) = (self.map.x_mm(), self.map.y_mm());
+        let Some(surface) = &self.surface else {
+            if let TifModel::CurvatureDependent(_) = self.tif_model {
+                return Err(crate::error::Error::invalid(
+                    "TIF model",
+                    "a curvature-dependent TIF needs a design surface",
+                ));
+            }
+            // In the plan an offset is the TIF's own shift: one traversal for all.
+            let tifs: Vec<_> = scenarios.iter().map(|p| p.of(&self.tif)).collect();
+            return removals_nm(
+                mx,
+                my,
+                &samples.x_mm,
+                &samples.y_mm,
+                &samples.dwell_s,
+                &tifs,
+                observer,
+            );
+        };
+        let mut out = vec![Vec::new(); scenarios.len()];
+        // One traversal per distinct offset, the samples moved by it.
+        let mut done = vec![false; scenarios.len()];
+        for first in 0..scenarios.len() {
+            if done[first] {
+                continue;
+            }
+            let (ox, oy) = scenarios[first].offset_mm;
+            let group: Vec<usize> = (first..scenarios.len())
+                .filter(|&s| !done[s] && scenarios[s].offset_mm == (ox, oy))
+                .collect();
+            let x: Vec<f64> = samples.x_mm.iter().map(|v| v + ox).collect();
+            let y: Vec<f64> = samples.y_mm.iter().map(|v| v + oy).collect();
+            let at = |s: usize| Perturbation {
+                offset_mm: (0.0, 0.0),
+                ..scenarios[group[s]]
+            };
+            let removals = match &self.tif_model {
+                TifModel::ShiftInvariant => {
+                    let tifs: Vec<_> = (0..group.len()).map(|s| at(s).of(&self.tif)).collect();
+                    let radii: Vec<f64> = tifs.iter().map(|t| t.support_radius_mm()).collect();
+                    removals_on_surface_with(
+                        surface,
+                        mx,
+                        my,
+                        &x,
+                        &y,
+                        &samples.dwell_s,
+                        &radii,
+                        |s, _, u, w| tifs[s].rate_nm_per_s(u, w),
+                        self.tif_frame,
+                        observer,
+                    )?
+                }
+                TifModel::CurvatureDependent(params) => {
+                    let hertz = hertz_tifs_on_surface(surface, &x, &y, params)?;
+                    let largest = hertz
+                        .iter()
+                        .map(|t| t.support_radius_mm())
+                        .fold(0.0, f64::max);
+                    let radii: Vec<f64> = (0..group.len())
+                        .map(|s| at(s).width_factor * largest)
+                        .collect();
+                    removals_on_surface_with(
+                        surface,
+                        mx,
+                        my,
+                        &x,
+                        &y,
+                        &samples.dwell_s,
+                        &radii,
+                        |s, k, u, w| {
+                            hertz
+                                .get(k)
+                                .map_or(0.0, |t| at(s).of(t).rate_nm_per_s(u, w))
+                        },
+                        self.tif_frame,
+                        observer,
+                    )?
+                }
+            };
+            for (&s, h) in group.iter().zip(removals) {
+                out[s] = h;
+                done[s] = true;
+            }
+        }
+        Ok(out)
+    }
+
+    /// The motion of the plan `dwell_s` at its programmed feeds ([`path_motion`] of the
+    /// set-up's path, with its stretches under the swept model).
+    pub(super) fn plan_motion(&self, dwell_s: &[f64]) -> SampledProgram {
+        path_motion(&self.path, self.swept.as_ref().map(|s| &s.0), dwell_s)
+    }
+}
+
+/// The motion of dwell times `dwell_s` on `path` at their programmed feeds: each dwell point's
+/// stretch samples carrying its dwell in proportion to their weights (swept model, `stretches`),
+/// or the dwell points themselves (point model).
+pub(super) fn path_motion(
+    path: &DwellPath,
+    stretches: Option<&Stretches>,
+    dwell_s: &[f64],
+) -> SampledProgram {
+    match stretches {
+        Some(stretches) => {
+            let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
+            for (j, &tj) in dwell_s.iter().enumerate() {
+                for &[dx, dy, w] in stretches.of(j) {
+                    x.push(path.x_mm()[j] + dx);
+                    y.push(path.y_mm()[j] + dy);
+                    t.push(tj * w);
+                }
+            }
+            SampledProgram {
+                x_mm: x,
+                y_mm: y,
+                dwell_s: t,
+            }
+        }
+        None => SampledProgram {
+            x_mm: path.x_mm().to_vec(),
+            y_mm: path.y_mm().to_vec(),
+            dwell_s: dwell_s.to_vec(),
+        },
+    }
+}
