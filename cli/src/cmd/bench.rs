@@ -44,6 +44,10 @@ pub struct Args {
     /// Correction pairs of the projected L-BFGS (default 10, or 5 with the FFT operator).
     #[arg(long, value_name = "PAIRS")]
     pub lbfgs_memory: Option<usize>,
+    /// How the generated problems model the tool at a dwell point (default swept, as `solve`):
+    /// `point` to compare with the literature's model.
+    #[arg(long, value_enum)]
+    pub influence: Option<preston_solver::influence::InfluenceModel>,
     /// Sample job to include (default data/job.toml when it exists; "none" to skip).
     #[arg(long, value_name = "JOB.toml")]
     pub job: Option<PathBuf>,
@@ -67,6 +71,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     if let Some(pairs) = args.lbfgs_memory {
         settings.lbfgs_memory = Some(pairs);
+    }
+    if let Some(model) = args.influence {
+        settings.influence = model;
     }
     // The named solvers run on the assembled R (FFT: first-order-fft); `auto` leaves the
     // operator to the policy as `preston solve` does.

@@ -68,6 +68,9 @@ const FFT_WORK_PER_CELL_LOG2: f64 = 1.5;
 pub struct FftOperator {
     fx: usize,
     fy: usize,
+    /// The lattice pitch, mm, and the kernel's reach in cells (the padding).
+    pitch_mm: f64,
+    reach_cells: usize,
     kernel_hat: Vec<Complex<f64>>,
     /// Map cells on the lattice (shifted where the dwell points are on a sub-lattice).
     map: Cells,
@@ -149,6 +152,25 @@ impl FftOperator {
             pitch_mm,
             tif,
             NormalRoute::Cheaper,
+        )
+    }
+
+    /// As [`FftOperator::new`] for a few products (a removal `R t`): the normal product keeps
+    /// its direct route, without the complement's set-up.
+    pub fn for_products<T: InfluenceFunction + ?Sized>(
+        map_x_mm: &[f64],
+        map_y_mm: &[f64],
+        dwell_x_mm: &[f64],
+        dwell_y_mm: &[f64],
+        pitch_mm: f64,
+        tif: &T,
+    ) -> Result<Self> {
+        Self::build(
+            (map_x_mm, map_y_mm),
+            (dwell_x_mm, dwell_y_mm),
+            pitch_mm,
+            tif,
+            NormalRoute::Direct,
         )
     }
 
@@ -279,6 +301,8 @@ impl FftOperator {
         Ok(Self {
             fx,
             fy,
+            pitch_mm,
+            reach_cells: kr,
             kernel_hat,
             map: Cells::new(map_cells, fx, fy),
             dwell: match sub {
@@ -290,6 +314,57 @@ impl FftOperator {
             buffers: Mutex::new(buffers),
             complement,
         })
+    }
+
+    /// The removals `R_k t` of the dwell `dwell_s` for each of `tifs` in place of the operator's
+    /// own kernel, on the same lattice (one transform of each kernel and one convolution each:
+    /// the removal of one plan under several TIFs). Each TIF's reach must be within the
+    /// operator's (build it with the widest).
+    pub fn removals_with(
+        &self,
+        dwell_s: &[f64],
+        tifs: &[&dyn InfluenceFunction],
+    ) -> Result<Vec<Vec<f64>>> {
+        let (m, n) = (LinearOperator::nrows(self), LinearOperator::ncols(self));
+        if dwell_s.len() != n {
+            return Err(Error::LengthMismatch {
+                what: "dwell_s",
+                got: dwell_s.len(),
+                expected: n,
+            });
+        }
+        let mut out = Vec::with_capacity(tifs.len());
+        for tif in tifs {
+            let reach = lattice_reach(tif.support_radius_mm(), self.pitch_mm) as usize;
+            if reach > self.reach_cells {
+                return Err(Error::invalid(
+                    "FFT kernel",
+                    format!(
+                        "reaches {reach} cells, beyond the operator's {}",
+                        self.reach_cells
+                    ),
+                ));
+            }
+            let kernel_hat = {
+                let mut guard = lock(&self.buffers);
+                let buffers = &mut *guard;
+                buffers.real.iter_mut().for_each(|v| *v = 0.0);
+                kernel_taps(
+                    *tif,
+                    self.reach_cells,
+                    self.pitch_mm,
+                    &mut buffers.real,
+                    (self.fx, self.fy),
+                );
+                self.transforms
+                    .spectrum(buffers, Fill::Ready, Spectrum::Keep);
+                buffers.columns.clone()
+            };
+            let mut h = vec![0.0; m];
+            self.convolve_with(&kernel_hat, dwell_s, false, &mut h);
+            out.push(h);
+        }
+        Ok(out)
     }
 
     /// Non-zero entries of the implicit matrix `R` (the number the sparse operator would store).
@@ -326,13 +401,24 @@ impl FftOperator {
     /// Each step runs as few parallel passes as possible (a row pass scatters and transforms
     /// along x, a column pass reads its column of the row spectra and transforms along y).
     fn convolve(&self, input: &[f64], conj: bool, out: &mut [f64]) {
+        self.convolve_with(&self.kernel_hat, input, conj, out);
+    }
+
+    /// [`FftOperator::convolve`] with the kernel spectrum `kernel_hat` (of this lattice).
+    fn convolve_with(
+        &self,
+        kernel_hat: &[Complex<f64>],
+        input: &[f64],
+        conj: bool,
+        out: &mut [f64],
+    ) {
         let mut full_guard = lock(&self.buffers);
         let full = &mut *full_guard;
         let scale = self.scale();
         match &self.dwell {
             DwellCells::Sub(sub) if !conj => {
                 let mut small = lock(&sub.buffers);
-                self.tiled_spectrum(sub, input, &mut small, full);
+                self.tiled_spectrum(kernel_hat, sub, input, &mut small, full);
                 self.transforms.to_real(full, &self.map.rows);
                 self.map.gather(&full.real, scale, out);
             }
@@ -344,7 +430,7 @@ impl FftOperator {
                 self.fold_to_dwell(sub, full, small, out);
             }
             DwellCells::Lattice(dwell) => {
-                let k = &self.kernel_hat;
+                let k = kernel_hat;
                 let (from, to, after) = if conj {
                     (&self.map, dwell, Spectrum::Correlate(k))
                 } else {
@@ -375,7 +461,7 @@ impl FftOperator {
             DwellCells::Sub(sub) => {
                 let mut small = lock(&sub.buffers);
                 let small = &mut *small;
-                self.tiled_spectrum(sub, t, small, full);
+                self.tiled_spectrum(&self.kernel_hat, sub, t, small, full);
                 self.transforms
                     .spectrum(full, Fill::Masked(&self.map, scale), Spectrum::Keep);
                 self.fold_to_dwell(sub, full, small, out);
@@ -405,7 +491,14 @@ impl FftOperator {
     /// lattice spectrum of a signal on the sub-lattice through the origin is its sub-lattice
     /// spectrum repeated, `U[kx, ky] = S[kx mod sx, ky mod sy]`; `S` is stored for
     /// `kx <= sx / 2` only, the rest from `S[k] = conj(S[-k])`.
-    fn tiled_spectrum(&self, sub: &SubLattice, t: &[f64], small: &mut Buffers, full: &mut Buffers) {
+    fn tiled_spectrum(
+        &self,
+        kernel_hat: &[Complex<f64>],
+        sub: &SubLattice,
+        t: &[f64],
+        small: &mut Buffers,
+        full: &mut Buffers,
+    ) {
         sub.transforms
             .spectrum(small, Fill::Scatter(&sub.dwell, t), Spectrum::Keep);
         let (fy, sx, sy) = (self.fy, sub.sx, sub.sy);
@@ -413,7 +506,7 @@ impl FftOperator {
         let small = &small.columns;
         self.transforms
             .column_pass(&mut full.columns, |kx, column, scratch| {
-                let kernel = &self.kernel_hat[kx * fy..(kx + 1) * fy];
+                let kernel = &kernel_hat[kx * fy..(kx + 1) * fy];
                 let kx = kx % sx;
                 // `fy` is a multiple of `sy`: the column is `fy / sy` tiles of `from`.
                 debug_assert_eq!(fy % sy, 0);
@@ -945,6 +1038,60 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Another kernel's removal on the same lattice: `removals_with` gives, for the operator's
+    /// own TIF and a shifted, narrower one, the direct sums `sum_j K(x_i - q_j) t_j` on every
+    /// sub-lattice case; a kernel reaching beyond the operator's padding is refused.
+    #[test]
+    fn removals_with_other_kernels_are_their_direct_sums() {
+        struct Shifted;
+        impl InfluenceFunction for Shifted {
+            fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+                Lopsided.rate_nm_per_s((dx_mm - 0.05) / 0.9, dy_mm / 0.9) / 0.81
+            }
+            fn support_radius_mm(&self) -> f64 {
+                0.9 * 2.6 + 0.05
+            }
+        }
+        let h = CASE_PITCH_MM;
+        let map = case_map();
+        let (x, y): (Vec<f64>, Vec<f64>) = map.iter().copied().unzip();
+        for case in SUB_LATTICE_CASES {
+            let dwell = case_dwell(case);
+            let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
+            let op = FftOperator::for_products(&x, &y, &qx, &qy, h, &Lopsided).unwrap();
+            let t: Vec<f64> = (0..dwell.len())
+                .map(|j| 1.0 + ((j * 37) % 11) as f64 * 0.3)
+                .collect();
+            let got = op.removals_with(&t, &[&Lopsided, &Shifted]).unwrap();
+            let tifs: [&dyn InfluenceFunction; 2] = [&Lopsided, &Shifted];
+            for (k, tif) in tifs.iter().enumerate() {
+                for i in 0..map.len() {
+                    let terms = (0..dwell.len())
+                        .map(|j| tif.rate_nm_per_s(x[i] - qx[j], y[i] - qy[j]) * t[j]);
+                    let (direct, scale) = terms.fold((0.0, 0.0), |(a, b), v| (a + v, b + v.abs()));
+                    assert!(
+                        (got[k][i] - direct).abs() <= BRUTE_REL_TOL * scale.max(1.0),
+                        "{case:?} kernel {k} point {i}: {} vs {direct}",
+                        got[k][i]
+                    );
+                }
+            }
+        }
+        struct Wide;
+        impl InfluenceFunction for Wide {
+            fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+                Lopsided.rate_nm_per_s(dx_mm / 2.0, dy_mm / 2.0)
+            }
+            fn support_radius_mm(&self) -> f64 {
+                5.2
+            }
+        }
+        let dwell = case_dwell(SUB_LATTICE_CASES[0]);
+        let (qx, qy): (Vec<f64>, Vec<f64>) = dwell.iter().copied().unzip();
+        let op = FftOperator::for_products(&x, &y, &qx, &qy, h, &Lopsided).unwrap();
+        assert!(op.removals_with(&vec![1.0; dwell.len()], &[&Wide]).is_err());
     }
 
     /// `R^T P R t` through the lattice and through the complement (the kernel's autocorrelation

@@ -510,25 +510,45 @@ impl Setup {
         notes: &mut Vec<String>,
         observer: &dyn Observer,
     ) -> SetupResult<Option<Box<dyn InfluenceOperator>>> {
-        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
-        let swept_kernel = self
-            .swept
-            .as_ref()
-            .map(|(stretches, _)| SweptTif::new(tif.clone(), stretches.dominant().0));
+        let swept_kernel = self.shared_kernel(tif);
         let kernel: &dyn InfluenceFunction = match &swept_kernel {
             Some(k) => k,
             None => tif,
         };
-        let op: Box<dyn InfluenceOperator> = match (built, kind) {
-            (Some(op), _) => op,
-            (None, OperatorKind::Fft) => {
-                Box::new(FftOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?)
-            }
-            (None, _) => Box::new(
-                StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel).at(SetupInput::Map)?,
-            ),
+        let op = match built {
+            Some(op) => op,
+            None => self
+                .lattice_with_kernel(rows, kind, pitch_mm, kernel)
+                .at(SetupInput::Map)?,
         };
         self.swept_corrected(op, rows, tif, kernel, notes, observer)
+    }
+
+    /// `tif` swept along the dominant stretch under the swept model (the lattice operators'
+    /// shared kernel); `None` under the point model, where the kernel is `tif` itself.
+    pub(super) fn shared_kernel<'a>(
+        &self,
+        tif: &PerturbedTif<'a, Tif>,
+    ) -> Option<SweptTif<PerturbedTif<'a, Tif>>> {
+        self.swept
+            .as_ref()
+            .map(|(stretches, _)| SweptTif::new(tif.clone(), stretches.dominant().0))
+    }
+
+    /// The lattice operator of `kind` (FFT, else stencil) over `rows` and the dwell points on the
+    /// lattice of `pitch_mm`, with the shift-invariant `kernel` at every dwell point.
+    fn lattice_with_kernel(
+        &self,
+        rows: &HeightMap,
+        kind: OperatorKind,
+        pitch_mm: f64,
+        kernel: &dyn InfluenceFunction,
+    ) -> crate::error::Result<Box<dyn InfluenceOperator>> {
+        let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
+        Ok(match kind {
+            OperatorKind::Fft => Box::new(FftOperator::new(mx, my, dx, dy, pitch_mm, kernel)?),
+            _ => Box::new(StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel)?),
+        })
     }
 
     /// The robust plan's problem over `rows` ([`robust`]) and its scenario weights: the

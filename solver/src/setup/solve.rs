@@ -48,9 +48,11 @@ impl Setup {
 
     /// The sensitivity of the plan `dwell_s` at its programmed feeds (no program executed),
     /// whose removal is `removal_nm`: on a flat part whose plan takes the FFT or the stencil
-    /// operator, each scenario's removal by the same operator with the scenario's kernel and
-    /// exact swept columns (the plan's own model, one product each); otherwise the plan's motion
-    /// summed directly ([`Setup::plan_motion`]).
+    /// operator, each scenario's removal is the same operator with the scenario's shared
+    /// kernel over the dwell points that share it (on the FFT lattice one transform of each
+    /// kernel and one convolution), plus the other points' stretches (row and path ends) summed
+    /// directly; otherwise the plan's motion summed
+    /// directly ([`Setup::plan_motion`]).
     pub(super) fn plan_sensitivity(
         &self,
         problem: &Problem,
@@ -58,7 +60,8 @@ impl Setup {
         removal_nm: &[f64],
         observer: &dyn Observer,
     ) -> Result<sensitivity::Sensitivity> {
-        use crate::influence::operator::OperatorKind;
+        use crate::influence::operator::{InfluenceOperator, OperatorKind};
+        let scenarios = &sensitivity::MOTION_SCENARIOS;
         let kind = problem.operator_kind();
         let lattice = match kind {
             OperatorKind::Fft | OperatorKind::Stencil if self.surface.is_none() => {
@@ -66,31 +69,68 @@ impl Setup {
             }
             _ => None,
         };
-        if let Some(pitch_mm) = lattice {
-            let mut motion = Vec::with_capacity(sensitivity::MOTION_SCENARIOS.len());
-            for p in &sensitivity::MOTION_SCENARIOS {
-                let tif = p.of(&self.tif);
-                let block = self
-                    .lattice_block(
-                        &self.map,
-                        kind,
-                        pitch_mm,
-                        &tif,
-                        None,
-                        &mut Vec::new(),
-                        observer,
-                    )
-                    .map_err(|e| e.source)?;
-                match block {
-                    Some(op) => motion.push(op.removal_nm(dwell_s)?),
-                    None => break,
-                }
-            }
-            if motion.len() == sensitivity::MOTION_SCENARIOS.len() {
-                return sensitivity::Sensitivity::of_removals(self.map.z_nm(), removal_nm, &motion);
-            }
+        let Some(pitch_mm) = lattice else {
+            return self.sensitivity_of(&self.plan_motion(dwell_s), removal_nm, observer);
+        };
+        // The points whose stretch is not the shared kernel's, summed directly.
+        let own = self
+            .swept
+            .as_ref()
+            .map(|(stretches, _)| stretches.outside_dominant())
+            .unwrap_or_default();
+        let mut shared = dwell_s.to_vec();
+        let mut own_dwell = vec![0.0; dwell_s.len()];
+        for &j in &own {
+            own_dwell[j] = shared[j];
+            shared[j] = 0.0;
         }
-        self.sensitivity_of(&self.plan_motion(dwell_s), removal_nm, observer)
+        let mut motion = if own.is_empty() {
+            vec![vec![0.0; self.map.len()]; scenarios.len()]
+        } else {
+            let mut samples = self.plan_motion(&own_dwell);
+            // Only the own points' samples carry time.
+            let keep: Vec<bool> = samples.dwell_s.iter().map(|t| *t != 0.0).collect();
+            for v in [&mut samples.x_mm, &mut samples.y_mm, &mut samples.dwell_s] {
+                let mut k = keep.iter();
+                v.retain(|_| k.next().copied().unwrap_or(false));
+            }
+            self.contact_removals(&samples, scenarios, observer)?
+        };
+        let tifs: Vec<_> = scenarios.iter().map(|p| p.of(&self.tif)).collect();
+        let swept: Vec<_> = tifs.iter().map(|t| self.shared_kernel(t)).collect();
+        let kernels: Vec<&dyn InfluenceFunction> = tifs
+            .iter()
+            .zip(&swept)
+            .map(|(t, s)| match s {
+                Some(k) => k as &dyn InfluenceFunction,
+                None => t,
+            })
+            .collect();
+        let (mx, my) = (self.map.x_mm(), self.map.y_mm());
+        let (px, py) = (self.path.x_mm(), self.path.y_mm());
+        let lattice_removals = match kind {
+            // One lattice, padded for the widest kernel, each kernel transformed once.
+            OperatorKind::Fft => {
+                let widest = kernels
+                    .iter()
+                    .copied()
+                    .max_by(|a, b| a.support_radius_mm().total_cmp(&b.support_radius_mm()))
+                    .unwrap_or(&self.tif);
+                FftOperator::for_products(mx, my, px, py, pitch_mm, widest)?
+                    .removals_with(&shared, &kernels)?
+            }
+            _ => kernels
+                .iter()
+                .map(|k| {
+                    crate::influence::StencilOperator::new(mx, my, px, py, pitch_mm, *k)?
+                        .removal_nm(&shared)
+                })
+                .collect::<Result<Vec<_>>>()?,
+        };
+        for (sum, h) in motion.iter_mut().zip(lattice_removals) {
+            sum.iter_mut().zip(h).for_each(|(s, v)| *s += v);
+        }
+        sensitivity::Sensitivity::of_removals(self.map.z_nm(), removal_nm, &motion)
     }
 
     /// Solves `problem` (built by [`Setup::problem`]): the acceleration-limited SCP when the
