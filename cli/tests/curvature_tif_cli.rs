@@ -53,6 +53,25 @@ fn hertz_flags() -> Vec<String> {
     .collect()
 }
 
+/// The flat part's Hertz TIF of [`hertz_flags`] as `preston tif hertz` writes it, in `dir`.
+fn flat_hertz_tif(dir: &Path) -> PathBuf {
+    let tif = dir.join("tif.csv");
+    let hertz = hertz_flags();
+    let mut args: Vec<&str> = vec!["tif", "hertz"];
+    // `preston tif hertz` names the grid pitch --pitch-mm and takes no --tif-model.
+    for pair in hertz[2..].chunks(2) {
+        args.push(if pair[0] == "--tif-pitch-mm" {
+            "--pitch-mm"
+        } else {
+            &pair[0]
+        });
+        args.push(&pair[1]);
+    }
+    args.extend(["--out", s(&tif)]);
+    ok(&preston(&args));
+    tif
+}
+
 /// Hand calculation (Johnson, *Contact Mechanics*, 4.22-4.23 and 4.31): for part principal
 /// curvatures `k1, k2` (1/mm, positive concave) the contact radius `a`, mm, and the Preston rate
 /// at the patch centre, nm/s: `K p0 v0` with `p0 = 3F / (2 pi a^2)` and `v0 = omega R sin(tilt)`.
@@ -275,20 +294,7 @@ fn the_shift_invariant_hertz_tif_is_the_one_preston_tif_writes_and_the_job_file_
     // The flags' shift-invariant TIF against the grid `preston tif hertz` writes.
     let from_flags = dir.path().join("flags");
     solve(&map, &dwell, &surface, &[], &from_flags);
-    let tif = dir.path().join("tif.csv");
-    let hertz = hertz_flags();
-    let mut args: Vec<&str> = vec!["tif", "hertz"];
-    // `preston tif hertz` names the grid pitch --pitch-mm and takes no --tif-model.
-    for pair in hertz[2..].chunks(2) {
-        args.push(if pair[0] == "--tif-pitch-mm" {
-            "--pitch-mm"
-        } else {
-            &pair[0]
-        });
-        args.push(&pair[1]);
-    }
-    args.extend(["--out", s(&tif)]);
-    ok(&preston(&args));
+    let tif = flat_hertz_tif(dir.path());
     let from_file = dir.path().join("file");
     ok(&preston(&[
         "solve",
@@ -532,19 +538,7 @@ fn a_curvature_dependent_plan_sweeps_and_runs_its_program() {
         "simulate --program {run} nm against the report's executed {executed} nm"
     );
     // The flat part's Hertz TIF (what `preston tif hertz` writes) on the same program.
-    let tif = dir.path().join("tif.csv");
-    let hertz = hertz_flags();
-    let mut args: Vec<&str> = vec!["tif", "hertz"];
-    for pair in hertz[2..].chunks(2) {
-        args.push(if pair[0] == "--tif-pitch-mm" {
-            "--pitch-mm"
-        } else {
-            &pair[0]
-        });
-        args.push(&pair[1]);
-    }
-    args.extend(["--out", s(&tif)]);
-    ok(&preston(&args));
+    let tif = flat_hertz_tif(dir.path());
     let flat_sim = dir.path().join("flat_sim");
     ok(&preston(&[
         "simulate",

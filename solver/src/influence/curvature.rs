@@ -42,6 +42,14 @@ pub fn hertz_tifs_on_surface(
         .collect()
 }
 
+/// The largest support radius of the per-point TIFs `tifs`, mm (0 for none): the reach of one
+/// assembly over all of them.
+pub fn largest_support_radius_mm(tifs: &[HertzTif]) -> f64 {
+    tifs.iter()
+        .map(|t| t.support_radius_mm())
+        .fold(0.0, f64::max)
+}
+
 /// Assembles `R` with a Hertz TIF per dwell point (see the module documentation).
 #[allow(clippy::too_many_arguments)]
 pub fn assemble_curvature_dependent(
@@ -55,10 +63,7 @@ pub fn assemble_curvature_dependent(
     observer: &dyn Observer,
 ) -> Result<InfluenceMatrix> {
     let tifs = hertz_tifs_on_surface(surface, dwell_x_mm, dwell_y_mm, params)?;
-    let radius = tifs
-        .iter()
-        .map(|t| t.support_radius_mm())
-        .fold(0.0, f64::max);
+    let radius = largest_support_radius_mm(&tifs);
     assemble_on_surface_with(
         surface,
         map_x_mm,
@@ -88,10 +93,7 @@ pub fn assemble_curvature_dependent_swept(
     observer: &dyn Observer,
 ) -> Result<InfluenceMatrix> {
     let tifs = hertz_tifs_on_surface(surface, path.x_mm(), path.y_mm(), params)?;
-    let radius = tifs
-        .iter()
-        .map(|t| t.support_radius_mm())
-        .fold(0.0, f64::max);
+    let radius = largest_support_radius_mm(&tifs);
     assemble_on_surface_swept_with(
         surface,
         map_x_mm,

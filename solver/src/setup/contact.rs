@@ -10,7 +10,7 @@
 use super::sensitivity::Perturbation;
 use super::{Setup, TifModel};
 use crate::error::Result;
-use crate::influence::curvature::hertz_tifs_on_surface;
+use crate::influence::curvature::{hertz_tifs_on_surface, largest_support_radius_mm};
 use crate::influence::direct::removals_nm;
 use crate::influence::surface::removals_on_surface_with;
 use crate::influence::Stretches;
@@ -75,50 +75,34 @@ impl Setup {
                 offset_mm: (0.0, 0.0),
                 ..scenarios[group[s]]
             };
-            let removals = match &self.tif_model {
-                TifModel::ShiftInvariant => {
-                    let tifs: Vec<_> = (0..group.len()).map(|s| at(s).of(&self.tif)).collect();
-                    let radii: Vec<f64> = tifs.iter().map(|t| t.support_radius_mm()).collect();
-                    removals_on_surface_with(
-                        surface,
-                        mx,
-                        my,
-                        &x,
-                        &y,
-                        &samples.dwell_s,
-                        &radii,
-                        |s, _, u, w| tifs[s].rate_nm_per_s(u, w),
-                        self.tif_frame,
-                        observer,
-                    )?
-                }
+            // Where the TIF depends on the curvature, each sample's own where it lands.
+            let hertz = match &self.tif_model {
+                TifModel::ShiftInvariant => None,
                 TifModel::CurvatureDependent(params) => {
-                    let hertz = hertz_tifs_on_surface(surface, &x, &y, params)?;
-                    let largest = hertz
-                        .iter()
-                        .map(|t| t.support_radius_mm())
-                        .fold(0.0, f64::max);
-                    let radii: Vec<f64> = (0..group.len())
-                        .map(|s| at(s).width_factor * largest)
-                        .collect();
-                    removals_on_surface_with(
-                        surface,
-                        mx,
-                        my,
-                        &x,
-                        &y,
-                        &samples.dwell_s,
-                        &radii,
-                        |s, k, u, w| {
-                            hertz
-                                .get(k)
-                                .map_or(0.0, |t| at(s).of(t).rate_nm_per_s(u, w))
-                        },
-                        self.tif_frame,
-                        observer,
-                    )?
+                    Some(hertz_tifs_on_surface(surface, &x, &y, params)?)
                 }
             };
+            let radii: Vec<f64> = (0..group.len())
+                .map(|s| match &hertz {
+                    None => at(s).of(&self.tif).support_radius_mm(),
+                    Some(h) => at(s).width_factor * largest_support_radius_mm(h),
+                })
+                .collect();
+            let removals = removals_on_surface_with(
+                surface,
+                mx,
+                my,
+                &x,
+                &y,
+                &samples.dwell_s,
+                &radii,
+                |s, k, u, w| match &hertz {
+                    None => at(s).of(&self.tif).rate_nm_per_s(u, w),
+                    Some(h) => h.get(k).map_or(0.0, |t| at(s).of(t).rate_nm_per_s(u, w)),
+                },
+                self.tif_frame,
+                observer,
+            )?;
             for (&s, h) in group.iter().zip(removals) {
                 out[s] = h;
                 done[s] = true;
