@@ -357,6 +357,7 @@ def simulate_program(
     sample_step_mm: Optional[float] = None,
     surface: Optional[Union[PathLike, Mapping[str, Any]]] = None,
     tool_radius_mm: float = 0.0,
+    tif_frame: str = "path_tangent",
     map_options: Optional[Mapping[str, Any]] = None,
     progress: Optional[Callable[[dict], Any]] = None,
 ) -> dict:
@@ -369,7 +370,9 @@ def simulate_program(
     integrated along the contact motion in samples of at most ``sample_step_mm`` (default 1/64 of
     the TIF radius) on the map file (read with ``map_options``, those of :func:`preston.read_map`).
     On a curved part give its ``surface`` and the ``tool_radius_mm`` the program's tool centres
-    are offset by.
+    are offset by: each contact sample then applies the TIF in its tangent plane, its x axis
+    along the motion (``tif_frame="path_tangent"``) or the machine x axis projected
+    (``"machine_x"``), as ``preston solve`` plans it.
 
     Returns a dict: ``map_x_mm``, ``map_y_mm``, ``z_nm``, ``removal_nm``, ``residual_nm`` (``z -
     removal`` with its mean removed), ``report`` (report.json keys) and ``check`` (executed
@@ -397,6 +400,7 @@ def simulate_program(
                 sample_step_mm=sample_step_mm,
                 surface=surface,
                 tool_radius_mm=tool_radius_mm,
+                tif_frame=tif_frame,
                 map_options=map_options,
                 progress=progress,
             )
@@ -422,6 +426,7 @@ def simulate_program(
         sample_step_mm,
         _surface_json(surface) if surface is not None else None,
         float(tool_radius_mm),
+        tif_frame,
         progress,
     )
     return {

@@ -321,7 +321,7 @@ pub(crate) fn register<'py>(
 /// surface (JSON) with the tool radius. Returns `(map_x_mm, map_y_mm, z_nm, removal_nm,
 /// residual_nm, report_json, check_json)`, the residual `z - removal` with its mean removed.
 #[pyfunction]
-#[pyo3(signature = (map_json, program, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=60.0, dialect=None, sample_step_mm=None, surface_json=None, tool_radius_mm=0.0, progress=None))]
+#[pyo3(signature = (map_json, program, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=60.0, dialect=None, sample_step_mm=None, surface_json=None, tool_radius_mm=0.0, tif_frame="path_tangent", progress=None))]
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
 pub(crate) fn simulate_program<'py>(
     py: Python<'py>,
@@ -335,6 +335,7 @@ pub(crate) fn simulate_program<'py>(
     sample_step_mm: Option<f64>,
     surface_json: Option<&str>,
     tool_radius_mm: f64,
+    tif_frame: &str,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<(
     Array<'py>,
@@ -345,6 +346,8 @@ pub(crate) fn simulate_program<'py>(
     String,
     String,
 )> {
+    let tif_frame: TifFrame = serde_json::from_value(Value::String(tif_frame.to_string()))
+        .map_err(|e| InputError::new_err(format!("tif_frame: {e}")))?;
     let source: MapSource = settings(map_json, "map options")?;
     let tif: Tif = crate::tif_of(
         tif_json,
@@ -367,7 +370,7 @@ pub(crate) fn simulate_program<'py>(
             kinematics,
             sample_step_mm,
             part,
-            tif_frame: TifFrame::default(),
+            tif_frame,
             tif_model: TifModel::ShiftInvariant,
         };
         let obs: &dyn Observer = match &observer {

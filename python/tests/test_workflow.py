@@ -216,10 +216,9 @@ def test_register_equals_cli(preston_bin, tmp_path):
     np.testing.assert_array_equal(np.column_stack([r["points_xyz_mm"], r["weights"]]), rp)
 
 
-def test_simulate_program_equals_cli(preston_bin, small_job, tmp_path):
-    """A solved plan turned into G-code, run with a 500 mm/s^2 acceleration limit: removal and
-    report as `preston simulate --program --a-max-mm-per-s2`; the programmed-feed run delivers the
-    plan (executed = planned dwell) and the accelerated one takes longer."""
+def program_simulated_by_cli(preston_bin, small_job, tmp_path, *extra):
+    """The small job solved, its program written to `p.nc` and run by `preston simulate --program`
+    with `extra` flags into `sim`: (program, the job's Gaussian, the output folder)."""
     r = preston.solve(small_job)
     program = tmp_path / "p.nc"
     program.write_text(preston.nc(np.column_stack([r.dwell_x_mm, r.dwell_y_mm]), r.dwell_s))
@@ -227,7 +226,37 @@ def test_simulate_program_equals_cli(preston_bin, small_job, tmp_path):
     out = tmp_path / "sim"
     cli(preston_bin, "simulate", "--map", small_job["map"]["file"], "--gaussian-sigma-mm", g["sigma_mm"],
         "--gaussian-peak-nm-per-s", g["peak_rate_nm_per_s"], "--gaussian-truncation-mm", g["truncation_radius_mm"],
-        "--program", program, "--a-max-mm-per-s2", 500, "--out", out)
+        "--program", program, *extra, "--out", out)
+    return program, g, out
+
+
+def test_simulate_program_on_a_curved_part_equals_cli(preston_bin, small_job, tmp_path):
+    """On a sphere each contact sample applies the TIF in its tangent frame, as `preston simulate
+    --program --surface` does; the same program taken as flat leaves another removal, and an
+    unknown frame is an input error."""
+    surface = {"type": "conic", "curvature_per_mm": 1.0 / 40.0}
+    surface_file = tmp_path / "sphere.json"
+    surface_file.write_text(json.dumps(surface))
+    program, g, out = program_simulated_by_cli(preston_bin, small_job, tmp_path, "--surface", surface_file)
+    s = preston.simulate_program(small_job["map"]["file"], program, gaussian=g, surface=surface)
+    res = csv(out / "residual.csv")
+    np.testing.assert_array_equal(
+        np.column_stack([s["map_x_mm"], s["map_y_mm"], s["z_nm"], s["removal_nm"], s["residual_nm"]]), res
+    )
+    flat = preston.simulate_program(small_job["map"]["file"], program, gaussian=g)
+    assert not np.allclose(flat["removal_nm"], s["removal_nm"], rtol=1e-3)
+    assert set(s["report"]["sensitivity"]) == {
+        "tif_wider_3pct", "tif_narrower_3pct", "rate_plus_3pct", "offset_x_0p05mm", "offset_y_0p05mm"}
+    with pytest.raises(preston.InputError, match="tif_frame"):
+        preston.simulate_program(small_job["map"]["file"], program, gaussian=g, surface=surface,
+                                 tif_frame="sideways")
+
+
+def test_simulate_program_equals_cli(preston_bin, small_job, tmp_path):
+    """A solved plan turned into G-code, run with a 500 mm/s^2 acceleration limit: removal and
+    report as `preston simulate --program --a-max-mm-per-s2`; the programmed-feed run delivers the
+    plan (executed = planned dwell) and the accelerated one takes longer."""
+    program, g, out = program_simulated_by_cli(preston_bin, small_job, tmp_path, "--a-max-mm-per-s2", 500)
     events = []
     s = preston.simulate_program(small_job["map"]["file"], program, gaussian=g, a_max_mm_per_s2=500.0,
                                  progress=events.append)
