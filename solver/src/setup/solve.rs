@@ -51,8 +51,7 @@ impl Setup {
     /// operator, each scenario's removal is the same operator with the scenario's shared
     /// kernel over the dwell points that share it (on the FFT lattice one transform of each
     /// kernel and one convolution), plus the other points' stretches (row and path ends) summed
-    /// directly; otherwise the plan's motion summed
-    /// directly ([`Setup::plan_motion`]).
+    /// directly; otherwise the plan's motion summed directly ([`Setup::plan_motion`]).
     pub(super) fn plan_sensitivity(
         &self,
         problem: &Problem,
@@ -79,21 +78,24 @@ impl Setup {
             .map(|(stretches, _)| stretches.outside_dominant())
             .unwrap_or_default();
         let mut shared = dwell_s.to_vec();
-        let mut own_dwell = vec![0.0; dwell_s.len()];
-        for &j in &own {
-            own_dwell[j] = shared[j];
-            shared[j] = 0.0;
+        let mut samples = crate::simulate::SampledProgram {
+            x_mm: Vec::new(),
+            y_mm: Vec::new(),
+            dwell_s: Vec::new(),
+        };
+        if let Some((stretches, _)) = &self.swept {
+            for &j in &own {
+                for &[dx, dy, w] in stretches.of(j) {
+                    samples.x_mm.push(self.path.x_mm()[j] + dx);
+                    samples.y_mm.push(self.path.y_mm()[j] + dy);
+                    samples.dwell_s.push(dwell_s[j] * w);
+                }
+                shared[j] = 0.0;
+            }
         }
-        let mut motion = if own.is_empty() {
+        let mut motion = if samples.dwell_s.is_empty() {
             vec![vec![0.0; self.map.len()]; scenarios.len()]
         } else {
-            let mut samples = self.plan_motion(&own_dwell);
-            // Only the own points' samples carry time.
-            let keep: Vec<bool> = samples.dwell_s.iter().map(|t| *t != 0.0).collect();
-            for v in [&mut samples.x_mm, &mut samples.y_mm, &mut samples.dwell_s] {
-                let mut k = keep.iter();
-                v.retain(|_| k.next().copied().unwrap_or(false));
-            }
             self.contact_removals(&samples, scenarios, observer)?
         };
         let tifs: Vec<_> = scenarios.iter().map(|p| p.of(&self.tif)).collect();
