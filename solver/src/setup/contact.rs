@@ -46,17 +46,7 @@ impl Setup {
                     "a curvature-dependent TIF needs a design surface",
                 ));
             }
-            // In the plan an offset is the TIF's own shift: one traversal for all.
-            let tifs: Vec<_> = scenarios.iter().map(|p| p.of(&self.tif)).collect();
-            return removals_nm(
-                mx,
-                my,
-                &samples.x_mm,
-                &samples.y_mm,
-                &samples.dwell_s,
-                &tifs,
-                observer,
-            );
+            return removals_in_plan(mx, my, samples, &self.tif, scenarios, observer);
         };
         let mut out = vec![Vec::new(); scenarios.len()];
         // One traversal per distinct offset, the samples moved by it.
@@ -116,6 +106,29 @@ impl Setup {
     pub(super) fn plan_motion(&self, dwell_s: &[f64]) -> SampledProgram {
         path_motion(&self.path, self.swept.as_ref().map(|s| &s.0), dwell_s)
     }
+}
+
+/// The removals of the motion `samples` with `tif` in plan (a flat part) at the map points
+/// `(map_x_mm, map_y_mm)` under each of `scenarios`: an offset is the TIF's own shift, so one
+/// traversal serves them all ([`removals_nm`]).
+pub(super) fn removals_in_plan<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    samples: &SampledProgram,
+    tif: &T,
+    scenarios: &[Perturbation],
+    observer: &dyn Observer,
+) -> Result<Vec<Vec<f64>>> {
+    let tifs: Vec<_> = scenarios.iter().map(|p| p.of(tif)).collect();
+    removals_nm(
+        map_x_mm,
+        map_y_mm,
+        &samples.x_mm,
+        &samples.y_mm,
+        &samples.dwell_s,
+        &tifs,
+        observer,
+    )
 }
 
 /// The motion of dwell times `dwell_s` on `path` at their programmed feeds: each dwell point's

@@ -39,9 +39,6 @@ use crate::dwell::{
 use crate::dwell::{policy, SolverKind};
 use crate::edge::{self, EdgeSettings};
 use crate::error::{Error, Result};
-use crate::influence::curvature::{
-    assemble_curvature_dependent, assemble_curvature_dependent_swept,
-};
 use crate::influence::fft::FftOperator;
 use crate::influence::surface::{assemble_on_surface, assemble_on_surface_swept, TifFrame};
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches, SweptTif};
@@ -231,7 +228,8 @@ pub struct Setup {
     pub warm_start_s: Option<Vec<f64>>,
     /// With the swept influence model (in the plane, or on a curved part in each dwell point's
     /// tangent frame, [`crate::influence::surface::assemble_on_surface_swept`], with a
-    /// curvature-dependent TIF each point's own, [`assemble_curvature_dependent_swept`]): every dwell
+    /// curvature-dependent TIF each point's own,
+    /// [`crate::influence::curvature::assemble_curvature_dependent_swept`]): every dwell
     /// point's stretch sampled for the assembled `R`, and the kernel the lattice operators share
     /// ([`crate::influence::swept`]).
     pub swept: Option<(Stretches, SweptTif<Tif>)>,
@@ -786,6 +784,59 @@ mod tests {
             );
             assert!((x.pv_nm - y.pv_nm).abs() <= LATTICE_REL_TOL * x.pv_nm);
             assert!(x.rms_nm != nominal);
+        }
+    }
+
+    /// With a curvature-dependent TIF the set-up's `R` is the library's curvature-dependent
+    /// assembly bit for bit, under the swept model and the point model.
+    #[test]
+    fn the_curvature_dependent_r_is_the_librarys_assembly() {
+        let sphere = crate::surface::Surface::Conic(crate::surface::Conic {
+            curvature_per_mm: -1.0 / 30.0,
+            conic: -0.6,
+        });
+        let params = HertzParams {
+            preston_k_mm2_per_n: 1e-6,
+            ..HertzParams::default()
+        };
+        for model in [InfluenceModel::Swept, InfluenceModel::Point] {
+            let mut c = choices();
+            c.settings.influence = model;
+            c.tif_model = TifModel::CurvatureDependent(params.clone());
+            let mut d = data();
+            d.surface = Some(sphere.clone());
+            let setup = Setup::resolve(c.check(&Silent).unwrap(), d, &Silent).unwrap();
+            let got = setup.assemble(&setup.map, &Silent).unwrap();
+            let (mx, my) = (setup.map.x_mm(), setup.map.y_mm());
+            let frame = setup.tif_frame;
+            let want = match &setup.swept {
+                Some((stretches, _)) => {
+                    crate::influence::curvature::assemble_curvature_dependent_swept(
+                        &sphere,
+                        mx,
+                        my,
+                        &setup.path,
+                        stretches,
+                        &params,
+                        frame,
+                        &Silent,
+                    )
+                }
+                None => crate::influence::curvature::assemble_curvature_dependent(
+                    &sphere,
+                    mx,
+                    my,
+                    setup.path.x_mm(),
+                    setup.path.y_mm(),
+                    &params,
+                    frame,
+                    &Silent,
+                ),
+            }
+            .unwrap();
+            assert_eq!(setup.swept.is_some(), model == InfluenceModel::Swept);
+            assert!(want.nnz() > 0);
+            assert_eq!(got, want, "{model:?}");
         }
     }
 

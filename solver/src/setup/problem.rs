@@ -255,16 +255,8 @@ impl Setup {
                     None => assemble_on_surface(surface, mx, my, px, py, &tif, frame, observer),
                 }
             }
-            TifModel::CurvatureDependent(params) if at_tool == Perturbation::NONE => {
-                match stretches {
-                    Some(st) => assemble_curvature_dependent_swept(
-                        surface, mx, my, path, st, params, frame, observer,
-                    ),
-                    None => assemble_curvature_dependent(
-                        surface, mx, my, px, py, params, frame, observer,
-                    ),
-                }
-            }
+            // Each dwell point's own Hertz TIF (unperturbed: exactly the curvature-dependent
+            // assembly of `influence::curvature`).
             TifModel::CurvatureDependent(params) => {
                 let tifs =
                     hertz_tifs_on_surface(surface, px, py, params).at(SetupInput::Surface)?;

@@ -24,7 +24,6 @@ use super::sensitivity::Sensitivity;
 use super::{At, Checked, SetupInput, SetupResult, SetupStep, TifModel};
 use crate::dwell::{self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution};
 use crate::error::{Error, Result};
-use crate::influence::direct::removals_nm;
 use crate::influence::stacked::stack_scaled;
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches};
 use crate::map::HeightMap;
@@ -275,16 +274,8 @@ impl ToolsSetup {
                 InfluenceModel::Point => None,
             };
             let samples = super::contact::path_motion(&tool.path, stretches.as_ref(), t);
-            let tifs: Vec<_> = scenarios.iter().map(|p| p.of(&tool.tif)).collect();
-            let h = removals_nm(
-                mx,
-                my,
-                &samples.x_mm,
-                &samples.y_mm,
-                &samples.dwell_s,
-                &tifs,
-                observer,
-            )?;
+            let h =
+                super::contact::removals_in_plan(mx, my, &samples, &tool.tif, scenarios, observer)?;
             for (sum, h) in motion.iter_mut().zip(h) {
                 sum.iter_mut().zip(h).for_each(|(s, v)| *s += v);
             }
