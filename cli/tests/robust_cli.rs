@@ -37,7 +37,8 @@ fn worst(v: &[f64]) -> f64 {
 /// Without an acceleration limit the comparison is the plans' model (`planned`): the robust
 /// plan's worst scenario and mean square over the scenarios are better than the nominal plan's,
 /// its nominal no better (the nominal plan is the nominal optimum), the report's cost and saving are those differences, and the
-/// robust plan's nominal RMS is `rms_after_nm`. A matrix-free operator is refused with exit 2.
+/// robust plan's nominal RMS is `rms_after_nm`. The FFT and spreading operators' stacked
+/// scenarios give the same plan.
 #[test]
 fn robust_plan_trades_nominal_for_the_worst_scenario() {
     let d = tempfile::tempdir().unwrap();
@@ -106,33 +107,33 @@ fn robust_plan_trades_nominal_for_the_worst_scenario() {
     ));
     assert_eq!(robust["weighting"], "mean");
     assert_eq!(rms_list(&robust["scenario_weights"]), vec![1.0; 5]);
-    let mut refused = args.to_vec();
-    refused.extend(["--operator", "fft-spread"]);
-    expect_failure(&refused, &["robust"]);
 
-    // The scenarios' FFT operators stacked matrix-free: the same plan as the stacked matrices.
-    let out_fft = d.path().join("robust_fft");
-    let o = preston_cmd()
-        .arg("solve")
-        .args(args)
-        .args(["--operator", "fft", "--out"])
-        .arg(&out_fft)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let rf = report(&out_fft);
-    assert_eq!(rf["operator"], "fft", "{rf}");
-    assert!(
-        rf["warnings"].to_string().contains("matrix-free"),
-        "{}",
-        rf["warnings"]
-    );
-    let fft = rms_list(&rf["robust"]["robust_plan_rms_nm"]);
-    for (a, b) in rob.iter().zip(&fft) {
+    // The scenarios' FFT operators, or their spreading operators (exact with the dwell points
+    // on the map's lattice), stacked matrix-free: the same plan as the stacked matrices.
+    for operator in ["fft", "fft-spread"] {
+        let out_op = d.path().join(format!("robust_{operator}"));
+        let o = preston_cmd()
+            .arg("solve")
+            .args(args)
+            .args(["--operator", operator, "--out"])
+            .arg(&out_op)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let rf = report(&out_op);
+        assert_eq!(rf["operator"], operator, "{rf}");
         assert!(
-            (a - b).abs() <= 1e-3 * a.max(1e-3),
-            "{rob:?} against {fft:?}"
+            rf["warnings"].to_string().contains("matrix-free"),
+            "{}",
+            rf["warnings"]
         );
+        let lattice = rms_list(&rf["robust"]["robust_plan_rms_nm"]);
+        for (a, b) in rob.iter().zip(&lattice) {
+            assert!(
+                (a - b).abs() <= 1e-3 * a.max(1e-3),
+                "{operator}: {rob:?} against {lattice:?}"
+            );
+        }
     }
 
     // Minimax weights: the worst scenario as planned no higher than the mean plan's (the rounds

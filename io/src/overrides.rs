@@ -142,7 +142,8 @@ pub struct Overrides {
     /// Plan for the mean residual over the TIF-uncertainty scenarios (the TIF 3% wider and
     /// narrower, the tool 0.05 mm off in x and y, and the nominal): report.json `robust` gives
     /// both plans per scenario, what it costs nominally and saves in the worst scenario (job:
-    /// `[solver] robust = true`). Assembles R for each scenario.
+    /// `[solver] robust = true`). Each scenario's lattice operator (FFT, stencil, NUFFT or
+    /// spreading) where the nominal plan takes one, else each scenario's assembled R.
     #[cfg_attr(
         feature = "clap",
         arg(long, num_args = 0..=1, default_missing_value = "true", value_name = "BOOL")

@@ -10,7 +10,7 @@ use crate::influence::operator::OperatorKind;
 use crate::influence::stacked::ScenarioOperators;
 use crate::influence::surface::{assemble_on_surface_swept_with, assemble_on_surface_with};
 use crate::influence::swept_correction::SweptCorrected;
-use crate::influence::{StackedRows, StencilOperator, SweptTif};
+use crate::influence::{NufftOperator, SpreadOperator, StackedRows, StencilOperator, SweptTif};
 use std::sync::Arc;
 
 /// Under `operator = "auto"`, the largest share of dwell points whose swept columns a lattice
@@ -39,6 +39,28 @@ pub(super) fn fft_lattice_cells(map: &HeightMap, path: &DwellPath, radius: f64, 
     };
     span(&mut map.x_mm().iter().chain(path.x_mm()))
         * span(&mut map.y_mm().iter().chain(path.y_mm()))
+}
+
+/// How a lattice operator was built: its kind and the parameters chosen for the nominal kernel,
+/// so that a robust scenario builds the same operator with its own kernel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) enum LatticeBuild {
+    /// The FFT operator (dwell points on the map's lattice or a sub-lattice of it).
+    Fft,
+    /// The phase-stencil operator.
+    Stencil,
+    /// The NUFFT operator at `refinement`, its spreading kernel designed for `tolerance`.
+    Nufft {
+        /// Fine lattice pitch is the map's over this.
+        refinement: usize,
+        /// Design tolerance of the exponential-of-semicircle kernel.
+        tolerance: f64,
+    },
+    /// The bilinear spreading operator at `oversampling`.
+    Spread {
+        /// Fine lattice pitch is the map's over this.
+        oversampling: usize,
+    },
 }
 
 impl Setup {
@@ -295,7 +317,9 @@ impl Setup {
         }
         let z_nm = rows.z_nm().to_vec();
         let (bounds, rho, lambda) = (self.bounds.clone(), self.rho, self.lambda);
-        let lattice = self.lattice_operator(&rows, &mut warnings)?;
+        let lattice = self
+            .lattice_operator(&rows, &mut warnings)?
+            .map(|(op, _)| op);
         let lattice = match (lattice, &self.swept) {
             (Some(op), Some((_, kernel))) => {
                 self.swept_corrected(op, &rows, &self.tif, kernel, &mut warnings, observer)?
@@ -316,12 +340,12 @@ impl Setup {
     /// The matrix-free operator over the problem rows `rows` with the lattice kernel
     /// ([`Setup::lattice_kernel`]): the FFT operator where [`Setup::operator_plan`] takes it,
     /// else the off-lattice operator [`Setup::off_lattice_operator`] takes; `None` to assemble
-    /// `R`. Notes on the choice go to `warnings`.
+    /// `R`, with how it was built. Notes on the choice go to `warnings`.
     fn lattice_operator(
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
-    ) -> SetupResult<Option<Box<dyn InfluenceOperator>>> {
+    ) -> SetupResult<Option<(Box<dyn InfluenceOperator>, LatticeBuild)>> {
         let fft = match self.operator_plan(rows, warnings)? {
             OperatorPlan::Assembled => None,
             OperatorPlan::Fft { pitch_mm } => match FftOperator::new(
@@ -345,11 +369,24 @@ impl Setup {
             },
         };
         Ok(match fft {
-            Some(op) => Some(Box::new(op)),
+            Some(op) => Some((Box::new(op), LatticeBuild::Fft)),
             None => match self.off_lattice_operator(rows, warnings)? {
-                Some(OffLatticeOperator::Stencil(op)) => Some(Box::new(op)),
-                Some(OffLatticeOperator::Nufft(op)) => Some(Box::new(op)),
-                Some(OffLatticeOperator::Spread(op)) => Some(Box::new(op)),
+                Some(OffLatticeOperator::Stencil(op)) => {
+                    Some((Box::new(op), LatticeBuild::Stencil))
+                }
+                Some(OffLatticeOperator::Nufft(op)) => {
+                    let build = LatticeBuild::Nufft {
+                        refinement: op.refinement(),
+                        tolerance: op.tolerance(),
+                    };
+                    Some((Box::new(op), build))
+                }
+                Some(OffLatticeOperator::Spread(op)) => {
+                    let build = LatticeBuild::Spread {
+                        oversampling: op.oversampling(),
+                    };
+                    Some((Box::new(op), build))
+                }
                 None => None,
             },
         })
@@ -435,11 +472,11 @@ impl Setup {
     }
 
     /// The robust scenarios' matrix-free operators over the problem rows `rows`, the nominal
-    /// first ([`robust::SCENARIOS`]): where the nominal plan takes the FFT or the stencil
-    /// operator, the same operator with each scenario's kernel (its TIF, [`PerturbedTif`],
-    /// swept along the dominant stretch under the swept model), each with its exact swept
-    /// columns where stretches differ. `None` to stack the assembled matrices (`operator =
-    /// "sparse"`, or a nominal plan on another operator or on `R`).
+    /// first ([`robust::SCENARIOS`]): where the nominal plan takes a lattice operator (FFT,
+    /// stencil, NUFFT or spreading), the same operator with the nominal's parameters and each
+    /// scenario's kernel (its TIF, [`PerturbedTif`], swept along the dominant stretch under the
+    /// swept model), each with its exact swept columns where stretches differ. `None` to stack
+    /// the assembled matrices (`operator = "sparse"`, or a nominal plan on `R`).
     fn robust_lattice_blocks(
         &self,
         rows: &HeightMap,
@@ -450,19 +487,10 @@ impl Setup {
             return Ok(None);
         }
         let mut notes = Vec::new();
-        let Some(nominal) = self.lattice_operator(rows, &mut notes)? else {
+        let Some((nominal, build)) = self.lattice_operator(rows, &mut notes)? else {
             warnings.extend(notes);
             return Ok(None);
         };
-        let kind = nominal.kind();
-        if !matches!(kind, OperatorKind::Fft | OperatorKind::Stencil) {
-            warnings.push(format!(
-                "robust: the scenarios' matrices are assembled (the nominal plan's {} operator \
-                 is not stacked per scenario)",
-                kind_label(kind)
-            ));
-            return Ok(None);
-        }
         warnings.extend(notes);
         let Some(pitch_mm) = FftOperator::lattice_pitch_mm(rows.x_mm(), rows.y_mm()) else {
             return Ok(None);
@@ -479,7 +507,15 @@ impl Setup {
             } else {
                 &mut scenario_notes
             };
-            match self.lattice_block(rows, kind, pitch_mm, &tif, nominal.take(), notes, observer)? {
+            let block =
+                self.lattice_block(rows, build, pitch_mm, &tif, nominal.take(), notes, observer)?;
+            // A scenario's own notes (its operator's error) are kept once.
+            for note in scenario_notes {
+                if note.starts_with("robust:") && !warnings.contains(&note) {
+                    warnings.push(note);
+                }
+            }
+            match block {
                 Some(op) => blocks.push(op),
                 None => return Ok(None),
             }
@@ -487,15 +523,17 @@ impl Setup {
         Ok(Some(Arc::from(blocks)))
     }
 
-    /// The lattice operator of `kind` (FFT or stencil) over `rows` on the lattice of `pitch_mm`
-    /// with the kernel of `tif` (swept along the dominant stretch under the swept model), with
-    /// its exact swept columns where stretches differ; `built`, when given, is that operator
-    /// already built with the kernel. `None` where the swept columns would be assembled instead.
+    /// The lattice operator `build` over `rows` on the lattice of `pitch_mm` with the kernel of
+    /// `tif` (swept along the dominant stretch under the swept model), with its exact swept
+    /// columns where stretches differ; `built`, when given, is that operator already built with
+    /// the kernel. `None` where the swept columns would be assembled instead. An approximate
+    /// operator whose measured error with this kernel exceeds its design tolerance says so in
+    /// `notes`.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn lattice_block(
         &self,
         rows: &HeightMap,
-        kind: OperatorKind,
+        build: LatticeBuild,
         pitch_mm: f64,
         tif: &PerturbedTif<'_, Tif>,
         built: Option<Box<dyn InfluenceOperator>>,
@@ -510,7 +548,7 @@ impl Setup {
         let op = match built {
             Some(op) => op,
             None => self
-                .lattice_with_kernel(rows, kind, pitch_mm, kernel)
+                .lattice_with_kernel(rows, build, pitch_mm, kernel, notes)
                 .at(SetupInput::Map)?,
         };
         self.swept_corrected(op, rows, tif, kernel, notes, observer)
@@ -527,19 +565,50 @@ impl Setup {
             .map(|(stretches, _)| SweptTif::new(tif.clone(), stretches.dominant().0))
     }
 
-    /// The lattice operator of `kind` (FFT, else stencil) over `rows` and the dwell points on the
-    /// lattice of `pitch_mm`, with the shift-invariant `kernel` at every dwell point.
+    /// The lattice operator `build` over `rows` and the dwell points, map on the lattice of
+    /// `pitch_mm`, with the shift-invariant `kernel` at every dwell point. An approximate
+    /// operator (NUFFT, spreading) whose estimated error with `kernel` is above its design
+    /// tolerance says so in `notes`.
     fn lattice_with_kernel(
         &self,
         rows: &HeightMap,
-        kind: OperatorKind,
+        build: LatticeBuild,
         pitch_mm: f64,
         kernel: &dyn InfluenceFunction,
+        notes: &mut Vec<String>,
     ) -> crate::error::Result<Box<dyn InfluenceOperator>> {
         let (mx, my, dx, dy) = (rows.x_mm(), rows.y_mm(), self.path.x_mm(), self.path.y_mm());
-        Ok(match kind {
-            OperatorKind::Fft => Box::new(FftOperator::new(mx, my, dx, dy, pitch_mm, kernel)?),
-            _ => Box::new(StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel)?),
+        let mut above = |name: &str, error: f64, tolerance: f64| {
+            if error > tolerance {
+                notes.push(format!(
+                    "robust: a scenario's {name} operator has an estimated error of {error:.1e}, \
+                     above {tolerance:.0e}; the residuals reported are the exact R's"
+                ));
+            }
+        };
+        Ok(match build {
+            LatticeBuild::Fft => Box::new(FftOperator::new(mx, my, dx, dy, pitch_mm, kernel)?),
+            LatticeBuild::Stencil => {
+                Box::new(StencilOperator::new(mx, my, dx, dy, pitch_mm, kernel)?)
+            }
+            LatticeBuild::Nufft {
+                refinement,
+                tolerance,
+            } => {
+                let op =
+                    NufftOperator::new(mx, my, dx, dy, pitch_mm, refinement, tolerance, kernel)?;
+                above("NUFFT", op.estimated_error(), tolerance);
+                Box::new(op)
+            }
+            LatticeBuild::Spread { oversampling } => {
+                let op = SpreadOperator::new(mx, my, dx, dy, pitch_mm, oversampling, kernel)?;
+                above(
+                    "spreading",
+                    op.estimated_error(),
+                    self.settings.spread_tolerance,
+                );
+                Box::new(op)
+            }
         })
     }
 
@@ -549,29 +618,13 @@ impl Setup {
     /// rows of block `s` scaled by `sqrt(w_s)` (equal weights: the mean over the scenarios;
     /// `robust_weighting = "minimax"`: the weights of [`robust::minimax_weights`], whose rounds
     /// solve the weighted problem here). On a curved part each scenario's matrix is assembled in
-    /// the tangent frames ([`Setup::assemble_scenario`]). Refused with the NUFFT or spreading
-    /// operator asked for.
+    /// the tangent frames ([`Setup::assemble_scenario`]).
     pub(super) fn robust_problem(
         &self,
         rows: &HeightMap,
         warnings: &mut Vec<String>,
         observer: &dyn Observer,
     ) -> SetupResult<(Problem, Vec<f64>)> {
-        if !matches!(
-            self.settings.operator,
-            OperatorChoice::Auto
-                | OperatorChoice::Sparse
-                | OperatorChoice::Fft
-                | OperatorChoice::Stencil
-        ) {
-            return Err(Error::invalid(
-                "robust",
-                "the robust plan stacks the scenarios' FFT or stencil operators, or their \
-                 assembled matrices: use operator = \"auto\", \"fft\", \"stencil\" or \
-                 \"sparse\"",
-            ))
-            .at(SetupInput::Job);
-        }
         let scenarios = robust::SCENARIOS.len();
         let what = match self.settings.robust_weighting {
             crate::dwell::RobustWeighting::Mean => "mean",

@@ -280,8 +280,11 @@ impl Setup {
             _ => return Ok(None),
         };
         let m = self.map.len();
+        // The nominal block's removal (a robust plan's first block, over its scale).
         let mut approx = problem.removal_nm(dwell_s)?;
         approx.truncate(m);
+        let nominal_scale = problem.scenario_scales()[0];
+        approx.iter_mut().for_each(|h| *h /= nominal_scale);
         // The exact removal of the plan's own model: with the swept model every dwell point's
         // stretch samples carry its dwell in proportion to their weights.
         let exact = self.contact_removal(&self.plan_motion(dwell_s), observer)?;
