@@ -29,8 +29,10 @@ use crate::error::{Error, Result};
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
+use std::sync::OnceLock;
 
 /// How the plan models the tool's action at a dwell point.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -54,7 +56,7 @@ const MAX_PIECES_PER_BLOCK: usize = 256;
 
 /// The quadrature samples of every dwell point's stretch: offsets from the dwell point, mm, and
 /// weights (fractions of the dwell, summing to 1 per stretch).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct Stretches {
     /// `offsets[j]..offsets[j + 1]` index the samples of stretch `j`.
     offsets: Vec<usize>,
@@ -62,6 +64,26 @@ pub struct Stretches {
     samples: Vec<[f64; 3]>,
     /// Largest distance of a sample from its dwell point, mm.
     reach_mm: f64,
+    /// The dominant stretch, found once when first asked for.
+    dominant: OnceLock<Dominant>,
+}
+
+/// The stretch most dwell points share ([`Stretches::dominant`]).
+#[derive(Debug, Clone)]
+struct Dominant {
+    samples: Vec<[f64; 3]>,
+    count: usize,
+    /// The dwell points whose stretch differs, ascending.
+    outside: Vec<usize>,
+}
+
+impl PartialEq for Stretches {
+    /// The same samples of the same stretches (whether the dominant one was found yet aside).
+    fn eq(&self, other: &Self) -> bool {
+        self.offsets == other.offsets
+            && self.samples == other.samples
+            && self.reach_mm == other.reach_mm
+    }
 }
 
 impl Stretches {
@@ -128,6 +150,7 @@ impl Stretches {
             offsets,
             samples,
             reach_mm: reach,
+            dominant: OnceLock::new(),
         })
     }
 
@@ -156,17 +179,14 @@ impl Stretches {
     /// it is the interior stretch along the lines; the row ends (an L-shaped stretch, a TIF
     /// radius off the map) and the path's ends differ.
     pub fn dominant(&self) -> (Vec<[f64; 3]>, usize) {
-        let (samples, count, _) = self.dominant_and_key();
-        (samples, count)
+        let d = self.dominant_stretch();
+        (d.samples.clone(), d.count)
     }
 
     /// The dwell points whose stretch is not the dominant one ([`Stretches::dominant`]),
     /// ascending: the columns the lattice operators' shared kernel does not reproduce.
     pub fn outside_dominant(&self) -> Vec<usize> {
-        let (_, _, dominant) = self.dominant_and_key();
-        (0..self.len())
-            .filter(|&j| Self::key(self.of(j)) != dominant)
-            .collect()
+        self.dominant_stretch().outside.clone()
     }
 
     /// A stretch's samples up to order, to 1e-9 mm and 1e-12 of weight.
@@ -185,22 +205,56 @@ impl Stretches {
         k
     }
 
-    fn dominant_and_key(&self) -> (Vec<[f64; 3]>, usize, Vec<[i64; 3]>) {
-        let key = Self::key;
-        let mut counts: HashMap<Vec<[i64; 3]>, (usize, usize)> = HashMap::new();
-        for j in 0..self.len() {
-            let e = counts.entry(key(self.of(j))).or_insert((0, j));
-            e.0 += 1;
-        }
-        // Most shared; ties to the earliest stretch, so the choice does not depend on hashing.
-        let best = counts
-            .values()
-            .max_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)))
-            .copied();
-        match best {
-            Some((count, j)) => (self.of(j).to_vec(), count, key(self.of(j))),
-            None => (vec![[0.0, 0.0, 1.0]], 0, key(&[[0.0, 0.0, 1.0]])),
-        }
+    /// The dominant stretch, found on the first call: every stretch's key counted (in parallel
+    /// chunks whose counts and first indices merge the same in any order), then the points
+    /// whose key differs.
+    fn dominant_stretch(&self) -> &Dominant {
+        self.dominant.get_or_init(|| {
+            let key = Self::key;
+            type Counts = HashMap<Vec<[i64; 3]>, (usize, usize)>;
+            let merge = |mut a: Counts, b: Counts| {
+                for (k, (count, first)) in b {
+                    let e = a.entry(k).or_insert((0, first));
+                    e.0 += count;
+                    e.1 = e.1.min(first);
+                }
+                a
+            };
+            let counts = (0..self.len())
+                .into_par_iter()
+                .fold(Counts::new, |mut c, j| {
+                    let e = c.entry(key(self.of(j))).or_insert((0, j));
+                    e.0 += 1;
+                    e.1 = e.1.min(j);
+                    c
+                })
+                .reduce(Counts::new, merge);
+            // Most shared; ties to the earliest stretch, so the choice does not depend on
+            // hashing.
+            let best = counts
+                .values()
+                .max_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)))
+                .copied();
+            match best {
+                Some((count, j)) => {
+                    let dominant = key(self.of(j));
+                    let outside = (0..self.len())
+                        .into_par_iter()
+                        .filter(|&i| key(self.of(i)) != dominant)
+                        .collect();
+                    Dominant {
+                        samples: self.of(j).to_vec(),
+                        count,
+                        outside,
+                    }
+                }
+                None => Dominant {
+                    samples: vec![[0.0, 0.0, 1.0]],
+                    count: 0,
+                    outside: Vec::new(),
+                },
+            }
+        })
     }
 }
 
