@@ -26,6 +26,11 @@ use crate::error::{Error, Result};
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+/// Outputs of the sparse normal-product terms per rayon task.
+const SPARSE_TASK: usize = 1024;
 
 /// Entries of `C = R~^T D` below this share of the column's largest are the inner operator's
 /// rounding (FFT products leave about 1e-16 of the peak everywhere) and are not kept.
@@ -56,6 +61,11 @@ pub struct SweptCorrected {
     c: Vec<Vec<(usize, f64)>>,
     /// `D^T D` over the pairs `(a, b)` whose reaches meet (both orders listed).
     dtd: Vec<Vec<(usize, f64)>>,
+    /// `C` by rows: the dwell points `r` with an entry (ascending), where each one's entries
+    /// start, and the entries `(k, C[r, k])`, ascending in `k` within a row.
+    c_by_row: (Vec<usize>, Vec<usize>, Vec<(usize, f64)>),
+    /// Space for the sparse terms' sums: one per row of `C`, then one per corrected column.
+    sparse_sums: Mutex<Vec<f64>>,
     /// Centred squared column norms of `R~ + D E^T`.
     norms: Vec<f64>,
     /// Normal products as `R^T (R t)` through the corrected `R` and `R^T` (rather than the inner
@@ -289,12 +299,16 @@ impl SweptCorrected {
         } else {
             (c, dtd)
         };
+        let c_by_row = transpose_lists(&c, n);
+        let sums = c_by_row.0.len() + columns.len();
         Ok(Ok(Self {
             inner,
             columns,
             d,
             c,
             dtd,
+            c_by_row,
+            sparse_sums: Mutex::new(vec![0.0; sums]),
             norms,
             unfused,
         }))
@@ -373,23 +387,52 @@ impl LinearOperator for SweptCorrected {
             self.apply_transpose(scratch, out);
             return;
         }
-        self.inner.products(None).apply_normal(t, scratch, out);
-        // C E^T t, then E (C^T t + D^T D E^T t), in a fixed order.
-        for (k, &j) in self.columns.iter().enumerate() {
-            let tj = t[j];
-            if tj != 0.0 {
-                for &(r, v) in &self.c[k] {
-                    out[r] += v * tj;
-                }
-            }
+        // The sparse terms' sums, each in ascending index order (the same for any thread
+        // count): (C E^T t)_r for each row r of C, then (C^T t + D^T D E^T t)_k for each
+        // corrected column k; computed beside the inner operator's product and added to it.
+        let mut guard = self
+            .sparse_sums
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let (row_sums, column_sums) = guard.split_at_mut(self.c_by_row.0.len());
+        let (rows, starts, entries) = &self.c_by_row;
+        let sparse = || {
+            row_sums
+                .par_chunks_mut(SPARSE_TASK)
+                .enumerate()
+                .for_each(|(task, chunk)| {
+                    for (i, sum) in chunk.iter_mut().enumerate() {
+                        let row = task * SPARSE_TASK + i;
+                        *sum = entries[starts[row]..starts[row + 1]]
+                            .iter()
+                            .map(|&(k, v)| v * t[self.columns[k]])
+                            .sum();
+                    }
+                });
+            column_sums
+                .par_chunks_mut(SPARSE_TASK)
+                .enumerate()
+                .for_each(|(task, chunk)| {
+                    for (i, sum) in chunk.iter_mut().enumerate() {
+                        let k = task * SPARSE_TASK + i;
+                        let ct: f64 = self.c[k].iter().map(|&(r, v)| v * t[r]).sum();
+                        let dd: f64 = self.dtd[k]
+                            .iter()
+                            .map(|&(b, v)| v * t[self.columns[b]])
+                            .sum();
+                        *sum = ct + dd;
+                    }
+                });
+        };
+        rayon::join(
+            || self.inner.products(None).apply_normal(t, scratch, out),
+            sparse,
+        );
+        for (&r, v) in rows.iter().zip(row_sums.iter()) {
+            out[r] += v;
         }
-        for (k, &j) in self.columns.iter().enumerate() {
-            let ct: f64 = self.c[k].iter().map(|&(r, v)| v * t[r]).sum();
-            let dd: f64 = self.dtd[k]
-                .iter()
-                .map(|&(b, v)| v * t[self.columns[b]])
-                .sum();
-            out[j] += ct + dd;
+        for (&j, v) in self.columns.iter().zip(column_sums.iter()) {
+            out[j] += v;
         }
     }
 
@@ -400,6 +443,39 @@ impl LinearOperator for SweptCorrected {
     fn centred_column_norms_sq(&self) -> Vec<f64> {
         self.norms.clone()
     }
+}
+
+/// Lists `lists[k] = [(r, v), ...]` (each `r < n`) by `r`: the rows `r` with an entry,
+/// ascending, the start of each row's entries (one more than the rows), and the entries
+/// `(k, v)`, ascending in `k` within a row.
+fn transpose_lists(
+    lists: &[Vec<(usize, f64)>],
+    n: usize,
+) -> (Vec<usize>, Vec<usize>, Vec<(usize, f64)>) {
+    let mut count = vec![0usize; n];
+    for list in lists {
+        for &(r, _) in list {
+            count[r] += 1;
+        }
+    }
+    let rows: Vec<usize> = (0..n).filter(|&r| count[r] > 0).collect();
+    let mut starts = Vec::with_capacity(rows.len() + 1);
+    let mut next = vec![0usize; n];
+    let mut total = 0;
+    for &r in &rows {
+        starts.push(total);
+        next[r] = total;
+        total += count[r];
+    }
+    starts.push(total);
+    let mut entries = vec![(0usize, 0.0f64); total];
+    for (k, list) in lists.iter().enumerate() {
+        for &(r, v) in list {
+            entries[next[r]] = (k, v);
+            next[r] += 1;
+        }
+    }
+    (rows, starts, entries)
 }
 
 #[cfg(test)]
