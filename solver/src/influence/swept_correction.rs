@@ -29,7 +29,7 @@ use crate::tif::InfluenceFunction;
 use rayon::prelude::*;
 use std::sync::Mutex;
 
-/// Outputs of the sparse normal-product terms per rayon task.
+/// Fewest outputs of the sparse normal-product terms per rayon task.
 const SPARSE_TASK: usize = 1024;
 
 /// Entries of `C = R~^T D` below this share of the column's largest are the inner operator's
@@ -398,30 +398,26 @@ impl LinearOperator for SweptCorrected {
         let (rows, starts, entries) = &self.c_by_row;
         let sparse = || {
             row_sums
-                .par_chunks_mut(SPARSE_TASK)
+                .par_iter_mut()
+                .with_min_len(SPARSE_TASK)
                 .enumerate()
-                .for_each(|(task, chunk)| {
-                    for (i, sum) in chunk.iter_mut().enumerate() {
-                        let row = task * SPARSE_TASK + i;
-                        *sum = entries[starts[row]..starts[row + 1]]
-                            .iter()
-                            .map(|&(k, v)| v * t[self.columns[k]])
-                            .sum();
-                    }
+                .for_each(|(row, sum)| {
+                    *sum = entries[starts[row]..starts[row + 1]]
+                        .iter()
+                        .map(|&(k, v)| v * t[self.columns[k]])
+                        .sum();
                 });
             column_sums
-                .par_chunks_mut(SPARSE_TASK)
+                .par_iter_mut()
+                .with_min_len(SPARSE_TASK)
                 .enumerate()
-                .for_each(|(task, chunk)| {
-                    for (i, sum) in chunk.iter_mut().enumerate() {
-                        let k = task * SPARSE_TASK + i;
-                        let ct: f64 = self.c[k].iter().map(|&(r, v)| v * t[r]).sum();
-                        let dd: f64 = self.dtd[k]
-                            .iter()
-                            .map(|&(b, v)| v * t[self.columns[b]])
-                            .sum();
-                        *sum = ct + dd;
-                    }
+                .for_each(|(k, sum)| {
+                    let ct: f64 = self.c[k].iter().map(|&(r, v)| v * t[r]).sum();
+                    let dd: f64 = self.dtd[k]
+                        .iter()
+                        .map(|&(b, v)| v * t[self.columns[b]])
+                        .sum();
+                    *sum = ct + dd;
                 });
         };
         rayon::join(
