@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{ok, preston, s};
+use common::{ok, preston, s, SENSITIVITY_KEYS};
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -837,13 +837,7 @@ fn a_curved_part_reports_the_program_it_runs() {
     assert_eq!(rms, executed["rms_after_nm"].as_f64().unwrap());
     assert!(report["model"]["rms_nm"].as_f64().unwrap() > 0.0);
     assert_eq!(report["influence"], "swept");
-    for key in [
-        "tif_wider_3pct",
-        "tif_narrower_3pct",
-        "rate_plus_3pct",
-        "offset_x_0p05mm",
-        "offset_y_0p05mm",
-    ] {
+    for key in SENSITIVITY_KEYS {
         let f = &report["sensitivity"][key];
         assert!(
             f["rms_nm"].as_f64().unwrap() > rms && f["pv_nm"].as_f64().unwrap() > 0.0,

@@ -88,13 +88,7 @@ fn the_sample_job_as_shipped_delivers_its_part_as_executed() {
     // Sensitivity: the rate scenario is the executed removal scaled by 1.03, computed here from
     // the simulated program's removal; every scenario is reported.
     let sens = &r["sensitivity"];
-    for key in [
-        "tif_wider_3pct",
-        "tif_narrower_3pct",
-        "rate_plus_3pct",
-        "offset_x_0p05mm",
-        "offset_y_0p05mm",
-    ] {
+    for key in SENSITIVITY_KEYS {
         let (rms_s, pv_s) = (
             sens[key]["rms_nm"].as_f64().unwrap(),
             sens[key]["pv_nm"].as_f64().unwrap(),

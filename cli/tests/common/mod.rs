@@ -5,6 +5,15 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+/// The keys of `report.json` `sensitivity` (the interface the outside checks keep).
+pub const SENSITIVITY_KEYS: [&str; 5] = [
+    "tif_wider_3pct",
+    "tif_narrower_3pct",
+    "rate_plus_3pct",
+    "offset_x_0p05mm",
+    "offset_y_0p05mm",
+];
+
 /// The `preston` binary under test.
 pub fn exe() -> &'static str {
     env!("CARGO_BIN_EXE_preston")

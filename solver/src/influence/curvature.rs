@@ -234,18 +234,14 @@ mod tests {
         .unwrap();
         let stretches = Stretches::of_path(&path, 0.05).unwrap();
         let p = params();
+        let swept = |surface: &Surface, frame| {
+            assemble_curvature_dependent_swept(
+                surface, &mx, &my, &path, &stretches, &p, frame, &Silent,
+            )
+            .unwrap()
+        };
         let plane = Surface::Plane(Plane {});
-        let a = assemble_curvature_dependent_swept(
-            &plane,
-            &mx,
-            &my,
-            &path,
-            &stretches,
-            &p,
-            TifFrame::MachineX,
-            &Silent,
-        )
-        .unwrap();
+        let a = swept(&plane, TifFrame::MachineX);
         let flat = HertzTif::flat(&p).unwrap();
         let b =
             crate::influence::assemble_swept(&mx, &my, &path, &stretches, &flat, &Silent).unwrap();
@@ -254,17 +250,7 @@ mod tests {
             curvature_per_mm: -1.0 / 60.0,
             conic: 0.0,
         });
-        let a = assemble_curvature_dependent_swept(
-            &sphere,
-            &mx,
-            &my,
-            &path,
-            &stretches,
-            &p,
-            TifFrame::PathTangent,
-            &Silent,
-        )
-        .unwrap();
+        let a = swept(&sphere, TifFrame::PathTangent);
         let t = HertzTif::with_part_radius(&p, 60.0).unwrap();
         let b = crate::influence::assemble_on_surface_swept(
             &sphere,
@@ -285,17 +271,7 @@ mod tests {
             curvature_per_mm: -1.0 / 40.0,
             conic: -0.6,
         });
-        let a = assemble_curvature_dependent_swept(
-            &ellipsoid,
-            &mx,
-            &my,
-            &path,
-            &stretches,
-            &p,
-            TifFrame::MachineX,
-            &Silent,
-        )
-        .unwrap();
+        let a = swept(&ellipsoid, TifFrame::MachineX);
         let tifs = hertz_tifs_on_surface(&ellipsoid, path.x_mm(), path.y_mm(), &p).unwrap();
         assert!(tifs[2].contact_radius_mm() != tifs[4].contact_radius_mm());
         for j in [0, 2, 5] {
