@@ -29,7 +29,6 @@ use crate::error::{Error, Result};
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::sync::OnceLock;
@@ -55,12 +54,16 @@ pub enum InfluenceModel {
 const MAX_PIECES_PER_BLOCK: usize = 256;
 
 /// The quadrature samples of every dwell point's stretch: offsets from the dwell point, mm, and
-/// weights (fractions of the dwell, summing to 1 per stretch).
+/// weights (fractions of the dwell, summing to 1 per stretch). Each distinct stretch (the same
+/// boundary offsets, bit for bit) is sampled and held once; on a raster nearly every point
+/// shares one.
 #[derive(Debug, Clone)]
 pub struct Stretches {
-    /// `offsets[j]..offsets[j + 1]` index the samples of stretch `j`.
-    offsets: Vec<usize>,
-    /// `(dx_mm, dy_mm, weight)` of every sample.
+    /// For each dwell point, the index of its stretch among the distinct ones.
+    kind_of: Vec<u32>,
+    /// `kind_offsets[k]..kind_offsets[k + 1]` index the samples of distinct stretch `k`.
+    kind_offsets: Vec<usize>,
+    /// `(dx_mm, dy_mm, weight)` of every sample of the distinct stretches.
     samples: Vec<[f64; 3]>,
     /// Largest distance of a sample from its dwell point, mm.
     reach_mm: f64,
@@ -78,12 +81,68 @@ struct Dominant {
 }
 
 impl PartialEq for Stretches {
-    /// The same samples of the same stretches (whether the dominant one was found yet aside).
+    /// The same samples for every dwell point (whether the dominant one was found yet aside).
     fn eq(&self, other: &Self) -> bool {
-        self.offsets == other.offsets
-            && self.samples == other.samples
+        self.len() == other.len()
             && self.reach_mm == other.reach_mm
+            && (0..self.len()).all(|j| self.of(j) == other.of(j))
     }
+}
+
+/// The boundaries of dwell point `j`'s stretch relative to it, `(a, b)`: half the segment before
+/// and after (the path's ends mirrored straight beyond).
+fn boundaries(x: &[f64], y: &[f64], j: usize) -> ((f64, f64), (f64, f64)) {
+    let half = |k: usize| (0.5 * (x[k] - x[j]), 0.5 * (y[k] - y[j]));
+    match (j.checked_sub(1), (j + 1 < x.len()).then_some(j + 1)) {
+        (Some(p), Some(q)) => (half(p), half(q)),
+        (Some(p), None) => {
+            let a = half(p);
+            (a, (-a.0, -a.1))
+        }
+        (None, Some(q)) => {
+            let b = half(q);
+            ((-b.0, -b.1), b)
+        }
+        (None, None) => ((0.0, 0.0), (0.0, 0.0)),
+    }
+}
+
+/// Appends the midpoint-rule samples of the stretch `a -> 0 -> b` with pieces of at most
+/// `step_mm` to `samples` (module documentation), and returns their largest distance from the
+/// dwell point.
+fn sample_stretch(
+    (a, b): ((f64, f64), (f64, f64)),
+    step_mm: f64,
+    samples: &mut Vec<[f64; 3]>,
+) -> f64 {
+    let la = a.0.hypot(a.1);
+    let lb = b.0.hypot(b.1);
+    let ds = la + lb;
+    let mut reach = 0.0f64;
+    if ds <= 0.0 {
+        samples.push([0.0, 0.0, 1.0]);
+        return reach;
+    }
+    // Block a -> p (from the boundary to the point), then p -> b.
+    for (from, to, len) in [(a, (0.0, 0.0), la), ((0.0, 0.0), b, lb)] {
+        if len <= 0.0 {
+            continue;
+        }
+        // A stretch far longer than the TIF (a connecting move) is cut into at most
+        // MAX_PIECES_PER_BLOCK pieces: coarser than the executed run's sampling there.
+        let pieces = (len / step_mm)
+            .ceil()
+            .clamp(1.0, MAX_PIECES_PER_BLOCK as f64);
+        let k = pieces as usize;
+        let w = len / pieces / ds;
+        for i in 0..k {
+            let f = (i as f64 + 0.5) / pieces;
+            let (sx, sy) = (from.0 + f * (to.0 - from.0), from.1 + f * (to.1 - from.1));
+            reach = reach.max(sx.hypot(sy));
+            samples.push([sx, sy, w]);
+        }
+    }
+    reach
 }
 
 impl Stretches {
@@ -98,56 +157,32 @@ impl Stretches {
         }
         let (x, y) = (path.x_mm(), path.y_mm());
         let n = x.len();
-        let mut offsets = Vec::with_capacity(n + 1);
+        let mut kind_of = Vec::with_capacity(n);
+        let mut kind_offsets = vec![0];
         let mut samples = Vec::new();
         let mut reach = 0.0f64;
-        offsets.push(0);
+        // Distinct stretches by their boundaries' bits: equal bits, equal samples.
+        let mut kinds: HashMap<[u64; 4], u32> = HashMap::new();
         for j in 0..n {
-            // Boundaries relative to the point: half the segment before and after (the path's
-            // ends mirrored straight beyond).
-            let half = |k: usize| (0.5 * (x[k] - x[j]), 0.5 * (y[k] - y[j]));
-            let (a, b) = match (j.checked_sub(1), (j + 1 < n).then_some(j + 1)) {
-                (Some(p), Some(q)) => (half(p), half(q)),
-                (Some(p), None) => {
-                    let a = half(p);
-                    (a, (-a.0, -a.1))
+            let (a, b) = boundaries(x, y, j);
+            let bits = [a.0, a.1, b.0, b.1].map(f64::to_bits);
+            let kind = match kinds.get(&bits) {
+                Some(&k) => k,
+                None => {
+                    let k = u32::try_from(kinds.len()).map_err(|_| {
+                        Error::invalid("dwell path", "has more distinct stretches than 2^32")
+                    })?;
+                    reach = reach.max(sample_stretch((a, b), step_mm, &mut samples));
+                    kind_offsets.push(samples.len());
+                    kinds.insert(bits, k);
+                    k
                 }
-                (None, Some(q)) => {
-                    let b = half(q);
-                    ((-b.0, -b.1), b)
-                }
-                (None, None) => ((0.0, 0.0), (0.0, 0.0)),
             };
-            let la = a.0.hypot(a.1);
-            let lb = b.0.hypot(b.1);
-            let ds = la + lb;
-            if ds <= 0.0 {
-                samples.push([0.0, 0.0, 1.0]);
-            } else {
-                // Block a -> p (from the boundary to the point), then p -> b.
-                for (from, to, len) in [(a, (0.0, 0.0), la), ((0.0, 0.0), b, lb)] {
-                    if len <= 0.0 {
-                        continue;
-                    }
-                    // A stretch far longer than the TIF (a connecting move) is cut into at most
-                    // MAX_PIECES_PER_BLOCK pieces: coarser than the executed run's sampling there.
-                    let pieces = (len / step_mm)
-                        .ceil()
-                        .clamp(1.0, MAX_PIECES_PER_BLOCK as f64);
-                    let k = pieces as usize;
-                    let w = len / pieces / ds;
-                    for i in 0..k {
-                        let f = (i as f64 + 0.5) / pieces;
-                        let (sx, sy) = (from.0 + f * (to.0 - from.0), from.1 + f * (to.1 - from.1));
-                        reach = reach.max(sx.hypot(sy));
-                        samples.push([sx, sy, w]);
-                    }
-                }
-            }
-            offsets.push(samples.len());
+            kind_of.push(kind);
         }
         Ok(Self {
-            offsets,
+            kind_of,
+            kind_offsets,
             samples,
             reach_mm: reach,
             dominant: OnceLock::new(),
@@ -156,7 +191,7 @@ impl Stretches {
 
     /// Number of stretches (dwell points).
     pub fn len(&self) -> usize {
-        self.offsets.len() - 1
+        self.kind_of.len()
     }
 
     /// Whether there are none.
@@ -166,7 +201,12 @@ impl Stretches {
 
     /// The samples `(dx_mm, dy_mm, weight)` of stretch `j`.
     pub fn of(&self, j: usize) -> &[[f64; 3]] {
-        &self.samples[self.offsets[j]..self.offsets[j + 1]]
+        self.of_kind(self.kind_of[j] as usize)
+    }
+
+    /// The samples of distinct stretch `k`.
+    fn of_kind(&self, k: usize) -> &[[f64; 3]] {
+        &self.samples[self.kind_offsets[k]..self.kind_offsets[k + 1]]
     }
 
     /// Largest distance of a sample from its dwell point, mm.
@@ -205,42 +245,38 @@ impl Stretches {
         k
     }
 
-    /// The dominant stretch, found on the first call: every stretch's key counted (in parallel
-    /// chunks whose counts and first indices merge the same in any order), then the points
-    /// whose key differs.
+    /// The dominant stretch, found on the first call: the dwell points counted by distinct
+    /// stretch, those counts merged over the stretches with one key (in the order the stretches
+    /// first occur), then the points whose key differs.
     fn dominant_stretch(&self) -> &Dominant {
         self.dominant.get_or_init(|| {
-            let key = Self::key;
-            type Counts = HashMap<Vec<[i64; 3]>, (usize, usize)>;
-            let merge = |mut a: Counts, b: Counts| {
-                for (k, (count, first)) in b {
-                    let e = a.entry(k).or_insert((0, first));
-                    e.0 += count;
-                    e.1 = e.1.min(first);
-                }
-                a
-            };
-            let counts = (0..self.len())
-                .into_par_iter()
-                .fold(Counts::new, |mut c, j| {
-                    let e = c.entry(key(self.of(j))).or_insert((0, j));
-                    e.0 += 1;
-                    e.1 = e.1.min(j);
-                    c
-                })
-                .reduce(Counts::new, merge);
+            let kinds = self.kind_offsets.len() - 1;
+            // Points and the first point of each distinct stretch.
+            let mut per_kind = vec![(0usize, usize::MAX); kinds];
+            for (j, &k) in self.kind_of.iter().enumerate() {
+                let e = &mut per_kind[k as usize];
+                e.0 += 1;
+                e.1 = e.1.min(j);
+            }
+            let keys: Vec<Vec<[i64; 3]>> = (0..kinds).map(|k| Self::key(self.of_kind(k))).collect();
+            let mut by_key: HashMap<&[[i64; 3]], (usize, usize)> = HashMap::new();
+            for (key, &(count, first)) in keys.iter().zip(&per_kind) {
+                let e = by_key.entry(key.as_slice()).or_insert((0, first));
+                e.0 += count;
+                e.1 = e.1.min(first);
+            }
             // Most shared; ties to the earliest stretch, so the choice does not depend on
             // hashing.
-            let best = counts
+            let best = by_key
                 .values()
                 .max_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)))
                 .copied();
             match best {
                 Some((count, j)) => {
-                    let dominant = key(self.of(j));
+                    let dominant = &keys[self.kind_of[j] as usize];
+                    let inside: Vec<bool> = keys.iter().map(|k| k == dominant).collect();
                     let outside = (0..self.len())
-                        .into_par_iter()
-                        .filter(|&i| key(self.of(i)) != dominant)
+                        .filter(|&i| !inside[self.kind_of[i] as usize])
                         .collect();
                     Dominant {
                         samples: self.of(j).to_vec(),
@@ -437,6 +473,74 @@ mod tests {
         assert!(c.abs() < 1e-12);
         // The farthest sample: the midpoint of the last 0.1 mm piece of a 0.5 mm half-stretch.
         assert!((st.reach_mm() - 0.45).abs() < 1e-12, "{}", st.reach_mm());
+    }
+
+    /// Every point of a raster whose coordinates carry rounding (0.1 mm steps) gets its own
+    /// stretch from the stored distinct ones: weights summing to 1, the centroid of its two
+    /// blocks `(la a / 2 + lb b / 2) / (la + lb)` and samples within half a piece of both
+    /// boundaries; the dominant stretch merges the rounding's variants and leaves out exactly the
+    /// row ends.
+    #[test]
+    fn each_point_gets_its_own_stretch_from_the_distinct_ones() {
+        const TOL_MM: f64 = 1e-12;
+        let bbox = crate::map::BoundingBox {
+            x_min_mm: 0.0,
+            x_max_mm: 2.0,
+            y_min_mm: 0.0,
+            y_max_mm: 0.3,
+        };
+        let path = crate::path::raster::serpentine(&bbox, 0.1, crate::path::raster::RasterAxis::X)
+            .unwrap();
+        let (x, y) = (path.x_mm(), path.y_mm());
+        let n = x.len();
+        assert_eq!(n, 84);
+        let step = 0.013;
+        let st = Stretches::of_path(&path, step).unwrap();
+        assert_eq!(st.len(), n);
+        assert!(
+            st.kind_offsets.len() - 1 < n / 2,
+            "{} distinct",
+            st.kind_offsets.len() - 1
+        );
+        for j in 0..n {
+            let toward = |k: usize| (0.5 * (x[k] - x[j]), 0.5 * (y[k] - y[j]));
+            let b = if j + 1 < n {
+                toward(j + 1)
+            } else {
+                (-toward(j - 1).0, -toward(j - 1).1)
+            };
+            let a = if j > 0 { toward(j - 1) } else { (-b.0, -b.1) };
+            let (la, lb) = (a.0.hypot(a.1), b.0.hypot(b.1));
+            let s = st.of(j);
+            let w: f64 = s.iter().map(|p| p[2]).sum();
+            assert!((w - 1.0).abs() <= TOL_MM, "point {j}: weights {w}");
+            let cx: f64 = s.iter().map(|p| p[2] * p[0]).sum();
+            let cy: f64 = s.iter().map(|p| p[2] * p[1]).sum();
+            let (ex, ey) = (
+                (la * a.0 + lb * b.0) / (2.0 * (la + lb)),
+                (la * a.1 + lb * b.1) / (2.0 * (la + lb)),
+            );
+            assert!(
+                (cx - ex).abs() <= TOL_MM && (cy - ey).abs() <= TOL_MM,
+                "point {j}"
+            );
+            for end in [a, b] {
+                let nearest = s
+                    .iter()
+                    .map(|p| (p[0] - end.0).hypot(p[1] - end.1))
+                    .fold(f64::INFINITY, f64::min);
+                assert!(
+                    nearest <= 0.5 * step + TOL_MM,
+                    "point {j}: {nearest} mm from {end:?}"
+                );
+            }
+        }
+        // 4 lines of 21 points: each line's two ends are L-shaped but for the path's own ends,
+        // which are mirrored straight along their line.
+        let (_, count) = st.dominant();
+        assert_eq!(count, n - 6);
+        let outside = st.outside_dominant();
+        assert_eq!(outside, vec![20, 21, 41, 42, 62, 63]);
     }
 
     #[test]
