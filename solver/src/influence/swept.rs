@@ -475,6 +475,18 @@ mod tests {
         assert!((st.reach_mm() - 0.45).abs() < 1e-12, "{}", st.reach_mm());
     }
 
+    /// A serpentine raster along x over `[0, width] x [0, height]` mm at `pitch_mm`.
+    fn raster(width_mm: f64, height_mm: f64, pitch_mm: f64) -> DwellPath {
+        let bbox = crate::map::BoundingBox {
+            x_min_mm: 0.0,
+            x_max_mm: width_mm,
+            y_min_mm: 0.0,
+            y_max_mm: height_mm,
+        };
+        crate::path::raster::serpentine(&bbox, pitch_mm, crate::path::raster::RasterAxis::X)
+            .unwrap()
+    }
+
     /// Every point of a raster whose coordinates carry rounding (0.1 mm steps) gets its own
     /// stretch from the stored distinct ones: weights summing to 1, the centroid of its two
     /// blocks `(la a / 2 + lb b / 2) / (la + lb)` and samples within half a piece of both
@@ -483,14 +495,7 @@ mod tests {
     #[test]
     fn each_point_gets_its_own_stretch_from_the_distinct_ones() {
         const TOL_MM: f64 = 1e-12;
-        let bbox = crate::map::BoundingBox {
-            x_min_mm: 0.0,
-            x_max_mm: 2.0,
-            y_min_mm: 0.0,
-            y_max_mm: 0.3,
-        };
-        let path = crate::path::raster::serpentine(&bbox, 0.1, crate::path::raster::RasterAxis::X)
-            .unwrap();
+        let path = raster(2.0, 0.3, 0.1);
         let (x, y) = (path.x_mm(), path.y_mm());
         let n = x.len();
         assert_eq!(n, 84);
@@ -545,14 +550,7 @@ mod tests {
 
     #[test]
     fn the_dominant_stretch_is_the_raster_interior() {
-        let bbox = crate::map::BoundingBox {
-            x_min_mm: 0.0,
-            x_max_mm: 5.0,
-            y_min_mm: 0.0,
-            y_max_mm: 2.0,
-        };
-        let path = crate::path::raster::serpentine(&bbox, 1.0, crate::path::raster::RasterAxis::X)
-            .unwrap();
+        let path = raster(5.0, 2.0, 1.0);
         let st = Stretches::of_path(&path, 0.1).unwrap();
         let (samples, count) = st.dominant();
         // 3 lines of 6 points: 4 interior points each, and the path's two ends, whose stretch is
