@@ -104,6 +104,8 @@ enum Command {
     Map(cmd::map::Args),
     /// The measure-register-solve-polish loop on a virtual part, or one run on a measured map.
     Iterate(cmd::iterate::Args),
+    /// Learn the tool that actually ran from the maps before and after a run and its program.
+    Calibrate(cmd::calibrate::Args),
     /// Shell completions for bash, zsh, fish or PowerShell, on stdout.
     Completions(CompletionsArgs),
 }
@@ -168,6 +170,7 @@ fn main() -> ExitCode {
         Command::Path(args) => cmd::path::run(args),
         Command::Simulate(args) => cmd::simulate::run(args),
         Command::Iterate(args) => cmd::iterate::run(args),
+        Command::Calibrate(args) => cmd::calibrate::run(args),
         Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
         Command::Completions(args) => completions(args),

@@ -6,6 +6,7 @@
 
 pub mod atomic;
 pub mod bench;
+pub mod calibration;
 pub mod digest;
 pub mod error;
 pub mod figures;

@@ -252,21 +252,9 @@ pub struct ProgramSimulated {
     pub samples: usize,
 }
 
-/// Simulates the G-code program in `program_file` as the machine runs it ([`preston_solver::machine::gcode`]):
-/// reads it back, then through the set-up stage as `simulate --dwell` ([`Choices::evaluation`],
-/// the program's marked points as the dwell points, [`DwellPoints::of_program`]):
-/// [`Setup::run_program`] executes its motion and integrates the TIF along the contact motion,
-/// and the report is on the map in `map_file`.
-pub fn simulate_program(
-    map_source: &MapSource,
-    tif: &Tif,
-    program_file: &Path,
-    options: ProgramOptions,
-    observer: &dyn Observer,
-) -> Result<ProgramSimulated> {
-    let start = Instant::now();
-    let map = map_source.read()?;
-    let map_file = map_source.file.as_deref().unwrap_or(Path::new("map"));
+/// Reads a G-code program file (a regular file within the size limit, UTF-8) and parses it in
+/// `dialect`, else the dialect its header names, else ISO.
+pub fn read_program(program_file: &Path, dialect: Option<Dialect>) -> Result<Program> {
     let meta = std::fs::metadata(program_file).map_err(|e| Error::io(program_file, e))?;
     if !meta.is_file() {
         return Err(Error::engine(
@@ -303,11 +291,29 @@ pub fn simulate_program(
             ),
         )
     })?;
-    let dialect = options
-        .dialect
+    let dialect = dialect
         .or_else(|| Program::detect_dialect(&text))
         .unwrap_or_default();
     let program = Program::parse(&text, dialect).map_err(|e| Error::engine(program_file, e))?;
+    Ok(program)
+}
+
+/// Simulates the G-code program in `program_file` as the machine runs it ([`preston_solver::machine::gcode`]):
+/// reads it back, then through the set-up stage as `simulate --dwell` ([`Choices::evaluation`],
+/// the program's marked points as the dwell points, [`DwellPoints::of_program`]):
+/// [`Setup::run_program`] executes its motion and integrates the TIF along the contact motion,
+/// and the report is on the map in `map_file`.
+pub fn simulate_program(
+    map_source: &MapSource,
+    tif: &Tif,
+    program_file: &Path,
+    options: ProgramOptions,
+    observer: &dyn Observer,
+) -> Result<ProgramSimulated> {
+    let start = Instant::now();
+    let map = map_source.read()?;
+    let map_file = map_source.file.as_deref().unwrap_or(Path::new("map"));
+    let program = read_program(program_file, options.dialect)?;
     let at_fault = |e: SetupError| match e.input {
         SetupInput::Map => Error::engine(map_file, e.source),
         SetupInput::None => Error::Solver(e.source),

@@ -12,6 +12,7 @@
 
 pub mod aperture;
 pub mod budget;
+pub mod calibrate;
 pub mod counts;
 pub mod dwell;
 pub mod edge;

@@ -1,5 +1,6 @@
 pub mod asphere;
 pub mod bench;
+pub mod calibrate;
 pub mod figure_args;
 pub mod fit;
 pub mod hertz_args;

@@ -107,7 +107,7 @@ pub(super) struct Buffers {
 }
 
 /// The smallest `k >= n` whose prime factors are all 2, 3, 5 or 7.
-pub(super) fn smooth_size(n: usize) -> usize {
+pub(crate) fn smooth_size(n: usize) -> usize {
     (n.max(1)..)
         .find(|&k| {
             let mut r = k;

@@ -33,6 +33,7 @@
 
 pub mod band;
 pub mod rate;
+pub mod shop;
 
 pub use band::{BandSplit, CorrectableBand};
 pub use rate::{RateEstimate, RateObservation};

@@ -252,6 +252,9 @@ pub struct MotionSamples {
     pub z_mm: Vec<f64>,
     /// Time the tool spends at the sample, s.
     pub time_s: Vec<f64>,
+    /// Program time at the middle of the sample, s from the program's start (every block's
+    /// executed time counted, in contact or not).
+    pub at_s: Vec<f64>,
 }
 
 /// Largest number of removal samples (each is a TIF column of the simulation).
@@ -293,8 +296,12 @@ pub fn sample_contact(
         y_mm: Vec::with_capacity(count),
         z_mm: Vec::with_capacity(count),
         time_s: Vec::with_capacity(count),
+        at_s: Vec::with_capacity(count),
     };
+    let mut block_start_s = 0.0;
     for (b, p) in program.blocks.iter().zip(&executed.profiles) {
+        let start_s = block_start_s;
+        block_start_s += p.time_s;
         if !b.contact || p.time_s <= 0.0 {
             continue;
         }
@@ -314,6 +321,7 @@ pub fn sample_contact(
             out.y_mm.push(q[1]);
             out.z_mm.push(q[2]);
             out.time_s.push(t1 - t_prev);
+            out.at_s.push(start_s + 0.5 * (t1 + t_prev));
             t_prev = t1;
         }
     }

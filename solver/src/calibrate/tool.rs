@@ -1,0 +1,403 @@
+//! The tool that actually ran: the spot-test TIF `f` under a few physical changes.
+//!
+//! With `c` the spot test's centroid, `rho` its second-moment radius and `θ` the figures,
+//!
+//! ```text
+//! f_θ(d) = r / w² · f(u) · max(0, 1 + k_x φ_x(v) + k_y φ_y(v)),
+//! u = c + exp(-E) (d - c - o) / w,      v = (u - c) / rho,      E = [[e, e45], [e45, -e]],
+//! ```
+//!
+//! - `r` the rate factor: the ratio of the TIF's volume (the Jacobian of `d -> u` is `1 / w²`,
+//!   `det exp(E) = 1`, and `φ` is orthogonal to a constant);
+//! - `w` the width factor: the footprint scaled about its centroid, its volume kept; with `E = 0`
+//!   the ratio of the second-moment radii (to first order in `E` otherwise);
+//! - `o` the offset of the centroid from where the tool is programmed, mm;
+//! - `e`, `e45` the ellipticity (log of the axis ratio's square root) along x/y and along the
+//!   diagonals: an area-keeping stretch;
+//! - `k_x`, `k_y` the skew: `φ_x` is `v_x³` made orthogonal, under the weight `f`, to every
+//!   polynomial of degree two in `v`, so a skew moves neither the volume, the centroid nor the
+//!   second moments of the footprint, only its third moments.
+//!
+//! The rate's drift over a run is not part of the footprint: it weights each contact sample by
+//! `1 + δ (t - t_mid) / 3600` ([`super::forward`]).
+
+use crate::error::{Error, Result};
+use crate::tif::{GridTif, InfluenceFunction};
+use serde::{Deserialize, Serialize};
+
+/// The figures of a calibrated tool (module documentation), with their units in their names.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ToolFigures {
+    /// Ratio of the TIF's volume to the spot test's.
+    pub rate_factor: f64,
+    /// Ratio of the footprint's size to the spot test's (second-moment radius), its volume kept.
+    pub width_factor: f64,
+    /// Centroid offset along x from the programmed point, mm.
+    pub offset_x_mm: f64,
+    /// Centroid offset along y from the programmed point, mm.
+    pub offset_y_mm: f64,
+    /// Ellipticity along the axes: the footprint stretched by `exp(e)` along x and shrunk by
+    /// `exp(-e)` along y.
+    pub ellipticity: f64,
+    /// Ellipticity along the diagonals (the same stretch turned by 45 degrees).
+    pub ellipticity_45: f64,
+    /// Skew along x: the weight of the footprint's third-moment shape `φ_x`.
+    pub skew_x: f64,
+    /// Skew along y.
+    pub skew_y: f64,
+    /// Relative change of the removal rate per hour of program time.
+    pub drift_per_hour: f64,
+}
+
+impl Default for ToolFigures {
+    fn default() -> Self {
+        Self::NOMINAL
+    }
+}
+
+impl ToolFigures {
+    /// The spot test as it was measured.
+    pub const NOMINAL: Self = Self {
+        rate_factor: 1.0,
+        width_factor: 1.0,
+        offset_x_mm: 0.0,
+        offset_y_mm: 0.0,
+        ellipticity: 0.0,
+        ellipticity_45: 0.0,
+        skew_x: 0.0,
+        skew_y: 0.0,
+        drift_per_hour: 0.0,
+    };
+
+    /// The names of the figures, in the order of [`ToolFigures::to_array`].
+    pub const NAMES: [&'static str; 9] = [
+        "rate_factor",
+        "width_factor",
+        "offset_x_mm",
+        "offset_y_mm",
+        "ellipticity",
+        "ellipticity_45",
+        "skew_x",
+        "skew_y",
+        "drift_per_hour",
+    ];
+
+    /// The figures as an array, in the order of [`ToolFigures::NAMES`].
+    pub fn to_array(&self) -> [f64; 9] {
+        [
+            self.rate_factor,
+            self.width_factor,
+            self.offset_x_mm,
+            self.offset_y_mm,
+            self.ellipticity,
+            self.ellipticity_45,
+            self.skew_x,
+            self.skew_y,
+            self.drift_per_hour,
+        ]
+    }
+
+    /// The figures from an array in the order of [`ToolFigures::NAMES`].
+    pub fn from_array(a: [f64; 9]) -> Self {
+        Self {
+            rate_factor: a[0],
+            width_factor: a[1],
+            offset_x_mm: a[2],
+            offset_y_mm: a[3],
+            ellipticity: a[4],
+            ellipticity_45: a[5],
+            skew_x: a[6],
+            skew_y: a[7],
+            drift_per_hour: a[8],
+        }
+    }
+
+    /// Checks that every figure is finite and the rate and width factors positive.
+    pub fn validate(&self) -> Result<()> {
+        for (name, v) in Self::NAMES.iter().zip(self.to_array()) {
+            if !v.is_finite() {
+                return Err(Error::invalid(
+                    format!("tool figure {name}"),
+                    format!("must be finite, got {v}"),
+                ));
+            }
+        }
+        for (name, v) in [
+            ("rate_factor", self.rate_factor),
+            ("width_factor", self.width_factor),
+        ] {
+            if v <= 0.0 {
+                return Err(Error::invalid(
+                    format!("tool figure {name}"),
+                    format!("must be positive, got {v}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The spot test's footprint with what the transform needs: centroid, second-moment radius and
+/// the skew shapes' coefficients.
+#[derive(Debug, Clone)]
+pub struct SpotFootprint {
+    grid: GridTif,
+    centroid_mm: (f64, f64),
+    radius_mm: f64,
+    /// Coefficients of `1, v_x, v_y, v_x², v_x v_y, v_y²` subtracted from `v_x³` and `v_y³`.
+    skew_basis: [[f64; 6]; 2],
+}
+
+/// The six monomials of degree at most two in `v`.
+fn quadratic_monomials(vx: f64, vy: f64) -> [f64; 6] {
+    [1.0, vx, vy, vx * vx, vx * vy, vy * vy]
+}
+
+impl SpotFootprint {
+    /// The footprint of a spot test sampled on a grid.
+    ///
+    /// Errors: a grid whose rates sum to zero.
+    pub fn new(grid: GridTif) -> Result<Self> {
+        let (nx, _) = grid.shape();
+        let (px, py) = grid.pitch_mm();
+        let (x0, y0) = grid.origin_mm();
+        let rates = grid.rates_nm_per_s();
+        let node = |k: usize| (x0 + (k % nx) as f64 * px, y0 + (k / nx) as f64 * py);
+        let total: f64 = rates.iter().sum();
+        if !(total > 0.0 && total.is_finite()) {
+            return Err(Error::invalid("TIF", "its rates sum to zero"));
+        }
+        let (cx, cy) = grid.centroid_mm();
+        let second: f64 = rates
+            .iter()
+            .enumerate()
+            .map(|(k, &f)| {
+                let (x, y) = node(k);
+                f * ((x - cx).powi(2) + (y - cy).powi(2))
+            })
+            .sum::<f64>()
+            / total;
+        let radius_mm = second.sqrt();
+        if !(radius_mm > 0.0 && radius_mm.is_finite()) {
+            return Err(Error::invalid(
+                "TIF",
+                "its footprint has no extent (second-moment radius zero)",
+            ));
+        }
+        // Weighted least squares of v_x³ (and v_y³) on the quadratic monomials under f: the
+        // remainder is orthogonal to each of them.
+        let mut gram = nalgebra::SMatrix::<f64, 6, 6>::zeros();
+        let mut rhs = nalgebra::SMatrix::<f64, 6, 2>::zeros();
+        for (k, &f) in rates.iter().enumerate() {
+            if f <= 0.0 {
+                continue;
+            }
+            let (x, y) = node(k);
+            let (vx, vy) = ((x - cx) / radius_mm, (y - cy) / radius_mm);
+            let m = nalgebra::SVector::<f64, 6>::from(quadratic_monomials(vx, vy));
+            gram += f * m * m.transpose();
+            rhs.column_mut(0).axpy(f * vx.powi(3), &m, 1.0);
+            rhs.column_mut(1).axpy(f * vy.powi(3), &m, 1.0);
+        }
+        let coef = gram
+            .cholesky()
+            .map(|c| c.solve(&rhs))
+            .ok_or_else(|| Error::invalid("TIF", "too few samples to define its shape"))?;
+        let mut skew_basis = [[0.0; 6]; 2];
+        for (a, row) in skew_basis.iter_mut().enumerate() {
+            for (b, v) in row.iter_mut().enumerate() {
+                *v = coef[(b, a)];
+            }
+        }
+        Ok(Self {
+            grid,
+            centroid_mm: (cx, cy),
+            radius_mm,
+            skew_basis,
+        })
+    }
+
+    /// The spot test's grid.
+    pub fn grid(&self) -> &GridTif {
+        &self.grid
+    }
+
+    /// Rate-weighted centroid, mm.
+    pub fn centroid_mm(&self) -> (f64, f64) {
+        self.centroid_mm
+    }
+
+    /// Second-moment radius `sqrt(Σ f |d - c|² / Σ f)`, mm.
+    pub fn radius_mm(&self) -> f64 {
+        self.radius_mm
+    }
+
+    /// The skew shapes `(φ_x, φ_y)` at normalised offset `v` from the centroid.
+    pub fn skew_shapes(&self, vx: f64, vy: f64) -> (f64, f64) {
+        let m = quadratic_monomials(vx, vy);
+        let dot = |c: &[f64; 6]| c.iter().zip(&m).map(|(a, b)| a * b).sum::<f64>();
+        (
+            vx.powi(3) - dot(&self.skew_basis[0]),
+            vy.powi(3) - dot(&self.skew_basis[1]),
+        )
+    }
+
+    /// The footprint under `figures` (its drift aside).
+    pub fn transformed(&self, figures: &ToolFigures) -> TransformedTif<'_> {
+        let (e, e45) = (figures.ellipticity, figures.ellipticity_45);
+        let lambda = e.hypot(e45);
+        // exp(-E) = cosh(λ) I - sinh(λ)/λ E for symmetric traceless E with eigenvalues ±λ.
+        let (ch, sh) = if lambda > 0.0 {
+            (lambda.cosh(), lambda.sinh() / lambda)
+        } else {
+            (1.0, 1.0)
+        };
+        let inv = [[ch - sh * e, -sh * e45], [-sh * e45, ch + sh * e]];
+        let w = figures.width_factor;
+        TransformedTif {
+            spot: self,
+            inv_over_w: [
+                [inv[0][0] / w, inv[0][1] / w],
+                [inv[1][0] / w, inv[1][1] / w],
+            ],
+            scale: figures.rate_factor / (w * w),
+            offset_mm: (figures.offset_x_mm, figures.offset_y_mm),
+            skew: (figures.skew_x, figures.skew_y),
+            reach_mm: w
+                * (ch + sh * lambda)
+                * (self.grid.support_radius_mm() + self.centroid_mm.0.hypot(self.centroid_mm.1))
+                + self.centroid_mm.0.hypot(self.centroid_mm.1)
+                + figures.offset_x_mm.hypot(figures.offset_y_mm),
+        }
+    }
+}
+
+/// The spot test's footprint under a set of figures ([`SpotFootprint::transformed`]).
+#[derive(Debug, Clone, Copy)]
+pub struct TransformedTif<'a> {
+    spot: &'a SpotFootprint,
+    inv_over_w: [[f64; 2]; 2],
+    scale: f64,
+    offset_mm: (f64, f64),
+    skew: (f64, f64),
+    reach_mm: f64,
+}
+
+impl InfluenceFunction for TransformedTif<'_> {
+    fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
+        let (cx, cy) = self.spot.centroid_mm;
+        let (qx, qy) = (dx_mm - cx - self.offset_mm.0, dy_mm - cy - self.offset_mm.1);
+        let a = &self.inv_over_w;
+        let (ux, uy) = (a[0][0] * qx + a[0][1] * qy, a[1][0] * qx + a[1][1] * qy);
+        let f = self.spot.grid.rate_nm_per_s(cx + ux, cy + uy);
+        if f == 0.0 {
+            return 0.0;
+        }
+        let shape = if self.skew == (0.0, 0.0) {
+            1.0
+        } else {
+            let r = self.spot.radius_mm;
+            let (px, py) = self.spot.skew_shapes(ux / r, uy / r);
+            (1.0 + self.skew.0 * px + self.skew.1 * py).max(0.0)
+        };
+        self.scale * f * shape
+    }
+
+    fn support_radius_mm(&self) -> f64 {
+        self.reach_mm
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tif::GaussianTif;
+
+    /// Agreement of sums over a fine grid with their closed forms.
+    const MOMENT_REL_TOL: f64 = 2e-3;
+
+    fn gaussian_grid(sigma: f64, pitch: f64) -> GridTif {
+        let g = GaussianTif::new(sigma, 10.0, 4.5 * sigma).expect("gaussian");
+        let n = (2.0 * 4.5 * sigma / pitch).ceil() as usize + 1;
+        let x0 = -(n as f64 - 1.0) / 2.0 * pitch;
+        let rates = (0..n * n)
+            .map(|k| g.rate_nm_per_s(x0 + (k % n) as f64 * pitch, x0 + (k / n) as f64 * pitch))
+            .collect();
+        GridTif::new(x0, x0, pitch, pitch, n, n, rates).expect("grid")
+    }
+
+    /// Volume, centroid and second moments of `f` sampled on a fine square grid.
+    fn moments(f: &dyn InfluenceFunction, half: f64, h: f64) -> [f64; 6] {
+        let n = (2.0 * half / h) as i64;
+        let mut m = [0.0; 6];
+        for i in 0..=n {
+            for j in 0..=n {
+                let (x, y) = (-half + i as f64 * h, -half + j as f64 * h);
+                let v = f.rate_nm_per_s(x, y) * h * h;
+                m[0] += v;
+                m[1] += v * x;
+                m[2] += v * y;
+                m[3] += v * x * x;
+                m[4] += v * y * y;
+                m[5] += v * x * x * x;
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn rate_width_and_offset_act_as_their_closed_forms() {
+        let sigma = 1.5;
+        let spot = SpotFootprint::new(gaussian_grid(sigma, 0.05)).expect("spot");
+        // A Gaussian's second-moment radius is sqrt(2) sigma.
+        assert!((spot.radius_mm() / (2f64.sqrt() * sigma) - 1.0).abs() < MOMENT_REL_TOL);
+        let nominal = moments(&spot.transformed(&ToolFigures::NOMINAL), 9.0, 0.05);
+        let figures = ToolFigures {
+            rate_factor: 1.08,
+            width_factor: 1.05,
+            offset_x_mm: 0.2,
+            offset_y_mm: -0.1,
+            ..ToolFigures::NOMINAL
+        };
+        let m = moments(&spot.transformed(&figures), 9.0, 0.05);
+        assert!((m[0] / nominal[0] - 1.08).abs() < MOMENT_REL_TOL);
+        assert!((m[1] / m[0] - 0.2).abs() < 1e-3);
+        assert!((m[2] / m[0] + 0.1).abs() < 1e-3);
+        let var_x = m[3] / m[0] - (m[1] / m[0]).powi(2);
+        assert!((var_x / (1.05 * sigma).powi(2) - 1.0).abs() < MOMENT_REL_TOL);
+    }
+
+    #[test]
+    fn skew_moves_only_the_third_moment_and_ellipticity_keeps_the_area() {
+        let sigma = 1.2;
+        let spot = SpotFootprint::new(gaussian_grid(sigma, 0.04)).expect("spot");
+        let nominal = moments(&spot.transformed(&ToolFigures::NOMINAL), 8.0, 0.04);
+        let skewed = ToolFigures {
+            skew_x: 0.05,
+            ..ToolFigures::NOMINAL
+        };
+        let m = moments(&spot.transformed(&skewed), 8.0, 0.04);
+        for k in 0..5 {
+            let scale = nominal[0] * sigma.powi(k.min(2) as i32);
+            assert!(
+                (m[k] - nominal[k]).abs() < 1e-3 * scale,
+                "moment {k}: {} against {}",
+                m[k],
+                nominal[k]
+            );
+        }
+        assert!(m[5] > nominal[5] + 0.01 * nominal[0] * sigma.powi(3));
+        let stretched = ToolFigures {
+            ellipticity: 0.1,
+            ..ToolFigures::NOMINAL
+        };
+        let e = moments(&spot.transformed(&stretched), 8.0, 0.04);
+        assert!((e[0] / nominal[0] - 1.0).abs() < MOMENT_REL_TOL);
+        // exp(0.1) along x, exp(-0.1) along y: the x variance grows by exp(0.2).
+        let var_ratio = (e[3] / e[0]) / (nominal[3] / nominal[0]);
+        assert!((var_ratio / 0.2f64.exp() - 1.0).abs() < MOMENT_REL_TOL);
+        let var_ratio_y = (e[4] / e[0]) / (nominal[4] / nominal[0]);
+        assert!((var_ratio_y / (-0.2f64).exp() - 1.0).abs() < MOMENT_REL_TOL);
+    }
+}
