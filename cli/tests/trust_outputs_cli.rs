@@ -110,3 +110,79 @@ fn the_residual_files_hold_the_residual_the_report_states() {
     );
 }
 
+/// A smooth map on an `n x n` grid at `pitch` mm, heights of tens of nm.
+fn map_text(n: usize, pitch: f64) -> String {
+    let mut t = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..n {
+        for ix in 0..n {
+            let (x, y) = (ix as f64 * pitch, iy as f64 * pitch);
+            let z = 40.0 + 25.0 * (0.31 * x).sin() * (0.23 * y).cos() + 0.8 * y;
+            t.push_str(&format!("{x},{y},{z}\n"));
+        }
+    }
+    t
+}
+
+/// The Gaussian TIF of the small jobs, as flags.
+const GAUSSIAN: [&str; 6] = [
+    "--gaussian-sigma-mm",
+    "1.2",
+    "--gaussian-peak-nm-per-s",
+    "8",
+    "--gaussian-truncation-mm",
+    "3.6",
+];
+
+/// A later solve into the same directory without `--plots` or `--report` leaves none of the
+/// earlier run's page, figures or tables (which would contradict its report.json), and touches
+/// no file Preston does not write.
+#[test]
+fn a_solve_replaces_the_earlier_solves_outputs_and_nothing_else() {
+    let d = tempfile::tempdir().unwrap();
+    // 17 points a side: enough for the 1-D PSD's table and figure.
+    let map = write_arg(d.path(), "map.csv", &map_text(17, 1.0));
+    let out = d.path().join("out");
+    let run = |extra: &[&str], v_max: &str| {
+        let mut args = vec!["solve", "--map", &map, "--raster-pitch-mm", "1"];
+        args.extend(GAUSSIAN);
+        args.extend(["--v-max", v_max]);
+        args.extend(extra);
+        args.extend(["--out", s(&out)]);
+        ok(&preston(&args));
+    };
+    run(&["--plots", "--report"], "3000");
+    for name in [
+        "report.html",
+        "residual.png",
+        "psd.csv",
+        "psd_2d.csv",
+        "tif.png",
+    ] {
+        assert!(out.join(name).is_file(), "{name} not written");
+    }
+    // The user's own files beside the outputs, one of them a figure of another name.
+    write(&out, "notes.txt", "kept");
+    write(&out, "residual_before_polishing.png", "kept");
+    run(&[], "2500");
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "dwell.csv",
+            "notes.txt",
+            "report.json",
+            "residual.csv",
+            "residual_before_polishing.png"
+        ],
+        "the directory holds the later run's outputs and the user's files only"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "kept"
+    );
+}
+

@@ -69,6 +69,21 @@ pub fn caption(name: &str) -> &'static str {
     }
 }
 
+/// The stems of every figure a solve writes ([`stage_solve_figures`]), in either format.
+pub const SOLVE_FIGURES: [&str; 11] = [
+    "error_before",
+    "removal",
+    "residual",
+    "residual_model",
+    "dwell",
+    "feed",
+    "path",
+    "tif",
+    "psd",
+    "psd_2d",
+    "psd_azimuthal",
+];
+
 /// Samples per side of the TIF plot's grid.
 const TIF_SAMPLES: usize = 121;
 

@@ -428,6 +428,31 @@ impl Job {
         }
     }
 
+    /// Every file the job reads (map, TIF, dwell, warm start, surface, polygon aperture and
+    /// each tool's TIF and dwell), as its paths stand (after [`Job::resolve_paths`], relative to
+    /// the working directory).
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        let mut files: Vec<PathBuf> = [
+            &self.map.file,
+            &self.tif.file,
+            &self.dwell.file,
+            &self.dwell.warm_start,
+            &self.surface.file,
+        ]
+        .into_iter()
+        .flatten()
+        .cloned()
+        .collect();
+        for t in &self.tool {
+            files.push(t.dwell.clone());
+            files.extend(t.tif.file.iter().cloned());
+        }
+        if let Some(ApertureSpec::PolygonFile(p)) = &self.map.aperture {
+            files.push(p.clone());
+        }
+        files
+    }
+
     /// Parses job text; `path` names it in messages.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
         preston_solver::counts::record(preston_solver::counts::Counted::JobParsed);

@@ -517,6 +517,39 @@ pub struct OutputOptions {
     pub html: Option<crate::html::Provenance>,
     /// How the figures are drawn.
     pub style: crate::figures::FigureStyle,
+    /// Replace an earlier solve's outputs: remove, with the commit, the files of
+    /// [`is_solve_output`] in the output directory that this solve does not write, except the
+    /// paths listed (the run's inputs). `None`: other files are left as they are.
+    pub replace_earlier: Option<Vec<PathBuf>>,
+}
+
+/// Whether `name` is the name of a file a solve writes into its output directory (single or
+/// several tools, with every figure and table option, in either figure format): what a later
+/// solve into the same directory replaces ([`OutputOptions::replace_earlier`]).
+pub fn is_solve_output(name: &str) -> bool {
+    const FILES: [&str; 8] = [
+        "dwell.csv",
+        RESIDUAL_CSV,
+        RESIDUAL_MODEL_CSV,
+        "report.json",
+        "report.html",
+        "psd.csv",
+        "psd_2d.csv",
+        "psd_azimuthal.csv",
+    ];
+    if FILES.contains(&name) {
+        return true;
+    }
+    if let Some(k) = name
+        .strip_prefix("dwell_tool")
+        .and_then(|r| r.strip_suffix(".csv"))
+    {
+        return !k.is_empty() && k.bytes().all(|b| b.is_ascii_digit());
+    }
+    match name.rsplit_once('.') {
+        Some((stem, "png" | "svg")) => crate::figures::SOLVE_FIGURES.contains(&stem),
+        _ => false,
+    }
 }
 
 /// Writes a solve's outputs as `options` asks: all staged first and committed together (the
@@ -606,6 +639,11 @@ pub fn write_solve_outputs(
     if options.plots {
         staged.extend(figures);
     }
-    commit_all(staged)?;
+    match &options.replace_earlier {
+        Some(keep) => {
+            crate::atomic::commit_replacing(staged, out_dir, &is_solve_output, keep)?;
+        }
+        None => commit_all(staged)?,
+    }
     Ok(notes)
 }

@@ -208,8 +208,14 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
 }
 
 /// Writes `dwell_tool1.csv`, `dwell_tool2.csv`, ..., `residual.csv` and `report.json` into
-/// `out_dir`, all staged before any is renamed into place.
-pub fn write_tool_outputs(solved: &MultiSolved, out_dir: &Path) -> Result<()> {
+/// `out_dir`, all staged before any is renamed into place. With `replace_earlier`, an earlier
+/// solve's outputs that this one does not write are removed with the commit, except the paths
+/// listed (the run's inputs; [`crate::pipeline::OutputOptions::replace_earlier`]).
+pub fn write_tool_outputs(
+    solved: &MultiSolved,
+    out_dir: &Path,
+    replace_earlier: Option<&[std::path::PathBuf]>,
+) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let mut staged = Vec::new();
     for (k, (tool, t)) in solved.tools.iter().zip(&solved.dwell_s).enumerate() {
@@ -233,5 +239,14 @@ pub fn write_tool_outputs(solved: &MultiSolved, out_dir: &Path) -> Result<()> {
         &solved.residual_nm,
     )?);
     staged.push(stage_report(&out_dir.join("report.json"), &solved.report)?);
-    commit_all(staged)
+    match replace_earlier {
+        Some(keep) => crate::atomic::commit_replacing(
+            staged,
+            out_dir,
+            &crate::pipeline::is_solve_output,
+            keep,
+        )
+        .map(|_| ()),
+        None => commit_all(staged),
+    }
 }

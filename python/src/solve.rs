@@ -152,6 +152,7 @@ impl SolveResult {
                 color_limits,
                 format,
             },
+            replace_earlier: None,
         };
         py.detach(|| pipeline::write_solve_outputs(&self.solved, &out_dir, &options))
             .map_err(to_py)
