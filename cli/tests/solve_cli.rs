@@ -251,7 +251,8 @@ fn sample_job_edge_and_machinability_targets() {
         .expect("the sample job sets a_max_mm_per_s2");
     assert_eq!(r["a_max_mm_per_s2"].as_f64(), Some(job_a_max));
     // The planned residual is what R applied to the written dwell.csv leaves: `preston
-    // simulate` of the same map, TIF and dwell file gives the same RMS.
+    // simulate` of the same map, TIF and dwell file under the job's point model gives the same
+    // RMS.
     let sim = out.path().join("simulated");
     let o = preston_cmd()
         .args(["simulate", "--map"])
@@ -260,6 +261,7 @@ fn sample_job_edge_and_machinability_targets() {
         .arg(data("tif_fluid_jet_10mm.csv"))
         .arg("--dwell")
         .arg(out.path().join("dwell.csv"))
+        .args(["--motion", "discrete"])
         .arg("--out")
         .arg(&sim)
         .output()

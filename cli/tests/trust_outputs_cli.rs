@@ -186,3 +186,49 @@ fn a_solve_replaces_the_earlier_solves_outputs_and_nothing_else() {
     );
 }
 
+/// Relative agreement of `simulate`'s default residual RMS with the solve's model residual on
+/// the same plan: the same swept columns, the solve's through the FFT operator with the exact
+/// columns of the stretches that differ from its kernel, the simulation's assembled.
+const SWEPT_SIMULATION_REL: f64 = 1e-6;
+/// Absolute floor of that agreement, nm.
+const SWEPT_SIMULATION_ABS_NM: f64 = 1e-6;
+
+/// A plan solved under the solver's default (swept) model without an acceleration limit,
+/// simulated with `simulate`'s defaults, gives the residual the solve predicted; the point
+/// model (`--motion discrete`) does not.
+#[test]
+fn simulate_by_default_reproduces_the_plans_own_prediction() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write_arg(d.path(), "map.csv", &map_text(15, 1.0));
+    let solved = d.path().join("solved");
+    let mut args = vec!["solve", "--map", &map, "--raster-pitch-mm", "1"];
+    args.extend(GAUSSIAN);
+    args.extend(["--v-max", "3000", "--out", s(&solved)]);
+    ok(&preston(&args));
+    let planned = report(&solved);
+    assert_eq!(planned["influence"], "swept");
+    assert!(planned.get("executed").is_none(), "no acceleration limit");
+    let predicted = planned["rms_after_nm"].as_f64().unwrap();
+    let dwell = solved.join("dwell.csv");
+    let simulate = |extra: &[&str], name: &str| {
+        let out = d.path().join(name);
+        let mut args = vec!["simulate", "--map", &map, "--dwell", s(&dwell)];
+        args.extend(GAUSSIAN);
+        args.extend(extra);
+        args.extend(["--out", s(&out)]);
+        ok(&preston(&args));
+        report(&out)["rms_after_nm"].as_f64().unwrap()
+    };
+    let tolerance = SWEPT_SIMULATION_REL * predicted + SWEPT_SIMULATION_ABS_NM;
+    let default = simulate(&[], "default");
+    assert!(
+        (default - predicted).abs() <= tolerance,
+        "simulate's default {default} nm against the plan's prediction {predicted} nm"
+    );
+    let point = simulate(&["--motion", "discrete"], "point");
+    assert!(
+        (point - predicted).abs() > tolerance,
+        "the point model {point} nm is not the plan's model {predicted} nm"
+    );
+}
+
