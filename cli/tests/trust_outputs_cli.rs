@@ -232,3 +232,88 @@ fn simulate_by_default_reproduces_the_plans_own_prediction() {
     );
 }
 
+/// A machine profile's bad value is blamed on the profile and its key, not on the command line
+/// or the job.
+#[test]
+fn a_bad_machine_profile_is_named_with_its_key() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write_arg(d.path(), "map.csv", &map_text(9, 1.0));
+    let feed = write_arg(
+        d.path(),
+        "feed_profile.toml",
+        "[machine]\nv_max_mm_per_min = -5\n",
+    );
+    let mut args = vec!["--machine", &feed, "--map", &map, "--raster-pitch-mm", "1"];
+    args.extend(GAUSSIAN);
+    expect_failure(
+        &args,
+        &["feed_profile.toml", "[machine]", "v_max_mm_per_min"],
+    );
+    let o = preston(&[&["solve", "--out", s(&d.path().join("o"))][..], &args[..]].concat());
+    assert!(
+        !String::from_utf8_lossy(&o.stderr).contains("<command line>"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // An [nc] key of the profile, under a job that has no [nc] table of its own.
+    let nc = write_arg(d.path(), "nc_profile.toml", "[nc]\ndecimals = 9\n");
+    expect_failure(
+        &["--job", &data_arg("job.toml"), "--machine", &nc],
+        &["nc_profile.toml", "[nc]", "decimals"],
+    );
+}
+
+/// A surface JSON saved with a UTF-8 byte-order mark reads as the same surface.
+#[test]
+fn a_surface_json_with_a_byte_order_mark_is_read() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write_arg(d.path(), "map.csv", &map_text(9, 1.0));
+    let solve = |surface: &str, name: &str| {
+        let out = d.path().join(name);
+        let mut args = vec![
+            "solve",
+            "--map",
+            &map,
+            "--raster-pitch-mm",
+            "1",
+            "--v-max",
+            "3000",
+            "--surface",
+            surface,
+        ];
+        args.extend(GAUSSIAN);
+        args.extend(["--out", s(&out)]);
+        ok(&preston(&args));
+        std::fs::read(out.join("dwell.csv")).unwrap()
+    };
+    let plain = write_arg(d.path(), "plane.json", r#"{"type":"plane"}"#);
+    let bom = write_arg(d.path(), "plane_bom.json", "\u{feff}{\"type\":\"plane\"}");
+    assert_eq!(solve(&bom, "bom"), solve(&plain, "plain"));
+}
+
+/// A flag's bad value is blamed on the flag, not on the job whose key it replaces.
+#[test]
+fn a_bad_raster_pitch_flag_is_named_as_the_flag() {
+    let job = data_arg("job.toml");
+    for pitch in ["-1", "0", "nan"] {
+        let d = tempfile::tempdir().unwrap();
+        let o = preston(&[
+            "solve",
+            "--job",
+            &job,
+            "--raster-pitch-mm",
+            pitch,
+            "--out",
+            s(&d.path().join("o")),
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{pitch}: {err}");
+        assert!(err.contains("--raster-pitch-mm"), "{pitch}: {err}");
+        assert!(!err.contains("job.toml"), "{pitch}: blames the job: {err}");
+        assert!(
+            !d.path().join("o").exists(),
+            "output written despite the error"
+        );
+    }
+}
+

@@ -98,7 +98,7 @@ impl Args {
         let job_path = self
             .job
             .clone()
-            .unwrap_or_else(|| PathBuf::from("<command line>"));
+            .unwrap_or_else(|| PathBuf::from(preston_io::overrides::COMMAND_LINE));
         self.map_input.apply(&mut job.map);
         if let Some(p) = self.map_pitch.pitch_mm {
             job.map.pitch_mm = Some(p);
@@ -134,7 +134,7 @@ impl Args {
             ),
             None => None,
         };
-        overrides.apply(&mut job, Path::new("<command line>"))?;
+        overrides.apply(&mut job, Path::new(preston_io::overrides::COMMAND_LINE))?;
         Ok((job, job_path, self.out, self.accept_best_iterate))
     }
 }
