@@ -317,3 +317,90 @@ fn a_bad_raster_pitch_flag_is_named_as_the_flag() {
     }
 }
 
+/// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` over the segments of a written dwell file whose
+/// ends do not both turn by more than 60 degrees (the connecting moves), `v = ds / t`, mm/s^2.
+fn max_accel_of(dwell_csv: &Path) -> f64 {
+    let [x, y, ds, t]: [Vec<f64>; 4] =
+        csv_columns(dwell_csv, &["x_mm", "y_mm", "ds_mm", "dwell_s"])
+            .try_into()
+            .unwrap();
+    let n = x.len();
+    let turn = |j: usize| -> f64 {
+        if j == 0 || j + 1 >= n {
+            return 0.0;
+        }
+        let (ax, ay) = (x[j] - x[j - 1], y[j] - y[j - 1]);
+        let (bx, by) = (x[j + 1] - x[j], y[j + 1] - y[j]);
+        let (la, lb) = (ax.hypot(ay), bx.hypot(by));
+        ((ax * bx + ay * by) / (la * lb))
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
+    };
+    let mut worst: f64 = 0.0;
+    for j in 0..n - 1 {
+        let seg = (x[j + 1] - x[j]).hypot(y[j + 1] - y[j]);
+        if turn(j) > 60.0 && turn(j + 1) > 60.0 {
+            continue;
+        }
+        let (v0, v1) = (ds[j] / t[j], ds[j + 1] / t[j + 1]);
+        worst = worst.max((v1 * v1 - v0 * v0).abs() / (2.0 * seg));
+    }
+    worst
+}
+
+/// Relative agreement of an acceleration recomputed from the written dwell with the report's.
+const ACCEL_REL: f64 = 1e-9;
+
+/// Serpentine dwell points `x_mm,y_mm` over `[0, side]^2` at `pitch`.
+fn raster_text(side: f64, pitch: f64) -> String {
+    let k = (side / pitch).round() as usize;
+    let mut t = String::from("x_mm,y_mm\n");
+    for j in 0..=k {
+        for i in 0..=k {
+            let i = if j % 2 == 0 { i } else { k - i };
+            t.push_str(&format!("{},{}\n", i as f64 * pitch, j as f64 * pitch));
+        }
+    }
+    t
+}
+
+/// Several tools: the report's largest acceleration is the largest any tool's written feeds
+/// ask for, and each tool's own is given.
+#[test]
+fn a_multi_tool_report_gives_the_largest_acceleration_of_its_tools() {
+    let d = tempfile::tempdir().unwrap();
+    write(d.path(), "map.csv", &map_text(13, 1.0));
+    write(d.path(), "coarse.csv", &raster_text(12.0, 1.5));
+    write(d.path(), "fine.csv", &raster_text(12.0, 0.75));
+    let job = write(
+        d.path(),
+        "tools.toml",
+        "[map]\nfile = \"map.csv\"\n[machine]\nv_max_mm_per_min = 4000\n\
+         [[tool]]\ndwell = \"coarse.csv\"\ntif = { gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 6.0, truncation_radius_mm = 6.0 } }\n\
+         [[tool]]\ndwell = \"fine.csv\"\ntif = { gaussian = { sigma_mm = 0.8, peak_rate_nm_per_s = 3.0, truncation_radius_mm = 2.4 } }\n",
+    );
+    let out = d.path().join("out");
+    ok(&preston(&["solve", "--job", s(&job), "--out", s(&out)]));
+    let r = report(&out);
+    let tools = r["tools"].as_array().unwrap();
+    assert_eq!(tools.len(), 2);
+    let mut largest: f64 = 0.0;
+    for (k, tool) in tools.iter().enumerate() {
+        let written = max_accel_of(&out.join(format!("dwell_tool{}.csv", k + 1)));
+        let reported = tool["max_accel_mm_per_s2"].as_f64().unwrap();
+        assert!(
+            (reported - written).abs() <= ACCEL_REL * written,
+            "tool {}: reported {reported} mm/s^2, its dwell file asks {written}",
+            k + 1
+        );
+        largest = largest.max(written);
+    }
+    assert!(largest > 0.0);
+    let reported = r["max_accel_mm_per_s2"].as_f64().unwrap();
+    assert!(
+        (reported - largest).abs() <= ACCEL_REL * largest,
+        "report.json max_accel_mm_per_s2 {reported}, the tools' dwell files ask {largest}"
+    );
+}
+

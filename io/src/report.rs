@@ -593,4 +593,9 @@ pub struct ToolReport {
     pub min_feed_mm_per_min: f64,
     /// Fastest feed of the tool, mm/min.
     pub max_feed_mm_per_min: f64,
+    /// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` between consecutive dwell points on a line of
+    /// the tool's path, mm/s^2 (the report's `max_accel_mm_per_s2` is the largest over the
+    /// tools).
+    #[serde(default)]
+    pub max_accel_mm_per_s2: f64,
 }
