@@ -404,3 +404,64 @@ fn a_multi_tool_report_gives_the_largest_acceleration_of_its_tools() {
     );
 }
 
+/// Relative amount by which a dwell may fall short of its lower bound `ds / v_max` (the
+/// interior point's tolerance, before the dwell is projected onto its bounds).
+const BOUND_REL: f64 = 1e-9;
+
+/// Problems that `t = ds / v_max` makes feasible are never reported infeasible: a map with a
+/// single spike a million times its other heights, and a feed limit so low that every point
+/// is held at a million seconds or more.
+#[test]
+fn the_qp_never_calls_a_feasible_problem_infeasible() {
+    let d = tempfile::tempdir().unwrap();
+    // The smooth map with one point (5, 5) mm raised to 1e6 nm.
+    let spiky: String = map_text(11, 1.0)
+        .lines()
+        .map(|l| {
+            if l.starts_with("5,5,") {
+                "5,5,1000000".to_string()
+            } else {
+                l.to_string()
+            }
+        })
+        .map(|l| l + "\n")
+        .collect();
+    let spike = write_arg(d.path(), "spike.csv", &spiky);
+    let smooth = write_arg(d.path(), "smooth.csv", &map_text(11, 1.0));
+    let run = |map: &str, v_max: &str, name: &str| {
+        let out = d.path().join(name);
+        let mut args = vec![
+            "solve",
+            "--map",
+            map,
+            "--raster-pitch-mm",
+            "1",
+            "--solver",
+            "qp",
+            "--v-max",
+            v_max,
+        ];
+        args.extend(GAUSSIAN);
+        args.extend(["--out", s(&out)]);
+        let o = preston(&args);
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(!err.contains("infeasible"), "{name}: {err}");
+        ok(&o);
+        let r = report(&out);
+        assert_eq!(r["status"], "converged", "{name}");
+        out
+    };
+    run(&spike, "3000", "spike");
+    let out = run(&smooth, "1e-6", "slow");
+    // The plan keeps every feed within the limit: each dwell at least `ds / v_max`.
+    let [ds, t]: [Vec<f64>; 2] = csv_columns(&out.join("dwell.csv"), &["ds_mm", "dwell_s"])
+        .try_into()
+        .unwrap();
+    for (j, (ds, t)) in ds.iter().zip(&t).enumerate() {
+        let bound = ds / (1e-6 / 60.0);
+        assert!(
+            *t >= bound * (1.0 - BOUND_REL),
+            "point {j}: {t} s below the bound {bound} s"
+        );
+    }
+}
