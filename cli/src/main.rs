@@ -98,7 +98,8 @@ enum Command {
     Tif(cmd::tif::Args),
     /// Tool paths: raster, intersection, spiral, chord-height, edge-offset.
     Path(cmd::path::Args),
-    /// Simulate the removal of a dwell program (discrete dwell or continuous motion).
+    /// Simulate the removal of a dwell program (the solver's swept model by default, discrete
+    /// dwell or continuous motion) or of a G-code program.
     Simulate(cmd::simulate::Args),
     /// Measured maps: convert any format to CSV, remove form terms, fit Zernike/Legendre.
     Map(cmd::map::Args),

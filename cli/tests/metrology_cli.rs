@@ -290,6 +290,8 @@ fn aperture_and_removal_reach_solve_and_its_report() {
         "10",
         "--dwell",
         s(&out_dir.join("dwell.csv")),
+        "--motion",
+        "discrete",
         "--out",
         s(&sim_dir),
     ]);

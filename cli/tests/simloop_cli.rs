@@ -57,9 +57,9 @@ fn simulate_reproduces_the_solver_and_converges_in_continuous_mode() {
         ok(&preston(&a));
         report(out)
     };
-    // Discrete: the solver's own prediction, to the last byte.
+    // Discrete: the point model's solver's own prediction, to the last byte.
     let discrete = d.path().join("discrete");
-    let r = sim(&["--plots"], &discrete);
+    let r = sim(&["--plots", "--motion", "discrete"], &discrete);
     assert_eq!(
         std::fs::read(solved.join("residual.csv")).unwrap(),
         std::fs::read(discrete.join("residual.csv")).unwrap()

@@ -105,6 +105,80 @@ pub const DEFAULT_LOCK_WAIT_S: f64 = 60.0;
 /// Commits staged files together: all were fully written and synced before any is renamed, and
 /// the renames run under the lock of each output directory (see the module documentation).
 pub fn commit_all(staged: Vec<Staged>) -> Result<()> {
+    commit_then(staged, |_| Ok(()))
+}
+
+/// [`commit_all`], then, under the same lock, removes from `dir` the outputs of an earlier run
+/// that this one does not write, so the directory holds this run's outputs only: the files whose
+/// name `earlier_output` recognises (the names the run's command writes, nothing else), that no
+/// staged file replaces and that are not one of `keep` (the run's own inputs, compared by their
+/// canonical paths). Regular files and symbolic links only (a link is removed, not its target);
+/// directories are left. Returns the paths removed.
+pub fn commit_replacing(
+    staged: Vec<Staged>,
+    dir: &Path,
+    earlier_output: &dyn Fn(&str) -> bool,
+    keep: &[PathBuf],
+) -> Result<Vec<PathBuf>> {
+    // The lock of `dir` is taken even when nothing is staged there.
+    let _lock = if staged.iter().any(|s| dir_of(&s.dest) == dir) {
+        None
+    } else {
+        Some(DirLock::acquire(dir, lock_wait_s())?)
+    };
+    commit_then(staged, |written| {
+        remove_earlier_outputs(dir, written, earlier_output, keep)
+    })
+}
+
+/// Removes the files of `dir` that `earlier_output` recognises, none of `written` and none of
+/// `keep` ([`commit_replacing`]).
+fn remove_earlier_outputs(
+    dir: &Path,
+    written: &[PathBuf],
+    earlier_output: &dyn Fn(&str) -> bool,
+    keep: &[PathBuf],
+) -> Result<Vec<PathBuf>> {
+    let canonical = |p: &Path| std::fs::canonicalize(p).ok();
+    let kept: Vec<PathBuf> = keep.iter().filter_map(|p| canonical(p)).collect();
+    let written: Vec<&std::ffi::OsStr> = written
+        .iter()
+        .filter(|p| dir_of(p) == dir)
+        .filter_map(|p| p.file_name())
+        .collect();
+    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    let mut removed = Vec::new();
+    for e in entries {
+        let e = e.map_err(|e| Error::io(dir, e))?;
+        let name = e.file_name();
+        let Some(text) = name.to_str() else { continue };
+        if !earlier_output(text) || written.contains(&name.as_os_str()) {
+            continue;
+        }
+        let path = e.path();
+        let is_file = e.file_type().is_ok_and(|t| t.is_file() || t.is_symlink());
+        if !is_file || canonical(&path).is_some_and(|c| kept.contains(&c)) {
+            continue;
+        }
+        std::fs::remove_file(&path).map_err(|err| {
+            Error::io(
+                &path,
+                std::io::Error::new(
+                    err.kind(),
+                    format!(
+                        "an earlier run's output that this run does not write could not be \
+                         removed ({err}); remove it, it does not belong to this run's outputs"
+                    ),
+                ),
+            )
+        })?;
+        removed.push(path);
+    }
+    Ok(removed)
+}
+
+/// [`commit_all`], running `then` with the committed destinations before the locks are released.
+fn commit_then<T>(staged: Vec<Staged>, then: impl FnOnce(&[PathBuf]) -> Result<T>) -> Result<T> {
     let mut dirs: Vec<PathBuf> = staged.iter().map(|s| dir_of(&s.dest)).collect();
     dirs.sort();
     dirs.dedup();
@@ -125,12 +199,14 @@ pub fn commit_all(staged: Vec<Staged>) -> Result<()> {
             ));
         }
     }
+    let written: Vec<PathBuf> = staged.iter().map(|s| s.dest.clone()).collect();
     for (done, s) in staged.into_iter().enumerate() {
         injected_kill(done);
         s.commit()?;
     }
+    let out = then(&written);
     drop(locks);
-    Ok(())
+    out
 }
 
 /// Test hook: with `PRESTON_KILL_AT_COMMIT=N` in the environment the process aborts (as a kill
@@ -351,6 +427,26 @@ mod tests {
         let lock = DirLock::acquire(dir.path(), 0.0).unwrap();
         drop(lock);
         assert!(!dir.path().join(LOCK_FILE).exists());
+    }
+
+    #[test]
+    fn a_run_replaces_the_earlier_runs_outputs_and_nothing_else() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        for name in ["a.csv", "old.png", "input.png", "notes.txt"] {
+            std::fs::write(d.join(name), "earlier").unwrap();
+        }
+        std::fs::create_dir(d.join("dir.png")).unwrap();
+        let ours = |n: &str| n == "a.csv" || n.ends_with(".png");
+        let staged = vec![stage(&d.join("a.csv"), |w| w.write_all(b"new\n")).unwrap()];
+        let removed = commit_replacing(staged, d, &ours, &[d.join("input.png")]).unwrap();
+        assert_eq!(removed, vec![d.join("old.png")]);
+        assert_eq!(std::fs::read_to_string(d.join("a.csv")).unwrap(), "new\n");
+        assert!(!d.join("old.png").exists());
+        // The run's input, a file of another name and a directory stay.
+        assert!(d.join("input.png").exists() && d.join("notes.txt").exists());
+        assert!(d.join("dir.png").is_dir());
+        assert!(!d.join(LOCK_FILE).exists(), "lock not released");
     }
 
     #[cfg(unix)]

@@ -1,6 +1,7 @@
 //! The figure set of a solve (`preston solve --plots`): maps of the error, the predicted removal,
-//! the residual, the dwell and the feed, the TIF, the path, and the PSDs of error and residual:
-//! 1-D along the raster direction (`psd.png`, `psd.csv`), where the raster pitch's ripple shows,
+//! the residual (the one the report states, [`crate::residual`]; with an executed program also
+//! the model's at the programmed feeds, `residual_model`), the dwell and the feed, the TIF, the
+//! path, and the PSDs of error and residual: 1-D along the raster direction (`psd.png`, `psd.csv`), where the raster pitch's ripple shows,
 //! 2-D (`psd_2d.png`, `psd_2d.csv`) and its azimuthal average (`psd_azimuthal.png`,
 //! `psd_azimuthal.csv`), see [`preston_solver::psd`].
 
@@ -48,7 +49,11 @@ pub fn caption(name: &str) -> &'static str {
     match name.rsplit_once('.').map_or(name, |(stem, _)| stem) {
         "error_before" => "Surface error before polishing (nm)",
         "removal" => "Predicted removal (nm)",
-        "residual" => "Predicted residual, piston removed (nm)",
+        "residual" => {
+            "Predicted residual, piston removed (nm), as the report states it: \
+                       the program as executed where the solve executes it"
+        }
+        "residual_model" => "Model residual at the programmed feeds, piston removed (nm)",
         "dwell" => "Dwell time per dwell point (s)",
         "feed" => "Feed per dwell point (mm/min)",
         "tif" => "Tool influence function (nm/s)",
@@ -63,6 +68,21 @@ pub fn caption(name: &str) -> &'static str {
         _ => "",
     }
 }
+
+/// The stems of every figure a solve writes ([`stage_solve_figures`]), in either format.
+pub const SOLVE_FIGURES: [&str; 11] = [
+    "error_before",
+    "removal",
+    "residual",
+    "residual_model",
+    "dwell",
+    "feed",
+    "path",
+    "tif",
+    "psd",
+    "psd_2d",
+    "psd_azimuthal",
+];
 
 /// Samples per side of the TIF plot's grid.
 const TIF_SAMPLES: usize = 121;
@@ -98,7 +118,10 @@ pub fn stage_solve_figures_with(
 ) -> Result<(Vec<Staged>, Vec<String>)> {
     let map = &setup.map;
     let (mx, my, z) = (map.x_mm(), map.y_mm(), map.z_nm());
-    let residual = &outcome.residual_nm;
+    // The removal and residual the headline states: the executed program's where the solve
+    // executed one, the model's at the programmed feeds drawn beside it.
+    let delivered = crate::residual::Delivered::of(z, outcome);
+    let residual = &delivered.residual_nm;
     let (px, py) = (setup.path.x_mm(), setup.path.y_mm());
     let dwell = &outcome.solution.dwell_s;
     let feeds = &outcome.feeds_mm_per_min;
@@ -114,15 +137,23 @@ pub fn stage_solve_figures_with(
         )?,
         stage_map_plot(
             &style.path(out_dir, "removal"),
-            "Predicted removal",
+            if delivered.executed {
+                "Predicted removal, program as executed"
+            } else {
+                "Predicted removal"
+            },
             "nm",
             mx,
             my,
-            &outcome.removal_nm,
+            delivered.removal_nm,
         )?,
         stage_map_plot_with(
             &style.path(out_dir, "residual"),
-            "Residual (piston removed)",
+            if delivered.executed {
+                "Residual, program as executed (piston removed)"
+            } else {
+                "Residual (piston removed)"
+            },
             "nm",
             mx,
             my,
@@ -147,6 +178,17 @@ pub fn stage_solve_figures_with(
         )?,
         stage_path_plot(&style.path(out_dir, "path"), "Dwell path", px, py)?,
     ];
+    if delivered.executed {
+        staged.push(stage_map_plot_with(
+            &style.path(out_dir, "residual_model"),
+            "Model residual at the programmed feeds (piston removed)",
+            "nm",
+            mx,
+            my,
+            &outcome.residual_nm,
+            style.color_limits,
+        )?);
+    }
     let radius = setup.tif.support_radius_mm();
     if radius.is_finite() && radius > 0.0 {
         let (mut tx, mut ty, mut tv) = (Vec::new(), Vec::new(), Vec::new());

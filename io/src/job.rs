@@ -317,6 +317,61 @@ pub struct ObjectiveWeights {
     pub lambda: f64,
 }
 
+/// Checks the `[machine]` limits a profile file gives that the job's own `[machine]` table
+/// (`job_machine`) does not replace ([`check_machine_limits`]).
+fn check_profile_machine(
+    own: &MachineSection,
+    job_machine: &toml::Table,
+) -> std::result::Result<(), preston_solver::Error> {
+    let from_profile = |key: &str, v: Option<f64>| v.filter(|_| !job_machine.contains_key(key));
+    check_machine_limits(&MachineSection {
+        v_max_mm_per_min: from_profile("v_max_mm_per_min", own.v_max_mm_per_min),
+        v_min_mm_per_min: from_profile("v_min_mm_per_min", own.v_min_mm_per_min),
+        a_max_mm_per_s2: from_profile("a_max_mm_per_s2", own.a_max_mm_per_s2),
+        corner_angle_deg: from_profile("corner_angle_deg", own.corner_angle_deg),
+        ..MachineSection::default()
+    })
+}
+
+/// Checks each machine limit `machine` gives (the feed limits, the acceleration limit and the
+/// corner angle) by the rule the set-up stage applies to it, so that a bad value is refused
+/// where it was given (a profile file, a flag) rather than blamed on the job later. The
+/// feed limits are checked against each other where both are given.
+pub fn check_machine_limits(
+    machine: &MachineSection,
+) -> std::result::Result<(), preston_solver::Error> {
+    let (v_max, v_min) = (machine.v_max_mm_per_min, machine.v_min_mm_per_min);
+    if let Some(v) = v_max {
+        FeedLimits {
+            v_max_mm_per_min: v,
+            v_min_mm_per_min: 0.0,
+        }
+        .validate()?;
+    }
+    if let Some(v) = v_min {
+        FeedLimits {
+            v_max_mm_per_min: v_max.unwrap_or(f64::MAX),
+            v_min_mm_per_min: v,
+        }
+        .validate()?;
+    }
+    if let Some(a) = machine.a_max_mm_per_s2 {
+        AccelLimits {
+            a_max_mm_per_s2: a,
+            ..AccelLimits::default()
+        }
+        .validate()?;
+    }
+    if let Some(c) = machine.corner_angle_deg {
+        AccelLimits {
+            corner_angle_deg: c,
+            ..AccelLimits::default()
+        }
+        .validate()?;
+    }
+    Ok(())
+}
+
 impl Job {
     /// Reads a job file; relative paths in it are resolved against its directory, and the
     /// machine profile it names (`[machine] profile`) is applied ([`Job::load_with_profile`]).
@@ -356,7 +411,15 @@ impl Job {
             why: crate::limits::quote_message(why.trim_end()),
         };
         // Typed first, for messages with the line at fault.
-        let _: ProfileFile = toml::from_str(&ptext).map_err(|e| job_error(e.to_string()))?;
+        let own: ProfileFile = toml::from_str(&ptext).map_err(|e| job_error(e.to_string()))?;
+        // The profile's own machine limits, where the job does not replace them, are checked
+        // here, so a bad one is blamed on the profile and its key.
+        let job_machine = match job_table.get("machine") {
+            Some(toml::Value::Table(t)) => t.clone(),
+            _ => toml::Table::new(),
+        };
+        check_profile_machine(&own.machine, &job_machine)
+            .map_err(|e| job_error(format!("[machine] {e}")))?;
         let mut merged: toml::Table = ptext
             .parse()
             .map_err(|e: toml::de::Error| job_error(e.to_string()))?;
@@ -387,10 +450,15 @@ impl Job {
             ..file.machine
         };
         parsed.nc = file.nc;
-        parsed
-            .nc
-            .validate()
-            .map_err(|e| Error::engine(job.unwrap_or(&profile), e))?;
+        // The merged `[nc]` is the profile's alone where the job has no `[nc]` table.
+        let nc_from = match job {
+            Some(j) if job_table.contains_key("nc") => j,
+            _ => &profile,
+        };
+        parsed.nc.validate().map_err(|e| Error::Job {
+            file: nc_from.to_path_buf(),
+            why: format!("[nc] {e}"),
+        })?;
         Ok(parsed)
     }
 
@@ -426,6 +494,31 @@ impl Job {
                 *p = base.join(&*p);
             }
         }
+    }
+
+    /// Every file the job reads (map, TIF, dwell, warm start, surface, polygon aperture and
+    /// each tool's TIF and dwell), as its paths stand (after [`Job::resolve_paths`], relative to
+    /// the working directory).
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        let mut files: Vec<PathBuf> = [
+            &self.map.file,
+            &self.tif.file,
+            &self.dwell.file,
+            &self.dwell.warm_start,
+            &self.surface.file,
+        ]
+        .into_iter()
+        .flatten()
+        .cloned()
+        .collect();
+        for t in &self.tool {
+            files.push(t.dwell.clone());
+            files.extend(t.tif.file.iter().cloned());
+        }
+        if let Some(ApertureSpec::PolygonFile(p)) = &self.map.aperture {
+            files.push(p.clone());
+        }
+        files
     }
 
     /// Parses job text; `path` names it in messages.

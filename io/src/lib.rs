@@ -16,6 +16,7 @@ pub mod metrology;
 pub mod overrides;
 pub mod readers;
 pub mod report;
+pub mod residual;
 pub mod surface;
 pub mod table;
 pub mod tools;

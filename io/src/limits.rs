@@ -144,7 +144,8 @@ pub fn read_regular(path: &Path, max_bytes: u64, what: &str) -> Result<Vec<u8>> 
 }
 
 /// Reads a whole regular text file (job, surface, JSON) of at most [`MAX_DOCUMENT_BYTES`]
-/// whose lines are all within the line limit.
+/// whose lines are all within the line limit. A leading UTF-8 byte-order mark (as some
+/// editors write) is dropped, as every table reader drops it.
 pub fn read_document(path: &Path, what: &str) -> Result<String> {
     let bytes = read_regular(path, MAX_DOCUMENT_BYTES, what)?;
     let max = max_line_bytes() as usize;
@@ -155,11 +156,15 @@ pub fn read_document(path: &Path, what: &str) -> Result<String> {
     {
         return Err(line_too_long(path, k as u64 + 1, max as u64));
     }
-    String::from_utf8(bytes).map_err(|e| Error::Csv {
+    let mut text = String::from_utf8(bytes).map_err(|e| Error::Csv {
         file: path.to_path_buf(),
         line: 0,
         why: format!("not valid UTF-8 ({e})"),
-    })
+    })?;
+    if text.starts_with('\u{feff}') {
+        text.drain(..'\u{feff}'.len_utf8());
+    }
+    Ok(text)
 }
 
 fn line_too_long(path: &Path, line: u64, max: u64) -> Error {

@@ -166,11 +166,86 @@ pub struct Overrides {
     pub tif_frame: Option<TifFrame>,
 }
 
+/// How the command line is named as the source of overrides ([`Overrides::apply`]): its
+/// messages name the flag at fault (`--raster-pitch-mm`); any other source the keyword
+/// (`raster_pitch_mm=`).
+pub const COMMAND_LINE: &str = "<command line>";
+
+/// The override `field` as its source spells it: the flag on the command line, the keyword
+/// elsewhere (the Python call).
+fn option_name(source: &Path, field: &str) -> String {
+    if source == Path::new(COMMAND_LINE) {
+        let flag = match field {
+            "v_max_mm_per_min" => "v-max".to_string(),
+            "v_min_mm_per_min" => "v-min".to_string(),
+            _ => field.replace('_', "-"),
+        };
+        format!("--{flag}")
+    } else {
+        format!("{field}=")
+    }
+}
+
 impl Overrides {
+    /// The values given that cannot be meant, refused naming the flag (or keyword) rather than
+    /// the job they would replace keys of: a raster pitch, the feed and acceleration limits
+    /// and the corner angle, each by the rule the set-up stage applies to it.
+    fn check_values(&self, source: &Path) -> Result<()> {
+        let refuse = |field: &str, why: String| {
+            Err(Error::Option {
+                option: option_name(source, field),
+                why,
+            })
+        };
+        if let Some(p) = self.raster_pitch_mm {
+            if !(p.is_finite() && p > 0.0) {
+                return refuse(
+                    "raster_pitch_mm",
+                    format!("the raster pitch must be positive, got {p} mm"),
+                );
+            }
+        }
+        let one = |field: &str, machine: crate::job::MachineSection| {
+            crate::job::check_machine_limits(&machine).or_else(|e| refuse(field, e.to_string()))
+        };
+        use crate::job::MachineSection as M;
+        one(
+            "v_max_mm_per_min",
+            M {
+                v_max_mm_per_min: self.v_max_mm_per_min,
+                ..M::default()
+            },
+        )?;
+        one(
+            "v_min_mm_per_min",
+            M {
+                v_min_mm_per_min: self.v_min_mm_per_min,
+                ..M::default()
+            },
+        )?;
+        one(
+            "a_max_mm_per_s2",
+            M {
+                a_max_mm_per_s2: self.a_max_mm_per_s2,
+                ..M::default()
+            },
+        )?;
+        one(
+            "corner_angle_deg",
+            M {
+                corner_angle_deg: self.corner_angle_deg,
+                ..M::default()
+            },
+        )
+    }
+
     /// Applies every override given over `job`; `source` names where they come from in
-    /// messages (the command line, the Python call). Refuses two overrides that exclude each
-    /// other (two TIFs, a dwell file and a raster pitch).
+    /// messages (the command line, [`COMMAND_LINE`], or the Python call). Refuses two
+    /// overrides that exclude each other (two TIFs, a dwell file and a raster pitch) and a
+    /// value that cannot be meant, naming the flag or keyword (a raster pitch, a machine
+    /// limit).
     pub fn apply(self, job: &mut Job, source: &Path) -> Result<()> {
+        self.check_values(source)?;
         let refuse = |why: &str| {
             Err(Error::Job {
                 file: source.to_path_buf(),

@@ -89,9 +89,16 @@ impl Solved {
         &self.outcome.solution
     }
 
-    /// Predicted removal at the map points, nm.
+    /// Predicted removal at the map points, nm, as the headline states it: the executed
+    /// program's where the solve executed one ([`crate::residual::Delivered`]), else the
+    /// model's at the programmed feeds.
     pub fn removal_nm(&self) -> &[f64] {
-        &self.outcome.removal_nm
+        crate::residual::executed_removal_nm(&self.outcome).unwrap_or(&self.outcome.removal_nm)
+    }
+
+    /// The removal and residual the headline (`report.json` `rms_after_nm`) states.
+    pub fn delivered(&self) -> crate::residual::Delivered<'_> {
+        crate::residual::Delivered::of(self.prepared.map().z_nm(), &self.outcome)
     }
 }
 
@@ -465,8 +472,9 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
     report
 }
 
-/// Writes `dwell.csv`, `residual.csv` and `report.json` into `out_dir` (created if needed). All
-/// three are fully written to temporary files before any is renamed into place.
+/// Writes `dwell.csv`, `residual.csv` and `report.json` (and `residual_model.csv` where the
+/// solve executed its program, [`crate::residual`]) into `out_dir` (created if needed). All are
+/// fully written to temporary files before any is renamed into place.
 pub fn write_outputs(solved: &Solved, out_dir: &Path) -> Result<()> {
     write_outputs_with_figures(solved, out_dir, None).map(|_| ())
 }
@@ -490,6 +498,13 @@ pub fn write_outputs_with_figures(
     )
 }
 
+/// The residual the headline states ([`crate::residual`]): the executed program's where the
+/// solve executed one, else the model's at the programmed feeds.
+pub const RESIDUAL_CSV: &str = "residual.csv";
+/// The model's residual at the programmed feeds, written beside [`RESIDUAL_CSV`] where that one
+/// is the executed program's.
+pub const RESIDUAL_MODEL_CSV: &str = "residual_model.csv";
+
 /// What a solve writes beside `dwell.csv`, `residual.csv` and `report.json`.
 #[derive(Debug, Clone, Default)]
 pub struct OutputOptions {
@@ -502,6 +517,39 @@ pub struct OutputOptions {
     pub html: Option<crate::html::Provenance>,
     /// How the figures are drawn.
     pub style: crate::figures::FigureStyle,
+    /// Replace an earlier solve's outputs: remove, with the commit, the files of
+    /// [`is_solve_output`] in the output directory that this solve does not write, except the
+    /// paths listed (the run's inputs). `None`: other files are left as they are.
+    pub replace_earlier: Option<Vec<PathBuf>>,
+}
+
+/// Whether `name` is the name of a file a solve writes into its output directory (single or
+/// several tools, with every figure and table option, in either figure format): what a later
+/// solve into the same directory replaces ([`OutputOptions::replace_earlier`]).
+pub fn is_solve_output(name: &str) -> bool {
+    const FILES: [&str; 8] = [
+        "dwell.csv",
+        RESIDUAL_CSV,
+        RESIDUAL_MODEL_CSV,
+        "report.json",
+        "report.html",
+        "psd.csv",
+        "psd_2d.csv",
+        "psd_azimuthal.csv",
+    ];
+    if FILES.contains(&name) {
+        return true;
+    }
+    if let Some(k) = name
+        .strip_prefix("dwell_tool")
+        .and_then(|r| r.strip_suffix(".csv"))
+    {
+        return !k.is_empty() && k.bytes().all(|b| b.is_ascii_digit());
+    }
+    match name.rsplit_once('.') {
+        Some((stem, "png" | "svg")) => crate::figures::SOLVE_FIGURES.contains(&stem),
+        _ => false,
+    }
 }
 
 /// Writes a solve's outputs as `options` asks: all staged first and committed together (the
@@ -530,6 +578,7 @@ pub fn write_solve_outputs(
     let p = &solved.prepared;
     let (map, path) = (p.map(), p.path());
     let o = &solved.outcome;
+    let delivered = solved.delivered();
     let mut staged = vec![
         stage_dwell_csv(
             &out_dir.join("dwell.csv"),
@@ -540,15 +589,26 @@ pub fn write_solve_outputs(
             &o.feeds_mm_per_min,
         )?,
         stage_residual_csv(
-            &out_dir.join("residual.csv"),
+            &out_dir.join(RESIDUAL_CSV),
+            map.x_mm(),
+            map.y_mm(),
+            map.z_nm(),
+            delivered.removal_nm,
+            &delivered.residual_nm,
+        )?,
+        stage_report(&out_dir.join("report.json"), &solved.report)?,
+    ];
+    if delivered.executed {
+        // The model's residual at the programmed feeds, named as what it is.
+        staged.push(stage_residual_csv(
+            &out_dir.join(RESIDUAL_MODEL_CSV),
             map.x_mm(),
             map.y_mm(),
             map.z_nm(),
             &o.removal_nm,
             &o.residual_nm,
-        )?,
-        stage_report(&out_dir.join("report.json"), &solved.report)?,
-    ];
+        )?);
+    }
     if let Some(provenance) = &options.html {
         let html_path = out_dir.join("report.html");
         let mut embedded = Vec::new();
@@ -579,6 +639,11 @@ pub fn write_solve_outputs(
     if options.plots {
         staged.extend(figures);
     }
-    commit_all(staged)?;
+    match &options.replace_earlier {
+        Some(keep) => {
+            crate::atomic::commit_replacing(staged, out_dir, &is_solve_output, keep)?;
+        }
+        None => commit_all(staged)?,
+    }
     Ok(notes)
 }

@@ -233,6 +233,9 @@ pub enum SolverLabel {
     Solver(SolverKind),
     /// A simulation of given dwell times, removal `R t` at the dwell points.
     Simulate,
+    /// A simulation of given dwell times under the swept influence model: `R t` with each
+    /// column the TIF averaged along its dwell point's stretch, the solver's default model.
+    SimulateSwept,
     /// A simulation of the continuous sweep with this many samples per dwell point.
     SimulateContinuous {
         /// Midpoint-rule samples per dwell point.
@@ -252,6 +255,7 @@ impl std::fmt::Display for SolverLabel {
         match self {
             SolverLabel::Solver(k) => f.write_str(&solver_name(*k)),
             SolverLabel::Simulate => f.write_str("simulate"),
+            SolverLabel::SimulateSwept => f.write_str("simulate-swept"),
             SolverLabel::SimulateContinuous { samples_per_point } => {
                 write!(f, "simulate-continuous-{samples_per_point}")
             }
@@ -272,6 +276,7 @@ impl std::str::FromStr for SolverLabel {
             "qp" => Ok(SolverLabel::Solver(SolverKind::Qp)),
             "first-order" => Ok(SolverLabel::Solver(SolverKind::FirstOrder)),
             "simulate" => Ok(SolverLabel::Simulate),
+            "simulate-swept" => Ok(SolverLabel::SimulateSwept),
             "simulate-program" => Ok(SolverLabel::SimulateProgram),
             _ => {
                 if let Some(n) = s.strip_prefix("simulate-continuous-") {
@@ -588,4 +593,9 @@ pub struct ToolReport {
     pub min_feed_mm_per_min: f64,
     /// Fastest feed of the tool, mm/min.
     pub max_feed_mm_per_min: f64,
+    /// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` between consecutive dwell points on a line of
+    /// the tool's path, mm/s^2 (the report's `max_accel_mm_per_s2` is the largest over the
+    /// tools).
+    #[serde(default)]
+    pub max_accel_mm_per_s2: f64,
 }

@@ -12,6 +12,7 @@ use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Problem};
 use preston_solver::influence::{InfluenceModel, TifFrame};
+use preston_solver::influence::{Stretches, SweptTif};
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
@@ -27,7 +28,7 @@ use preston_solver::setup::sensitivity::Sensitivity;
 use preston_solver::setup::{
     Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput, TifModel,
 };
-use preston_solver::simulate::{removal_nm, sample_program, Motion};
+use preston_solver::simulate::{removal_nm, sample_program, Motion, SampledProgram};
 use preston_solver::surface::Surface;
 use preston_solver::tif::Tif;
 use std::io::Write;
@@ -51,6 +52,18 @@ pub struct Simulated {
     pub report: Report,
 }
 
+/// How a dwell plan is run on the map by [`simulate`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlanMotion {
+    /// The tool swept along each dwell point's stretch of path at the point's feed, the TIF
+    /// averaged along the stretch exactly as the solver's swept influence model (its default)
+    /// does ([`preston_solver::influence::swept`]): the removal the plan itself predicts.
+    Swept,
+    /// One of the simulator's own motions: the tool dwelling at the points (the solver's point
+    /// influence model), or sweeping the path with a number of midpoint samples per point.
+    Sampled(Motion),
+}
+
 /// Simulates the dwell program in `dwell_file` (`x_mm,y_mm,dwell_s`, as `preston solve` writes it)
 /// on the map with `tif` under `motion`. With `limits`, `max_bound_violation_s` reports how far
 /// the program is outside the feed limits.
@@ -58,7 +71,7 @@ pub fn simulate(
     map_source: &MapSource,
     tif: &Tif,
     dwell_file: &Path,
-    motion: Motion,
+    motion: PlanMotion,
     limits: Option<&FeedLimits>,
     observer: &dyn Observer,
 ) -> Result<Simulated> {
@@ -73,10 +86,12 @@ pub fn simulate(
         SetupInput::None => Error::Solver(e.source),
         _ => Error::engine(dwell_file, e.source),
     };
-    let checked = Choices::evaluation(limits.copied())
-        .check(observer)
-        .map_err(at_fault)?;
-    let setup = Setup::resolve(
+    let mut choices = Choices::evaluation(limits.copied());
+    if motion == PlanMotion::Swept {
+        choices.settings.influence = InfluenceModel::Swept;
+    }
+    let checked = choices.check(observer).map_err(at_fault)?;
+    let mut setup = Setup::resolve(
         checked,
         SetupData {
             map,
@@ -88,29 +103,47 @@ pub fn simulate(
         observer,
     )
     .map_err(at_fault)?;
+    if motion == PlanMotion::Swept && setup.swept.is_none() {
+        // The solver's stretches and their quadrature (the set-up builds them itself only for
+        // a plan with feed limits).
+        let stretches = Stretches::of_path(&setup.path, default_sample_step_mm(&setup.tif))
+            .map_err(|e| Error::engine(dwell_file, e))?;
+        let kernel = SweptTif::new(setup.tif.clone(), stretches.dominant().0);
+        setup.swept = Some((stretches, kernel));
+    }
     let problem = setup.problem(observer).map_err(at_fault)?.problem;
     let build_seconds = start.elapsed().as_secs_f64();
     let sim_start = Instant::now();
     let removal = match motion {
-        Motion::Discrete => setup.removal_of(&problem, &dwell_s, observer)?,
-        Motion::Continuous { .. } => removal_nm(
+        PlanMotion::Swept | PlanMotion::Sampled(Motion::Discrete) => {
+            setup.removal_of(&problem, &dwell_s, observer)?
+        }
+        PlanMotion::Sampled(m @ Motion::Continuous { .. }) => removal_nm(
             setup.map.x_mm(),
             setup.map.y_mm(),
             &setup.path,
             &dwell_s,
             tif,
-            motion,
+            m,
             observer,
         )
         .map_err(|e| Error::engine(dwell_file, e))?,
     };
     // The same motion's removal with the TIF perturbed.
-    let sensitivity = sample_program(&setup.path, &dwell_s, motion)
+    let samples = match (motion, &setup.swept) {
+        (PlanMotion::Swept, Some((stretches, _))) => {
+            Ok(swept_samples(&setup.path, stretches, &dwell_s))
+        }
+        (PlanMotion::Sampled(m), _) => sample_program(&setup.path, &dwell_s, m),
+        (PlanMotion::Swept, None) => sample_program(&setup.path, &dwell_s, Motion::Discrete),
+    };
+    let sensitivity = samples
         .and_then(|samples| setup.sensitivity_of(&samples, &removal, observer))
         .map_err(|e| Error::engine(dwell_file, e))?;
     let label = match motion {
-        Motion::Discrete => SolverLabel::Simulate,
-        Motion::Continuous { samples_per_point } => {
+        PlanMotion::Swept => SolverLabel::SimulateSwept,
+        PlanMotion::Sampled(Motion::Discrete) => SolverLabel::Simulate,
+        PlanMotion::Sampled(Motion::Continuous { samples_per_point }) => {
             SolverLabel::SimulateContinuous { samples_per_point }
         }
     };
@@ -131,6 +164,24 @@ pub fn simulate(
         build_seconds,
         sim_start,
     )
+}
+
+/// The motion of dwell times `dwell_s` on `path` under the swept model: each dwell point's
+/// stretch samples carrying its dwell in proportion to their weights.
+fn swept_samples(path: &DwellPath, stretches: &Stretches, dwell_s: &[f64]) -> SampledProgram {
+    let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
+    for (j, &tj) in dwell_s.iter().enumerate() {
+        for &[dx, dy, w] in stretches.of(j) {
+            x.push(path.x_mm()[j] + dx);
+            y.push(path.y_mm()[j] + dy);
+            t.push(tj * w);
+        }
+    }
+    SampledProgram {
+        x_mm: x,
+        y_mm: y,
+        dwell_s: t,
+    }
 }
 
 /// A simulated sweep on the map: the dwell points it is reported on, their (executed) dwell, the

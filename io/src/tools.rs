@@ -11,6 +11,7 @@ pub use crate::report::ToolReport;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::{FeedLimits, Solution};
+use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
 pub use preston_solver::setup::tools::Tool;
@@ -167,13 +168,27 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
                 .into(),
         );
     }
+    // Each tool's feed schedule on its own path (its lines and corners at the job's corner
+    // angle): the largest acceleration its feeds ask of the machine.
+    let schedules = setup
+        .tools
+        .iter()
+        .zip(&dwell_s)
+        .map(|(tool, t)| FeedSchedule::new(&tool.path, t, None, job.corner_angle_deg()))
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(|e| Error::engine(job_path, e))?;
+    report.max_accel_mm_per_s2 = schedules
+        .iter()
+        .map(|f| f.max_accel_mm_per_s2)
+        .fold(0.0, f64::max);
     report.tools = setup
         .tools
         .iter()
         .zip(&dwell_s)
         .zip(&tool_removal_nm)
+        .zip(&schedules)
         .enumerate()
-        .map(|(i, ((tool, t), h))| {
+        .map(|(i, (((tool, t), h), schedule))| {
             let stats = HeightStats::of(h);
             let feeds = feeds_mm_per_min(&tool.ds_mm, t);
             let moving: Vec<f64> = feeds.iter().copied().filter(|&f| f > 0.0).collect();
@@ -193,6 +208,7 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
                     .fold(f64::INFINITY, f64::min)
                     .min(f64::MAX),
                 max_feed_mm_per_min: moving.iter().copied().fold(0.0, f64::max),
+                max_accel_mm_per_s2: schedule.max_accel_mm_per_s2,
             }
         })
         .collect();
@@ -208,8 +224,14 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
 }
 
 /// Writes `dwell_tool1.csv`, `dwell_tool2.csv`, ..., `residual.csv` and `report.json` into
-/// `out_dir`, all staged before any is renamed into place.
-pub fn write_tool_outputs(solved: &MultiSolved, out_dir: &Path) -> Result<()> {
+/// `out_dir`, all staged before any is renamed into place. With `replace_earlier`, an earlier
+/// solve's outputs that this one does not write are removed with the commit, except the paths
+/// listed (the run's inputs; [`crate::pipeline::OutputOptions::replace_earlier`]).
+pub fn write_tool_outputs(
+    solved: &MultiSolved,
+    out_dir: &Path,
+    replace_earlier: Option<&[std::path::PathBuf]>,
+) -> Result<()> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let mut staged = Vec::new();
     for (k, (tool, t)) in solved.tools.iter().zip(&solved.dwell_s).enumerate() {
@@ -233,5 +255,14 @@ pub fn write_tool_outputs(solved: &MultiSolved, out_dir: &Path) -> Result<()> {
         &solved.residual_nm,
     )?);
     staged.push(stage_report(&out_dir.join("report.json"), &solved.report)?);
-    commit_all(staged)
+    match replace_earlier {
+        Some(keep) => crate::atomic::commit_replacing(
+            staged,
+            out_dir,
+            &crate::pipeline::is_solve_output,
+            keep,
+        )
+        .map(|_| ()),
+        None => commit_all(staged),
+    }
 }

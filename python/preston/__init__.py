@@ -142,8 +142,14 @@ class SolveResult:
     * ``ds_mm`` -- path length each dwell point stands for, mm.
     * ``dwell_x_mm``, ``dwell_y_mm`` -- the dwell points, mm.
     * ``map_x_mm``, ``map_y_mm``, ``z_nm`` -- the map points kept, mm, and their error, nm.
-    * ``removal_nm`` -- predicted removal at each map point, nm.
-    * ``residual_nm`` -- ``z_nm - removal_nm`` with its mean removed (as in residual.csv), nm.
+    * ``removal_nm`` -- predicted removal at each map point as the report states it: the
+      program as the controller runs it where the solve executes it (an acceleration limit),
+      else the model's at the programmed feeds, nm.
+    * ``residual_nm`` -- ``z_nm - removal_nm`` with its mean removed (as in residual.csv; its
+      RMS is ``report["rms_after_nm"]``), nm.
+    * ``model_removal_nm``, ``model_residual_nm`` -- the model's removal and residual at the
+      programmed feeds (as in residual_model.csv where a program is executed; otherwise equal
+      to ``removal_nm`` and ``residual_nm``), nm.
     * ``report`` -- dict with the keys of ``report.json`` (RMS/PV before and after in nm, total
       dwell s, machining time s, solver, status, iterations, warnings, ...).
     * ``status`` (str), ``converged`` (bool) -- the solver's status.
@@ -168,6 +174,8 @@ class SolveResult:
         "z_nm",
         "removal_nm",
         "residual_nm",
+        "model_removal_nm",
+        "model_residual_nm",
         "report",
         "status",
         "converged",
@@ -186,6 +194,8 @@ class SolveResult:
         self.z_nm = native.z_nm
         self.removal_nm = native.removal_nm
         self.residual_nm = native.residual_nm
+        self.model_removal_nm = native.model_removal_nm
+        self.model_residual_nm = native.model_residual_nm
         self.report = json.loads(native.report_json)
         self.status = native.status
         self.converged = native.converged
@@ -193,14 +203,13 @@ class SolveResult:
         self.program_check = None if check is None else json.loads(check)
 
     def grid(self, values: str = "residual_nm") -> Grid:
-        """The map quantity ``values`` (``"z_nm"``, ``"removal_nm"`` or ``"residual_nm"``) on the
-        map's lattice: a :class:`Grid` ``(x_mm, y_mm, values)`` with ``values[j, i]`` at
-        ``(x_mm[i], y_mm[j])``, NaN where the lattice has no point. A map off a lattice raises
-        :class:`InputError`."""
-        if values not in ("z_nm", "removal_nm", "residual_nm"):
-            raise InputError(
-                f"values={values!r}: one of 'z_nm', 'removal_nm', 'residual_nm'"
-            )
+        """The map quantity ``values`` (``"z_nm"``, ``"removal_nm"``, ``"residual_nm"``,
+        ``"model_removal_nm"`` or ``"model_residual_nm"``) on the map's lattice: a :class:`Grid`
+        ``(x_mm, y_mm, values)`` with ``values[j, i]`` at ``(x_mm[i], y_mm[j])``, NaN where the
+        lattice has no point. A map off a lattice raises :class:`InputError`."""
+        allowed = ("z_nm", "removal_nm", "residual_nm", "model_removal_nm", "model_residual_nm")
+        if values not in allowed:
+            raise InputError(f"values={values!r}: one of {', '.join(map(repr, allowed))}")
         return _grid(self.map_x_mm, self.map_y_mm, getattr(self, values), "map")
 
     @property
@@ -215,8 +224,14 @@ class SolveResult:
 
     @property
     def residual_grid(self) -> Grid:
-        """The residual (mean removed) on the map's lattice."""
+        """The residual (mean removed) on the map's lattice, as the report states it (the
+        program as executed where the solve executes it)."""
         return self.grid("residual_nm")
+
+    @property
+    def model_residual_grid(self) -> Grid:
+        """The model's residual at the programmed feeds (mean removed) on the map's lattice."""
+        return self.grid("model_residual_nm")
 
     def write(
         self,

@@ -52,10 +52,17 @@ class SolveResult:
         """Map error, nm."""
     @property
     def removal_nm(self) -> F64:
-        """Predicted removal at the map points, nm."""
+        """Predicted removal at the map points as the report states it (the program as executed
+        where the solve executes it), nm."""
     @property
     def residual_nm(self) -> F64:
-        """``z - removal`` with its mean removed, nm."""
+        """``z - removal`` with its mean removed (its RMS is ``rms_after_nm``), nm."""
+    @property
+    def model_removal_nm(self) -> F64:
+        """The model's removal at the programmed feeds, nm."""
+    @property
+    def model_residual_nm(self) -> F64:
+        """The model's residual at the programmed feeds with its mean removed, nm."""
     @property
     def report_json(self) -> str:
         """The content of report.json."""

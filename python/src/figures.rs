@@ -75,7 +75,7 @@ pub(crate) fn psd<'py>(
 ) -> PyResult<(Array<'py>, Array<'py>, Array<'py>, String)> {
     let map = solved.prepared.map();
     let (x, y, z) = (map.x_mm(), map.y_mm(), map.z_nm());
-    let residual = &solved.outcome.residual_nm;
+    let residual = &solved.delivered().residual_nm;
     let (before, after) = py
         .detach(|| Ok((line_psd(x, y, z, axis)?, line_psd(x, y, residual, axis)?)))
         .map_err(|e| to_py(preston_io::Error::engine("psd", e)))?;

@@ -62,14 +62,28 @@ impl SolveResult {
     fn z_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
         array(py, self.solved.prepared.map().z_nm())
     }
-    /// Predicted removal at each map point, nm.
+    /// Predicted removal at each map point, nm, as the report states it: the program as
+    /// executed where the solve executes it (an acceleration limit), else the model's.
     #[getter]
     fn removal_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
         array(py, self.solved.removal_nm())
     }
-    /// Residual `z - removal` at each map point with its mean removed (as in residual.csv), nm.
+    /// Residual `z - removal` at each map point with its mean removed (as in residual.csv; its
+    /// RMS is the report's `rms_after_nm`), nm.
     #[getter]
     fn residual_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        array(py, &self.solved.delivered().residual_nm)
+    }
+    /// The model's removal `R t` at the programmed feeds at each map point, nm (equal to
+    /// `removal_nm` where no program is executed).
+    #[getter]
+    fn model_removal_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        array(py, &self.solved.outcome.removal_nm)
+    }
+    /// The model's residual at the programmed feeds with its mean removed (as in
+    /// residual_model.csv; equal to `residual_nm` where no program is executed), nm.
+    #[getter]
+    fn model_residual_nm<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
         array(py, &self.solved.outcome.residual_nm)
     }
     /// The report as JSON text (the content of report.json).
@@ -138,6 +152,7 @@ impl SolveResult {
                 color_limits,
                 format,
             },
+            replace_earlier: None,
         };
         py.detach(|| pipeline::write_solve_outputs(&self.solved, &out_dir, &options))
             .map_err(to_py)

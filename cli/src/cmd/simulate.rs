@@ -1,5 +1,5 @@
-//! `preston simulate`: the removal a dwell plan produces (discrete or continuous motion), or the
-//! removal a G-code program produces as the machine runs it (`--program`).
+//! `preston simulate`: the removal a dwell plan produces (swept, discrete or continuous motion),
+//! or the removal a G-code program produces as the machine runs it (`--program`).
 
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::tif_source::TifArgs;
@@ -9,7 +9,8 @@ use anyhow::Context;
 use preston_io::job::{Job, MapSource};
 use preston_io::pipeline::load_tif;
 use preston_io::simulation::{
-    simulate, simulate_program, write_program_simulation, write_simulation, ProgramOptions,
+    simulate, simulate_program, write_program_simulation, write_simulation, PlanMotion,
+    ProgramOptions,
 };
 use preston_io::surface::read_surface;
 use preston_solver::dwell::FeedLimits;
@@ -24,9 +25,13 @@ use std::process::ExitCode;
 /// Motion model on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum MotionArg {
-    /// The tool dwells at the points (the solver's model).
+    /// The tool sweeps each dwell point's stretch of path at its feed, the TIF averaged along
+    /// it: the solver's default (swept) influence model, so the plan's own prediction.
+    Swept,
+    /// The tool dwells at the points: the solver's point influence model (`--influence point`).
     Discrete,
-    /// The tool sweeps the path at the scheduled feeds.
+    /// The tool sweeps the path at the scheduled feeds, --samples-per-point midpoint samples per
+    /// dwell point.
     Continuous,
 }
 
@@ -98,8 +103,9 @@ pub struct Args {
     /// (default: the machine profile's [nc] tool_radius_mm).
     #[arg(long, value_name = "MM", allow_negative_numbers = true)]
     pub tool_radius_mm: Option<f64>,
-    /// Motion model.
-    #[arg(long, value_enum, default_value = "discrete")]
+    /// Motion model; the default, swept, is the solver's default influence model, so a plan
+    /// solved with it is simulated as it was planned.
+    #[arg(long, value_enum, default_value = "swept")]
     pub motion: MotionArg,
     /// Midpoint-rule samples per dwell point for continuous motion.
     #[arg(long, default_value_t = 8)]
@@ -174,10 +180,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         anyhow::bail!("give --dwell (a plan) or --program (a G-code program)");
     };
     let motion = match args.motion {
-        MotionArg::Discrete => Motion::Discrete,
-        MotionArg::Continuous => Motion::Continuous {
+        MotionArg::Swept => PlanMotion::Swept,
+        MotionArg::Discrete => PlanMotion::Sampled(Motion::Discrete),
+        MotionArg::Continuous => PlanMotion::Sampled(Motion::Continuous {
             samples_per_point: args.samples_per_point,
-        },
+        }),
     };
     let limits = args.v_max_mm_per_min.map(|v| FeedLimits {
         v_max_mm_per_min: v,

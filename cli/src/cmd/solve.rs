@@ -98,7 +98,7 @@ impl Args {
         let job_path = self
             .job
             .clone()
-            .unwrap_or_else(|| PathBuf::from("<command line>"));
+            .unwrap_or_else(|| PathBuf::from(preston_io::overrides::COMMAND_LINE));
         self.map_input.apply(&mut job.map);
         if let Some(p) = self.map_pitch.pitch_mm {
             job.map.pitch_mm = Some(p);
@@ -134,7 +134,7 @@ impl Args {
             ),
             None => None,
         };
-        overrides.apply(&mut job, Path::new("<command line>"))?;
+        overrides.apply(&mut job, Path::new(preston_io::overrides::COMMAND_LINE))?;
         Ok((job, job_path, self.out, self.accept_best_iterate))
     }
 }
@@ -198,7 +198,7 @@ fn run_tools(
 ) -> anyhow::Result<ExitCode> {
     let bars = Bars::new();
     let solved = preston_io::tools::solve_tools(job, job_path, &bars)?;
-    preston_io::tools::write_tool_outputs(&solved, out)
+    preston_io::tools::write_tool_outputs(&solved, out, Some(&job.input_files()))
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     let r = &solved.report;
     crate::note!(
@@ -304,6 +304,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             )
         }),
         style,
+        // The outputs of a run are the run's: an earlier solve's files this one does not write
+        // go with the commit (never the run's own inputs).
+        replace_earlier: Some(job.input_files()),
     };
     let notes = pipeline::write_solve_outputs(&solved, &out, &options)
         .with_context(|| format!("writing outputs to {}", out.display()))?;

@@ -159,6 +159,53 @@ pub(crate) fn solve_with_rows(
     Ok((status, t, it))
 }
 
+/// Units of the QP's variables: the dwell times in `t_s` seconds and the heights (residual,
+/// piston, map) in `h_nm` nanometres. The problem is first solved in its own units
+/// ([`Scale::NONE`]); one that Clarabel then calls infeasible is solved again in units where
+/// the map, the removal at the lower bounds and the dwell that removes the map's largest height
+/// are all of order one ([`Scale::of`]): far-apart magnitudes (a single spike a million times
+/// the rest, a feed limit that puts every dwell at a million seconds) otherwise leave the
+/// interior-point method's equilibration short of a feasible point that exists.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Scale {
+    t_s: f64,
+    h_nm: f64,
+}
+
+impl Scale {
+    /// The problem's own units.
+    const NONE: Scale = Scale {
+        t_s: 1.0,
+        h_nm: 1.0,
+    };
+
+    /// Units of order one for `problem` under `bounds` (see the type's documentation).
+    fn of(problem: &Problem, bounds: &DwellBounds) -> Result<Self> {
+        let finite_max = |v: &mut dyn Iterator<Item = f64>| {
+            v.filter(|x| x.is_finite())
+                .fold(0.0f64, |a, b| a.max(b.abs()))
+        };
+        let z_max = finite_max(&mut problem.z_nm().iter().copied());
+        let rate_max = finite_max(
+            &mut problem
+                .require_matrix("the QP solver")?
+                .csc()
+                .values()
+                .iter()
+                .copied(),
+        );
+        let lower_max = finite_max(&mut bounds.lower_s().iter().copied());
+        let positive = |v: f64| if v.is_finite() && v > 0.0 { v } else { 1.0 };
+        let t_s = positive(if rate_max > 0.0 {
+            lower_max.max(z_max / rate_max)
+        } else {
+            lower_max
+        });
+        let h_nm = positive(z_max.max(rate_max * t_s));
+        Ok(Scale { t_s, h_nm })
+    }
+}
+
 fn run_with(
     problem: &Problem,
     bounds: &DwellBounds,
@@ -167,7 +214,39 @@ fn run_with(
     goal: Goal,
     observer: &dyn Observer,
 ) -> Result<(Status, Vec<f64>, usize, f64)> {
-    let data = build(problem, bounds, goal, extra)?;
+    let first = run_scaled(
+        problem,
+        bounds,
+        extra,
+        settings,
+        goal,
+        observer,
+        Scale::NONE,
+    )?;
+    if first.0 != Status::Infeasible {
+        return Ok(first);
+    }
+    let scale = Scale::of(problem, bounds)?;
+    if scale == Scale::NONE {
+        return Ok(first);
+    }
+    let second = run_scaled(problem, bounds, extra, settings, goal, observer, scale)?;
+    Ok((second.0, second.1, first.2 + second.2, second.3))
+}
+
+/// One Clarabel solve of the QP in the units `scale`; returns the status, `t` (s), the
+/// iterations and the objective (in the problem's units).
+#[allow(clippy::too_many_arguments)]
+fn run_scaled(
+    problem: &Problem,
+    bounds: &DwellBounds,
+    extra: Option<&ExtraRows>,
+    settings: &Settings,
+    goal: Goal,
+    observer: &dyn Observer,
+    scale: Scale,
+) -> Result<(Status, Vec<f64>, usize, f64)> {
+    let data = build(problem, bounds, goal, extra, scale)?;
     let cl_settings = DefaultSettings::<f64> {
         verbose: settings.verbose,
         max_iter: u32::try_from(settings.max_iterations).unwrap_or(u32::MAX),
@@ -191,7 +270,7 @@ fn run_with(
     solver.solve();
     let sol = &solver.solution;
     let n = problem.n();
-    let t: Vec<f64> = sol.x.iter().take(n).copied().collect();
+    let t: Vec<f64> = sol.x.iter().take(n).map(|v| v * scale.t_s).collect();
     if t.len() != n {
         return Err(Error::Numerical {
             stage: "QP solve",
@@ -203,11 +282,15 @@ fn run_with(
         objective: sol.obj_val,
         kkt_residual: None,
     });
+    let objective_scale = match goal {
+        Goal::Contract => scale.h_nm * scale.h_nm,
+        Goal::MinTime { .. } => scale.t_s,
+    };
     Ok((
         status_of(sol.status),
         t,
         sol.iterations as usize,
-        sol.obj_val,
+        sol.obj_val * objective_scale,
     ))
 }
 
@@ -219,16 +302,22 @@ struct QpData {
     cones: Vec<SupportedConeT<f64>>,
 }
 
-/// Assembles `P` (upper triangle), `q`, `A`, `b` and the cones, column by column.
+/// Assembles `P` (upper triangle), `q`, `A`, `b` and the cones, column by column, in the
+/// units `scale`: `t = t_s tau`, `(c, r, z) = h_nm (gamma, rho, zeta)`, the objective over
+/// `h_nm^2` (the contract) or `t_s` (minimum time). [`Scale::NONE`] gives the problem as
+/// stated, every coefficient exactly as in its own units.
 fn build(
     problem: &Problem,
     bounds: &DwellBounds,
     goal: Goal,
     extra: Option<&ExtraRows>,
+    scale: Scale,
 ) -> Result<QpData> {
+    let Scale { t_s, h_nm } = scale;
     let (m, n) = (problem.m(), problem.n());
     let nv = n + 1 + m;
-    let lambda = problem.lambda();
+    // The smoothing weight on `tau`: `lambda t_s^2 / h_nm^2`.
+    let lambda = problem.lambda() * (t_s / h_nm) * (t_s / h_nm);
     if bounds.len() != n {
         return Err(Error::LengthMismatch {
             what: "dwell bounds",
@@ -272,7 +361,7 @@ fn build(
     }
     let mut q = vec![0.0; nv];
     let t_weight = match goal {
-        Goal::Contract => problem.rho(),
+        Goal::Contract => problem.rho() * t_s / (h_nm * h_nm),
         Goal::MinTime { .. } => 1.0,
     };
     for qj in q.iter_mut().take(n) {
@@ -292,10 +381,12 @@ fn build(
     let mut a_rows = Vec::with_capacity(csc.nnz() + 3 * n + 2 * m + m);
     let mut a_vals = Vec::with_capacity(a_rows.capacity());
     a_colptr.push(0);
+    // `R t` in heights of `h_nm`: `R (t_s / h_nm)` on `tau`.
+    let r_scale = t_s / h_nm;
     for j in 0..n {
         let (s, e) = (r_off[j], r_off[j + 1]);
         a_rows.extend_from_slice(&r_rows[s..e]);
-        a_vals.extend_from_slice(&r_vals[s..e]);
+        a_vals.extend(r_vals[s..e].iter().map(|v| v * r_scale));
         a_rows.push(m + j);
         a_vals.push(-1.0);
         if nu > 0 {
@@ -311,7 +402,7 @@ fn build(
             entries.sort_by_key(|e| e.0);
             for (r, v) in entries {
                 a_rows.push(r);
-                a_vals.push(v);
+                a_vals.push(v * t_s);
             }
         }
         if soc_len > 0 && soc_d_rows > 0 {
@@ -343,16 +434,16 @@ fn build(
     }
 
     let mut b = Vec::with_capacity(n_rows);
-    b.extend_from_slice(problem.z_nm());
-    b.extend(bounds.lower_s().iter().map(|l| -l));
+    b.extend(problem.z_nm().iter().map(|z| z / h_nm));
+    b.extend(bounds.lower_s().iter().map(|l| -(l / t_s)));
     if let Some(u) = upper {
-        b.extend_from_slice(u);
+        b.extend(u.iter().map(|u| u / t_s));
     }
     if let Some(e) = extra {
         b.extend_from_slice(&e.rhs);
     }
     if soc_len > 0 {
-        b.push((2.0 * cap).sqrt());
+        b.push((2.0 * cap).sqrt() / h_nm);
         b.extend(std::iter::repeat_n(0.0, soc_len - 1));
     }
     let mut cones = vec![
