@@ -107,6 +107,9 @@ enum Command {
     Iterate(cmd::iterate::Args),
     /// Learn the tool that actually ran from the maps before and after a run and its program.
     Calibrate(cmd::calibrate::Args),
+    /// A virtual shop: run a program with a tool unlike its spot test, measure like an
+    /// interferometer.
+    Shop(cmd::shop::Args),
     /// Shell completions for bash, zsh, fish or PowerShell, on stdout.
     Completions(CompletionsArgs),
 }
@@ -172,6 +175,7 @@ fn main() -> ExitCode {
         Command::Simulate(args) => cmd::simulate::run(args),
         Command::Iterate(args) => cmd::iterate::run(args),
         Command::Calibrate(args) => cmd::calibrate::run(args),
+        Command::Shop(args) => cmd::shop::run(args),
         Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
         Command::Completions(args) => completions(args),

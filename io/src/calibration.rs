@@ -336,6 +336,11 @@ fn tif_csv(tif: &GridTif) -> String {
     text
 }
 
+/// SHA-256 of a TIF grid as `tif.csv` holds it.
+pub fn tif_digest(tif: &GridTif) -> String {
+    crate::digest::sha256_hex(tif_csv(tif).as_bytes())
+}
+
 /// Writes `calibration.json`, `tif.csv` and, with `figures`, the measured and simulated removal,
 /// their difference and the calibrated TIF, all or none.
 pub fn write_calibration(

@@ -137,6 +137,16 @@ pub struct TifSource {
     /// `R_eff = sqrt(R' R'')`); needs a design surface.
     #[serde(default)]
     pub curvature_dependent: bool,
+    /// A calibration of the tool (`calibration.json` of `preston calibrate`): the plan includes
+    /// its drift and the expected result draws from its uncertainty; its calibrated TIF is the
+    /// job's TIF when `file`, `gaussian` and `hertz` are not set.
+    pub calibration: Option<PathBuf>,
+    /// Relative standard deviation of the TIF's rate before any calibration (default 0.07).
+    pub rate_sigma: Option<f64>,
+    /// Relative standard deviation of its width before any calibration (default 0.05).
+    pub width_sigma: Option<f64>,
+    /// Standard deviation of where the tool lands, mm, along each axis (default 0.2).
+    pub offset_sigma_mm: Option<f64>,
 }
 
 /// The one TIF source a job names ([`TifSource::resolve`]).
@@ -468,6 +478,7 @@ impl Job {
         for p in [
             &mut self.map.file,
             &mut self.tif.file,
+            &mut self.tif.calibration,
             &mut self.dwell.file,
             &mut self.dwell.warm_start,
             &mut self.surface.file,

@@ -43,6 +43,11 @@ pub struct Overrides {
     /// Pitch of the grid on which the Hertz model on a flat part is sampled, mm.
     #[cfg_attr(feature = "clap", arg(long, value_name = "MM"))]
     pub tif_pitch_mm: Option<f64>,
+    /// A calibration of the tool (calibration.json of `preston calibrate`): the plan includes the
+    /// tool's drift, report.json's expected_rms_nm draws from its uncertainty; its calibrated
+    /// TIF (tif.csv beside it) is the TIF unless one is given.
+    #[cfg_attr(feature = "clap", arg(long, value_name = "calibration.json"))]
+    pub calibration: Option<PathBuf>,
     /// With the Hertz model: one TIF per dwell point, its effective radius from the design
     /// surface's principal curvatures there (needs --surface or the job's [surface]).
     #[cfg_attr(
@@ -313,6 +318,14 @@ impl Overrides {
     /// The TIF overrides: a file or a Gaussian model replaces the whole `[tif]`; a Hertzian tool
     /// keeps its sampling pitch and curvature dependence; then those two are set if given.
     fn apply_tif(&self, job: &mut Job) {
+        // What the job knows of the tool's uncertainty stays with a replaced source.
+        let known = TifSource {
+            calibration: job.tif.calibration.clone(),
+            rate_sigma: job.tif.rate_sigma,
+            width_sigma: job.tif.width_sigma,
+            offset_sigma_mm: job.tif.offset_sigma_mm,
+            ..TifSource::default()
+        };
         if let Some(f) = &self.tif {
             job.tif = TifSource {
                 file: Some(f.clone()),
@@ -335,6 +348,10 @@ impl Overrides {
         }
         set_some(&mut job.tif.pitch_mm, self.tif_pitch_mm);
         set(&mut job.tif.curvature_dependent, self.curvature_dependent);
+        job.tif.calibration = self.calibration.clone().or(known.calibration);
+        job.tif.rate_sigma = known.rate_sigma;
+        job.tif.width_sigma = known.width_sigma;
+        job.tif.offset_sigma_mm = known.offset_sigma_mm;
     }
 }
 

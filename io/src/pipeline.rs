@@ -1,6 +1,7 @@
 //! The solve pipeline: job -> inputs -> influence matrix -> problem -> solution -> output files.
 
 use crate::atomic::commit_all;
+use crate::calibration::{read_calibration, CalibrationRecord};
 use crate::error::{Error, Result};
 use crate::job::{DwellInput, Job, TifInput};
 use crate::machine::read_dwell_times;
@@ -9,6 +10,9 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{ExecutedReport, Report, ResidualFigures, RobustReport};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
+use preston_solver::calibrate::{
+    expected_reading, map_noise_rms_nm, ContactMotion, Expected, ToolUncertainty,
+};
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
 use preston_solver::machine::nc::{NcProgram, NcSettings};
@@ -45,6 +49,10 @@ pub struct Prepared {
     pub warnings: Vec<String>,
     /// A robust plan's scenario weights (`None` for a nominal plan).
     pub scenario_weights: Option<Vec<f64>>,
+    /// The tool's calibration, when the job names one.
+    pub calibration: Option<CalibrationRecord>,
+    /// How well the tool of this run is known (the expected result draws from it).
+    pub uncertainty: ToolUncertainty,
 }
 
 impl Prepared {
@@ -141,6 +149,8 @@ pub struct Inputs {
     /// The dwell points; `None`: the job's `[dwell] raster_pitch_mm` generates a serpentine
     /// raster.
     pub dwell: Option<DwellFile>,
+    /// The tool's calibration (`[tif] calibration`).
+    pub calibration: Option<CalibrationRecord>,
 }
 
 /// The job's choices validated once (the set-up stage's [`Choices::check`]), `job_path` naming
@@ -182,9 +192,18 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         }
         None => job.map.read()?,
     };
-    let tif = match given.tif {
-        Some(t) => t,
-        None => load_tif(job, job_path)?,
+    let calibration = job
+        .tif
+        .calibration
+        .as_deref()
+        .map(read_calibration)
+        .transpose()?;
+    let source_given =
+        job.tif.file.is_some() || job.tif.gaussian.is_some() || job.tif.hertz.is_some();
+    let tif = match (given.tif, &calibration) {
+        (Some(t), _) => t,
+        (None, Some(c)) if !source_given => Tif::Grid(read_tif(&c.tif_file)?),
+        (None, _) => load_tif(job, job_path)?,
     };
     let dwell = match given.dwell {
         Some(d) => Some(d),
@@ -193,7 +212,12 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
             DwellInput::Raster { .. } => None,
         },
     };
-    Ok(Inputs { map, tif, dwell })
+    Ok(Inputs {
+        map,
+        tif,
+        dwell,
+        calibration,
+    })
 }
 
 /// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
@@ -244,6 +268,7 @@ fn prepare_checked(
         map: map_file,
         tif,
         dwell,
+        calibration,
     } = inputs;
     // Points handed over already read (the Python package's arrays) need no `[dwell]` section.
     let resolved = match (&dwell, &job.dwell.file, job.dwell.raster_pitch_mm) {
@@ -282,7 +307,15 @@ fn prepare_checked(
     if let Some(w) = tif_wider_than_map(&map_file.map, &tif, map_path) {
         warnings.push(w);
     }
-    let setup = Setup::resolve(
+    if let (Some(c), Tif::Grid(g)) = (&calibration, &tif) {
+        if !c.tif_sha256.is_empty() && crate::calibration::tif_digest(g) != c.tif_sha256 {
+            warnings.push(format!(
+                "the TIF is not the calibrated one ({}): the calibration's figures describe that TIF",
+                c.tif_file.display()
+            ));
+        }
+    }
+    let mut setup = Setup::resolve(
         checked,
         SetupData {
             map: map_file.map,
@@ -294,6 +327,7 @@ fn prepare_checked(
         observer,
     )
     .map_err(at_fault)?;
+    setup.rate_drift_per_hour = calibration.as_ref().map_or(0.0, |c| c.drift_per_hour);
     let built = setup.problem(observer).map_err(at_fault)?;
     warnings.extend(built.warnings);
     Ok(Prepared {
@@ -305,7 +339,42 @@ fn prepare_checked(
         build_seconds: started.elapsed().as_secs_f64(),
         warnings,
         scenario_weights: built.scenario_weights,
+        uncertainty: tool_uncertainty(job, calibration.as_ref()),
+        calibration,
     })
+}
+
+/// Relative run-to-run wander of the rate a calibrated plan allows for: the rate learned from one
+/// run is the next run's to within this.
+pub const RUN_TO_RUN_RATE_SIGMA: f64 = 0.01;
+
+/// How well the tool of the next run is known: a calibration's figures and their uncertainty
+/// (its rate with [`RUN_TO_RUN_RATE_SIGMA`] beside), else the job's `[tif]` spot-test
+/// uncertainty (defaults [`ToolUncertainty::default`]). The noise is the calibration's, else
+/// estimated from the map.
+fn tool_uncertainty(job: &Job, calibration: Option<&CalibrationRecord>) -> ToolUncertainty {
+    match calibration {
+        Some(c) => ToolUncertainty {
+            rate_sigma: (c.rate_factor_sigma / c.rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA),
+            width_sigma: c.width_factor_sigma / c.width_factor,
+            offset_x_sigma_mm: c.offset_x_mm_sigma,
+            offset_y_sigma_mm: c.offset_y_mm_sigma,
+            // The plan's executed run already carries the calibrated drift.
+            drift_per_hour: 0.0,
+            drift_sigma_per_hour: c.drift_per_hour_sigma,
+            noise_rms_nm: c.noise_rms_nm,
+        },
+        None => {
+            let d = ToolUncertainty::default();
+            ToolUncertainty {
+                rate_sigma: job.tif.rate_sigma.unwrap_or(d.rate_sigma),
+                width_sigma: job.tif.width_sigma.unwrap_or(d.width_sigma),
+                offset_x_sigma_mm: job.tif.offset_sigma_mm.unwrap_or(d.offset_x_sigma_mm),
+                offset_y_sigma_mm: job.tif.offset_sigma_mm.unwrap_or(d.offset_y_sigma_mm),
+                ..d
+            }
+        }
+    }
 }
 
 /// A warning when the TIF's footprint (twice its support radius) is wider than the map in both
@@ -325,6 +394,78 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
     })
 }
 
+/// Draws for the expected reading.
+pub const EXPECTED_DRAWS: usize = 32;
+/// Seed of the expected reading's draws (a fixed seed: the same plan gives the same figures).
+const EXPECTED_SEED: u64 = 0x5eed_0f_7001;
+
+/// What the interferometer is expected to read after the plan's run
+/// ([`preston_solver::calibrate::expect`]): the executed program's contact motion where the plan
+/// has one (an acceleration limit), else the plan's own motion (each dwell point's stretch
+/// sampled at its time); on a flat part (`None` on a curved one).
+fn expected_of(prepared: &Prepared, outcome: &Outcome) -> Result<Option<Expected>> {
+    let setup = &prepared.setup;
+    if setup.surface.is_some() {
+        return Ok(None);
+    }
+    let map = &setup.map;
+    let (motion, removal) = match &outcome.executed {
+        Some(Ok(executed)) => {
+            let run = &executed.run;
+            (
+                ContactMotion {
+                    x_mm: run.contact.x_mm.clone(),
+                    y_mm: run.contact.y_mm.clone(),
+                    dwell_s: run.contact.dwell_s.clone(),
+                    time_s: run.contact_at_s.clone(),
+                },
+                run.removal_nm.clone(),
+            )
+        }
+        _ => {
+            let dwell = &outcome.solution.dwell_s;
+            let mut time = 0.0;
+            let time_s = dwell
+                .iter()
+                .map(|t| {
+                    time += t;
+                    time - t / 2.0
+                })
+                .collect();
+            (
+                ContactMotion {
+                    x_mm: setup.path.x_mm().to_vec(),
+                    y_mm: setup.path.y_mm().to_vec(),
+                    dwell_s: dwell.clone(),
+                    time_s,
+                },
+                outcome.removal_nm.clone(),
+            )
+        }
+    };
+    if motion.contact_time_s() <= 0.0 {
+        return Ok(None);
+    }
+    let mut uncertainty = prepared.uncertainty;
+    if prepared.calibration.is_none() {
+        uncertainty.noise_rms_nm = map_noise_rms_nm(map.x_mm(), map.y_mm(), map.z_nm());
+    }
+    let grid = crate::calibration::tif_grid(&setup.tif)?;
+    expected_reading(
+        map.x_mm(),
+        map.y_mm(),
+        map.z_nm(),
+        &removal,
+        &motion,
+        &grid,
+        &uncertainty,
+        EXPECTED_DRAWS,
+        EXPECTED_SEED,
+    )
+    .map(Some)
+    .map_err(Error::Solver)
+}
+
 /// Runs the solver on prepared inputs ([`Setup::solve`]: the acceleration-limited SCP with
 /// `[machine] a_max_mm_per_s2`, the dwell solver otherwise), builds the report from the outcome
 /// and checks the program of the job's machine for the plan ([`program_check`]).
@@ -334,6 +475,8 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
     if prepared.setup.settings.robust {
         report.robust = Some(robust_report(&prepared, &outcome, observer)?);
     }
+    let expected = expected_of(&prepared, &outcome)?;
+    report.set_expected(expected.as_ref());
     let program_check = program_check(&prepared.setup, &outcome, &job.nc_settings());
     Ok(Solved {
         prepared,

@@ -99,6 +99,24 @@ pub struct Report {
     /// a single tool.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub tools: Vec<ToolReport>,
+    /// What the interferometer is expected to read after the run, RMS, nm: the executed
+    /// residual under the tool as it is known (a calibration's uncertainty, else the spot
+    /// test's), with the measurement's noise, piston and tilt dropped; `rms_after_nm` is the
+    /// model's with the nominal tool.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub expected_rms_nm: Option<f64>,
+    /// Expected PV of that reading, nm.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub expected_pv_nm: Option<f64>,
+    /// 90% range of the expected RMS, nm.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub expected_rms_range_nm: Option<[f64; 2]>,
+    /// How the expected reading was drawn: the uncertainty, the nominal RMS, the draws.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub expected: Option<preston_solver::calibrate::Expected>,
+    /// Whether the run is expected to improve the part: its expected RMS below the measured one.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub run_pays: Option<bool>,
     /// Machining time of the feed schedule, s: every stretch at its point's feed (`sum t_j`),
     /// plus the acceleration ramps when `a_max` is set
     /// ([`preston_solver::machine::feeds`]). Set by [`Report::set_machine`].
@@ -539,6 +557,11 @@ impl Report {
             map_input: None,
             warnings: Vec::new(),
             tools: Vec::new(),
+            expected_rms_nm: None,
+            expected_pv_nm: None,
+            expected_rms_range_nm: None,
+            expected: None,
+            run_pays: None,
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,
             a_max_mm_per_s2: None,
@@ -559,6 +582,16 @@ impl Report {
 
     /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the
     /// acceleration-limited solve's account when there was one.
+    /// Sets the expected reading after the run and whether the run pays.
+    pub fn set_expected(&mut self, expected: Option<&preston_solver::calibrate::Expected>) {
+        self.expected_rms_nm = expected.map(|e| e.expected_rms_nm);
+        self.expected_pv_nm = expected.map(|e| e.expected_pv_nm);
+        self.expected_rms_range_nm = expected.map(|e| e.expected_rms_range_nm);
+        self.run_pays = expected.map(|e| e.expected_rms_nm < self.rms_before_nm);
+        self.expected = expected.cloned();
+    }
+
+    /// Sets the machine figures from the feed schedule and the acceleration account.
     pub fn set_machine(&mut self, schedule: &FeedSchedule, accel: Option<&AccelReport>) {
         self.machining_time_s = schedule.machining_time_s;
         self.max_accel_mm_per_s2 = schedule.max_accel_mm_per_s2;

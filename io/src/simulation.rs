@@ -397,6 +397,7 @@ pub fn simulate_program(
         removal_nm: removal,
         samples: n_samples,
         contact,
+        ..
     } = setup
         .run_program(
             &program,

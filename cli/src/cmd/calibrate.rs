@@ -53,7 +53,7 @@ pub struct Args {
     /// Fit a power term (x^2 + y^2) besides the piston and tilt each measurement drops.
     #[arg(long)]
     pub fit_power: bool,
-    /// Pitch of the convolution lattice, mm (default: the TIF's second-moment radius / 16).
+    /// Pitch of the convolution lattice, mm (default: the TIF's second-moment radius / 10).
     #[arg(long, value_name = "MM")]
     pub lattice_pitch_mm: Option<f64>,
     /// Write figures: measured and simulated removal, their difference, the calibrated TIF.

@@ -387,6 +387,29 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         },
         r.piston_nm
     );
+    if let (Some(e), Some([lo, hi])) = (&r.expected, r.expected_rms_range_nm) {
+        let u = &e.uncertainty;
+        crate::note!(
+            "  expected reading after the run: {:.3} nm RMS (90%: {:.3} .. {:.3} nm), PV {:.3} nm, with the tool known to {:.1}% in rate, {:.1}% in width, {:.3}/{:.3} mm in place and {:.3} nm of metrology noise",
+            e.expected_rms_nm,
+            lo,
+            hi,
+            e.expected_pv_nm,
+            100.0 * u.rate_sigma,
+            100.0 * u.width_sigma,
+            u.offset_x_sigma_mm,
+            u.offset_y_sigma_mm,
+            u.noise_rms_nm
+        );
+        if r.run_pays == Some(false) {
+            crate::errln!(
+                "  warning: this run is not expected to improve the part: {:.3} nm expected against {:.3} nm measured; the floor is the tool's uncertainty and the metrology noise ({:.3} nm); calibrate the tool or stop",
+                e.expected_rms_nm,
+                r.rms_before_nm,
+                u.noise_rms_nm
+            );
+        }
+    }
     crate::note!(
         "  total dwell {:.2} s, feed {:.1} .. {:.1} mm/min",
         r.total_dwell_s,

@@ -1,11 +1,12 @@
 //! The measured change of a run: the map before, resampled at the points of the map after.
 //!
 //! The map measured before is held on its own lattice (an interferometer's pixels, dropouts
-//! allowed) and read bicubically at the after map's points, moved by the shift `s` between the
-//! two measurements: `d_i(s) = B(x_i + s) - A(x_i)`. A point counts only where the before map
-//! has all sixteen nodes of the bicubic read around `x_i + s` for every shift up to one
-//! before-pixel, so the set of points and the interpolant do not change while the shift is
-//! fitted; the others (dropouts, edges, points outside) are skipped and counted.
+//! allowed) and read at the after map's points, moved by the shift `s` between the two
+//! measurements: `d_i(s) = B(x_i + s) - A(x_i)`, bicubically where the sixteen nodes around are
+//! present, bilinearly otherwise, the edge value up to one pixel beyond the edge. A point counts
+//! only where it lies inside the before map and the before map is defined around `x_i + s` for
+//! every shift up to one before-pixel, so the set of points does not change while the shift is
+//! fitted; the others (dropouts, points outside) are skipped and counted.
 
 use crate::error::{Error, Result};
 use crate::map::HeightMap;
@@ -95,12 +96,16 @@ impl GriddedMap {
     }
 
     /// The lattice cell of `(x, y)` and its fractions, when inside.
+    /// The lattice cell of `(x, y)` and its fractions; up to one pixel beyond the grid's edge
+    /// the edge value is taken (so a shifted read of an edge point stays defined).
     fn cell(&self, x: f64, y: f64) -> Option<(usize, usize, f64, f64)> {
+        let (max_x, max_y) = ((self.nx - 1) as f64, (self.ny - 1) as f64);
         let fx = (x - self.origin_mm.0) / self.pitch_mm.0;
         let fy = (y - self.origin_mm.1) / self.pitch_mm.1;
-        if !(fx >= 0.0 && fy >= 0.0) {
+        if !(fx >= -1.0 && fy >= -1.0 && fx <= max_x + 1.0 && fy <= max_y + 1.0) {
             return None;
         }
+        let (fx, fy) = (fx.clamp(0.0, max_x), fy.clamp(0.0, max_y));
         let (ix, iy) = (
             (fx.floor() as usize).min(self.nx.saturating_sub(2)),
             (fy.floor() as usize).min(self.ny.saturating_sub(2)),
@@ -198,11 +203,20 @@ impl MeasuredChange {
             skipped: 0,
         };
         for ((&x, &y), &z) in after.x_mm().iter().zip(after.y_mm()).zip(after.z_nm()) {
-            let covered = [-1.0, 0.0, 1.0].iter().all(|&sx| {
-                [-1.0, 0.0, 1.0]
-                    .iter()
-                    .all(|&sy| out.before.has_stencil(x + sx * px, y + sy * py))
-            });
+            let (fx, fy) = (
+                (x - out.before.origin_mm.0) / px,
+                (y - out.before.origin_mm.1) / py,
+            );
+            let inside = fx >= -ON_NODE_REL
+                && fy >= -ON_NODE_REL
+                && fx <= (out.before.nx - 1) as f64 + ON_NODE_REL
+                && fy <= (out.before.ny - 1) as f64 + ON_NODE_REL;
+            let covered = inside
+                && [-1.0, 0.0, 1.0].iter().all(|&sx| {
+                    [-1.0, 0.0, 1.0]
+                        .iter()
+                        .all(|&sy| out.before.at(x + sx * px, y + sy * py).is_some())
+                });
             if covered && z.is_finite() {
                 out.x_mm.push(x);
                 out.y_mm.push(y);

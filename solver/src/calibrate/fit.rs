@@ -30,11 +30,11 @@ const WIDTH: usize = 0;
 const SHIFT_X: usize = 7;
 const SHIFT_Y: usize = 8;
 /// Relative decrease of the cost below which a step counts as converged.
-const COST_REL_TOL: f64 = 1e-9;
+const COST_REL_TOL: f64 = 1e-7;
 /// Largest lag-one correlation of the residual taken into the variance inflation.
 const MAX_LAG_CORRELATION: f64 = 0.995;
 /// Lattice cells per second-moment radius of the footprint, by default.
-const CELLS_PER_RADIUS: f64 = 16.0;
+const CELLS_PER_RADIUS: f64 = 10.0;
 
 /// The nominal value of nonlinear figure `j`.
 fn nominal(j: usize) -> f64 {
@@ -62,6 +62,8 @@ struct Model<'a> {
     /// prior rows.
     sd: f64,
     free: Vec<usize>,
+    /// A removal held fixed beside the parametric one (the free-form correction's), nm.
+    extra_nm: Option<Vec<f64>>,
 }
 
 /// One evaluation: the residual and the linear coefficients.
@@ -138,7 +140,12 @@ impl Model<'_> {
         figures.offset_x_mm -= nl[SHIFT_X];
         figures.offset_y_mm -= nl[SHIFT_Y];
         let tif = self.spot.transformed(&figures);
-        let (change, weight) = self.change.weighted_change_nm((nl[SHIFT_X], nl[SHIFT_Y]));
+        let (mut change, weight) = self.change.weighted_change_nm((nl[SHIFT_X], nl[SHIFT_Y]));
+        if let Some(extra) = &self.extra_nm {
+            for (c, e) in change.iter_mut().zip(extra) {
+                *c -= e;
+            }
+        }
         (self.lattice.removal_parts(&tif), change, weight)
     }
 
@@ -333,6 +340,34 @@ fn neighbour_pairs(x: &[f64], y: &[f64]) -> [Vec<(usize, usize)>; 2] {
     pairs
 }
 
+/// The white noise of one map from its second differences along the lattice lines, nm RMS:
+/// `z_{i-1} - 2 z_i + z_{i+1}` has variance `6 σ²` for white noise and is blind to the map's
+/// slope, so `σ² = min over the axes of mean (second difference)² / 6` (structure at the pixel
+/// scale still counts as noise: an upper bound).
+pub(super) fn neighbour_noise(x: &[f64], y: &[f64], z: &[f64]) -> f64 {
+    let pairs = neighbour_pairs(x, y);
+    let mut best = f64::INFINITY;
+    for p in &pairs {
+        // Triples i -> j -> k along the axis.
+        let next: HashMap<usize, usize> = p.iter().copied().collect();
+        let (mut sum, mut count) = (0.0, 0usize);
+        for &(i, j) in p {
+            if let Some(&k) = next.get(&j) {
+                sum += (z[i] - 2.0 * z[j] + z[k]).powi(2);
+                count += 1;
+            }
+        }
+        if count >= 8 {
+            best = best.min(sum / count as f64 / 6.0);
+        }
+    }
+    if best.is_finite() {
+        best.sqrt()
+    } else {
+        0.0
+    }
+}
+
 /// The noise of one map (nm RMS) and the variance inflation of the residual's correlation.
 fn residual_statistics(x: &[f64], y: &[f64], r: &[f64]) -> (f64, f64) {
     let pairs = neighbour_pairs(x, y);
@@ -442,7 +477,7 @@ fn lattice_pitch(change: &MeasuredChange, spot: &SpotFootprint, given: Option<f6
 /// Relative change of the data's standard deviation below which the fit is not repeated.
 const SD_REL_TOL: f64 = 0.2;
 /// Most fits with an updated data standard deviation.
-const MAX_PASSES: usize = 4;
+const MAX_PASSES: usize = 3;
 
 pub(super) fn run(
     change: &MeasuredChange,
@@ -453,7 +488,7 @@ pub(super) fn run(
     let radius = spot.radius_mm();
     let (bpx, bpy) = change.before.pitch_mm();
     let prior = &settings.prior;
-    let shift_sigma = prior.map_shift_sigma_mm.unwrap_or(bpx.max(bpy));
+    let shift_sigma = prior.map_shift_sigma_mm.unwrap_or(0.5 * bpx.max(bpy));
     let bound = [
         (0.5, 2.0),
         (-radius, radius),
@@ -524,25 +559,78 @@ pub(super) fn run(
         drift_prior: prior.drift_sigma_per_run * 3600.0 / motion.span_s().max(f64::MIN_POSITIVE),
         sd: (2.0f64).sqrt() * noise0.max(f64::MIN_POSITIVE),
         free,
+        extra_nm: None,
     };
     let mut nl: [f64; 9] = std::array::from_fn(nominal);
     let mut iterations = 0;
-    let mut pass = 0;
-    let (status, eval, inflation, noise) = loop {
-        pass += 1;
-        let (status, its, eval) = levenberg_marquardt(&model, &mut nl, settings.max_iterations)?;
-        iterations += its;
-        let data = eval.data();
-        let (noise, inflation) = residual_statistics(&change.x_mm, &change.y_mm, data);
-        let dof = (data.len() as f64 - (model.free.len() + eval.columns.len()) as f64).max(1.0);
-        let sd = (cost(data) / dof * inflation).sqrt().max(f64::MIN_POSITIVE);
-        let settled = (sd / model.sd - 1.0).abs() < SD_REL_TOL;
-        model.sd = sd;
-        if settled || pass >= MAX_PASSES {
-            // The covariance at the final scale: the fit is kept, its priors' weight updated.
-            let eval = model.eval(&nl)?;
-            break (status, eval, inflation, noise);
+    let first = parametric(
+        &mut model,
+        &mut nl,
+        settings.max_iterations,
+        &mut iterations,
+    )?;
+    // The free-form correction of what the figures leave; where applied, the figures are fitted
+    // again beside it, and how far they move is their systematic uncertainty: the part of the
+    // misfit the parametric model could not tell from its figures.
+    let mut freeform = None;
+    let mut systematic = [0.0; 10];
+    let (status, eval, inflation, noise) = if settings.freeform {
+        let (_, eval1, _, noise1) = &first;
+        let base = if model.fit_drift { 2 } else { 1 };
+        let alpha1 = eval1.coef[0];
+        let drift1 = if model.fit_drift {
+            eval1.coef[1] / alpha1
+        } else {
+            0.0
+        };
+        let mut figures1 = Model::figures(&nl);
+        figures1.rate_factor = alpha1;
+        figures1.drift_per_hour = drift1;
+        let residual: Vec<f64> = (0..change.len())
+            .map(|i| {
+                let mut v = eval1.change[i];
+                for (k, col) in eval1.columns.iter().enumerate() {
+                    v -= eval1.coef[k] * col[i];
+                }
+                v
+            })
+            .collect();
+        let nuisance_columns: Vec<&[f64]> = eval1
+            .columns
+            .iter()
+            .skip(base)
+            .map(|c| c.as_slice())
+            .collect();
+        let correction = freeform::fit(
+            &model.lattice,
+            spot,
+            &figures1,
+            &residual,
+            &nuisance_columns,
+            *noise1,
+        )?;
+        let applied = correction.applied;
+        let before = figure_vector(&nl, eval1, model.fit_drift);
+        if applied {
+            model.extra_nm = Some(correction.removal_nm().to_vec());
+            let second = parametric(
+                &mut model,
+                &mut nl,
+                settings.max_iterations,
+                &mut iterations,
+            )?;
+            let after = figure_vector(&nl, &second.1, model.fit_drift);
+            for k in 0..systematic.len() {
+                systematic[k] = (after[k] - before[k]).abs();
+            }
+            freeform = Some(correction);
+            second
+        } else {
+            freeform = Some(correction);
+            first
         }
+    } else {
+        first
     };
     let cov = covariance(&model, &nl, &eval)?;
     let alpha = eval.coef[0];
@@ -608,16 +696,17 @@ pub(super) fn run(
     let mut figures = Model::figures(&nl);
     figures.rate_factor = alpha;
     figures.drift_per_hour = drift;
+    let with_systematic = |stat: f64, k: usize| stat.hypot(systematic[k]);
     let sigma = ToolFigures {
-        rate_factor: sigma_of("rate_factor"),
-        width_factor: sigma_of("width_factor"),
-        offset_x_mm: sigma_of("offset_x_mm"),
-        offset_y_mm: sigma_of("offset_y_mm"),
-        ellipticity: sigma_of("ellipticity"),
-        ellipticity_45: sigma_of("ellipticity_45"),
-        skew_x: sigma_of("skew_x"),
-        skew_y: sigma_of("skew_y"),
-        drift_per_hour: drift_sigma,
+        rate_factor: with_systematic(sigma_of("rate_factor"), 0),
+        width_factor: with_systematic(sigma_of("width_factor"), 1),
+        offset_x_mm: with_systematic(sigma_of("offset_x_mm"), 2),
+        offset_y_mm: with_systematic(sigma_of("offset_y_mm"), 3),
+        ellipticity: with_systematic(sigma_of("ellipticity"), 4),
+        ellipticity_45: with_systematic(sigma_of("ellipticity_45"), 5),
+        skew_x: with_systematic(sigma_of("skew_x"), 6),
+        skew_y: with_systematic(sigma_of("skew_y"), 7),
+        drift_per_hour: with_systematic(drift_sigma, 8),
     };
     // Nuisance coefficients follow the removal (and drift) columns.
     let base = if model.fit_drift { 2 } else { 1 };
@@ -640,45 +729,25 @@ pub(super) fn run(
         .collect();
     let measured: Vec<f64> = (0..change.len())
         .map(|i| {
-            let mut v = eval.change[i];
+            let mut v = eval.change[i] + model.extra_nm.as_ref().map_or(0.0, |e| e[i]);
             for (k, col) in eval.columns.iter().enumerate().skip(base) {
                 v -= eval.coef[k] * col[i];
             }
             v
         })
         .collect();
-    let mut residual: Vec<f64> = measured
+    if let Some(correction) = freeform.as_ref().filter(|c| c.applied) {
+        for (sim, extra) in simulated.iter_mut().zip(correction.removal_nm()) {
+            *sim += extra;
+        }
+    }
+    let residual: Vec<f64> = measured
         .iter()
         .zip(&simulated)
         .map(|(m, s)| m - s)
         .collect();
-    let freeform = if settings.freeform {
-        let nuisance_columns: Vec<&[f64]> = eval
-            .columns
-            .iter()
-            .skip(base)
-            .map(|c| c.as_slice())
-            .collect();
-        let correction = freeform::fit(
-            &model.lattice,
-            spot,
-            &figures,
-            &residual,
-            &nuisance_columns,
-            noise,
-        )?;
-        if correction.applied {
-            let removal = correction.removal_nm();
-            for i in 0..residual.len() {
-                simulated[i] += removal[i];
-                residual[i] = measured[i] - simulated[i];
-            }
-        }
-        Some(correction)
-    } else {
-        None
-    };
     let tif = freeform::calibrated_grid(spot, &figures, freeform.as_ref())?;
+
     let corr_matrix = (0..cov.names.len())
         .map(|a| (0..cov.names.len()).map(|b| cov.corr[(a, b)]).collect())
         .collect();
@@ -709,4 +778,41 @@ pub(super) fn run(
         measured_removal_nm: measured,
         simulated_removal_nm: simulated,
     })
+}
+
+/// The figures in the order of [`ToolFigures::NAMES`] (rate and drift from the linear
+/// coefficients), and a slot spare.
+fn figure_vector(nl: &[f64; 9], eval: &Eval, fit_drift: bool) -> [f64; 10] {
+    let alpha = eval.coef[0];
+    let drift = if fit_drift { eval.coef[1] / alpha } else { 0.0 };
+    [
+        alpha, nl[0], nl[1], nl[2], nl[3], nl[4], nl[5], nl[6], drift, 0.0,
+    ]
+}
+
+/// The parametric fit, repeated while the data's standard deviation (the priors' scale) settles.
+fn parametric(
+    model: &mut Model,
+    nl: &mut [f64; 9],
+    max_iterations: usize,
+    iterations: &mut usize,
+) -> Result<(Status, Eval, f64, f64)> {
+    let change = model.change;
+    let mut pass = 0;
+    loop {
+        pass += 1;
+        let (status, its, eval) = levenberg_marquardt(model, nl, max_iterations)?;
+        *iterations += its;
+        let data = eval.data();
+        let (noise, inflation) = residual_statistics(&change.x_mm, &change.y_mm, data);
+        let dof = (data.len() as f64 - (model.free.len() + eval.columns.len()) as f64).max(1.0);
+        let sd = (cost(data) / dof * inflation).sqrt().max(f64::MIN_POSITIVE);
+        let settled = (sd / model.sd - 1.0).abs() < SD_REL_TOL;
+        model.sd = sd;
+        if settled || pass >= MAX_PASSES {
+            // The covariance at the final scale: the fit is kept, its priors' weight updated.
+            let eval = model.eval(nl)?;
+            return Ok((status, eval, inflation, noise));
+        }
+    }
 }

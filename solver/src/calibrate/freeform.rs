@@ -8,7 +8,9 @@
 //! nuisance terms projected out of `J`, `L` the five-point Laplacian of the node grid, zero
 //! beyond it, `μ` a tenth of `L`'s mean squared diagonal), `α`
 //! chosen by generalised cross-validation, `GCV(α) = m RSS / (m - tr H)²` (Golub, Heath and Wahba
-//! 1979). The correction is applied only when it lowers the fit's RMS by at least
+//! 1979). The correction keeps the footprint's volume, centroid and second moment (the
+//! parametric figures say those), so it changes only the shape. It is applied only when it
+//! lowers the fit's RMS by at least
 //! [`MIN_RELATIVE_GAIN`]; its resolution is the node pitch, its effective number of parameters
 //! `tr H`.
 
@@ -148,8 +150,23 @@ pub(super) fn fit(
         }
     }
     let e = DVector::from_column_slice(residual);
-    let gram = jac.tr_mul(&jac);
-    let rhs = jac.tr_mul(&e);
+    // The correction changes the footprint's shape only: its volume, centroid and second moment
+    // (those of the hats about the calibrated centroid) are held at zero by projecting onto the
+    // null space of the constraints `C δ = 0`, `P = I - Cᵀ (C Cᵀ)⁻¹ C`.
+    let constraints = DMatrix::from_fn(4, n, |r, k| {
+        let (x, y) = (
+            nodes[k].0 as f64 * q - centre.0,
+            nodes[k].1 as f64 * q - centre.1,
+        );
+        [1.0, x, y, x * x + y * y][r]
+    });
+    let cct = &constraints * constraints.transpose();
+    let projector = match cct.try_inverse() {
+        Some(inv) => DMatrix::identity(n, n) - constraints.transpose() * inv * &constraints,
+        None => DMatrix::identity(n, n),
+    };
+    let gram = &projector * jac.tr_mul(&jac) * &projector;
+    let rhs = &projector * jac.tr_mul(&e);
     let index: std::collections::HashMap<(i64, i64), usize> =
         nodes.iter().enumerate().map(|(k, &c)| (c, k)).collect();
     let mut lap: DMatrix<f64> = DMatrix::zeros(n, n);
@@ -168,15 +185,22 @@ pub(super) fn fit(
     for k in 0..n {
         penalty[(k, k)] += ridge;
     }
+    let penalty = &projector * penalty * &projector;
     let scale = gram.trace() / penalty.trace().max(f64::MIN_POSITIVE);
+    // Keeps the constrained directions (zero in both terms) solvable; they stay zero.
+    let floor = 1e-12 * scale * penalty.trace() / n.max(1) as f64;
     let rss0 = e.norm_squared();
     let mut best: Option<(f64, f64, DVector<f64>, f64)> = None;
     for k in -9..=3 {
         let alpha = scale * 10f64.powi(k);
-        let Some(ch) = (&gram + alpha * &penalty).cholesky() else {
+        let mut a = &gram + alpha * &penalty;
+        for d in 0..n {
+            a[(d, d)] += floor.max(f64::MIN_POSITIVE);
+        }
+        let Some(ch) = a.cholesky() else {
             continue;
         };
-        let delta = ch.solve(&rhs);
+        let delta = &projector * ch.solve(&rhs);
         let fit = &jac * &delta;
         let rss = (&e - &fit).norm_squared();
         let trace_h = ch.solve(&gram).trace();

@@ -34,12 +34,14 @@
 //! what the parametric figures leave.
 
 pub mod change;
+pub mod expect;
 mod fit;
 pub mod forward;
 mod freeform;
 pub mod tool;
 
 pub use change::{GriddedMap, MeasuredChange};
+pub use expect::{expected_reading, map_noise_rms_nm, Expected, ToolUncertainty};
 pub use forward::{ContactMotion, LatticeRemoval};
 pub use freeform::FreeformCorrection;
 pub use tool::{SpotFootprint, ToolFigures, TransformedTif};
@@ -64,7 +66,7 @@ pub struct CalibrationSettings {
     /// Offer a free-form correction of the footprint where the data support it.
     pub freeform: bool,
     /// Pitch of the convolution lattice, mm (default: the footprint's second-moment radius over
-    /// 16, made a whole fraction of the map's pitch).
+    /// 10, made a whole fraction of the map's pitch).
     pub lattice_pitch_mm: Option<f64>,
     /// Largest number of Levenberg-Marquardt steps per fit.
     pub max_iterations: usize,
@@ -94,8 +96,8 @@ pub struct Prior {
     /// Standard deviation of the rate's change over one run (relative, from the run's first
     /// contact to its last).
     pub drift_sigma_per_run: f64,
-    /// Standard deviation of the shift between two measurements, mm (default: one pixel of the
-    /// map before the run).
+    /// Standard deviation of the shift between two measurements, mm (default: half a pixel of
+    /// the map before the run).
     pub map_shift_sigma_mm: Option<f64>,
 }
 

@@ -235,6 +235,9 @@ pub struct Setup {
     pub swept: Option<(Stretches, SweptTif<Tif>)>,
     /// A generated raster's placement on the map's lattice (`None`: given dwell points).
     pub raster: Option<raster::RasterPlacement>,
+    /// The tool's rate drift per hour of program time (a calibration's): the executed program's
+    /// removal weights each contact sample by it, so the correction passes plan for it.
+    pub rate_drift_per_hour: f64,
 }
 
 /// How `R` is held for a problem.

@@ -146,6 +146,7 @@ impl Setup {
         Ok(Self {
             swept,
             raster: raster_placement,
+            rate_drift_per_hour: 0.0,
             map,
             tif,
             tif_model: choices.tif_model,

@@ -411,6 +411,7 @@ impl Setup {
             kinematics,
             step_mm.unwrap_or_else(|| default_sample_step_mm(&self.tif)),
             part,
+            self.rate_drift_per_hour,
             &|samples| self.contact_removal(samples, observer),
         )
     }

@@ -64,18 +64,24 @@ pub struct ProgramRun {
     /// The contact motion as removal samples (position and time of every piece), to integrate
     /// another TIF along the same motion (the sensitivity of the executed part).
     pub contact: crate::simulate::SampledProgram,
+    /// Program time at the middle of every contact sample, s.
+    pub contact_at_s: Vec<f64>,
 }
 
 /// Executes `program` under `kinematics`, samples the contact motion with pieces of at most
 /// `step_mm` ([`motion::sample_contact`]), maps tool centres back to contact points on `part`
 /// (a surface and the tool-centre offset along its normal; none: X, Y are the contact points),
 /// and integrates the removal of the contact motion with `removal` (the TIF summed along the
-/// samples at the map points: [`crate::simulate::removal_of_samples`] on a flat part).
+/// samples at the map points: [`crate::simulate::removal_of_samples`] on a flat part). With a
+/// drift of the removal rate, each sample's time is weighted by
+/// `1 + drift_per_hour (t - t_mid) / 3600` about the contact-time-weighted mean program time
+/// `t_mid` (the tool's rate at `t_mid` is the TIF's).
 pub fn run_on_map(
     program: &Program,
     kinematics: Kinematics,
     step_mm: f64,
     part: Option<(&dyn crate::machine::PartGeometry, f64)>,
+    drift_per_hour: f64,
     removal: &dyn Fn(&crate::simulate::SampledProgram) -> Result<Vec<f64>>,
 ) -> Result<ProgramRun> {
     let executed = execute(program, kinematics)?;
@@ -87,10 +93,27 @@ pub fn run_on_map(
             (samples.x_mm[k], samples.y_mm[k]) = motion::contact_xy(geometry, offset_mm, tool)?;
         }
     }
+    let mut dwell_s = samples.time_s;
+    if drift_per_hour != 0.0 {
+        let total: f64 = dwell_s.iter().sum();
+        let mid = if total > 0.0 {
+            dwell_s
+                .iter()
+                .zip(&samples.at_s)
+                .map(|(d, t)| d * t)
+                .sum::<f64>()
+                / total
+        } else {
+            0.0
+        };
+        for (d, t) in dwell_s.iter_mut().zip(&samples.at_s) {
+            *d *= (1.0 + drift_per_hour * (t - mid) / 3600.0).max(0.0);
+        }
+    }
     let sampled = crate::simulate::SampledProgram {
         x_mm: samples.x_mm,
         y_mm: samples.y_mm,
-        dwell_s: samples.time_s,
+        dwell_s,
     };
     let removal_nm = removal(&sampled)?;
     Ok(ProgramRun {
@@ -99,5 +122,6 @@ pub fn run_on_map(
         removal_nm,
         samples: sampled.dwell_s.len(),
         contact: sampled,
+        contact_at_s: samples.at_s,
     })
 }

@@ -1,0 +1,119 @@
+//! `preston shop`: a virtual shop to rehearse the loop. It keeps the part's true surface, runs a
+//! program with the tool it really has (rate, width, offset, shape and drift off the spot test)
+//! and reads the part with an interferometer that adds noise and drops piston and tilt.
+
+use super::tif_source::TifArgs;
+use crate::output::{print_json, OutputArgs};
+use anyhow::Context;
+use preston_io::shop::{visit, write_visit, ShopInputs};
+use preston_solver::iterate::shop::{Interferometer, ShopTool};
+use preston_solver::machine::gcode::motion::Kinematics;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Arguments of `preston shop`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The part's true surface before the run, CSV `x_mm,y_mm,z_nm` (the surface_after.csv of
+    /// the previous visit).
+    #[arg(long, value_name = "FILE")]
+    pub surface: PathBuf,
+    /// The program to run (without it the shop only measures the part).
+    #[arg(long, value_name = "program.nc")]
+    pub program: Option<PathBuf>,
+    /// The program's dialect (default: the one its header names, else iso).
+    #[arg(long, value_enum)]
+    pub dialect: Option<preston_solver::machine::gcode::dialect::Dialect>,
+    #[command(flatten)]
+    pub tif: TifArgs,
+    /// The controller's path acceleration, mm/s^2 (default: every block at its feed).
+    #[arg(long, value_name = "MM_PER_S2")]
+    pub a_max_mm_per_s2: Option<f64>,
+    /// Turn angle above which the tool stops, degrees.
+    #[arg(long, value_name = "DEG", default_value_t = 60.0)]
+    pub corner_angle_deg: f64,
+    /// The true tool's rate against the spot test's.
+    #[arg(long, default_value_t = 1.0)]
+    pub tool_rate_factor: f64,
+    /// The true tool's width against the spot test's (volume kept).
+    #[arg(long, default_value_t = 1.0)]
+    pub tool_width_factor: f64,
+    /// Where the tool lands off the programmed point, mm: X,Y.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0], allow_hyphen_values = true)]
+    pub tool_offset_mm: Vec<f64>,
+    /// The true tool's ellipticity (log stretch along x).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub tool_ellipticity: f64,
+    /// A linear skew across the footprint: relative rate change per second-moment radius.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub tool_skew: f64,
+    /// Direction of the skew, degrees from x.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub tool_skew_angle_deg: f64,
+    /// The rate's relative change from the run's first contact to its last.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub tool_drift_per_run: f64,
+    /// The interferometer's noise per pixel, nm RMS.
+    #[arg(long, default_value_t = 0.3)]
+    pub noise_rms_nm: f64,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output directory: surface_after.csv, measured.csv, shop.json.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub output: OutputArgs,
+}
+
+/// Runs `preston shop`.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    args.output.apply();
+    let [ox, oy] = args.tool_offset_mm[..] else {
+        anyhow::bail!("--tool-offset-mm: give X,Y");
+    };
+    let inputs = ShopInputs {
+        surface: preston_io::metrology::MapSource {
+            file: Some(args.surface.clone()),
+            ..Default::default()
+        },
+        program: args.program.clone(),
+        dialect: args.dialect,
+        tif: args.tif.load()?,
+        kinematics: Kinematics::of_limit(args.a_max_mm_per_s2, args.corner_angle_deg)?,
+        tool: ShopTool {
+            rate_factor: args.tool_rate_factor,
+            width_factor: args.tool_width_factor,
+            offset_x_mm: ox,
+            offset_y_mm: oy,
+            ellipticity: args.tool_ellipticity,
+            skew: args.tool_skew,
+            skew_angle_deg: args.tool_skew_angle_deg,
+            drift_per_run: args.tool_drift_per_run,
+        },
+        interferometer: Interferometer {
+            noise_rms_nm: args.noise_rms_nm,
+        },
+        seed: args.seed,
+    };
+    let v = visit(&inputs)?;
+    write_visit(&v, &args.out)
+        .with_context(|| format!("writing outputs to {}", args.out.display()))?;
+    let r = &v.record;
+    crate::note!(
+        "preston shop: true surface {:.3} -> {:.3} nm RMS (piston and tilt removed), measured {:.3} nm RMS; {:.0} s of program; the tool's footprint: rate {:.4}, width {:.4}, centroid ({:+.4}, {:+.4}) mm; wrote {}",
+        r.true_rms_before_nm,
+        r.true_rms_after_nm,
+        r.measured_rms_nm,
+        r.program_time_s,
+        r.tool_figures.rate_factor,
+        r.tool_figures.width_factor,
+        r.tool_figures.offset_x_mm,
+        r.tool_figures.offset_y_mm,
+        args.out.display()
+    );
+    if args.output.json {
+        print_json(&serde_json::json!({"command": "shop", "out": args.out, "shop": r}))?;
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,232 @@
+//! What the interferometer will read after a run: the plan's executed removal under the tool as
+//! it is known (the calibration's figures and their uncertainty, or the spot test's), the
+//! measurement's noise, piston and tilt dropped.
+//!
+//! For draws `θ_k` of the tool (rate, width and centroid offset from their standard deviations,
+//! the drift about its estimate), the run leaves `e_k = z - h(θ_k) + n_k`, `h(θ)` the removal of
+//! the executed contact motion with the footprint under `θ` and `n_k` white noise of the
+//! measurement; each `e_k` less its least-squares plane is what the interferometer reads. The
+//! expected RMS is `sqrt(mean_k rms(e_k)²)`, the 90% range the 5th to 95th percentile of
+//! `rms(e_k)`, the expected PV the median of `pv(e_k)`. The removals are the plan's exact one plus
+//! the change the lattice convolution of [`super::forward`] gives for `θ_k` against the nominal
+//! tool, so the lattice's own error cancels.
+
+use super::forward::{ContactMotion, LatticeRemoval};
+use super::tool::{SpotFootprint, ToolFigures};
+use crate::error::{Error, Result};
+use crate::iterate::shop::remove_plane;
+use crate::map::HeightStats;
+use crate::rng::SplitMix64;
+use crate::tif::{GridTif, InfluenceFunction};
+use serde::{Deserialize, Serialize};
+
+/// Lattice cells per second-moment radius for the draws.
+const CELLS_PER_RADIUS: f64 = 8.0;
+
+/// How well the tool of the next run is known.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ToolUncertainty {
+    /// Relative standard deviation of the rate.
+    pub rate_sigma: f64,
+    /// Relative standard deviation of the width.
+    pub width_sigma: f64,
+    /// Standard deviation of the centroid offset along x, mm.
+    pub offset_x_sigma_mm: f64,
+    /// Along y, mm.
+    pub offset_y_sigma_mm: f64,
+    /// The rate's drift per hour of program time (the plan includes it).
+    pub drift_per_hour: f64,
+    /// Its standard deviation, per hour.
+    pub drift_sigma_per_hour: f64,
+    /// Noise of one measurement, nm RMS.
+    pub noise_rms_nm: f64,
+}
+
+impl Default for ToolUncertainty {
+    /// A spot test's: the rate to 7% (a spot test on another day), the width to 5%, the
+    /// centroid to 0.2 mm, no drift known.
+    fn default() -> Self {
+        Self {
+            rate_sigma: 0.07,
+            width_sigma: 0.05,
+            offset_x_sigma_mm: 0.2,
+            offset_y_sigma_mm: 0.2,
+            drift_per_hour: 0.0,
+            drift_sigma_per_hour: 0.0,
+            noise_rms_nm: 0.0,
+        }
+    }
+}
+
+impl ToolUncertainty {
+    /// Checks that every figure is finite and every standard deviation non-negative.
+    pub fn validate(&self) -> Result<()> {
+        for (name, v) in [
+            ("rate_sigma", self.rate_sigma),
+            ("width_sigma", self.width_sigma),
+            ("offset_x_sigma_mm", self.offset_x_sigma_mm),
+            ("offset_y_sigma_mm", self.offset_y_sigma_mm),
+            ("drift_sigma_per_hour", self.drift_sigma_per_hour),
+            ("noise_rms_nm", self.noise_rms_nm),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(Error::invalid(
+                    format!("tool uncertainty {name}"),
+                    format!("must be finite and >= 0, got {v}"),
+                ));
+            }
+        }
+        if !self.drift_per_hour.is_finite() {
+            return Err(Error::invalid(
+                "tool uncertainty drift_per_hour",
+                "must be finite",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The expected reading of the interferometer after the run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Expected {
+    /// Expected RMS, nm.
+    pub expected_rms_nm: f64,
+    /// Expected PV (median over the draws), nm.
+    pub expected_pv_nm: f64,
+    /// 90% range of the RMS (5th and 95th percentiles), nm.
+    pub expected_rms_range_nm: [f64; 2],
+    /// RMS the nominal tool leaves (its drift included), piston and tilt removed, without noise,
+    /// nm.
+    pub nominal_rms_nm: f64,
+    /// The uncertainty drawn from.
+    pub uncertainty: ToolUncertainty,
+    /// Number of draws.
+    pub draws: usize,
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let f = p * (sorted.len() - 1) as f64;
+    let (i, a) = (f.floor() as usize, f - f.floor());
+    let j = (i + 1).min(sorted.len() - 1);
+    sorted[i] * (1.0 - a) + sorted[j] * a
+}
+
+/// The expected reading after a run whose executed contact motion is `motion` and whose exact
+/// removal with the nominal tool (no drift) is `removal_nm`, on the map `(x, y, z)`, with the
+/// footprint `tif` (module documentation). `draws` draws from a generator seeded with `seed`.
+#[allow(clippy::too_many_arguments)]
+pub fn expected_reading(
+    x_mm: &[f64],
+    y_mm: &[f64],
+    z_nm: &[f64],
+    removal_nm: &[f64],
+    motion: &ContactMotion,
+    tif: &GridTif,
+    uncertainty: &ToolUncertainty,
+    draws: usize,
+    seed: u64,
+) -> Result<Expected> {
+    uncertainty.validate()?;
+    let m = z_nm.len();
+    for (what, len) in [
+        ("x_mm", x_mm.len()),
+        ("y_mm", y_mm.len()),
+        ("removal_nm", removal_nm.len()),
+    ] {
+        if len != m {
+            return Err(Error::LengthMismatch {
+                what,
+                got: len,
+                expected: m,
+            });
+        }
+    }
+    if draws < 2 {
+        return Err(Error::invalid(
+            "expected reading",
+            "needs at least two draws",
+        ));
+    }
+    let spot = SpotFootprint::new(tif.clone())?;
+    let u = uncertainty;
+    let widest = spot.transformed(&ToolFigures {
+        width_factor: 1.0 + 4.0 * u.width_sigma,
+        offset_x_mm: 4.0 * u.offset_x_sigma_mm,
+        offset_y_mm: 4.0 * u.offset_y_sigma_mm,
+        ..ToolFigures::NOMINAL
+    });
+    let lattice = LatticeRemoval::new(
+        motion,
+        x_mm,
+        y_mm,
+        widest.support_radius_mm(),
+        spot.radius_mm() / CELLS_PER_RADIUS,
+    )?;
+    let nominal_parts = lattice.removal_parts(&spot.transformed(&ToolFigures::NOMINAL));
+    let reading = |h: &[f64], noise: Option<&mut SplitMix64>| -> Result<Vec<f64>> {
+        let mut e: Vec<f64> = z_nm.iter().zip(h).map(|(z, h)| z - h).collect();
+        if let Some(rng) = noise {
+            for v in e.iter_mut() {
+                *v += u.noise_rms_nm * rng.normal();
+            }
+        }
+        remove_plane(x_mm, y_mm, &mut e)?;
+        Ok(e)
+    };
+    // The nominal tool with its drift: the exact removal plus the drift's lattice part.
+    let nominal: Vec<f64> = (0..m)
+        .map(|i| removal_nm[i] + u.drift_per_hour * nominal_parts[1][i])
+        .collect();
+    let nominal_rms_nm = HeightStats::of(&reading(&nominal, None)?).rms_nm;
+    let mut rng = SplitMix64::new(seed);
+    let mut rms = Vec::with_capacity(draws);
+    let mut pv = Vec::with_capacity(draws);
+    for _ in 0..draws {
+        let figures = ToolFigures {
+            rate_factor: (1.0 + u.rate_sigma * rng.normal()).max(0.0),
+            width_factor: (1.0 + u.width_sigma * rng.normal()).max(0.1),
+            offset_x_mm: u.offset_x_sigma_mm * rng.normal(),
+            offset_y_mm: u.offset_y_sigma_mm * rng.normal(),
+            ..ToolFigures::NOMINAL
+        };
+        let drift = u.drift_per_hour + u.drift_sigma_per_hour * rng.normal();
+        let rate = figures.rate_factor;
+        let parts = lattice.removal_parts(&spot.transformed(&ToolFigures {
+            rate_factor: 1.0,
+            ..figures
+        }));
+        let h: Vec<f64> = (0..m)
+            .map(|i| {
+                let lattice_change =
+                    rate * (parts[0][i] + drift * parts[1][i]) - nominal_parts[0][i];
+                removal_nm[i] + lattice_change
+            })
+            .collect();
+        let e = reading(&h, Some(&mut rng))?;
+        let s = HeightStats::of(&e);
+        rms.push(s.rms_nm);
+        pv.push(s.pv_nm);
+    }
+    let mean_square = rms.iter().map(|r| r * r).sum::<f64>() / draws as f64;
+    rms.sort_by(f64::total_cmp);
+    pv.sort_by(f64::total_cmp);
+    Ok(Expected {
+        expected_rms_nm: mean_square.sqrt(),
+        expected_pv_nm: percentile(&pv, 0.5),
+        expected_rms_range_nm: [percentile(&rms, 0.05), percentile(&rms, 0.95)],
+        nominal_rms_nm,
+        uncertainty: *uncertainty,
+        draws,
+    })
+}
+
+/// The white noise of a map on a lattice, nm RMS, from its second differences along the lattice
+/// lines (blind to the map's slope; structure at the pixel scale counts as noise, so this bounds
+/// it from above).
+pub fn map_noise_rms_nm(x_mm: &[f64], y_mm: &[f64], z_nm: &[f64]) -> f64 {
+    super::fit::neighbour_noise(x_mm, y_mm, z_nm)
+}
