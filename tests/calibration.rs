@@ -231,13 +231,13 @@ fn the_true_tool_is_recovered_from_one_run() {
 }
 
 #[test]
-fn a_shift_between_the_measurements_is_not_a_tool_offset_and_drift_is_learned_or_held() {
+fn a_shift_between_the_measurements_is_not_a_tool_offset() {
     let motion = motion();
     let truth = Truth {
         rate: 0.95,
         width: 0.97,
         offset: (-0.1, 0.08),
-        drift: 0.04 * 3600.0 / motion.contact_time_s(),
+        drift: 0.0,
     };
     let frame = (0.12, -0.07);
     let (before, after) = maps(&truth, &motion, frame, 0.3);
@@ -284,7 +284,36 @@ fn a_shift_between_the_measurements_is_not_a_tool_offset_and_drift_is_learned_or
         truth.offset.1,
         OFFSET_TOL_MM,
     );
-    // The drift is learned, or said to be undetermined, never wrong by more than its sigma says.
+}
+
+#[test]
+fn the_drift_over_the_run_is_learned_or_said_to_be_undetermined() {
+    let motion = motion();
+    let truth = Truth {
+        rate: 1.03,
+        width: 1.02,
+        offset: (0.05, 0.1),
+        drift: 0.04 * 3600.0 / motion.span_s(),
+    };
+    let (before, after) = maps(&truth, &motion, (0.0, 0.0), 0.3);
+    let change = MeasuredChange::new(&before, &after).expect("change");
+    let c =
+        calibrate(&change, &motion, &spot(), &CalibrationSettings::default()).expect("calibration");
+    let (f, s) = (c.figures, c.sigma);
+    check(
+        "rate_factor",
+        f.rate_factor,
+        s.rate_factor,
+        truth.rate,
+        RATE_TOL * truth.rate,
+    );
+    check(
+        "width_factor",
+        f.width_factor,
+        s.width_factor,
+        truth.width,
+        WIDTH_TOL,
+    );
     if let Some(h) = c.held.iter().find(|h| h.name == "drift_per_hour") {
         assert!(h.reason.contains("confounded"), "{}", h.reason);
     }

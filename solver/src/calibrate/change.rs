@@ -3,7 +3,7 @@
 //! The map measured before is held on its own lattice (an interferometer's pixels, dropouts
 //! allowed) and read at the after map's points, moved by the shift `s` between the two
 //! measurements: `d_i(s) = B(x_i + s) - A(x_i)`, bicubically where the sixteen nodes around are
-//! present, bilinearly otherwise, the edge value up to one pixel beyond the edge. A point counts
+//! present, bilinearly otherwise, extrapolated linearly up to one pixel beyond the edge. A point counts
 //! only where it lies inside the before map and the before map is defined around `x_i + s` for
 //! every shift up to one before-pixel, so the set of points does not change while the shift is
 //! fitted; the others (dropouts, points outside) are skipped and counted.
@@ -96,8 +96,9 @@ impl GriddedMap {
     }
 
     /// The lattice cell of `(x, y)` and its fractions, when inside.
-    /// The lattice cell of `(x, y)` and its fractions; up to one pixel beyond the grid's edge
-    /// the edge value is taken (so a shifted read of an edge point stays defined).
+    /// The lattice cell of `(x, y)` and its fractions; up to one pixel beyond the grid's edge the
+    /// edge cell, its fraction outside `[0, 1]` (so a shifted read of an edge point stays
+    /// defined, extrapolated linearly).
     fn cell(&self, x: f64, y: f64) -> Option<(usize, usize, f64, f64)> {
         let (max_x, max_y) = ((self.nx - 1) as f64, (self.ny - 1) as f64);
         let fx = (x - self.origin_mm.0) / self.pitch_mm.0;
@@ -105,13 +106,12 @@ impl GriddedMap {
         if !(fx >= -1.0 && fy >= -1.0 && fx <= max_x + 1.0 && fy <= max_y + 1.0) {
             return None;
         }
-        let (fx, fy) = (fx.clamp(0.0, max_x), fy.clamp(0.0, max_y));
+        // Beyond the edge the edge cell's bilinear form extrapolates linearly.
         let (ix, iy) = (
-            (fx.floor() as usize).min(self.nx.saturating_sub(2)),
-            (fy.floor() as usize).min(self.ny.saturating_sub(2)),
+            (fx.max(0.0).floor() as usize).min(self.nx.saturating_sub(2)),
+            (fy.max(0.0).floor() as usize).min(self.ny.saturating_sub(2)),
         );
-        let (ax, ay) = (fx - ix as f64, fy - iy as f64);
-        (ax <= 1.0 + ON_NODE_REL && ay <= 1.0 + ON_NODE_REL).then_some((ix, iy, ax, ay))
+        Some((ix, iy, fx - ix as f64, fy - iy as f64))
     }
 
     /// Whether the sixteen nodes of the bicubic read at `(x, y)` are all present.

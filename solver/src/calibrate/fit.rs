@@ -3,6 +3,7 @@
 
 use super::forward::LatticeRemoval;
 use super::freeform;
+use super::tool::footprint_moments;
 use super::{
     Calibration, CalibrationSettings, ContactMotion, Correlation, HeldFigure, MeasuredChange,
     Nuisance, SpotFootprint, ToolFigures, UNDETERMINED_FRACTION,
@@ -563,6 +564,7 @@ pub(super) fn run(
     };
     let mut nl: [f64; 9] = std::array::from_fn(nominal);
     let mut iterations = 0;
+    let moments = Moments::new(spot);
     let first = parametric(
         &mut model,
         &mut nl,
@@ -610,7 +612,7 @@ pub(super) fn run(
             *noise1,
         )?;
         let applied = correction.applied;
-        let before = figure_vector(&nl, eval1, model.fit_drift);
+        let before = figure_vector(&moments, &nl, eval1, model.fit_drift);
         if applied {
             model.extra_nm = Some(correction.removal_nm().to_vec());
             let second = parametric(
@@ -619,7 +621,7 @@ pub(super) fn run(
                 settings.max_iterations,
                 &mut iterations,
             )?;
-            let after = figure_vector(&nl, &second.1, model.fit_drift);
+            let after = figure_vector(&moments, &nl, &second.1, model.fit_drift);
             for k in 0..systematic.len() {
                 systematic[k] = (after[k] - before[k]).abs();
             }
@@ -693,15 +695,59 @@ pub(super) fn run(
             });
         }
     }
-    let mut figures = Model::figures(&nl);
-    figures.rate_factor = alpha;
-    figures.drift_per_hour = drift;
+    // The footprint's own parameters (for the calibrated grid), and the figures reported.
+    let mut parameters = Model::figures(&nl);
+    parameters.rate_factor = alpha;
+    parameters.drift_per_hour = drift;
+    let mut figures = parameters;
+    // Width and offset as the fitted footprint's moments, their covariance by the delta method
+    // over the footprint's figures.
+    let [width_ratio, centroid_x, centroid_y] = moments.of(&nl);
+    figures.width_factor = width_ratio;
+    figures.offset_x_mm = centroid_x;
+    figures.offset_y_mm = centroid_y;
+    let shape_params: Vec<(usize, usize)> = cov
+        .names
+        .iter()
+        .enumerate()
+        .filter_map(|(k, n)| {
+            NONLINEAR[..SHIFT_X]
+                .iter()
+                .position(|m| m == n)
+                .map(|j| (k, j))
+        })
+        .collect();
+    let mut moment_jac = vec![[0.0; 3]; shape_params.len()];
+    for (row, &(_, j)) in moment_jac.iter_mut().zip(&shape_params) {
+        let mut p = nl;
+        p[j] += model.step[j];
+        let m = moments.of(&p);
+        for a in 0..3 {
+            row[a] = (m[a] - [width_ratio, centroid_x, centroid_y][a]) / model.step[j];
+        }
+    }
+    let moment_sigma = |a: usize| -> f64 {
+        let mut v = 0.0;
+        for (r1, &(k1, _)) in moment_jac.iter().zip(&shape_params) {
+            for (r2, &(k2, _)) in moment_jac.iter().zip(&shape_params) {
+                v += r1[a] * var(k1, k2) * r2[a];
+            }
+        }
+        v.max(0.0).sqrt()
+    };
+    // The forward model's own error, measured against the direct sum over the samples at a
+    // subset of the points: no figure is known better than the model that fits it.
+    let model_error = lattice_error(&model.lattice, motion, change, spot, &parameters)?;
+    systematic[0] = systematic[0].hypot(model_error);
+    systematic[1] = systematic[1].hypot(model_error);
+    systematic[2] = systematic[2].hypot(model_error * radius);
+    systematic[3] = systematic[3].hypot(model_error * radius);
     let with_systematic = |stat: f64, k: usize| stat.hypot(systematic[k]);
     let sigma = ToolFigures {
         rate_factor: with_systematic(sigma_of("rate_factor"), 0),
-        width_factor: with_systematic(sigma_of("width_factor"), 1),
-        offset_x_mm: with_systematic(sigma_of("offset_x_mm"), 2),
-        offset_y_mm: with_systematic(sigma_of("offset_y_mm"), 3),
+        width_factor: with_systematic(moment_sigma(0), 1),
+        offset_x_mm: with_systematic(moment_sigma(1), 2),
+        offset_y_mm: with_systematic(moment_sigma(2), 3),
         ellipticity: with_systematic(sigma_of("ellipticity"), 4),
         ellipticity_45: with_systematic(sigma_of("ellipticity_45"), 5),
         skew_x: with_systematic(sigma_of("skew_x"), 6),
@@ -746,7 +792,7 @@ pub(super) fn run(
         .zip(&simulated)
         .map(|(m, s)| m - s)
         .collect();
-    let tif = freeform::calibrated_grid(spot, &figures, freeform.as_ref())?;
+    let tif = freeform::calibrated_grid(spot, &parameters, freeform.as_ref())?;
 
     let corr_matrix = (0..cov.names.len())
         .map(|a| (0..cov.names.len()).map(|b| cov.corr[(a, b)]).collect())
@@ -780,14 +826,42 @@ pub(super) fn run(
     })
 }
 
-/// The figures in the order of [`ToolFigures::NAMES`] (rate and drift from the linear
-/// coefficients), and a slot spare.
-fn figure_vector(nl: &[f64; 9], eval: &Eval, fit_drift: bool) -> [f64; 10] {
+/// The footprint's moments under the nonlinear figures `nl` (rate 1): width ratio and centroid
+/// offset against the spot test's, which are what a calibration reports.
+struct Moments<'a> {
+    spot: &'a SpotFootprint,
+    pitch_mm: f64,
+    nominal: ((f64, f64), f64),
+}
+
+impl<'a> Moments<'a> {
+    fn new(spot: &'a SpotFootprint) -> Self {
+        let (px, py) = spot.grid().pitch_mm();
+        let pitch_mm = px.min(py).min(spot.radius_mm() / 20.0);
+        let (_, c, r) = footprint_moments(&spot.transformed(&ToolFigures::NOMINAL), pitch_mm);
+        Self {
+            spot,
+            pitch_mm,
+            nominal: (c, r),
+        }
+    }
+
+    /// `(width ratio, offset x, offset y)` of the footprint under `nl`.
+    fn of(&self, nl: &[f64; 9]) -> [f64; 3] {
+        let (_, c, r) =
+            footprint_moments(&self.spot.transformed(&Model::figures(nl)), self.pitch_mm);
+        let ((c0x, c0y), r0) = self.nominal;
+        [r / r0, c.0 - c0x, c.1 - c0y]
+    }
+}
+
+/// The reported figures in the order of [`ToolFigures::NAMES`] (rate and drift from the linear
+/// coefficients, width and offset the footprint's moments), and a slot spare.
+fn figure_vector(moments: &Moments, nl: &[f64; 9], eval: &Eval, fit_drift: bool) -> [f64; 10] {
     let alpha = eval.coef[0];
     let drift = if fit_drift { eval.coef[1] / alpha } else { 0.0 };
-    [
-        alpha, nl[0], nl[1], nl[2], nl[3], nl[4], nl[5], nl[6], drift, 0.0,
-    ]
+    let [w, ox, oy] = moments.of(nl);
+    [alpha, w, ox, oy, nl[3], nl[4], nl[5], nl[6], drift, 0.0]
 }
 
 /// The parametric fit, repeated while the data's standard deviation (the priors' scale) settles.
@@ -815,4 +889,56 @@ fn parametric(
             return Ok((status, eval, inflation, noise));
         }
     }
+}
+
+/// Points of the direct-sum check of the lattice removal.
+const CHECK_POINTS: usize = 256;
+
+/// Relative RMS difference of the lattice removal from the direct sum over the contact samples,
+/// with the fitted footprint and drift, at up to [`CHECK_POINTS`] points spread over the map.
+fn lattice_error(
+    lattice: &LatticeRemoval,
+    motion: &ContactMotion,
+    change: &MeasuredChange,
+    spot: &SpotFootprint,
+    parameters: &ToolFigures,
+) -> Result<f64> {
+    let m = change.len();
+    let stride = m.div_ceil(CHECK_POINTS).max(1);
+    let idx: Vec<usize> = (0..m).step_by(stride).collect();
+    let (x, y): (Vec<f64>, Vec<f64>) = idx
+        .iter()
+        .map(|&i| (change.x_mm[i], change.y_mm[i]))
+        .unzip();
+    let mut figures = *parameters;
+    figures.drift_per_hour = 0.0;
+    let tif = spot.transformed(&figures);
+    let mid = motion.mid_time_s();
+    let dwell: Vec<f64> = motion
+        .dwell_s
+        .iter()
+        .zip(&motion.time_s)
+        .map(|(d, t)| d * (1.0 + parameters.drift_per_hour * (t - mid) / 3600.0))
+        .collect();
+    let direct = crate::influence::direct::removal_nm(
+        &x,
+        &y,
+        &motion.x_mm,
+        &motion.y_mm,
+        &dwell,
+        &tif,
+        &crate::observer::Silent,
+    )?;
+    let parts = lattice.removal_parts(&tif);
+    let (mut diff2, mut norm2) = (0.0, 0.0);
+    for (k, &i) in idx.iter().enumerate() {
+        let lat = parts[0][i] + parameters.drift_per_hour * parts[1][i];
+        diff2 += (lat - direct[k]).powi(2);
+        norm2 += direct[k].powi(2);
+    }
+    Ok(if norm2 > 0.0 {
+        (diff2 / norm2).sqrt()
+    } else {
+        0.0
+    })
 }
