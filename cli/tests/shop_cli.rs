@@ -205,7 +205,8 @@ fn radius_form_moves() -> Vec<Move> {
             as Box<dyn Fn(f64) -> (f64, f64)>
     };
     vec![
-        (line((-6.0, -4.0), (-6.0, -4.0)), 60.0 * 5.0 / 300.0),
+        // Plunge 5 mm at 300 mm/min: 60 * 5 / 300 s.
+        (line((-6.0, -4.0), (-6.0, -4.0)), 1.0),
         (line((-6.0, -4.0), (2.0, -4.0)), 60.0 * 8.0 / 240.0),
         // From -90 to 0 degrees about (2, 0), radius 4, at 120 mm/min.
         (
