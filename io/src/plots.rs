@@ -338,7 +338,7 @@ fn inlier_range_by(v: &[f64], f: impl Fn(f64) -> f64) -> Option<(f64, f64)> {
     dev.sort_by(f64::total_cmp);
     let reach = OUTLIER_MADS * median_of_sorted(&dev);
     let (first, last) = (sorted[0].0, sorted[sorted.len() - 1].0);
-    if !(reach > 0.0) {
+    if reach.is_nan() || reach <= 0.0 {
         return Some((first, last));
     }
     let lo = sorted.iter().find(|p| p.1 >= m - reach).map(|p| p.0);
