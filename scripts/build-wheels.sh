@@ -4,8 +4,9 @@
 # manylinux2014 (glibc 2.17: RHEL/CentOS 7 and every newer distribution), linked by zig (the
 # `ziglang` package from PyPI) so that the host's glibc does not matter; then checks the wheel's
 # tag and external libraries with auditwheel, and installs it into a fresh virtual environment
-# with no Rust toolchain on PATH to import it and compare `preston.__version__` with
-# `preston --version`. Needs python3 (>= 3.9) with venv and pip, and cargo.
+# with no Rust toolchain on PATH to import it and compare `preston.__version__` with the command
+# line's version (docs/install.md). Needs python3 (>= 3.9) with venv and pip, cargo with Rust 1.89
+# or newer, and crates.io and PyPI reachable.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY="${PYTHON:-python3}"
@@ -25,8 +26,14 @@ PATH="$PWD/$VENV/bin:$PATH" CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target/zig}" \
 rm -rf target/clean-venv
 "$PY" -m venv target/clean-venv
 target/clean-venv/bin/python -m pip install --quiet target/dist/preston_dwell-*.whl
-cargo build --release -p preston-cli
-cli_version="$(target/release/preston --version | awk '{print $2}')"
+# The command line's version without building it: from a binary already built, else from the
+# sources (`cargo metadata` compiles nothing).
+if [ -x target/release/preston ]; then
+    cli_version="$(target/release/preston --version | awk '{print $2}')"
+else
+    cli_version="$(cargo metadata --no-deps --format-version 1 | "$PY" -c \
+        'import json, sys; print(next(p["version"] for p in json.load(sys.stdin)["packages"] if p["name"] == "preston-cli"))')"
+fi
 env -i PATH=/usr/bin:/bin HOME="$HOME" target/clean-venv/bin/python - "$cli_version" data/job.toml <<'PY'
 import shutil, sys
 import preston

@@ -237,7 +237,11 @@ fn reader_handles_dialect_words_and_refuses_what_it_cannot_time() {
     assert_eq!(p.blocks[2].programmed_time_s, 2.0);
     for (bad, needle) in [
         ("G0 X0 Y0\nG93 G1 X1 F1\nG1 X2\n", "own F word"),
-        ("G0 X0 Y0\nG2 X1 Y1 R1 F10\n", "circular"),
+        ("G0 X0 Y0\nG2 X1 Y1 K1 F10\n", "K word"),
+        (
+            "G0 X0 Y0\nG2 X4 Y0 R1.9 F10\n",
+            "shorter than half the chord",
+        ),
         ("G0 X0 Y0\nG2 X1 Y1.01 I1 J0 F10\n", "radius"),
         ("G0 X0\nG95 G1 X1 F0.1\n", "per revolution"),
         ("G1 X1 F10\n", "unknown position"),
@@ -413,7 +417,179 @@ fn circular_moves_read_back_to_closed_forms() {
         );
         let e = Program::parse(&bad, d).unwrap_err().to_string();
         assert!(e.contains("line 2") || e.contains('2'), "{e}");
-        assert!(Program::parse("G0 X10 Y0 Z0\nG3 X0 Y10 R10 F600\n", d).is_err());
+        assert!(Program::parse("G0 X10 Y0 Z0\nG3 X0 Y10 K10 F600\n", d).is_err());
+    }
+}
+
+/// Largest distance between a radius-form centre and its closed form, mm.
+const CENTRE_TOL_MM: f64 = 1e-12;
+
+/// Sweep of the arc from `s` to `e` about `c`, turning counter-clockwise when `ccw`, radians in
+/// (0, 2 pi], from the cross and dot products of the two radius vectors.
+fn sweep_about(s: [f64; 2], e: [f64; 2], c: [f64; 2], ccw: bool) -> f64 {
+    let (u, v) = ([s[0] - c[0], s[1] - c[1]], [e[0] - c[0], e[1] - c[1]]);
+    let cross = u[0] * v[1] - u[1] * v[0];
+    let dot = u[0] * v[0] + u[1] * v[1];
+    let ccw_angle = cross.atan2(dot).rem_euclid(std::f64::consts::TAU);
+    if ccw {
+        ccw_angle
+    } else {
+        std::f64::consts::TAU - ccw_angle
+    }
+}
+
+/// The radius form's centre: on the chord's bisector, at |R| from both ends, on the side that
+/// makes the arc at most 180 degrees for R > 0 and more for R < 0, in both turning directions.
+#[test]
+fn radius_form_centres_follow_the_sign_rule() {
+    use preston::solver::machine::gcode::program::{
+        arc_centre_from_radius, RadiusArcError, ARC_RADIUS_TOLERANCE_MM,
+    };
+    let pi = std::f64::consts::PI;
+    let close = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]) < CENTRE_TOL_MM;
+    // Chord (0, 0) -> (8, 0), |R| = 5: the centre is 3 mm above or below the midpoint (3-4-5).
+    let (s, e) = ([0.0, 0.0], [8.0, 0.0]);
+    for (r, ccw, want) in [
+        (5.0, true, [4.0, 3.0]),
+        (-5.0, true, [4.0, -3.0]),
+        (5.0, false, [4.0, -3.0]),
+        (-5.0, false, [4.0, 3.0]),
+    ] {
+        let c = arc_centre_from_radius(s, e, r, ccw).unwrap();
+        assert!(close(c, want), "R {r} ccw {ccw}: {c:?}");
+    }
+    // Any chord direction and radius: equidistant, and the sweep on the side of the sign.
+    for k in 0..24 {
+        let a = k as f64 * 0.37;
+        let (s, e) = (
+            [1.0 + 0.3 * k as f64, -2.0],
+            [1.0 + 0.3 * k as f64 + 3.0 * a.cos(), -2.0 + 3.0 * a.sin()],
+        );
+        for r in [1.6, 2.5, 40.0, -1.6, -2.5, -40.0] {
+            for ccw in [true, false] {
+                let c = arc_centre_from_radius(s, e, r, ccw).unwrap();
+                let d = |p: [f64; 2]| (p[0] - c[0]).hypot(p[1] - c[1]);
+                assert!((d(s) - r.abs()).abs() < 1e-9 && (d(e) - r.abs()).abs() < 1e-9);
+                let sweep = sweep_about(s, e, c, ccw);
+                if r > 0.0 {
+                    assert!(sweep <= pi, "R {r} ccw {ccw}: sweep {sweep}");
+                } else {
+                    assert!(sweep > pi, "R {r} ccw {ccw}: sweep {sweep}");
+                }
+            }
+        }
+    }
+    // Half the chord: the half circle about the midpoint, also a rounding short of it.
+    for r in [4.0, 4.0 - 0.5 * ARC_RADIUS_TOLERANCE_MM, -4.0] {
+        let c = arc_centre_from_radius(s, e, r, true).unwrap();
+        assert!(close(c, [4.0, 0.0]), "R {r}: {c:?}");
+    }
+    assert_eq!(
+        arc_centre_from_radius(s, e, 4.0 - 2.0 * ARC_RADIUS_TOLERANCE_MM, true),
+        Err(RadiusArcError::TooShort {
+            radius_mm: 4.0 - 2.0 * ARC_RADIUS_TOLERANCE_MM,
+            half_chord_mm: 4.0
+        })
+    );
+    assert_eq!(
+        arc_centre_from_radius(s, s, 5.0, true),
+        Err(RadiusArcError::FullCircle)
+    );
+    assert_eq!(
+        arc_centre_from_radius(s, e, 0.0, true),
+        Err(RadiusArcError::ZeroRadius)
+    );
+}
+
+/// Radius-form arcs read back to the same blocks as their I J form in every dialect (`CR=` on
+/// Sinumerik), in inches too, and an impossible radius is refused naming its line.
+#[test]
+fn radius_form_arcs_read_as_their_centre_form_in_every_dialect() {
+    // From (0, 0) to (8, 0) with |R| = 5: the minor arc (about 106.26 degrees) and the major one.
+    let minor = 2.0 * 4.0f64.atan2(3.0);
+    let tau = std::f64::consts::TAU;
+    for d in Dialect::ALL {
+        let r = |v: f64| {
+            if d == Dialect::Sinumerik {
+                format!("CR={v}")
+            } else {
+                format!("R{v}")
+            }
+        };
+        let radius_form = format!(
+            "G17 G90 G94\nG0 X0 Y0 Z0\nG3 X8 Y0 {} F600\nG3 X0 Y0 {}\nG2 X8 Y0 Z1 {}\n\
+             G2 X0 Y0 {}\nG20\nG3 X0.1 Y0 {}\n",
+            r(5.0),
+            r(-5.0),
+            r(-5.0),
+            r(5.0),
+            r(0.05)
+        );
+        let centre_form = "G17 G90 G94\nG0 X0 Y0 Z0\nG3 X8 Y0 I4 J3 F600\nG3 X0 Y0 I-4 J3\n\
+             G2 X8 Y0 Z1 I4 J3\nG2 X0 Y0 I-4 J3\nG20\nG3 X0.1 Y0 I0.05 J0\n";
+        let a = Program::parse(&radius_form, d).unwrap();
+        let b = Program::parse(centre_form, d).unwrap();
+        assert_eq!(a.blocks.len(), b.blocks.len());
+        for (x, y) in a.blocks.iter().zip(&b.blocks) {
+            assert_eq!((x.kind, x.line, x.end_mm), (y.kind, y.line, y.end_mm));
+            let (cx, cy) = (x.arc.map(|a| a.centre_mm), y.arc.map(|a| a.centre_mm));
+            match (cx, cy) {
+                (Some(p), Some(q)) => {
+                    assert!(
+                        (p[0] - q[0]).hypot(p[1] - q[1]) < CENTRE_TOL_MM,
+                        "{d:?} line {}",
+                        x.line
+                    );
+                }
+                (None, None) => {}
+                other => panic!("{d:?} line {}: {other:?}", x.line),
+            }
+            assert!((x.programmed_time_s - y.programmed_time_s).abs() < 1e-12);
+        }
+        // Closed forms: 5 mm times the sweep; the major arc is the rest of the circle.
+        let len: Vec<f64> = a.blocks.iter().map(|b| b.length_mm()).collect();
+        assert!((len[1] - 5.0 * minor).abs() < 1e-12, "{d:?}");
+        assert!((len[2] - 5.0 * (tau - minor)).abs() < 1e-12, "{d:?}");
+        assert!(
+            (len[3] - (5.0 * (tau - minor)).hypot(1.0)).abs() < 1e-12,
+            "{d:?}"
+        );
+        assert!((len[4] - 5.0 * minor).abs() < 1e-12, "{d:?}");
+        // 0.1 inch chord, 0.05 inch radius: the half circle, pi * 1.27 mm.
+        assert!(
+            (len[5] - std::f64::consts::PI * 1.27).abs() < 1e-12,
+            "{d:?}"
+        );
+        // Impossible radii, naming the line.
+        for (bad, needle) in [
+            (r(3.9), "shorter than half the chord"),
+            (r(0.0), "radius is zero"),
+            (format!("{} I4 J3", r(5.0)), "not both"),
+        ] {
+            let text = format!("G0 X0 Y0 Z0\n(C)\nG3 X8 Y0 {bad} F600\n");
+            let text = if d == Dialect::Sinumerik {
+                text.replace("(C)", "; C")
+            } else {
+                text
+            };
+            let e = Program::parse(&text, d).unwrap_err().to_string();
+            assert!(
+                e.starts_with("program line 3:") && e.contains(needle),
+                "{d:?}: {e}"
+            );
+        }
+        let e = Program::parse("G0 X1 Y0 Z0\nG3 X1 Y0 R5 F600\n", d)
+            .unwrap_err()
+            .to_string();
+        let want = if d == Dialect::Sinumerik {
+            "CR="
+        } else {
+            "coincide"
+        };
+        assert!(
+            e.starts_with("program line 2:") && e.contains(want),
+            "{d:?}: {e}"
+        );
     }
 }
 

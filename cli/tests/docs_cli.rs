@@ -1,6 +1,7 @@
 //! The reference documents are current: every key `report.json` carries for the sample job (a
 //! solve, and the program it writes simulated as written) is described in `docs/formats.md`, and
-//! every subcommand the binary has is in the README's command table.
+//! every subcommand the binary has is in the README's command table; the install instructions
+//! install the wheel the build writes, whatever the order of its platform tags.
 
 mod common;
 
@@ -106,4 +107,66 @@ fn the_readme_command_table_names_every_subcommand() {
             "README's command table lacks `preston {c}`"
         );
     }
+}
+
+/// Whether `name` matches the shell glob `pattern` (`*` any run of characters, no other
+/// metacharacters).
+fn glob_matches(pattern: &str, name: &str) -> bool {
+    let parts: Vec<&str> = pattern.split('*').collect();
+    let (first, last) = (parts[0], parts[parts.len() - 1]);
+    if parts.len() == 1 {
+        return pattern == name;
+    }
+    if !name.starts_with(first) || !name[first.len()..].ends_with(last) {
+        return false;
+    }
+    let mut rest = &name[first.len()..name.len() - last.len()];
+    for p in &parts[1..parts.len() - 1] {
+        match rest.find(p) {
+            Some(at) => rest = &rest[at + p.len()..],
+            None => return false,
+        }
+    }
+    true
+}
+
+#[test]
+fn the_install_instructions_install_the_wheel_the_build_writes() {
+    // maturin 1.9 names the manylinux2014 wheel with this tag order; other versions the reverse.
+    let built = [
+        "preston_dwell-0.1.0-cp39-abi3-manylinux2014_x86_64.manylinux_2_17_x86_64.whl",
+        "preston_dwell-0.1.0-cp39-abi3-manylinux_2_17_x86_64.manylinux2014_x86_64.whl",
+    ];
+    assert!(glob_matches("a*c", "abbc") && !glob_matches("a*c", "abcd"));
+    for doc in ["docs/install.md", "README.md"] {
+        let text = repo_file(doc);
+        let wheels: Vec<&str> = text
+            .lines()
+            .filter_map(|l| l.split("pip install").nth(1))
+            .flat_map(|rest| rest.split(|c: char| c.is_whitespace() || c == '`'))
+            .filter(|w| w.ends_with(".whl"))
+            .collect();
+        assert!(!wheels.is_empty(), "{doc} installs no wheel");
+        for w in wheels {
+            let file = w.rsplit('/').next().unwrap_or(w);
+            for b in built {
+                assert!(glob_matches(file, b), "{doc}: '{w}' does not match {b}");
+            }
+        }
+    }
+    let install = repo_file("docs/install.md");
+    for needed in ["Rust 1.89", "crates.io", "PyPI"] {
+        assert!(
+            install.contains(needed),
+            "docs/install.md does not say it needs {needed}"
+        );
+    }
+    // The wheel check compares versions without building the command line again.
+    let script = repo_file("scripts/build-wheels.sh");
+    assert!(
+        !script
+            .lines()
+            .any(|l| l.trim_start().starts_with("cargo build")),
+        "scripts/build-wheels.sh builds the command line"
+    );
 }

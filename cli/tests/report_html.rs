@@ -1,6 +1,6 @@
 //! `preston solve --report`: `report.html`, one self-contained page whose numbers are those of
-//! `report.json`, with every figure embedded and the inputs' hashes; the sample's residual plot
-//! keeps almost all points inside its colour range.
+//! `report.json`, opening with a summary in words, with every figure embedded and the inputs'
+//! hashes; the sample's residual plot keeps almost all points inside its colour range.
 
 mod common;
 
@@ -249,4 +249,116 @@ fn residual_colours_span_the_bulk_of_the_sample() {
         .unwrap();
     assert_eq!(o.status.code(), Some(2));
     assert!(!tight.path().join("never").exists());
+}
+
+/// The text a reader sees on the page: no tags, no script or style, no folded `<details>`.
+fn visible_text(html: &str) -> String {
+    let mut text = html.to_string();
+    for (open, close) in [
+        ("<script", "</script>"),
+        ("<style", "</style>"),
+        ("<details", "</details>"),
+    ] {
+        while let Some(a) = text.find(open) {
+            let b = text[a..].find(close).map(|b| a + b + close.len()).unwrap();
+            text.replace_range(a..b, " ");
+        }
+    }
+    let mut out = String::new();
+    let mut in_tag = false;
+    for c in text.chars() {
+        match c {
+            '<' => in_tag = true,
+            '>' => {
+                in_tag = false;
+                out.push(' ');
+            }
+            c if !in_tag => out.push(c),
+            _ => {}
+        }
+    }
+    out
+}
+
+/// Every key path of `report.json` (dotted below the top level).
+fn key_paths(prefix: &str, v: &serde_json::Value, out: &mut Vec<String>) {
+    if let serde_json::Value::Object(m) = v {
+        for (k, x) in m {
+            let p = if prefix.is_empty() {
+                k.clone()
+            } else {
+                format!("{prefix}.{k}")
+            };
+            key_paths(&p, x, out);
+            out.push(p);
+        }
+    }
+}
+
+/// The page opens with the summary a shop reads first (measured error, expected result,
+/// machining time in hours and minutes, tool and path, the risks in words), before the first
+/// figure; the solver's internals are folded; no key of report.json is in the visible text.
+#[test]
+fn the_page_opens_with_a_summary_in_words() {
+    assert_eq!(preston_io::html::hours_minutes(27_542.0), "7 h 39 min");
+    let out = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job_point_1mm.toml"))
+        .args(["--report", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let html = std::fs::read_to_string(out.path().join("report.html")).unwrap();
+    let json = common::report(out.path());
+    let summary = html.find("id=\"summary\"").expect("no summary");
+    let first_figure = html.find("<figure").expect("no figure");
+    assert!(summary < first_figure);
+    let top = visible_text(&html[..first_figure]);
+    let t = json["machining_time_s"].as_f64().unwrap();
+    for words in [
+        "Measured error",
+        "Expected result",
+        "Machining time",
+        &preston_io::html::hours_minutes(t),
+        "Tool and path",
+        "measured TIF tif_fluid_jet_10mm.csv",
+        "TIF 3% wider",
+        "rate 3% high",
+        "tool 0.05 mm off in x",
+    ] {
+        assert!(top.contains(words), "'{words}' not in the summary: {top}");
+    }
+    // The summary's numbers are report.json's, each with its unit.
+    for (key, unit) in [
+        ("rms_before_nm", "nm"),
+        ("rms_after_nm", "nm"),
+        ("model.rms_nm", "nm"),
+        ("sensitivity.rate_plus_3pct.rms_nm", "nm"),
+        ("machining_time_s", "s"),
+    ] {
+        let v = at(&json, key).unwrap();
+        let cell = format!("data-key=\"{key}\" data-value=\"{v}\"");
+        let at_cell = html[..first_figure]
+            .find(&cell)
+            .unwrap_or_else(|| panic!("{key}"));
+        let after = &html[at_cell..];
+        let shown_end = after.find("</span>").unwrap() + "</span>".len();
+        assert!(
+            after[shown_end..].starts_with(&format!(" {unit}")),
+            "{key}: no unit after it"
+        );
+    }
+    // Solver internals folded, not gone.
+    let visible = visible_text(&html);
+    assert!(html.contains("KKT residual") && !visible.contains("KKT residual"));
+    let mut keys = Vec::new();
+    key_paths("", &json, &mut keys);
+    let raw: Vec<&String> = keys
+        .iter()
+        .filter(|k| k.contains('.') || k.contains('_'))
+        .filter(|k| visible.contains(k.as_str()))
+        .collect();
+    assert!(raw.is_empty(), "raw keys in the visible text: {raw:?}");
 }

@@ -180,6 +180,118 @@ fn a_hand_written_program_with_arcs_and_inverse_time_simulates_as_written() {
     assert_eq!(c2[0], c[2]);
 }
 
+/// A hand-written program with radius-form arcs: a counter-clockwise quarter circle (`R4`, the
+/// arc of at most 180 degrees) and a clockwise three-quarter circle (`R-4`, the arc of more),
+/// both about (2, 0).
+const RADIUS_FORM: &str = "%
+N10 G17 G21 G40 G49 G80 G90 G94
+N20 G0 Z5
+N30 G0 X-6 Y-4
+N40 G1 Z0 F300
+N50 G1 X2 Y-4 F240
+N60 G3 X6 Y0 R4 F120
+N70 G2 X2 Y4 R-4 F60
+N80 G1 X-4 Y4 F100
+N90 G0 Z5
+N100 M2
+%
+";
+
+/// The moves of [`RADIUS_FORM`] in contact with their centres worked out by hand.
+fn radius_form_moves() -> Vec<Move> {
+    use std::f64::consts::PI;
+    let line = |a: (f64, f64), b: (f64, f64)| {
+        Box::new(move |f: f64| (a.0 + f * (b.0 - a.0), a.1 + f * (b.1 - a.1)))
+            as Box<dyn Fn(f64) -> (f64, f64)>
+    };
+    vec![
+        // Plunge 5 mm at 300 mm/min: 60 * 5 / 300 s.
+        (line((-6.0, -4.0), (-6.0, -4.0)), 1.0),
+        (line((-6.0, -4.0), (2.0, -4.0)), 60.0 * 8.0 / 240.0),
+        // From -90 to 0 degrees about (2, 0), radius 4, at 120 mm/min.
+        (
+            Box::new(|f: f64| {
+                let a = -PI / 2.0 + f * PI / 2.0;
+                (2.0 + 4.0 * a.cos(), 4.0 * a.sin())
+            }),
+            60.0 * (PI / 2.0 * 4.0) / 120.0,
+        ),
+        // Clockwise from 0 through -90 and -180 to -270 degrees, at 60 mm/min.
+        (
+            Box::new(|f: f64| {
+                let a = -f * 1.5 * PI;
+                (2.0 + 4.0 * a.cos(), 4.0 * a.sin())
+            }),
+            60.0 * (1.5 * PI * 4.0) / 60.0,
+        ),
+        (line((2.0, 4.0), (-4.0, 4.0)), 60.0 * 6.0 / 100.0),
+    ]
+}
+
+/// Largest removal difference between the simulated radius-form program and the reference
+/// integration, relative to the largest removal.
+const RADIUS_FORM_TOL: f64 = 1e-3;
+
+#[test]
+fn radius_form_arcs_simulate_as_their_centre_form() {
+    let d = tempfile::tempdir().unwrap();
+    let map = flat_map(d.path());
+    let run = |name: &str, text: &str| {
+        let prog = write_arg(d.path(), &format!("{name}.ngc"), text);
+        let out = d.path().join(name);
+        let o = preston(&[
+            "simulate",
+            "--map",
+            &map,
+            "--gaussian-sigma-mm",
+            "1.5",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--gaussian-truncation-mm",
+            "9",
+            "--program",
+            &prog,
+            "--dialect",
+            "linuxcnc",
+            "--out",
+            s(&out),
+            "--json",
+            "--quiet",
+        ]);
+        let summary = stdout_json(&o);
+        let c = csv_columns(&out.join("residual.csv"), &["x_mm", "y_mm", "removal_nm"]);
+        (summary["executed_time_s"].as_f64().unwrap(), c)
+    };
+    let (t_r, c) = run("radius", RADIUS_FORM);
+    let centre_form = RADIUS_FORM
+        .replace("X6 Y0 R4", "X6 Y0 I0 J4")
+        .replace("X2 Y4 R-4", "X2 Y4 I-4 J0");
+    let (t_ij, c_ij) = run("centre", &centre_form);
+    let moves = radius_form_moves();
+    let total: f64 = moves.iter().map(|m| m.1).sum();
+    assert!((t_r - total).abs() < 1e-9 * total, "{t_r} vs {total}");
+    assert!((t_ij - total).abs() < 1e-9 * total, "{t_ij} vs {total}");
+    let reference: Vec<f64> = (0..c[0].len())
+        .map(|k| reference_removal_nm(&moves, c[0][k], c[1][k]))
+        .collect();
+    let peak = reference.iter().cloned().fold(0.0, f64::max);
+    assert!(peak > 10.0, "{peak}");
+    for (name, removal) in [("radius form", &c[2]), ("centre form", &c_ij[2])] {
+        let worst = (0..reference.len())
+            .map(|k| (removal[k] - reference[k]).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst <= RADIUS_FORM_TOL * peak,
+            "{name}: largest difference {worst} nm against a peak of {peak} nm"
+        );
+    }
+    // The two forms are one motion: the removals agree to rounding.
+    let worst = (0..c[2].len())
+        .map(|k| (c[2][k] - c_ij[2][k]).abs())
+        .fold(0.0, f64::max);
+    assert!(worst <= 1e-9 * peak, "{worst}");
+}
+
 #[test]
 fn marked_programs_still_compare_with_the_plan_and_json_is_one_object() {
     let d = tempfile::tempdir().unwrap();

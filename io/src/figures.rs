@@ -8,8 +8,8 @@
 use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
 use crate::plots::{
-    stage_grid_plot, stage_map_plot, stage_map_plot_with, stage_path_plot, stage_psd_plot,
-    stage_spectrum_plot, ColorLimits, PlotFormat,
+    stage_grid_plot, stage_map_plot, stage_map_plot_scaled, stage_map_plot_with, stage_path_plot,
+    stage_psd_plot, stage_spectrum_plot, ColorLimits, ColourScale, PlotFormat,
 };
 use preston_solver::psd::{area_psd, line_psd, AreaPsd, LineAxis, LinePsd};
 use preston_solver::setup::{Outcome, Setup};
@@ -31,7 +31,8 @@ pub const PSD_AZIMUTHAL_HEADER: &str =
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct FigureStyle {
     /// Colour range of the height-error maps (the error before and the residual); the other
-    /// maps use robust percentiles.
+    /// height maps clip their outliers ([`ColorLimits::Robust`]), dwell, feed and TIF maps keep
+    /// their whole range.
     pub color_limits: ColorLimits,
     /// File format of every figure (the CSVs beside them are the same in both).
     pub format: PlotFormat,
@@ -147,7 +148,7 @@ pub fn stage_solve_figures_with(
             my,
             delivered.removal_nm,
         )?,
-        stage_map_plot_with(
+        stage_map_plot_scaled(
             &style.path(out_dir, "residual"),
             if delivered.executed {
                 "Residual, program as executed (piston removed)"
@@ -159,6 +160,7 @@ pub fn stage_solve_figures_with(
             my,
             residual,
             style.color_limits,
+            ColourScale::Diverging,
         )?,
         stage_map_plot(
             &style.path(out_dir, "dwell"),
@@ -179,7 +181,7 @@ pub fn stage_solve_figures_with(
         stage_path_plot(&style.path(out_dir, "path"), "Dwell path", px, py)?,
     ];
     if delivered.executed {
-        staged.push(stage_map_plot_with(
+        staged.push(stage_map_plot_scaled(
             &style.path(out_dir, "residual_model"),
             "Model residual at the programmed feeds (piston removed)",
             "nm",
@@ -187,6 +189,7 @@ pub fn stage_solve_figures_with(
             my,
             &outcome.residual_nm,
             style.color_limits,
+            ColourScale::Diverging,
         )?);
     }
     let radius = setup.tif.support_radius_mm();

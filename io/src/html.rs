@@ -1,13 +1,18 @@
-//! `report.html`: one self-contained page a metrologist can hand on. It gathers the inputs and
-//! their provenance (files with size and SHA-256, the map's units, aperture and removed form
-//! terms, the job's settings), the result and the plan's machine figures, the executed program,
-//! the sensitivity (when `report.json` carries one), every warning, and the figures, embedded as
-//! base64 PNG (or inline SVG) so the page needs no other file.
+//! `report.html`: one self-contained page a metrologist can hand on. It opens with a one-screen
+//! summary (the measured error, the expected result, the machining time in hours and minutes,
+//! the tool and path, the solve's status, the warnings' count, and the risks: the RMS the same
+//! program leaves under each sensitivity scenario, in words), then the figures in a grid,
+//! embedded as base64 PNG (or SVG) so the page needs no other file, the warnings, the model's
+//! result, the plan's machine figures, the executed program, the inputs and their provenance
+//! (files with size and SHA-256, the map's units, aperture and removed form terms, the job's
+//! settings), and, folded, the solver's internals and every field of `report.json` by its key.
 //!
-//! Every number of `report.json` appears in the page in a cell `data-key="PATH"
+//! Every number of `report.json` appears in the page in an element `data-key="PATH"
 //! data-value="NUMBER"`, `PATH` the dotted key in `report.json` and `NUMBER` its JSON text
-//! unchanged; the cell shows it rounded to five significant digits. Tests (and anyone checking a
-//! page) read the numbers back from those attributes. A short script marks, once the page has
+//! unchanged; the element shows it rounded to five significant digits, its unit beside it. The
+//! visible labels are words, never the keys (those are in the attributes and the folded list of
+//! every field). Tests (and anyone checking a page) read the numbers back from those
+//! attributes. A short script marks, once the page has
 //! loaded, how many of its images decoded (`data-images-loaded` and `data-images-total` on
 //! `<body>`), for checks in a headless browser.
 
@@ -230,6 +235,97 @@ fn value_cell(key: &str, value: &Value) -> String {
     }
 }
 
+/// An inline element holding the number `value` of `key` with its data attributes (its unit is
+/// written after it by the caller); a dash when `key` is not in the report.
+fn value_span(json: &Value, key: &str) -> String {
+    match json.pointer(&format!("/{}", key.replace('.', "/"))) {
+        Some(Value::Number(n)) => {
+            let shown = n.as_f64().map_or_else(|| n.to_string(), display_number);
+            format!(
+                "<span class=\"num\" data-key=\"{}\" data-value=\"{}\">{}</span>",
+                escape(key),
+                escape(&n.to_string()),
+                escape(&shown)
+            )
+        }
+        Some(Value::String(s)) => escape(s),
+        _ => "–".to_string(),
+    }
+}
+
+/// A duration as hours and minutes, rounded to the minute (`27542` s: `7 h 39 min`); under a
+/// minute in seconds.
+pub fn hours_minutes(seconds: f64) -> String {
+    if !(seconds.is_finite() && seconds >= 0.0) {
+        return format!("{seconds} s");
+    }
+    if seconds < 59.5 {
+        return format!("{seconds:.0} s");
+    }
+    let minutes = (seconds / 60.0).round() as u64;
+    match (minutes / 60, minutes % 60) {
+        (0, m) => format!("{m} min"),
+        (h, m) => format!("{h} h {m} min"),
+    }
+}
+
+/// A label for the key `key` below `section` in words: the key's parts without the unit suffix,
+/// underscores as spaces (`map_input.pitch_mm` under `map_input`: `pitch`).
+fn words_of(key: &str, section: &str) -> String {
+    const UNIT_SUFFIXES: [&str; 12] = [
+        "_mm_per_min",
+        "_mm_per_s2",
+        "_nm_per_s",
+        "_nm2_mm2",
+        "_nm2_mm",
+        "_per_mm",
+        "_nm2",
+        "_nm",
+        "_mm",
+        "_seconds",
+        "_s",
+        "_deg",
+    ];
+    let rest = key
+        .strip_prefix(section)
+        .map(|r| r.trim_start_matches('.'))
+        .filter(|r| !r.is_empty())
+        .unwrap_or(key);
+    rest.split('.')
+        .map(|part| {
+            let part = UNIT_SUFFIXES
+                .iter()
+                .find_map(|u| part.strip_suffix(u).filter(|p| !p.is_empty()))
+                .unwrap_or(part);
+            part.replace('_', " ")
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Rows for every leaf of `json` under `section`, labelled by `labels` (key below the section,
+/// label) or else by the key in words.
+fn labelled_leaf_rows(
+    json: &Value,
+    section: &str,
+    labels: &[(&str, &str)],
+) -> Vec<(String, String, Value)> {
+    leaf_rows(json, section)
+        .into_iter()
+        .map(|(_, key, v)| {
+            let below = key
+                .strip_prefix(section)
+                .unwrap_or(&key)
+                .trim_start_matches('.');
+            let label = labels
+                .iter()
+                .find(|(k, _)| *k == below)
+                .map_or_else(|| words_of(&key, section), |(_, l)| l.to_string());
+            (label, key, v)
+        })
+        .collect()
+}
+
 /// A two- or three-column table of `rows` (label, key, value).
 fn table(out: &mut String, rows: &[(String, String, Value)]) {
     out.push_str("<table>\n<tr><th>quantity</th><th>value</th><th>unit</th></tr>\n");
@@ -269,10 +365,11 @@ padding:0 1em;color:#222}h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.25
 margin-top:1.6em}table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.2em .6em;\
 text-align:left;vertical-align:top}th[scope=row]{font-weight:normal;background:#f4f4f4}td.num{text-align:right;\
 font-variant-numeric:tabular-nums}td.unit{color:#555}td.hash{font-family:monospace;font-size:.85em;\
-word-break:break-all}.cards{display:flex;flex-wrap:wrap;gap:.8em}.card{border:1px solid #ccc;border-radius:4px;\
-padding:.5em .8em;min-width:11em}.card .big{font-size:1.4em}.warn{color:#8a3b00}figure{margin:1em 0}\
+word-break:break-all}.warn{color:#8a3b00}figure{margin:1em 0}\
 figure img{max-width:100%;height:auto;border:1px solid #eee}figure svg{max-width:100%;height:auto}\
 figcaption{color:#444;font-size:.9em}pre{background:#f7f7f7;padding:.6em;overflow-x:auto;font-size:.85em}\
+.figs{display:grid;grid-template-columns:repeat(auto-fill,minmax(30em,1fr));gap:.4em 1.2em}.figs figure{margin:.4em 0}\
+table.summary th[scope=row]{width:11em}details{margin:1em 0}summary{cursor:pointer;font-weight:bold}\
 @media print{figure{break-inside:avoid}}";
 
 const SCRIPT: &str = "window.addEventListener('load',function(){var im=document.images,k=0;\
@@ -379,8 +476,8 @@ fn provenance_section(out: &mut String, p: &Provenance, report: &Value) {
         );
     }
     out.push_str("</table>\n");
-    let mut map_rows = leaf_rows(report, "map_input");
-    map_rows.retain(|(k, _, _)| !k.starts_with("map_input.notes"));
+    let mut map_rows = labelled_leaf_rows(report, "map_input", &[]);
+    map_rows.retain(|(_, k, _)| !k.starts_with("map_input.notes"));
     if !map_rows.is_empty() {
         out.push_str("<p>How the map was read:</p>\n");
         table(out, &map_rows);
@@ -399,7 +496,7 @@ fn figures_section(out: &mut String, figures: &[Figure]) {
     if figures.is_empty() {
         return;
     }
-    out.push_str("<h2 id=\"figures\">Figures</h2>\n");
+    out.push_str("<h2 id=\"figures\">Figures</h2>\n<div class=\"figs\">\n");
     for f in figures {
         let alt = escape(&f.caption);
         if f.is_svg() {
@@ -421,6 +518,7 @@ fn figures_section(out: &mut String, figures: &[Figure]) {
             );
         }
     }
+    out.push_str("</div>\n");
 }
 
 fn warnings_section(out: &mut String, warnings: &[String]) {
@@ -436,45 +534,23 @@ fn warnings_section(out: &mut String, warnings: &[String]) {
     }
 }
 
-fn card(out: &mut String, label: &str, json: &Value, key: &str) {
-    let Some(v) = json.pointer(&format!("/{}", key.replace('.', "/"))) else {
-        return;
-    };
-    let cell = value_cell(key, v).replacen("<td", "<div class=\"big\"", 1);
-    let cell = cell.trim_end_matches("</td>").to_string() + "</div>";
-    let _ = writeln!(
-        out,
-        "<div class=\"card\"><div>{}</div>{} <span class=\"unit\">{}</span></div>",
-        escape(label),
-        cell,
-        unit_of(key)
-    );
-}
-
 /// Keys of the result section.
-const RESULT_KEYS: [(&str, &str); 13] = [
+const RESULT_KEYS: [(&str, &str); 8] = [
     ("rms_before_nm", "RMS of the error before"),
     ("pv_before_nm", "PV of the error before"),
     ("rms_after_nm", "RMS of the predicted residual"),
     ("pv_after_nm", "PV of the predicted residual"),
+    ("model.rms_nm", "RMS of the plan's model residual"),
+    ("model.pv_nm", "PV of the plan's model residual"),
     ("piston_nm", "piston (uniform extra removal)"),
     ("total_dwell_s", "total dwell"),
-    ("objective", "objective 0.5 |R t - z - c|²"),
-    ("solver", "solver"),
-    ("status", "status"),
-    ("converged_by", "converged by"),
-    ("iterations", "iterations"),
-    ("objective_gap_bound", "proven objective gap bound"),
-    ("kkt_residual", "KKT residual"),
 ];
 
 /// Keys of the plan-and-machine section.
-const PLAN_KEYS: [(&str, &str); 19] = [
+const PLAN_KEYS: [(&str, &str); 14] = [
     ("m", "measurement points"),
     ("skipped_rows", "map points skipped (empty or NaN)"),
     ("n", "dwell points"),
-    ("nnz", "non-zeros of R"),
-    ("operator", "how R was applied"),
     ("edge", "edge model"),
     ("edge_points", "edge extension points"),
     ("min_feed_mm_per_min", "slowest feed"),
@@ -482,7 +558,6 @@ const PLAN_KEYS: [(&str, &str); 19] = [
     ("machining_time_s", "machining time"),
     ("a_max_mm_per_s2", "acceleration limit"),
     ("max_accel_mm_per_s2", "largest acceleration"),
-    ("accel_iterations", "acceleration-limit iterations"),
     (
         "rms_feed_limited_only_nm",
         "RMS without the acceleration limit",
@@ -490,56 +565,227 @@ const PLAN_KEYS: [(&str, &str); 19] = [
     ("max_neighbour_feed_ratio", "largest neighbour feed ratio"),
     ("dwell_outside_map_s", "dwell outside the map"),
     ("unreachable_dwell_points", "unreachable dwell points"),
+];
+
+/// Keys of the folded solver-internals section.
+const INTERNAL_KEYS: [(&str, &str); 14] = [
+    ("solver", "solver"),
+    ("status", "status"),
+    ("converged_by", "converged by"),
+    ("iterations", "iterations"),
+    ("objective", "objective 0.5 |R t - z - c|²"),
+    ("objective_gap_bound", "proven objective gap bound"),
+    ("gap_bound_reason", "why no gap bound"),
+    ("kkt_residual", "KKT residual"),
+    ("max_bound_violation_s", "largest dwell-bound violation"),
+    ("accel_iterations", "acceleration-limit iterations"),
+    ("operator", "how R was applied"),
+    ("nnz", "non-zeros of R"),
     ("build_seconds", "build time"),
     ("solve_seconds", "solve time"),
 ];
 
-/// The page of a solve (or a simulation): `report` is `report.json`'s content as JSON.
-pub fn report_page(title: &str, report: &Value, extras: &PageExtras<'_>) -> String {
-    let mut out = String::with_capacity(1 << 20);
-    head(&mut out, title);
-    let _ = writeln!(out, "<h1>{}</h1>", escape(title));
+/// Labels of the executed program's fields.
+const EXECUTED_LABELS: [(&str, &str); 8] = [
+    ("a_max_mm_per_s2", "acceleration limit"),
+    ("rms_after_nm", "RMS of the residual as executed"),
+    ("pv_after_nm", "PV of the residual as executed"),
+    ("rms_ratio_to_plan", "RMS as executed over the model's RMS"),
+    ("stretch_time_s", "time in the dwell stretches"),
+    (
+        "max_stretch_error",
+        "largest stretch-time error (fraction of its dwell)",
+    ),
+    (
+        "stretches_over_5_percent",
+        "stretches more than 5% off their dwell",
+    ),
+    ("correction_passes", "correction passes kept"),
+];
+
+/// The sensitivity scenarios of `report.json` `sensitivity` in words.
+const SCENARIOS: [(&str, &str); 5] = [
+    ("tif_wider_3pct", "TIF 3% wider"),
+    ("tif_narrower_3pct", "TIF 3% narrower"),
+    ("rate_plus_3pct", "rate 3% high"),
+    ("offset_x_0p05mm", "tool 0.05 mm off in x"),
+    ("offset_y_0p05mm", "tool 0.05 mm off in y"),
+];
+
+/// The file name of a path given in the job's settings.
+fn file_name_of(v: &Value) -> Option<String> {
+    let p = Path::new(v.as_str()?);
+    Some(p.file_name().map_or_else(
+        || p.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    ))
+}
+
+/// The tool and the path in words, from the job's settings and the report.
+fn tool_and_path(report: &Value, settings: Option<&Value>) -> String {
+    let mut parts = Vec::new();
+    let number = |v: Option<&Value>| v.and_then(Value::as_f64).map(display_number);
+    let tools = settings
+        .and_then(|s| s.get("tool"))
+        .and_then(Value::as_array)
+        .map_or(0, Vec::len);
+    if tools > 0 {
+        parts.push(format!("{tools} tools"));
+    } else if let Some(tif) = settings.and_then(|s| s.get("tif")) {
+        if let Some(f) = tif.get("file").and_then(file_name_of) {
+            parts.push(format!("measured TIF {}", escape(&f)));
+        } else if let Some(g) = tif.get("gaussian").filter(|g| !g.is_null()) {
+            let sigma = number(g.get("sigma_mm")).unwrap_or_else(|| "?".into());
+            let peak = number(g.get("peak_rate_nm_per_s")).unwrap_or_else(|| "?".into());
+            parts.push(format!("Gaussian TIF, σ {sigma} mm, peak {peak} nm/s"));
+        } else if tif.get("hertz").is_some_and(|h| !h.is_null()) {
+            let varying = tif
+                .get("curvature_dependent")
+                .and_then(Value::as_bool)
+                .unwrap_or(false);
+            parts.push(
+                if varying {
+                    "Hertz contact TIF, following the surface's curvature"
+                } else {
+                    "Hertz contact TIF"
+                }
+                .to_string(),
+            );
+        }
+    }
+    if let Some(d) = settings.and_then(|s| s.get("dwell")) {
+        if let Some(f) = d.get("file").and_then(file_name_of) {
+            parts.push(format!("dwell points from {}", escape(&f)));
+        } else if let Some(p) = number(d.get("raster_pitch_mm")) {
+            let along = d.get("raster_along").and_then(Value::as_str).unwrap_or("x");
+            parts.push(format!("raster along {}, {p} mm pitch", escape(along)));
+        }
+    }
+    let mut path = Vec::new();
+    if report.get("n").is_some() {
+        path.push(format!("{} dwell points", value_span(report, "n")));
+    }
+    if report.get("min_feed_mm_per_min").is_some() && report.get("max_feed_mm_per_min").is_some() {
+        path.push(format!(
+            "feed {} to {} mm/min",
+            value_span(report, "min_feed_mm_per_min"),
+            value_span(report, "max_feed_mm_per_min")
+        ));
+    }
+    if !path.is_empty() {
+        parts.push(path.join(", "));
+    }
+    parts.join("; ")
+}
+
+/// A summary row: the label and the cell's HTML.
+fn summary_row(out: &mut String, label: &str, html: &str) {
     let _ = writeln!(
         out,
-        "<p>Written by preston {}. Every number below is the one in <code>report.json</code> \
-         (rounded for display; the exact value is in the cell's <code>data-value</code>).</p>",
-        env!("CARGO_PKG_VERSION")
+        "<tr><th scope=\"row\">{}</th><td>{html}</td></tr>",
+        escape(label)
     );
-    out.push_str("<div class=\"cards\">\n");
-    card(&mut out, "PV before", report, "pv_before_nm");
-    card(&mut out, "RMS before", report, "rms_before_nm");
-    card(&mut out, "PV after (predicted)", report, "pv_after_nm");
-    card(&mut out, "RMS after (predicted)", report, "rms_after_nm");
-    card(&mut out, "PV as executed", report, "executed.pv_after_nm");
-    card(&mut out, "RMS as executed", report, "executed.rms_after_nm");
-    card(&mut out, "total dwell", report, "total_dwell_s");
-    card(&mut out, "machining time", report, "machining_time_s");
-    out.push_str("</div>\n");
-    if let Some(p) = extras.provenance {
-        provenance_section(&mut out, p, report);
+}
+
+/// The one-screen summary at the top of the page.
+fn summary_section(out: &mut String, report: &Value, extras: &PageExtras<'_>, warnings: usize) {
+    let has = |k: &str| {
+        report
+            .pointer(&format!("/{}", k.replace('.', "/")))
+            .is_some()
+    };
+    let rms_pv = |rms: &str, pv: &str| {
+        format!(
+            "RMS {} nm, PV {} nm",
+            value_span(report, rms),
+            value_span(report, pv)
+        )
+    };
+    out.push_str("<h2 id=\"summary\">Summary</h2>\n<table class=\"summary\">\n");
+    if has("rms_before_nm") {
+        summary_row(
+            out,
+            "Measured error",
+            &rms_pv("rms_before_nm", "pv_before_nm"),
+        );
     }
-    out.push_str("<h2 id=\"result\">Result</h2>\n");
-    table(&mut out, &rows_of(report, &RESULT_KEYS));
-    out.push_str("<h2 id=\"plan\">Plan and machine</h2>\n");
-    table(&mut out, &rows_of(report, &PLAN_KEYS));
-    out.push_str("<h2 id=\"executed\">Executed program</h2>\n");
-    match report.get("executed") {
-        Some(Value::Object(_)) => {
-            out.push_str(
-                "<p>The default program (ISO, G94) run at the acceleration limit, its removal \
-                 integrated along the motion:</p>\n",
-            );
-            table(&mut out, &leaf_rows(report, "executed"));
-        }
-        _ => out.push_str(
-            "<p>Not computed: the executed program is simulated with an acceleration limit on a \
-             flat part (<code>[machine] a_max_mm_per_s2</code>).</p>\n",
-        ),
+    // With `model` present the predicted residual is the program's as executed.
+    if has("model.rms_nm") && has("executed.a_max_mm_per_s2") {
+        summary_row(
+            out,
+            "Expected result",
+            &format!(
+                "{} as the program executes at {} mm/s², piston removed (the plan's model: {})",
+                rms_pv("rms_after_nm", "pv_after_nm"),
+                value_span(report, "executed.a_max_mm_per_s2"),
+                rms_pv("model.rms_nm", "model.pv_nm")
+            ),
+        );
+    } else if has("rms_after_nm") {
+        summary_row(
+            out,
+            "Expected result",
+            &format!("{}, piston removed", rms_pv("rms_after_nm", "pv_after_nm")),
+        );
     }
+    if let Some(t) = report.get("machining_time_s").and_then(Value::as_f64) {
+        summary_row(
+            out,
+            "Machining time",
+            &format!(
+                "{} ({} s)",
+                hours_minutes(t),
+                value_span(report, "machining_time_s")
+            ),
+        );
+    }
+    let tool = tool_and_path(report, extras.provenance.and_then(|p| p.settings.as_ref()));
+    if !tool.is_empty() {
+        summary_row(out, "Tool and path", &tool);
+    }
+    if let Some(s) = report.get("status").and_then(Value::as_str) {
+        let words = match s {
+            "converged" => "converged".to_string(),
+            "simulated" => "simulated as given".to_string(),
+            other => format!("{} (the outputs hold the best iterate)", escape(other)),
+        };
+        summary_row(out, "Solve", &words);
+    }
+    summary_row(
+        out,
+        "Warnings",
+        &match warnings {
+            0 => "none".to_string(),
+            n => format!("<a href=\"#warnings\">{n}, listed below</a>"),
+        },
+    );
+    out.push_str("</table>\n");
     if let Some(Value::Object(_)) = report.get("sensitivity") {
-        out.push_str("<h2 id=\"sensitivity\">Sensitivity</h2>\n");
-        table(&mut out, &leaf_rows(report, "sensitivity"));
+        out.push_str(
+            "<h3 id=\"sensitivity\">Risks</h3>\n<p>The residual the same program leaves when the \
+             tool is not quite what the plan assumes (piston removed):</p>\n\
+             <table>\n<tr><th>if the</th><th>RMS left</th><th>PV left</th></tr>\n",
+        );
+        for (key, words) in SCENARIOS {
+            let base = format!("sensitivity.{key}");
+            if !has(&base) {
+                continue;
+            }
+            let _ = writeln!(
+                out,
+                "<tr><th scope=\"row\">{}</th><td class=\"num\">{} nm</td><td class=\"num\">{} nm</td></tr>",
+                escape(words),
+                value_span(report, &format!("{base}.rms_nm")),
+                value_span(report, &format!("{base}.pv_nm"))
+            );
+        }
+        out.push_str("</table>\n");
     }
+}
+
+/// The warnings of a report page: the report's, the map reader's notes, unreachable points, a
+/// status other than converged, and `notes`.
+fn page_warnings(report: &Value, notes: &[String]) -> Vec<String> {
     let mut warnings: Vec<String> = report
         .get("warnings")
         .and_then(|w| w.as_array())
@@ -573,15 +819,58 @@ pub fn report_page(title: &str, report: &Value, extras: &PageExtras<'_>) -> Stri
             ));
         }
     }
-    warnings.extend(extras.notes.iter().cloned());
-    warnings_section(&mut out, &warnings);
+    warnings.extend(notes.iter().cloned());
+    warnings
+}
+
+/// The page of a solve (or a simulation): `report` is `report.json`'s content as JSON.
+pub fn report_page(title: &str, report: &Value, extras: &PageExtras<'_>) -> String {
+    let mut out = String::with_capacity(1 << 20);
+    head(&mut out, title);
+    let _ = writeln!(out, "<h1>{}</h1>", escape(title));
+    let _ = writeln!(
+        out,
+        "<p>Written by preston {}. Every number below is the one in <code>report.json</code> \
+         (rounded for display; the exact value is in the element's <code>data-value</code>).</p>",
+        env!("CARGO_PKG_VERSION")
+    );
+    let warnings = page_warnings(report, extras.notes);
+    summary_section(&mut out, report, extras, warnings.len());
     figures_section(&mut out, extras.figures);
-    out.push_str("<h2 id=\"all\">Every field of report.json</h2>\n");
+    warnings_section(&mut out, &warnings);
+    out.push_str("<h2 id=\"result\">Result</h2>\n");
+    table(&mut out, &rows_of(report, &RESULT_KEYS));
+    out.push_str("<h2 id=\"plan\">Plan and machine</h2>\n");
+    table(&mut out, &rows_of(report, &PLAN_KEYS));
+    out.push_str("<h2 id=\"executed\">Executed program</h2>\n");
+    match report.get("executed") {
+        Some(Value::Object(_)) => {
+            out.push_str(
+                "<p>The default program (ISO, G94) run at the acceleration limit, its removal \
+                 integrated along the motion:</p>\n",
+            );
+            table(
+                &mut out,
+                &labelled_leaf_rows(report, "executed", &EXECUTED_LABELS),
+            );
+        }
+        _ => out.push_str(
+            "<p>Not computed: the executed program is simulated with an acceleration limit on a \
+             flat part (<code>[machine] a_max_mm_per_s2</code>).</p>\n",
+        ),
+    }
+    if let Some(p) = extras.provenance {
+        provenance_section(&mut out, p, report);
+    }
+    out.push_str("<details id=\"internals\"><summary>Solver internals</summary>\n");
+    table(&mut out, &rows_of(report, &INTERNAL_KEYS));
+    out.push_str("</details>\n");
+    out.push_str("<details id=\"all\"><summary>Every field of report.json, by its key</summary>\n");
     let mut leaves = Vec::new();
     flatten("", report, &mut leaves);
     let rows: Vec<_> = leaves.into_iter().map(|(k, v)| (k.clone(), k, v)).collect();
     table(&mut out, &rows);
-    out.push_str("</body>\n</html>\n");
+    out.push_str("</details>\n</body>\n</html>\n");
     out
 }
 
@@ -699,5 +988,68 @@ mod tests {
         assert!(page.contains("id=\"sensitivity\""));
         assert!(page.contains("a &lt;warning&gt;"));
         assert!(!page.contains("<warning>"));
+    }
+
+    #[test]
+    fn durations_read_as_hours_and_minutes() {
+        assert_eq!(hours_minutes(27_542.0), "7 h 39 min");
+        assert_eq!(hours_minutes(27_570.0), "7 h 40 min");
+        assert_eq!(hours_minutes(3_599.9), "1 h 0 min");
+        assert_eq!(hours_minutes(600.0), "10 min");
+        assert_eq!(hours_minutes(42.4), "42 s");
+        assert_eq!(hours_minutes(59.6), "1 min");
+    }
+
+    #[test]
+    fn labels_are_words_not_keys() {
+        assert_eq!(words_of("map_input.pitch_mm", "map_input"), "pitch");
+        assert_eq!(
+            words_of("map_input.removed.coefficients", "map_input"),
+            "removed, coefficients"
+        );
+        assert_eq!(
+            words_of("executed.max_stretch_error", "executed"),
+            "max stretch error"
+        );
+    }
+
+    /// The summary comes first with the risks in words; the keys stay in the attributes.
+    #[test]
+    fn the_summary_leads_and_names_the_risks_in_words() {
+        let report = serde_json::json!({
+            "rms_before_nm": 922.4, "pv_before_nm": 3025.8, "rms_after_nm": 0.36,
+            "pv_after_nm": 3.97, "machining_time_s": 27_542.3, "status": "converged",
+            "n": 22_971, "min_feed_mm_per_min": 1.4, "max_feed_mm_per_min": 3000.0,
+            "kkt_residual": 1e-9,
+            "sensitivity": {
+                "tif_wider_3pct": {"rms_nm": 4.1, "pv_nm": 40.0},
+                "tif_narrower_3pct": {"rms_nm": 3.9, "pv_nm": 38.0},
+                "rate_plus_3pct": {"rms_nm": 28.0, "pv_nm": 90.0},
+                "offset_x_0p05mm": {"rms_nm": 1.6, "pv_nm": 20.0},
+                "offset_y_0p05mm": {"rms_nm": 1.7, "pv_nm": 21.0}
+            }
+        });
+        let figures = [Figure {
+            name: "residual.png".into(),
+            caption: "Residual".into(),
+            bytes: vec![1, 2, 3],
+        }];
+        let page = report_page(
+            "t",
+            &report,
+            &PageExtras {
+                figures: &figures,
+                ..PageExtras::default()
+            },
+        );
+        let summary = page.find("id=\"summary\"").unwrap();
+        assert!(summary < page.find("<figure").unwrap());
+        assert!(page.contains("7 h 39 min ("));
+        assert!(page.contains(
+            "<th scope=\"row\">tool 0.05 mm off in x</th><td class=\"num\"><span class=\"num\" \
+             data-key=\"sensitivity.offset_x_0p05mm.rms_nm\" data-value=\"1.6\">1.6000</span> nm</td>"
+        ));
+        let folded = page.find("<details id=\"internals\">").unwrap();
+        assert!(page.find("KKT residual").unwrap() > folded);
     }
 }

@@ -256,12 +256,19 @@ impl MapLayout {
     }
 }
 
+/// Points farther from the median than this many median absolute deviations are outliers, clipped
+/// by the robust colour range ([`ColorLimits::Robust`]). Five MADs are 3.4 standard deviations of
+/// normally distributed values and 3.5 amplitudes of a sinusoid: a smooth map has none.
+pub const OUTLIER_MADS: f64 = 5.0;
+
 /// How a map's colours span its values.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum ColorLimits {
-    /// Robust percentiles: signed data `+-` the 99th percentile of `|v|`, one-signed data the
-    /// 0.5th to the 99.5th percentile; points outside are drawn in [`UNDER_RANGE`] and
-    /// [`OVER_RANGE`] and counted under the colour bar.
+    /// Every point but the outliers: the values (their `log10` on a log scale) farther than
+    /// [`OUTLIER_MADS`] median absolute deviations from their median are clipped, drawn in
+    /// [`UNDER_RANGE`] and [`OVER_RANGE`] and counted under the colour bar; the range is that of
+    /// the others (symmetric about zero on the diverging scale). With no spread (a MAD of zero)
+    /// nothing is clipped.
     #[default]
     Robust,
     /// The values' whole range.
@@ -296,51 +303,155 @@ impl std::str::FromStr for ColorLimits {
     }
 }
 
-/// Value at quantile `q` (0..1) of sorted `v` (nearest rank).
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    let k = ((sorted.len() as f64 - 1.0) * q).round() as usize;
-    sorted[k.min(sorted.len() - 1)]
+/// Median of sorted, non-empty `v`.
+fn median_of_sorted(v: &[f64]) -> f64 {
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
-/// The colour range of `v` under `limits` and the scale it gets: signed data (or signed given
-/// limits) the diverging scale symmetric about zero, one-signed data viridis.
-fn colour_range(v: &[f64], limits: ColorLimits) -> (Scale, f64, f64) {
+/// The smallest and largest of the finite `v` that are not outliers: within [`OUTLIER_MADS`]
+/// median absolute deviations of the median (all of them when the MAD is zero); `None` when no
+/// value is finite.
+pub fn inlier_range(v: &[f64]) -> Option<(f64, f64)> {
+    inlier_range_by(v, |x| x)
+}
+
+/// [`inlier_range`] with the test made on `f` of the values (`f` increasing, e.g. `log10`); the
+/// range is of the values themselves.
+fn inlier_range_by(v: &[f64], f: impl Fn(f64) -> f64) -> Option<(f64, f64)> {
+    let mut sorted: Vec<(f64, f64)> = v
+        .iter()
+        .map(|&x| (x, f(x)))
+        .filter(|(x, t)| x.is_finite() && t.is_finite())
+        .collect();
+    if sorted.is_empty() {
+        return None;
+    }
+    sorted.sort_by(|p, q| p.1.total_cmp(&q.1));
+    let t: Vec<f64> = sorted.iter().map(|p| p.1).collect();
+    let m = median_of_sorted(&t);
+    let mut dev: Vec<f64> = t.iter().map(|x| (x - m).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let reach = OUTLIER_MADS * median_of_sorted(&dev);
+    let (first, last) = (sorted[0].0, sorted[sorted.len() - 1].0);
+    if reach.is_nan() || reach <= 0.0 {
+        return Some((first, last));
+    }
+    let lo = sorted.iter().find(|p| p.1 >= m - reach).map(|p| p.0);
+    let hi = sorted.iter().rev().find(|p| p.1 <= m + reach).map(|p| p.0);
+    Some((lo.unwrap_or(first), hi.unwrap_or(last)))
+}
+
+/// The colour scale a map asks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ColourScale {
+    /// Linear: the diverging scale centred on zero for signed values, viridis for one-signed.
+    #[default]
+    Linear,
+    /// The diverging scale centred on zero whatever the values (residuals, differences).
+    Diverging,
+    /// Viridis over `log10` of the values (dwell, feed: ranges of several decades); linear when
+    /// a value (or a given limit) is not positive or the values span less than a decade.
+    Log,
+}
+
+impl ColourScale {
+    /// The scale a map in `unit` gets by default: logarithmic for dwell (`s`) and feed
+    /// (`mm/min`), linear otherwise.
+    pub fn for_unit(unit: &str) -> Self {
+        match unit {
+            "s" | "mm/min" => ColourScale::Log,
+            _ => ColourScale::Linear,
+        }
+    }
+}
+
+/// The colour range a map is drawn with and the points it clips.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ColourRange {
+    /// Lower end of the colour range, in the map's unit.
+    pub lo: f64,
+    /// Upper end of the colour range, in the map's unit.
+    pub hi: f64,
+    /// Finite points below `lo` (drawn in [`UNDER_RANGE`]).
+    pub below: usize,
+    /// Finite points above `hi` (drawn in [`OVER_RANGE`]).
+    pub above: usize,
+    scale: Scale,
+}
+
+impl ColourRange {
+    /// Points drawn outside the colour range.
+    pub fn clipped(&self) -> usize {
+        self.below + self.above
+    }
+
+    /// Whether the colours follow `log10` of the values.
+    pub fn is_log(&self) -> bool {
+        self.scale == Scale::Log
+    }
+
+    /// Whether the colours are the diverging scale (centred on zero unless given limits say
+    /// otherwise).
+    pub fn is_diverging(&self) -> bool {
+        self.scale == Scale::Diverging
+    }
+
+    /// Where `v` falls in the colour range, 0 at `lo` to 1 at `hi` (along `log10` on a log
+    /// scale); outside 0..1 for clipped values.
+    pub fn position(&self, v: f64) -> f64 {
+        self.scale.position(v, self.lo, self.hi)
+    }
+}
+
+/// The colour range of the values `v` under `limits` on the scale `wanted` asks for, and the
+/// points outside it ([`ColorLimits`], [`ColourScale`]).
+pub fn colour_range(v: &[f64], limits: ColorLimits, wanted: ColourScale) -> ColourRange {
     let (lo, hi) = value_range(v).unwrap_or((0.0, 1.0));
-    match limits {
-        ColorLimits::Fixed { lo, hi } => (Scale::for_values(lo, hi), lo, hi),
-        ColorLimits::Full => {
-            let scale = Scale::for_values(lo, hi);
-            let (a, b) = scale.range(lo, hi);
-            (scale, a, b)
+    let positive = |a: f64| a > 0.0;
+    let scale = match (wanted, limits) {
+        (ColourScale::Diverging, _) => Scale::Diverging,
+        (ColourScale::Log, ColorLimits::Fixed { lo, hi }) if positive(lo) && hi >= 10.0 * lo => {
+            Scale::Log
         }
+        (ColourScale::Log, ColorLimits::Full | ColorLimits::Robust)
+            if positive(lo)
+                && hi >= 10.0 * lo
+                && v.iter().filter(|x| x.is_finite()).all(|&x| positive(x)) =>
+        {
+            Scale::Log
+        }
+        (_, ColorLimits::Fixed { lo, hi }) => Scale::for_values(lo, hi),
+        _ => Scale::for_values(lo, hi),
+    };
+    let (a, b) = match limits {
+        ColorLimits::Fixed { lo, hi } => (lo, hi),
+        ColorLimits::Full => scale.range(lo, hi),
         ColorLimits::Robust => {
-            let scale = Scale::for_values(lo, hi);
-            let full = scale.range(lo, hi);
-            let mut sorted: Vec<f64> = match scale {
-                Scale::Diverging => v
-                    .iter()
-                    .filter(|x| x.is_finite())
-                    .map(|x| x.abs())
-                    .collect(),
-                Scale::Sequential => v.iter().copied().filter(|x| x.is_finite()).collect(),
-            };
-            if sorted.is_empty() {
-                return (scale, full.0, full.1);
-            }
-            sorted.sort_by(f64::total_cmp);
-            let (a, b) = match scale {
-                Scale::Diverging => {
-                    let a = quantile(&sorted, 0.99);
-                    (-a, a)
-                }
-                Scale::Sequential => (quantile(&sorted, 0.005), quantile(&sorted, 0.995)),
-            };
-            if b > a {
-                (scale, a, b)
+            let inliers = if scale == Scale::Log {
+                inlier_range_by(v, f64::log10)
             } else {
-                (scale, full.0, full.1)
-            }
+                inlier_range(v)
+            };
+            // The inliers' own range, widened like the whole one when it is a single value.
+            let (a, b) = inliers
+                .and_then(|(a, b)| value_range(&[a, b]))
+                .unwrap_or((lo, hi));
+            scale.range(a, b)
         }
+    };
+    let (a, b) = if b > a { (a, b) } else { scale.range(lo, hi) };
+    let (below, above) = outside_counts(v, a, b);
+    ColourRange {
+        lo: a,
+        hi: b,
+        below,
+        above,
+        scale,
     }
 }
 
@@ -388,6 +499,8 @@ enum Scale {
     Sequential,
     /// Moreland's cool-warm map, symmetric about zero (signed quantities).
     Diverging,
+    /// Viridis over `log10` of the values (positive quantities spanning decades).
+    Log,
 }
 
 /// Moreland's diverging cool-warm map (K. Moreland, "Diverging Color Maps for Scientific
@@ -433,7 +546,7 @@ impl Scale {
     /// The value range the colours span.
     fn range(self, lo: f64, hi: f64) -> (f64, f64) {
         match self {
-            Scale::Sequential => (lo, hi),
+            Scale::Sequential | Scale::Log => (lo, hi),
             Scale::Diverging => {
                 let a = lo.abs().max(hi.abs());
                 (-a, a)
@@ -441,10 +554,26 @@ impl Scale {
         }
     }
 
+    /// Where `v` falls from `lo` (0) to `hi` (1): linearly, or along `log10` on the log scale.
+    fn position(self, v: f64, lo: f64, hi: f64) -> f64 {
+        match self {
+            Scale::Sequential | Scale::Diverging => (v - lo) / (hi - lo),
+            Scale::Log => (v.log10() - lo.log10()) / (hi.log10() - lo.log10()),
+        }
+    }
+
     fn colour(self, v: f64, lo: f64, hi: f64) -> RGBColor {
         match self {
-            Scale::Sequential => ViridisRGB::get_color_normalized(v, lo, hi),
-            Scale::Diverging => cool_warm((v - lo) / (hi - lo)),
+            Scale::Sequential | Scale::Log => {
+                let u = self.position(v, lo, hi);
+                let u = if u.is_finite() {
+                    u.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                ViridisRGB::get_color_normalized(u, 0.0, 1.0)
+            }
+            Scale::Diverging => cool_warm(self.position(v, lo, hi)),
         }
     }
 }
@@ -554,10 +683,11 @@ fn sig(v: f64) -> String {
 
 /// Plots scattered values `v` at `(x, y)` (mm) as an image (each pixel takes the value of the
 /// point in its cell, see [`MapLayout`]), with PV and RMS (or the range) in the title and a
-/// colour bar labelled `unit` below. Signed data get a diverging scale centred on zero,
-/// one-signed data viridis. Heights (`unit` `nm`) get colours over robust percentiles
-/// ([`ColorLimits::Robust`]), where edge spikes would set the whole range; other quantities (dwell,
-/// feed, TIF), whose extremes matter, their whole range.
+/// colour bar labelled `unit` below, which says how many points are clipped. Signed data get a
+/// diverging scale centred on zero, one-signed data viridis, dwell (`s`) and feed (`mm/min`)
+/// viridis over `log10` ([`ColourScale::for_unit`]). Heights (`unit` `nm`) clip their outliers
+/// ([`ColorLimits::Robust`]), where edge spikes would set the whole range; other quantities
+/// (dwell, feed, TIF), whose extremes matter, keep their whole range.
 pub fn plot_map(
     path: &Path,
     title: &str,
@@ -596,6 +726,22 @@ pub fn stage_map_plot_with(
     v: &[f64],
     limits: ColorLimits,
 ) -> Result<Staged> {
+    let scale = ColourScale::for_unit(unit);
+    stage_map_plot_scaled(path, title, unit, x, y, v, limits, scale)
+}
+
+/// [`stage_map_plot_with`] on the colour scale `scale`.
+#[allow(clippy::too_many_arguments)]
+pub fn stage_map_plot_scaled(
+    path: &Path,
+    title: &str,
+    unit: &str,
+    x: &[f64],
+    y: &[f64],
+    v: &[f64],
+    limits: ColorLimits,
+    scale: ColourScale,
+) -> Result<Staged> {
     let n = x.len().min(y.len()).min(v.len());
     let (x, y, v) = (&x[..n], &y[..n], &v[..n]);
     let (x0, x1) = value_range(x).ok_or_else(|| Error::Empty {
@@ -603,8 +749,8 @@ pub fn stage_map_plot_with(
         why: "nothing to plot".into(),
     })?;
     let (y0, y1) = value_range(y).unwrap_or((x0, x1));
-    let (scale, lo, hi) = colour_range(v, limits);
-    let outside = outside_counts(v, lo, hi);
+    let range = colour_range(v, limits, scale);
+    let (scale, lo, hi) = (range.scale, range.lo, range.hi);
     let cells = CellIndex::new(x, y, v, (x0, x1, y0, y1));
     let half = 0.5 * cells.cell_mm;
     let (ex0, ex1, ey0, ey1) = (x0 - half, x1 + half, y0 - half, y1 + half);
@@ -666,7 +812,7 @@ pub fn stage_map_plot_with(
             BitMapElement::with_owned_buffer((xr.start, yr.start), (w as u32, h as u32), raster)
                 .ok_or_else(|| plot_error(path, "the map raster does not fill its area"))?;
         root.draw(&image).map_err(|e| plot_error(path, e))?;
-        colour_bar(path, &bar, unit, (lo, hi), scale, layout, outside, n)
+        colour_bar(path, &bar, unit, &range, layout, n)
     })
 }
 
@@ -712,80 +858,119 @@ fn map_mesh<DB: DrawingBackend>(
         .map_err(|e| plot_error(path, e))
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Label of a logarithmic tick `v` (a power of ten): its digits, no exponent.
+fn log_tick_label(v: f64) -> String {
+    let decimals = (-(v.log10() + 1e-9).floor()).clamp(0.0, 12.0) as usize;
+    tick_label(v, decimals)
+}
+
+/// What the colour bar says about the clipped points.
+fn clipped_note(range: &ColourRange, total: usize) -> String {
+    let (below, above) = (range.below, range.above);
+    match below + above {
+        0 => "no point clipped".to_string(),
+        n => {
+            let inside = 100.0 * (total.saturating_sub(n)) as f64 / total.max(1) as f64;
+            format!(
+                "{n} point{} clipped ({below} below in black, {above} above in magenta; \
+                 {inside:.1}% inside)",
+                if n == 1 { "" } else { "s" }
+            )
+        }
+    }
+}
+
 fn colour_bar<DB: DrawingBackend>(
     path: &Path,
     area: &DrawingArea<DB, plotters::coord::Shift>,
     unit: &str,
-    (lo, hi): (f64, f64),
-    scale: Scale,
+    range: &ColourRange,
     layout: MapLayout,
-    (below, above): (usize, usize),
     total: usize,
 ) -> Result<()> {
-    let bar_w = layout.data_size_px.0.min(600);
-    let right = layout.canvas_px.0 - Y_LABELS_PX - bar_w;
-    let span = hi - lo;
+    use plotters::coord::combinators::IntoLogRange;
+    let (lo, hi, scale) = (range.lo, range.hi, range.scale);
+    let log = scale == Scale::Log;
+    // The bar's steps are even along the values, or along their log10 on the log scale.
+    let to_axis = |v: f64| if log { v.log10() } else { v };
+    let from_axis = |t: f64| if log { 10f64.powf(t) } else { t };
+    let (a, b) = (to_axis(lo), to_axis(hi));
+    let span = b - a;
     // Room at both ends for the out-of-range swatches.
     let ext = 0.06 * span;
-    let mut chart = ChartBuilder::on(area)
+    let decimals = tick_decimals(lo, hi, 6);
+    let desc = format!(
+        "{unit}{}; colour range {} to {} {unit}; {}",
+        if log { ", log scale" } else { "" },
+        sig(lo),
+        sig(hi),
+        clipped_note(range, total)
+    );
+    let label = |v: &f64| {
+        if to_axis(*v) < a - 1e-9 * span || to_axis(*v) > b + 1e-9 * span {
+            String::new()
+        } else if log {
+            log_tick_label(*v)
+        } else {
+            tick_label(*v, decimals)
+        }
+    };
+    let steps = 300;
+    let bar = (0..steps).map(|k| {
+        let p = from_axis(a + span * k as f64 / steps as f64);
+        let q = from_axis(a + span * (k + 1) as f64 / steps as f64);
+        let mid = from_axis(a + span * (k as f64 + 0.5) / steps as f64);
+        Rectangle::new([(p, 0.0), (q, 1.0)], scale.colour(mid, lo, hi).filled())
+    });
+    let mut ends = Vec::new();
+    if range.below > 0 {
+        ends.push(Polygon::new(
+            vec![(lo, 0.0), (lo, 1.0), (from_axis(a - ext), 0.5)],
+            UNDER_RANGE.filled(),
+        ));
+    }
+    if range.above > 0 {
+        ends.push(Polygon::new(
+            vec![(hi, 0.0), (hi, 1.0), (from_axis(b + ext), 0.5)],
+            OVER_RANGE.filled(),
+        ));
+    }
+    let bar_w = layout.data_size_px.0.min(600);
+    let right = layout.canvas_px.0 - Y_LABELS_PX - bar_w;
+    let mut builder = ChartBuilder::on(area);
+    builder
         .margin_top(14)
         .margin_right(right)
         .margin_left(LEFT_PX)
         .x_label_area_size(44)
-        .y_label_area_size(Y_LABELS_PX - LEFT_PX)
-        .build_cartesian_2d(lo - ext..hi + ext, 0.0..1.0)
-        .map_err(|e| plot_error(path, e))?;
-    let decimals = tick_decimals(lo, hi, 6);
-    let inside = 100.0 * (total - below - above) as f64 / total.max(1) as f64;
-    let mut desc = format!("{unit}; colour range {} to {} {unit}", sig(lo), sig(hi));
-    if below + above > 0 {
-        desc.push_str(&format!(
-            ", {inside:.1}% of points inside ({below} below in black, {above} above in magenta)"
-        ));
+        .y_label_area_size(Y_LABELS_PX - LEFT_PX);
+    // One drawing for both axis types (linear values, or values on a log axis).
+    macro_rules! draw_bar {
+        ($chart:expr) => {{
+            let mut chart = $chart.map_err(|e| plot_error(path, e))?;
+            chart
+                .configure_mesh()
+                .disable_mesh()
+                .set_all_tick_mark_size(0)
+                .disable_y_axis()
+                .x_labels(6)
+                .x_label_formatter(&label)
+                .x_desc(desc.as_str())
+                .label_style(("sans-serif", 13))
+                .draw()
+                .map_err(|e| plot_error(path, e))?;
+            chart.draw_series(bar).map_err(|e| plot_error(path, e))?;
+            chart.draw_series(ends).map_err(|e| plot_error(path, e))?;
+        }};
     }
-    chart
-        .configure_mesh()
-        .disable_mesh()
-        .set_all_tick_mark_size(0)
-        .disable_y_axis()
-        .x_labels(6)
-        .x_label_formatter(&|v| {
-            if *v < lo - 1e-12 * span || *v > hi + 1e-12 * span {
-                String::new()
-            } else {
-                tick_label(*v, decimals)
-            }
-        })
-        .x_desc(desc)
-        .label_style(("sans-serif", 13))
-        .draw()
-        .map_err(|e| plot_error(path, e))?;
-    let steps = 300;
-    chart
-        .draw_series((0..steps).map(|k| {
-            let a = lo + span * k as f64 / steps as f64;
-            let b = lo + span * (k + 1) as f64 / steps as f64;
-            Rectangle::new(
-                [(a, 0.0), (b, 1.0)],
-                scale.colour(0.5 * (a + b), lo, hi).filled(),
-            )
-        }))
-        .map_err(|e| plot_error(path, e))?;
-    let mut ends = Vec::new();
-    if below > 0 {
-        ends.push(Polygon::new(
-            vec![(lo, 0.0), (lo, 1.0), (lo - ext, 0.5)],
-            UNDER_RANGE.filled(),
+    if log {
+        draw_bar!(builder.build_cartesian_2d(
+            (from_axis(a - ext)..from_axis(b + ext)).log_scale(),
+            0.0..1.0
         ));
+    } else {
+        draw_bar!(builder.build_cartesian_2d(a - ext..b + ext, 0.0..1.0));
     }
-    if above > 0 {
-        ends.push(Polygon::new(
-            vec![(hi, 0.0), (hi, 1.0), (hi + ext, 0.5)],
-            OVER_RANGE.filled(),
-        ));
-    }
-    chart.draw_series(ends).map_err(|e| plot_error(path, e))?;
     Ok(())
 }
 
@@ -874,16 +1059,14 @@ pub fn stage_grid_plot(
             }))
             .map_err(|e| plot_error(path, e))?;
         let total = v.iter().filter(|a| a.is_finite()).count();
-        colour_bar(
-            path,
-            &bar,
-            unit,
-            (lo, hi),
-            Scale::Sequential,
-            layout,
-            (0, 0),
-            total,
-        )
+        let range = ColourRange {
+            lo,
+            hi,
+            below: 0,
+            above: 0,
+            scale: Scale::Sequential,
+        };
+        colour_bar(path, &bar, unit, &range, layout, total)
     })
 }
 
@@ -1481,24 +1664,27 @@ mod tests {
         assert_eq!(tall.data_size_px, layout.data_size_px);
     }
 
-    /// Edge spikes on under 1% of the points do not set the colour range: the robust range
-    /// holds at least 99% of the points, the spikes are drawn in the out-of-range colours, and
-    /// the whole range or given limits are there on request.
+    /// Edge spikes do not set the colour range: the robust range clips exactly the spikes, they
+    /// are drawn in the out-of-range colours, and the whole range or given limits are there on
+    /// request.
     #[test]
     fn robust_colour_limits_ignore_spikes_and_mark_them() {
         let (x, y, mut v) = strip();
         let n = v.len();
+        let (smooth_lo, smooth_hi) = value_range(&v).unwrap();
+        let mut spikes = 0;
         for k in (0..n).step_by(125) {
             v[k] = if k % 250 == 0 { 150.0 } else { -150.0 };
+            spikes += 1;
         }
-        let (scale, lo, hi) = colour_range(&v, ColorLimits::Robust);
-        assert_eq!(scale, Scale::Diverging);
-        assert_eq!(lo, -hi);
-        assert!(hi < 40.0, "{hi}");
-        let (below, above) = outside_counts(&v, lo, hi);
-        assert!(below > 0 && above > 0);
-        assert!((below + above) as f64 <= 0.01 * n as f64 + 1.0);
-        assert_eq!(colour_range(&v, ColorLimits::Full).2, 150.0);
+        let r = colour_range(&v, ColorLimits::Robust, ColourScale::Linear);
+        assert!(r.is_diverging());
+        assert_eq!(r.lo, -r.hi);
+        assert!(r.hi <= smooth_lo.abs().max(smooth_hi), "{}", r.hi);
+        assert!(r.below > 0 && r.above > 0);
+        assert_eq!(r.clipped(), spikes);
+        let full = colour_range(&v, ColorLimits::Full, ColourScale::Linear);
+        assert_eq!((full.hi, full.clipped()), (150.0, 0));
         let fixed: ColorLimits = "-50,50".parse().unwrap();
         assert_eq!(
             fixed,
@@ -1507,7 +1693,9 @@ mod tests {
                 hi: 50.0
             }
         );
-        assert_eq!(colour_range(&v, fixed).1, -50.0);
+        let r = colour_range(&v, fixed, ColourScale::Linear);
+        assert_eq!((r.lo, r.hi), (-50.0, 50.0));
+        assert_eq!(r.clipped(), spikes);
         for bad in ["50,-50", "a,1", "5", "1,inf"] {
             assert!(bad.parse::<ColorLimits>().is_err(), "{bad}");
         }
@@ -1565,5 +1753,156 @@ mod tests {
         assert!(g(-10.0) < g(-5.0) && g(-5.0) < g(0.0) && g(0.0) > g(5.0) && g(5.0) > g(10.0));
         assert_eq!(Scale::for_values(0.0, 10.0), Scale::Sequential);
         assert_eq!(Scale::Sequential.range(2.0, 10.0), (2.0, 10.0));
+    }
+
+    /// The sample job's error map (`data/mirror_error_118x8mm.csv`) as `(x, y, z)`.
+    fn sample_map() -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/mirror_error_118x8mm.csv");
+        let text = std::fs::read_to_string(path).unwrap();
+        let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
+        for line in text.lines().skip(1) {
+            let f: Vec<f64> = line.split(',').map(|a| a.trim().parse().unwrap()).collect();
+            x.push(f[0]);
+            y.push(f[1]);
+            z.push(f[2]);
+        }
+        (x, y, z)
+    }
+
+    /// Data-area pixels of a map plot drawn in the under- and over-range colours.
+    fn clipped_pixels(f: &Path, x: &[f64], y: &[f64]) -> (usize, usize) {
+        let (w, _, px, bpp) = decode(f);
+        let (x0, x1) = value_range(x).unwrap();
+        let (y0, y1) = value_range(y).unwrap();
+        let cell = preston_solver::influence::fft::FftOperator::lattice_pitch_mm(x, y).unwrap();
+        let layout = MapLayout::for_extent(x1 - x0 + cell, y1 - y0 + cell);
+        let ((ox, oy), (dw, dh)) = (layout.data_origin_px, layout.data_size_px);
+        let (mut under, mut over) = (0, 0);
+        for r in oy..oy + dh {
+            for c in ox..ox + dw {
+                let k = (r * w + c) as usize * bpp;
+                let p = rgb(&px[k..k + bpp]);
+                under += usize::from(p == (UNDER_RANGE.0, UNDER_RANGE.1, UNDER_RANGE.2));
+                over += usize::from(p == (OVER_RANGE.0, OVER_RANGE.1, OVER_RANGE.2));
+            }
+        }
+        (under, over)
+    }
+
+    /// The sample's error map is smooth: the default colour range clips none of its points (and
+    /// none is drawn clipped); one 1e6 nm spike added to it is the one point clipped.
+    #[test]
+    fn the_sample_map_clips_nothing_and_a_spike_is_the_one_point_clipped() {
+        let (x, y, mut z) = sample_map();
+        assert_eq!(z.len(), 9672);
+        let r = colour_range(&z, ColorLimits::Robust, ColourScale::Linear);
+        assert_eq!(r.clipped(), 0);
+        let (lo, hi) = value_range(&z).unwrap();
+        assert_eq!((r.lo, r.hi), (lo, hi));
+        assert_eq!(clipped_note(&r, z.len()), "no point clipped");
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("error.png");
+        plot_map(&f, "Surface error before", "nm", &x, &y, &z).unwrap();
+        assert_eq!(clipped_pixels(&f, &x, &y), (0, 0));
+
+        let spike = 4321;
+        z[spike] += 1e6;
+        let r = colour_range(&z, ColorLimits::Robust, ColourScale::Linear);
+        assert_eq!((r.below, r.above), (0, 1));
+        assert_eq!((r.lo, r.hi), (lo, hi));
+        assert!(clipped_note(&r, z.len()).starts_with("1 point clipped (0 below"));
+        plot_map(&f, "Surface error before", "nm", &x, &y, &z).unwrap();
+        let (under, over) = clipped_pixels(&f, &x, &y);
+        assert_eq!(under, 0);
+        assert!(over > 0, "the spike is not drawn");
+        // The same spike negative, on the diverging scale: clipped below.
+        z[spike] -= 2e6;
+        let r = colour_range(&z, ColorLimits::Robust, ColourScale::Diverging);
+        assert_eq!((r.below, r.above), (1, 0));
+        assert_eq!(r.hi, -r.lo);
+    }
+
+    /// The MAD test against its definition on a small set: median 3, absolute deviations
+    /// 0, 0, 0, 1, 1, 1, 1, 5, 5, 5.5, 5.5 (MAD 1), so 5 MADs admit -2 ..= 8; with no spread
+    /// nothing is an outlier.
+    #[test]
+    fn inliers_are_within_five_mads_of_the_median() {
+        let v = [
+            2.0,
+            2.0,
+            3.0,
+            3.0,
+            3.0,
+            4.0,
+            4.0,
+            -2.0,
+            8.0,
+            -2.5,
+            8.5,
+            f64::NAN,
+        ];
+        assert_eq!(inlier_range(&v), Some((-2.0, 8.0)));
+        assert_eq!(inlier_range(&[2.0, 2.0, 2.0, 50.0]), Some((2.0, 50.0)));
+        assert_eq!(inlier_range(&[f64::NAN]), None);
+    }
+
+    /// Dwell and feed maps get the log scale: equal ratios are equal steps of colour, the
+    /// geometric mean of the ends is the middle of viridis, the bar's ticks are 1, 2 and 5 times
+    /// powers of ten; a value that is not positive falls back to the linear scale.
+    #[test]
+    fn feed_and_dwell_maps_are_on_a_log_colour_scale() {
+        assert_eq!(ColourScale::for_unit("mm/min"), ColourScale::Log);
+        assert_eq!(ColourScale::for_unit("s"), ColourScale::Log);
+        assert_eq!(ColourScale::for_unit("nm"), ColourScale::Linear);
+        let feeds: Vec<f64> = (0..=100)
+            .map(|k| 1.4 * (3000.0f64 / 1.4).powf(k as f64 / 100.0))
+            .collect();
+        let r = colour_range(&feeds, ColorLimits::Full, ColourScale::for_unit("mm/min"));
+        assert!(r.is_log() && r.clipped() == 0);
+        const POS_TOL: f64 = 1e-12;
+        assert!((r.lo - 1.4).abs() < 1e-12 && (r.hi - 3000.0).abs() < 1e-9);
+        assert!(r.position(1.4).abs() < POS_TOL);
+        assert!((r.position(3000.0) - 1.0).abs() < POS_TOL);
+        assert!((r.position((1.4f64 * 3000.0).sqrt()) - 0.5).abs() < POS_TOL);
+        let step = |a: f64| r.position(10.0 * a) - r.position(a);
+        assert!((step(2.0) - step(200.0)).abs() < POS_TOL);
+        assert!((step(2.0) - 1.0 / (3000.0f64 / 1.4).log10()).abs() < POS_TOL);
+        // A linear scale would put 100 mm/min at 0.033 of the way; the log scale at 0.56.
+        assert!(
+            (r.position(100.0) - (100.0f64 / 1.4).log10() / (3000.0f64 / 1.4).log10()).abs()
+                < POS_TOL
+        );
+        assert_eq!(
+            r.scale.colour((1.4f64 * 3000.0).sqrt(), r.lo, r.hi),
+            ViridisRGB::get_color_normalized(0.5, 0.0, 1.0)
+        );
+        assert_eq!(log_tick_label(0.2), "0.2");
+        assert_eq!(log_tick_label(10.0), "10");
+        assert_eq!(log_tick_label(2000.0), "2000");
+        let mut signed = feeds.clone();
+        signed[0] = 0.0;
+        assert!(!colour_range(&signed, ColorLimits::Full, ColourScale::Log).is_log());
+        // Less than a decade: linear.
+        assert!(!colour_range(&[2.0, 9.0], ColorLimits::Full, ColourScale::Log).is_log());
+        // Drawn: the bar and map render on the log scale.
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("feed.png");
+        let x: Vec<f64> = (0..=100).map(|k| k as f64).collect();
+        let y = vec![0.0; x.len()];
+        plot_map(&f, "Feed", "mm/min", &x, &y, &feeds).unwrap();
+        assert!(f.exists());
+    }
+
+    /// Residuals and differences are drawn on the diverging scale centred on zero even when
+    /// every value has one sign.
+    #[test]
+    fn residual_maps_are_diverging_about_zero() {
+        let r = colour_range(&[1.0, 2.0, 5.0], ColorLimits::Full, ColourScale::Diverging);
+        assert!(r.is_diverging());
+        assert_eq!((r.lo, r.hi), (-5.0, 5.0));
+        assert_eq!(r.position(0.0), 0.5);
+        assert!(
+            !colour_range(&[1.0, 2.0, 5.0], ColorLimits::Full, ColourScale::Linear).is_diverging()
+        );
     }
 }

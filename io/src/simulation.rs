@@ -6,7 +6,10 @@ use crate::error::{Error, Result};
 use crate::figures::FigureStyle;
 use crate::machine::{read_dwell_times, DwellTimes};
 use crate::metrology::{MapRead, MapSource};
-use crate::plots::{stage_convergence_plot, stage_map_plot, stage_map_plot_with, stage_path_plot};
+use crate::plots::{
+    stage_convergence_plot, stage_map_plot, stage_map_plot_scaled, stage_map_plot_with,
+    stage_path_plot, ColourScale,
+};
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
@@ -566,7 +569,7 @@ fn write_simulation_with(
             y,
             &sim.removal_nm,
         )?);
-        staged.push(stage_map_plot_with(
+        staged.push(stage_map_plot_scaled(
             &style.path(out_dir, "residual"),
             "Residual (piston removed)",
             "nm",
@@ -574,6 +577,7 @@ fn write_simulation_with(
             y,
             &residual,
             style.color_limits,
+            ColourScale::Diverging,
         )?);
         // A map off a lattice has no PSD; the other figures are written all the same.
         let (psd, _left_out) = crate::figures::stage_psd_figures(
@@ -780,7 +784,7 @@ fn stage_loop_plots(
             m.y_mm(),
             &run.predicted_removal_nm,
         )?);
-        staged.push(stage_map_plot_with(
+        staged.push(stage_map_plot_scaled(
             &style.path(out_dir, "residual"),
             "Predicted residual (piston removed)",
             "nm",
@@ -788,6 +792,7 @@ fn stage_loop_plots(
             m.y_mm(),
             &residual,
             style.color_limits,
+            ColourScale::Diverging,
         )?);
         let (px, py) = (run.path.x_mm(), run.path.y_mm());
         staged.push(stage_map_plot(

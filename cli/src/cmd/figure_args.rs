@@ -7,8 +7,9 @@ use preston_io::plots::{ColorLimits, PlotFormat};
 /// The colour range of the height maps and the file format of every figure.
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct FigureArgs {
-    /// Colour range of the error and residual maps: LO,HI in nm, `robust` (default: +- the 99th
-    /// percentile of |z|, points outside marked) or `full`.
+    /// Colour range of the error and residual maps: LO,HI in nm, `robust` (default: every point
+    /// but the outliers beyond 5 median absolute deviations of the median, which are marked and
+    /// counted under the colour bar) or `full`.
     #[arg(long, value_name = "LO,HI", allow_hyphen_values = true)]
     pub color_limits: Option<ColorLimits>,
     /// File format of the figures: `png`, or `svg` (axes, text and curves as vectors, the map

@@ -9,8 +9,13 @@
 //! as `I J` offsets from the start (incremental in `G90` and `G91`, as on ISO, Fanuc, LinuxCNC and
 //! Sinumerik controllers; `Z` makes a helix) are read into [`ArcMove`]s: the end radius may differ
 //! from the start radius by at most [`ARC_RADIUS_TOLERANCE_MM`], the radius then varies linearly
-//! with the angle, and start = end is a full circle. `R`-form arcs, `K`, other planes, a rotary
-//! axis on an arc and feed per revolution are refused with the line that holds them.
+//! with the angle, and start = end is a full circle. The radius form, `R` (`CR=` on Sinumerik,
+//! where `R` is an arithmetic parameter), gives the centre instead ([`arc_centre_from_radius`]):
+//! a positive radius the arc of at most 180 degrees, a negative one the arc of more; a radius
+//! shorter than half the chord (beyond [`ARC_RADIUS_TOLERANCE_MM`], within which the arc is the
+//! half circle), a zero radius, start = end and `R` with `I J` in one block are refused. `K`,
+//! other planes, a rotary axis on an arc and feed per revolution are refused with the line that
+//! holds them.
 //!
 //! A circular block's programmed path length is its arc length ([`arc_length_mm`]): the sweep
 //! times the mean of the start and end radii, combined with the `Z` travel of a helix as
@@ -72,6 +77,81 @@ pub struct ArcMove {
     pub centre_mm: [f64; 2],
     /// Counter-clockwise seen from +Z (`G3`); clockwise (`G2`) when false.
     pub ccw: bool,
+}
+
+/// Why a radius-form arc ([`arc_centre_from_radius`]) has no centre.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RadiusArcError {
+    /// The radius is zero.
+    ZeroRadius,
+    /// Start and end coincide in XY: the radius form cannot give a full circle.
+    FullCircle,
+    /// The radius is shorter than half the chord (beyond [`ARC_RADIUS_TOLERANCE_MM`]).
+    TooShort {
+        /// The programmed radius, mm (its magnitude).
+        radius_mm: f64,
+        /// Half the distance from start to end, mm.
+        half_chord_mm: f64,
+    },
+}
+
+impl std::fmt::Display for RadiusArcError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RadiusArcError::ZeroRadius => write!(f, "circular move: the radius is zero"),
+            RadiusArcError::FullCircle => write!(
+                f,
+                "circular move: start and end coincide, which the radius form cannot program \
+                 (a full circle needs I J)"
+            ),
+            RadiusArcError::TooShort {
+                radius_mm,
+                half_chord_mm,
+            } => write!(
+                f,
+                "circular move: radius {radius_mm} mm is shorter than half the chord, \
+                 {half_chord_mm} mm, so no circle joins start and end"
+            ),
+        }
+    }
+}
+
+/// Centre `(x, y)`, mm, of the radius-form arc from `start` to `end` with the signed radius
+/// `radius_mm` turning counter-clockwise (`G3`) when `ccw`: on the chord's perpendicular
+/// bisector at `sqrt(R^2 - (c/2)^2)` from the chord's midpoint (`c` the chord), to the left of
+/// the chord (seen along the motion) for a counter-clockwise arc of at most 180 degrees
+/// (`R > 0`), to the right for a clockwise one, and on the other side for `R < 0` (the arc of
+/// more than 180 degrees). A radius shorter than half the chord by at most
+/// [`ARC_RADIUS_TOLERANCE_MM`] gives the half circle about the midpoint.
+pub fn arc_centre_from_radius(
+    start: [f64; 2],
+    end: [f64; 2],
+    radius_mm: f64,
+    ccw: bool,
+) -> std::result::Result<[f64; 2], RadiusArcError> {
+    if radius_mm == 0.0 {
+        return Err(RadiusArcError::ZeroRadius);
+    }
+    let d = [end[0] - start[0], end[1] - start[1]];
+    let chord = d[0].hypot(d[1]);
+    if chord == 0.0 {
+        return Err(RadiusArcError::FullCircle);
+    }
+    let (r, half) = (radius_mm.abs(), 0.5 * chord);
+    if half - r > ARC_RADIUS_TOLERANCE_MM {
+        return Err(RadiusArcError::TooShort {
+            radius_mm: r,
+            half_chord_mm: half,
+        });
+    }
+    // (R - c/2)(R + c/2) keeps the difference exact near the half circle.
+    let h = ((r - half) * (r + half)).max(0.0).sqrt();
+    let left = [-d[1] / chord, d[0] / chord];
+    let side = if ccw == (radius_mm > 0.0) { 1.0 } else { -1.0 };
+    Ok([
+        start[0] + 0.5 * d[0] + side * h * left[0],
+        start[1] + 0.5 * d[1] + side * h * left[1],
+    ])
 }
 
 /// Start radius, end radius, start angle and sweep (positive, radians; `2 pi` when start and end
@@ -280,6 +360,8 @@ struct Words {
     f: Option<f64>,
     p: Option<f64>,
     centre: [Option<f64>; 2],
+    /// The radius word of a radius-form arc (`R`, or `CR=` on Sinumerik), in program units.
+    radius: Option<f64>,
     x_for_pause: Option<f64>,
     m_end: bool,
 }
@@ -433,6 +515,13 @@ impl State {
             }
             let letter = c.to_ascii_uppercase();
             i += 1;
+            // Sinumerik's radius word `CR=`.
+            let cr = self.dialect == Dialect::Sinumerik
+                && letter == 'C'
+                && b.get(i).is_some_and(|n| n.eq_ignore_ascii_case(&b'R'));
+            if cr {
+                i += 1;
+            }
             while i < b.len() && (b[i] == b' ' || b[i] == b'=') {
                 i += 1;
             }
@@ -449,6 +538,10 @@ impl State {
             })?;
             if !value.is_finite() {
                 return Err(program_error(line, format!("word {letter} is not finite")));
+            }
+            if cr {
+                w.radius = Some(value);
+                continue;
             }
             match letter {
                 'N' => {}
@@ -480,11 +573,19 @@ impl State {
                 'P' => w.p = Some(value),
                 'I' => w.centre[0] = Some(value),
                 'J' => w.centre[1] = Some(value),
-                'K' | 'R' => {
+                'R' if self.dialect == Dialect::Sinumerik => {
                     return Err(program_error(
                         line,
-                        "circular moves are read with I J centre offsets in the G17 plane; \
-                         K and R words are not supported by the read-back",
+                        "R is an arithmetic parameter on Sinumerik, which the read-back does \
+                         not evaluate; a circular move's radius is CR=",
+                    ))
+                }
+                'R' => w.radius = Some(value),
+                'K' => {
+                    return Err(program_error(
+                        line,
+                        "circular moves are read in the G17 plane (I J centre offsets or a \
+                         radius); the K word is not supported by the read-back",
                     ))
                 }
                 other => {
@@ -509,7 +610,8 @@ impl State {
         }
         let moves = w.axes.iter().any(Option::is_some)
             || w.rotary.is_some()
-            || (self.motion == Some(BlockKind::Circular) && w.centre.iter().any(Option::is_some));
+            || (self.motion == Some(BlockKind::Circular)
+                && (w.centre.iter().any(Option::is_some) || w.radius.is_some()));
         if moves {
             self.motion_block(line, &w)?;
         }
@@ -622,6 +724,9 @@ impl State {
             if w.centre.iter().any(Option::is_some) {
                 return Err(program_error(line, "I or J words outside a circular move"));
             }
+            if w.radius.is_some() {
+                return Err(program_error(line, "a radius word outside a circular move"));
+            }
             None
         };
         let time = match kind {
@@ -656,8 +761,8 @@ impl State {
         Ok(())
     }
 
-    /// The circle of a `G2`/`G3` move from `start` to `end` (I J offsets from the start),
-    /// refused when its radii at the two ends differ beyond the tolerance.
+    /// The circle of a `G2`/`G3` move from `start` to `end` (I J offsets from the start, or the
+    /// radius form), refused when its radii at the two ends differ beyond the tolerance.
     fn arc_move(&self, line: usize, w: &Words, start: [f64; 3], end: [f64; 3]) -> Result<ArcMove> {
         if w.rotary.is_some() {
             return Err(program_error(
@@ -665,13 +770,32 @@ impl State {
                 "a rotary axis on a circular move is not supported by the read-back",
             ));
         }
-        if w.centre.iter().all(Option::is_none) {
-            return Err(program_error(line, "a circular move needs I or J"));
-        }
-        let centre = [
-            start[0] + w.centre[0].unwrap_or(0.0) * self.mm_per_unit,
-            start[1] + w.centre[1].unwrap_or(0.0) * self.mm_per_unit,
-        ];
+        let has_centre = w.centre.iter().any(Option::is_some);
+        let centre = match w.radius {
+            Some(_) if has_centre => {
+                return Err(program_error(
+                    line,
+                    "a circular move gives its centre by I J or by its radius, not both",
+                ))
+            }
+            Some(r) => arc_centre_from_radius(
+                [start[0], start[1]],
+                [end[0], end[1]],
+                r * self.mm_per_unit,
+                self.ccw,
+            )
+            .map_err(|e| program_error(line, e.to_string()))?,
+            None if !has_centre => {
+                return Err(program_error(
+                    line,
+                    "a circular move needs I or J, or a radius",
+                ))
+            }
+            None => [
+                start[0] + w.centre[0].unwrap_or(0.0) * self.mm_per_unit,
+                start[1] + w.centre[1].unwrap_or(0.0) * self.mm_per_unit,
+            ],
+        };
         let a = ArcMove {
             centre_mm: centre,
             ccw: self.ccw,
