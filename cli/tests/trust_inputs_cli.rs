@@ -1,11 +1,11 @@
 //! Inputs that cannot be what the user meant, refused with exit 2, a message naming the file and
 //! what is wrong with it, and nothing written: a map file whose header states sizes it cannot
 //! hold (refused before a buffer of that size is allocated, so an address-space cap cannot turn
-//! it into an abort).
+//! it into an abort), and a TIF whose footprint fits between the map's points.
 
 mod common;
 
-use common::{preston_cmd, s};
+use common::{expect_failure, preston_cmd, s, write};
 use std::path::Path;
 use std::process::Output;
 
@@ -127,6 +127,74 @@ fn an_npy_shape_the_file_cannot_hold_is_refused_before_reading() {
     let o = capped(&args);
     let needed = (30000u64 * 30000 * 8).to_string();
     refused(&o, &out, &["shape.npy", "NPY data", "truncated", &needed]);
+}
+
+/// A smooth 21 x 21 map at 1 mm pitch.
+fn map_1mm() -> String {
+    let mut t = String::from("x_mm,y_mm,z_nm\n");
+    for iy in 0..21 {
+        for ix in 0..21 {
+            let (x, y) = (ix as f64, iy as f64);
+            let z = 40.0 + 25.0 * (0.31 * x).sin() * (0.23 * y).cos() + 0.8 * y;
+            t.push_str(&format!("{x},{y},{z}\n"));
+        }
+    }
+    t
+}
+
+/// A 10 mm TIF grid (Gaussian of sigma 2 mm, 0.5 mm spacing) with its coordinates written in
+/// metres under the `x_mm, y_mm` header: `scale` 1e-3 for metres, 1 for mm.
+fn tif_grid(scale: f64) -> String {
+    let mut t = String::from("x_mm,y_mm,rate_nm_per_s\n");
+    for iy in -10..=10 {
+        for ix in -10..=10 {
+            let (x, y) = (ix as f64 * 0.5, iy as f64 * 0.5);
+            let r = 10.0 * (-(x * x + y * y) / (2.0 * 2.0f64.powi(2))).exp();
+            t.push_str(&format!("{},{},{r}\n", x * scale, y * scale));
+        }
+    }
+    t
+}
+
+/// The 10 mm TIF in metres under an `x_mm` header, on a 1 mm map with the raster on the map's
+/// lattice: every dwell point sits on a map point, so each reaches one and the old check (no
+/// dwell point reaches the map) let it through to a solve that exits 0. Its support radius
+/// (5 um) is below half the map's 1 mm spacing: exit 2, suggesting the unit, nothing written.
+/// The same TIF in mm solves.
+#[test]
+fn a_tif_in_metres_under_an_mm_header_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &map_1mm());
+    let tif_m = write(d.path(), "tif_metres.csv", &tif_grid(1e-3));
+    let args = |tif: &Path| -> Vec<String> {
+        [
+            "--map",
+            s(&map),
+            "--tif",
+            s(tif),
+            "--raster-pitch-mm",
+            "1",
+            "--v-max",
+            "3000",
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let a = args(&tif_m);
+    let refs: Vec<&str> = a.iter().map(String::as_str).collect();
+    expect_failure(&refs, &["narrower", "spacing", "in mm", "metres"]);
+    let tif_mm = write(d.path(), "tif_mm.csv", &tif_grid(1.0));
+    let out = d.path().join("mm");
+    let o = preston_cmd()
+        .arg("solve")
+        .args(args(&tif_mm))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("narrower"), "{err}");
 }
 
 /// Jenkins' lookup3 `hashlittle` (initial value 0): the checksum HDF5 stores after each

@@ -307,6 +307,9 @@ impl Setup {
     /// validated [`Problem`].
     pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Built> {
         observer.setup_step(SetupStep::BuildProblem);
+        if let Some(why) = plausible::tif_narrower_than_the_map_spacing(&self.map, &self.tif) {
+            return Err(Error::invalid("TIF", why)).at(SetupInput::None);
+        }
         let (rows, edge_points) = self.rows()?;
         let mut warnings = plausible::size_warnings(&self.map, &self.tif);
         if self.settings.robust {
