@@ -98,9 +98,10 @@ pub fn tif_narrower_than_the_map_spacing(map: &HeightMap, tif: &Tif) -> Option<S
     (r < 0.5 * spacing).then(|| {
         format!(
             "the TIF is narrower than the map's point spacing: its support radius ({r:.3e} mm) \
-             is below half the spacing ({spacing:.4} mm), so its footprint fits between map points, so no dwell point can \
-             shape the surface; are the TIF's coordinates in mm? A TIF written in metres under \
-             an x_mm header reads 1000 times too small (a {:.3} mm footprint if they are m)",
+             is below half the spacing ({spacing:.4} mm), so its footprint fits between map \
+             points and no dwell point can shape the surface; are the TIF's coordinates in mm? \
+             A TIF written in metres under an x_mm header reads 1000 times too small (a {:.3} \
+             mm footprint if they are m)",
             2.0e3 * r
         )
     })
