@@ -1,7 +1,9 @@
 //! Inputs that cannot be what the user meant, refused with exit 2, a message naming the file and
 //! what is wrong with it, and nothing written: a map file whose header states sizes it cannot
 //! hold (refused before a buffer of that size is allocated, so an address-space cap cannot turn
-//! it into an abort), and a TIF whose footprint fits between the map's points.
+//! it into an abort), and a TIF whose footprint fits between the map's points. And a solve's
+//! console summary, which says what its figures are of, so that a correct plan does not read
+//! as a failed one.
 
 mod common;
 
@@ -334,5 +336,80 @@ fn a_datx_declaring_a_grid_over_the_budget_is_refused_before_reading() {
             "30000 x 30000",
             "28.800 GB",
         ],
+    );
+}
+
+/// A solve corrected against its program executed at an acceleration limit (correction
+/// passes), its operator the FFT one under the swept model: the summary names which solve its
+/// iteration count is of, explains the programmed feeds' acceleration above the limit as what
+/// the look-ahead holds, prints the exact swept columns as a note (not a warning), and
+/// `report.json` gives the largest stretch departure under a key naming its unit.
+#[test]
+fn the_console_summary_names_its_stage_units_and_notes() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write(d.path(), "map.csv", &map_1mm());
+    let out = d.path().join("result");
+    let o = preston_cmd()
+        .args([
+            "solve",
+            "--map",
+            s(&map),
+            "--gaussian-sigma-mm",
+            "1.5",
+            "--gaussian-peak-nm-per-s",
+            "10",
+            "--gaussian-truncation-mm",
+            "4.5",
+            "--raster-pitch-mm",
+            "1",
+            "--v-max",
+            "3000",
+            "--a-max-mm-per-s2",
+            "50",
+            "--accel-method",
+            "correction-passes",
+            "--operator",
+            "fft",
+            "--out",
+            s(&out),
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(o.status.success(), "{err}");
+    let r = common::report(&out);
+    let executed = &r["executed"];
+    assert!(
+        executed["max_stretch_error_rel"].as_f64().is_some(),
+        "{executed}"
+    );
+    assert!(executed.get("max_stretch_error").is_none(), "{executed}");
+    assert!(err.contains("note: influence swept:"), "{err}");
+    assert!(!err.contains("warning: influence swept"), "{err}");
+    assert!(
+        !r["warnings"].to_string().contains("influence swept"),
+        "{r}"
+    );
+    assert!(r["notes"].to_string().contains("influence swept"), "{r}");
+    let passes = executed["correction_passes"].as_u64().unwrap();
+    let iterations = r["iterations"].as_u64().unwrap();
+    eprintln!("passes {passes}, iterations {iterations}\n{err}");
+    assert!(
+        passes > 0,
+        "the case is meant to keep a correction pass: {err}"
+    );
+    assert!(
+        err.contains(&format!(
+            "{iterations} iterations in correction pass {passes}, the last kept"
+        )),
+        "{err}"
+    );
+    let a_max = r["a_max_mm_per_s2"].as_f64().unwrap();
+    let programmed = r["max_accel_mm_per_s2"].as_f64().unwrap();
+    assert!(programmed > a_max, "{programmed} vs {a_max}");
+    assert!(
+        err.contains("the programmed feeds step at up to")
+            && err.contains("look-ahead holds to the"),
+        "{err}"
     );
 }

@@ -43,6 +43,9 @@ pub struct Prepared {
     pub build_seconds: f64,
     /// Warnings about the inputs, for the report and stderr.
     pub warnings: Vec<String>,
+    /// Notes on what the set-up chose (the operator, the exact swept columns), for the report
+    /// and stderr.
+    pub notes: Vec<String>,
     /// A robust plan's scenario weights (`None` for a nominal plan).
     pub scenario_weights: Option<Vec<f64>>,
 }
@@ -296,6 +299,7 @@ fn prepare_checked(
     .map_err(at_fault)?;
     let built = setup.problem(observer).map_err(at_fault)?;
     warnings.extend(built.warnings);
+    let notes = built.notes;
     Ok(Prepared {
         setup,
         skipped_rows: map_file.input.invalid_points,
@@ -304,6 +308,7 @@ fn prepare_checked(
         edge_points: built.edge_points,
         build_seconds: started.elapsed().as_secs_f64(),
         warnings,
+        notes,
         scenario_weights: built.scenario_weights,
     })
 }
@@ -430,6 +435,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    report.notes.clone_from(&prepared.notes);
     // The problem's rows beyond the map are the edge model's, or other scenarios' blocks.
     report.edge_points = prepared.edge_points;
     report.edge = prepared.setup.edge.method;
@@ -452,7 +458,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
                 pv_after_nm: e.after.pv_nm,
                 rms_ratio_to_plan: e.after.rms_nm / planned,
                 stretch_time_s: e.run.check.executed_total_s,
-                max_stretch_error: e.run.check.max_relative_error,
+                max_stretch_error_rel: e.run.check.max_relative_error,
                 stretches_over_5_percent: e.run.check.over_5_percent,
                 correction_passes: e.correction_passes,
             });
