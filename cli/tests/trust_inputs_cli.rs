@@ -106,7 +106,7 @@ fn an_npy_shape_the_file_cannot_hold_is_refused_before_reading() {
     let map = d.path().join("shape.npy");
     let dict = "{'descr': '<f8', 'fortran_order': False, 'shape': (30000, 30000), }";
     let mut header = dict.as_bytes().to_vec();
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(b' ');
     }
     header.push(b'\n');

@@ -208,7 +208,7 @@ fn check_data_size(
 pub fn write_npy(path: &Path, nx: usize, ny: usize, values: &[f64]) -> Result<()> {
     let dict = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({ny}, {nx}), }}");
     let mut header = dict.into_bytes();
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(b' ');
     }
     header.push(b'\n');
@@ -293,7 +293,7 @@ mod tests {
             .unwrap()
             .replace("(2, 3)", "(30000, 30000)");
         let mut header = head.into_bytes();
-        while (10 + header.len() + 1) % 64 != 0 {
+        while !(10 + header.len() + 1).is_multiple_of(64) {
             header.push(b' ');
         }
         header.push(b'\n');
