@@ -47,6 +47,9 @@ pub struct Prepared {
     pub build_seconds: f64,
     /// Warnings about the inputs, for the report and stderr.
     pub warnings: Vec<String>,
+    /// Notes on what the set-up chose (the operator, the exact swept columns), for the report
+    /// and stderr.
+    pub notes: Vec<String>,
     /// A robust plan's scenario weights (`None` for a nominal plan).
     pub scenario_weights: Option<Vec<f64>>,
     /// The tool's calibration, when the job names one.
@@ -330,6 +333,7 @@ fn prepare_checked(
     setup.rate_drift_per_hour = calibration.as_ref().map_or(0.0, |c| c.drift_per_hour);
     let built = setup.problem(observer).map_err(at_fault)?;
     warnings.extend(built.warnings);
+    let notes = built.notes;
     Ok(Prepared {
         setup,
         skipped_rows: map_file.input.invalid_points,
@@ -338,6 +342,7 @@ fn prepare_checked(
         edge_points: built.edge_points,
         build_seconds: started.elapsed().as_secs_f64(),
         warnings,
+        notes,
         scenario_weights: built.scenario_weights,
         uncertainty: tool_uncertainty(job, calibration.as_ref()),
         calibration,
@@ -573,6 +578,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
         prepared.build_seconds,
     );
     report.warnings.clone_from(&prepared.warnings);
+    report.notes.clone_from(&prepared.notes);
     // The problem's rows beyond the map are the edge model's, or other scenarios' blocks.
     report.edge_points = prepared.edge_points;
     report.edge = prepared.setup.edge.method;
@@ -595,7 +601,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
                 pv_after_nm: e.after.pv_nm,
                 rms_ratio_to_plan: e.after.rms_nm / planned,
                 stretch_time_s: e.run.check.executed_total_s,
-                max_stretch_error: e.run.check.max_relative_error,
+                max_stretch_error_rel: e.run.check.max_relative_error,
                 stretches_over_5_percent: e.run.check.over_5_percent,
                 correction_passes: e.correction_passes,
             });

@@ -95,6 +95,10 @@ pub struct Report {
     /// Warnings about the inputs (for example a TIF wider than the map), also printed on stderr.
     #[serde(default)]
     pub warnings: Vec<String>,
+    /// Notes on what the set-up chose (the operator `auto` took, the swept columns made exact),
+    /// for information; also printed on stderr as notes.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
     /// Each tool of a multi-tool solve (`[[tool]]` or repeated `--tif`/`--dwell`); absent for
     /// a single tool.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -230,8 +234,10 @@ pub struct ExecutedReport {
     pub rms_ratio_to_plan: f64,
     /// Time of the dwell stretches as executed, s.
     pub stretch_time_s: f64,
-    /// Largest `|executed - planned| / planned` over the stretches.
-    pub max_stretch_error: f64,
+    /// Largest `|executed - planned| / planned` over the stretches, relative (a fraction: 5.74
+    /// is 574%). Read also under its former key `max_stretch_error`.
+    #[serde(alias = "max_stretch_error")]
+    pub max_stretch_error_rel: f64,
     /// Stretches more than 5% off their dwell.
     pub stretches_over_5_percent: usize,
     /// Correction passes against the executed program kept (`accel_method =
@@ -556,6 +562,7 @@ impl Report {
             unreachable_dwell_indices: empty,
             map_input: None,
             warnings: Vec::new(),
+            notes: Vec::new(),
             tools: Vec::new(),
             expected_rms_nm: None,
             expected_pv_nm: None,
@@ -631,4 +638,34 @@ pub struct ToolReport {
     /// tools).
     #[serde(default)]
     pub max_accel_mm_per_s2: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The largest stretch departure is written under a key naming its unit (a fraction), and a
+    /// report written before, under the former key, still reads to the same figure.
+    #[test]
+    fn the_stretch_error_key_names_its_unit_and_the_former_key_reads() {
+        let e = ExecutedReport {
+            a_max_mm_per_s2: 1000.0,
+            rms_after_nm: 0.02,
+            pv_after_nm: 0.6,
+            rms_ratio_to_plan: 0.07,
+            stretch_time_s: 27549.2,
+            max_stretch_error_rel: 5.742,
+            stretches_over_5_percent: 1790,
+            correction_passes: 2,
+        };
+        let v = serde_json::to_value(&e).unwrap();
+        assert_eq!(v["max_stretch_error_rel"], 5.742);
+        assert!(v.get("max_stretch_error").is_none(), "{v}");
+        let mut old = v.clone();
+        let obj = old.as_object_mut().unwrap();
+        let x = obj.remove("max_stretch_error_rel").unwrap();
+        obj.insert("max_stretch_error".into(), x);
+        let back: ExecutedReport = serde_json::from_value(old).unwrap();
+        assert_eq!(back, e);
+    }
 }

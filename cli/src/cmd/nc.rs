@@ -281,7 +281,7 @@ pub fn print_program_check(check: &ProgramCheck) {
     }
     if let Some(a) = &check.accelerated {
         crate::note!(
-            "  executed with the acceleration limit: {:.2} s in the stretches; worst stretch {:.2}% off (point {}), {} of {} more than 5% off",
+            "  executed with the acceleration limit (the controller's look-ahead ramps between the programmed feeds, moving time between neighbouring stretches; the removal of that motion is what counts): {:.2} s in the stretches; worst stretch {:.2}% off its planned time (point {}), {} of {} more than 5% off",
             a.executed_total_s,
             100.0 * a.max_relative_error,
             a.worst_point,

@@ -52,11 +52,13 @@ pub struct Args {
     /// Prior bound on each translation component, um.
     #[arg(long, value_name = "T")]
     pub max_translation_um: Option<f64>,
-    /// Range of the installation error's translations, mm: a motion whose standard deviation
-    /// (from the residual's scatter) exceeds this range along it is held, not estimated.
+    /// Range of the installation error's translations of the measured points' centroid, mm: a
+    /// motion whose standard deviation (from the residual's scatter) exceeds its range is held,
+    /// not estimated.
     #[arg(long, value_name = "MM", default_value_t = INSTALLATION_RANGE_MM)]
     pub installation_range_mm: f64,
-    /// Range of the installation error's rotations, degrees (see --installation-range-mm).
+    /// Range of the installation error's rotations about the measured points' centroid, degrees
+    /// (see --installation-range-mm).
     #[arg(long, value_name = "DEG", default_value_t = INSTALLATION_RANGE_DEG)]
     pub installation_range_deg: f64,
     /// Output directory for transform.json, form_error.csv and registered_points.csv.

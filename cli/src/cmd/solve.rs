@@ -287,6 +287,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for w in &prepared.warnings {
         crate::errln!("  warning: {w}");
     }
+    for n in &prepared.notes {
+        crate::note!("  note: {n}");
+    }
     let early_warnings = prepared.warnings.len();
     let solved = pipeline::solve(prepared, &job, &bars)?;
     let axis = match job.dwell.raster_along {
@@ -424,17 +427,7 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
     }
     let correction_passes =
         r.accel.as_ref().map(|x| x.method) == Some(AccelMethod::CorrectionPasses);
-    crate::note!(
-        "  machining time {:.2} s, max acceleration {:.3} mm/s^2{}",
-        r.machining_time_s,
-        r.max_accel_mm_per_s2,
-        match r.a_max_mm_per_s2 {
-            Some(a) if correction_passes && r.max_accel_mm_per_s2 > a => format!(
-                " between the programmed feeds (the controller's look-ahead holds {a} mm/s^2; the executed figures include its ramps)"
-            ),
-            _ => String::new(),
-        }
-    );
+    crate::note!("{}", machining_line(r, correction_passes));
     if let (Some(a), Some(it), Some(rms0)) = (
         r.a_max_mm_per_s2,
         r.accel_iterations,
@@ -461,14 +454,14 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         (None, None) => {}
     }
     crate::note!(
-        "  solver {}{} ({} iterations, status {}{}), build {:.3} s, solve {:.3} s; wrote {}",
+        "  solver {}{} ({}, status {}{}), build {:.3} s, solve {:.3} s; wrote {}",
         r.solver,
         if certificate.is_empty() {
             String::new()
         } else {
             format!(" [{}]", certificate.join(", "))
         },
-        r.iterations,
+        iterations_phrase(r),
         r.status,
         r.converged_by
             .map(|c| format!(" by {c}"))
@@ -477,6 +470,41 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         r.solve_seconds,
         out.display()
     );
+}
+
+/// The machining time and the largest acceleration between the programmed feeds. Under
+/// correction passes the plan's feeds step faster than the limit: the figure is the programmed
+/// feeds' (a step between neighbouring stretches over the time between them), which the
+/// controller's look-ahead holds to the limit by ramping; the executed figures include the
+/// ramps. Said so, so that a correct plan does not read as one that breaks the limit.
+fn machining_line(r: &preston_io::report::Report, correction_passes: bool) -> String {
+    match r.a_max_mm_per_s2 {
+        Some(a) if correction_passes && r.max_accel_mm_per_s2 > a => format!(
+            "  machining time {:.2} s; the programmed feeds step at up to {:.3} mm/s^2 between \
+             neighbouring stretches, which the controller's look-ahead holds to the {a} mm/s^2 \
+             limit by ramping (the plan was corrected for the executed motion: its figures below \
+             include the ramps)",
+            r.machining_time_s, r.max_accel_mm_per_s2
+        ),
+        _ => format!(
+            "  machining time {:.2} s, max acceleration {:.3} mm/s^2",
+            r.machining_time_s, r.max_accel_mm_per_s2
+        ),
+    }
+}
+
+/// Which solve the reported iterations are of: the plan's own solve, or (under correction
+/// passes against the executed program) the last kept pass's warm-started re-solve, so that a
+/// handful of iterations after a progress bar that counted thousands is not a contradiction.
+fn iterations_phrase(r: &preston_io::report::Report) -> String {
+    match r.executed.as_ref().map_or(0, |e| e.correction_passes) {
+        0 => format!("{} iterations", r.iterations),
+        passes => format!(
+            "{} iterations in correction pass {passes}, the last kept, warm-started from the plan \
+             before it; the first solve's iterations are not these",
+            r.iterations
+        ),
+    }
 }
 
 /// Prints what the machine would do with the program of the plan (the pipeline's check on the

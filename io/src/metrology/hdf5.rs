@@ -15,7 +15,7 @@
 //!
 //! (Public descriptions: prysm's `read_zygo_datx`; 4D users' h5py readers.)
 
-use super::grid::Grid;
+use super::grid::{check_grid_budget, Grid};
 use crate::error::{Error, Result};
 use hdf5_pure::{AttrValue, File, FileBuilder};
 use std::collections::HashMap;
@@ -115,6 +115,7 @@ fn read_2d(path: &Path, f: &File, ds_path: &str) -> Result<(usize, usize, Vec<f6
             format!("grid of {ny} x {nx} pixels is empty or larger than {MAX_PIXELS}"),
         ));
     }
+    check_grid_budget(ny, nx).map_err(|e| Error::binary(path, &at, e.to_string()))?;
     let v = ds
         .read_f64()
         .map_err(|e| Error::binary(path, &at, cause(&e)))?;

@@ -10,18 +10,26 @@
 //! The 6 x 6 normal equations `A y = -b` (rotation columns scaled by the point cloud's RMS
 //! radius `L`, so `A` is dimensionless and its eigenvalues compare motions by the normal
 //! displacement they cause) are solved by a symmetric eigen-decomposition in the subspace left
-//! free by locked DOFs and active prior bounds. An eigen-direction `v` (eigenvalue `mu`) is
-//! estimated when the data determine it: its standard deviation `s / sqrt(mu)`, with `s^2` the
-//! weighted residual variance of the current correspondences, is within the amplitude at which
-//! the motion reaches the stated installation range (`installation_range_mm`,
-//! `installation_range_deg`). Otherwise (rotation about the axis of a conic, coplanar points on a
-//! plane, or noise that swamps a weak slide) it gets no step and is reported as locked with that
-//! comparison. Noise-free data of any well-posed part therefore determine every motion
-//! exactly, whatever the conditioning: the test is the noise, not an eigenvalue ratio.
-//! The covariance of the estimate is `s^2 A^+` restricted to the estimated directions
-//! (Gauss-Markov), mapped to the design-frame DOFs. Optional Huber weights
-//! (`w = min(1, delta / |r|)`, `delta = k * 1.4826 * median|r|`) make the steps iteratively
-//! reweighted least squares.
+//! free by locked DOFs and active prior bounds. Whether the data determine the transform is decided
+//! per rigid-body motion the user can read: the rotations about the axes through the points'
+//! centroid and the translations of the centroid (the scaled parameters' coordinates). The free
+//! motions are estimated when their standard deviations (`s^2` times the inverse information matrix
+//! over the motions left free, `s^2` the weighted residual variance of the current
+//! correspondences), in units of their installation ranges, stay within 1 in every direction
+//! (`installation_range_deg` for a rotation about the centroid, `installation_range_mm` for a
+//! translation of it: the range is about the part, so an off-axis part's own rotation is not
+//! counted as the translation it causes at the design origin). Otherwise the motion whose own
+//! deviation is the largest multiple of its range is held (gets no step; it is reported as locked
+//! with that comparison) and the rest judged again. A motion the points and the surface do not
+//! determine at all (rotation about the axis of a conic, in-plane motions of points on a plane:
+//! zero information to rounding) has an unbounded deviation and is held first. Noise-free data of
+//! any well-posed part therefore determine every motion exactly, whatever the conditioning: the
+//! test is the noise against the range, not an eigenvalue ratio. The covariance of the estimate is
+//! `s^2 A^+` over the estimated motions (Gauss-Markov), plus, for each held motion, its range
+//! squared carried through the estimated motions that absorb it; mapped to the design-frame DOFs. A
+//! step that would raise the cost is halved until it does not, and the DOFs the user locked are set
+//! to zero exactly after each step. Optional Huber weights (`w = min(1, delta / |r|)`, `delta = k *
+//! 1.4826 * median|r|`) make the steps iteratively reweighted least squares.
 
 use super::{
     Dof, LockSource, LockedMotion, RegisterSettings, Registration, Robust, ARCSEC_PER_RAD,
@@ -40,12 +48,20 @@ const RANK_FLOOR: f64 = 1e-12;
 /// Eigenvalues of the constraints' Gram matrix below this fraction of the largest span their
 /// null space.
 const NULL_TOL: f64 = 1e-10;
+/// A motion (unit coordinate of the scaled parameters) whose component in the space the
+/// constraints leave free is below this is fixed by them; a numerically zero eigen-direction's
+/// component on a motion below this does not make that motion undetermined.
+const FREE_COMPONENT: f64 = 1e-9;
 /// A point set whose second principal variance is at or below this fraction of the first is a line.
 const COLLINEAR_REL: f64 = 1e-12;
 /// Lower bound of the Huber threshold, mm (keeps noise-free data from becoming an L1 problem).
 const HUBER_FLOOR_MM: f64 = 1e-7;
 /// mm to nm.
 const NM_PER_MM: f64 = 1e6;
+/// Relative rise of the cost above which a Gauss-Newton step is halved (rounding below it).
+const COST_RISE_TOL: f64 = 1e-9;
+/// Most halvings of one Gauss-Newton step.
+const MAX_HALVINGS: usize = 30;
 
 /// Per-point state of one iteration.
 #[derive(Clone, Copy)]
@@ -59,9 +75,9 @@ struct Corr {
 /// Registers measured points (mm, probe tip centres when `probe_radius_mm > 0`) to `surface`.
 ///
 /// Each Gauss-Newton step is solved in the subspace the locks leave free (user locks and active
-/// prior bounds as linear constraints on the design-frame DOFs), and within it eigen-directions
-/// of the reduced information matrix whose standard deviation exceeds the installation range
-/// along them get no step (see the module documentation).
+/// prior bounds as linear constraints on the design-frame DOFs), and within it the motions
+/// whose standard deviation exceeds their installation range are held (see the module
+/// documentation).
 pub fn register(
     surface: &Surface,
     measured_mm: &[[f64; 3]],
@@ -80,13 +96,33 @@ pub fn register(
     while iterations < settings.max_iterations {
         let weights = weights(&corr, settings.robust);
         let step = gauss_newton_step(&corr, &weights, &m, settings)?;
-        m = step.isometry * m;
+        // The linearised step along a weakly determined motion can be long enough for the
+        // surface's curvature to raise the cost: it is halved until the cost does not rise. Where
+        // no fraction of it lowers the cost, the iterate is a minimum along the step: stop there.
+        let mut alpha = 1.0;
+        let mut accepted = None;
+        for _ in 0..=MAX_HALVINGS {
+            let trial_m = held_at_zero(step.isometry(alpha) * m, &settings.lock);
+            let mut trial_feet = feet.clone();
+            let trial = correspond(surface, measured_mm, &trial_m, &mut trial_feet, probe)?;
+            let trial_cost = robust_cost(&trial, settings.robust);
+            if trial_cost <= cost * (1.0 + COST_RISE_TOL) {
+                accepted = Some((trial_m, trial, trial_feet, trial_cost));
+                break;
+            }
+            alpha *= 0.5;
+        }
         iterations += 1;
-        corr = correspond(surface, measured_mm, &m, &mut feet, probe)?;
-        let new_cost = robust_cost(&corr, settings.robust);
+        let Some((trial_m, trial_corr, trial_feet, new_cost)) = accepted else {
+            converged = true;
+            break;
+        };
+        m = trial_m;
+        corr = trial_corr;
+        feet = trial_feet;
         let cost_change = (cost - new_cost).abs();
         cost = new_cost;
-        if step.size_mm <= settings.step_tol_mm
+        if step.size_mm(alpha) <= settings.step_tol_mm
             || cost_change <= settings.cost_rel_tol * cost.max(f64::MIN_POSITIVE)
         {
             converged = true;
@@ -359,74 +395,60 @@ struct Constraint {
     source: LockSource,
 }
 
-/// A constrained step: `y`, the estimated eigen-directions `(v, mu)` and the weak ones.
+/// A constrained step: `y`, the estimated eigen-directions `(v, mu)` of the information over
+/// the free motions, and the motions held because the data do not determine them.
 struct Solved {
     delta: Vector6<f64>,
+    /// The part of `delta` that meets the constraints (user locks at zero, bounds): the rest is
+    /// the step within the space they leave free.
+    restore: Vector6<f64>,
     kept: Vec<(Vector6<f64>, f64)>,
     weak: Vec<Weak>,
 }
 
-/// An eigen-direction held because the data do not determine it.
+/// A motion (a coordinate of the scaled parameters) held because the data do not determine it.
 struct Weak {
-    v: Vector6<f64>,
-    /// Its standard deviation `s / sqrt(mu)`, scaled mm (infinite when `mu` is zero).
+    /// Index of the motion: `rx, ry, rz` about the centroid, `tx, ty, tz` of the centroid.
+    k: usize,
+    /// Its standard deviation when it was held, scaled mm (infinite when the points and the
+    /// surface leave it undetermined).
     sigma: f64,
-    /// The amplitude at which it reaches the installation range, scaled mm.
+    /// Its installation range, scaled mm.
     range: f64,
 }
 
-/// What decides whether an eigen-direction is estimated: the residual variance `s^2` and the
-/// installation range as the weight `W` on the design-frame DOFs, with the DOF map `T`.
+/// What decides whether a motion is estimated: the residual variance `s^2` and the installation
+/// range of each motion in the scaled parameters (`L * range_rad` for a rotation about the
+/// centroid, `range_mm` for a translation of it).
 struct Determinacy {
     s2: f64,
-    w: Vector6<f64>,
-    t: Matrix6<f64>,
+    range: Vector6<f64>,
 }
 
 impl Determinacy {
-    fn new(corr: &[Corr], w: &[f64], t: Matrix6<f64>, settings: &RegisterSettings) -> Self {
+    fn new(corr: &[Corr], w: &[f64], f: &Frame, settings: &RegisterSettings) -> Self {
         let ss: f64 = corr.iter().zip(w).map(|(c, wk)| wk * c.r * c.r).sum();
         let s2 = ss / corr.len().saturating_sub(6).max(1) as f64;
-        let rot = 1.0 / settings.installation_range_deg.to_radians();
-        let tr = 1.0 / settings.installation_range_mm;
+        let rot = f.len * settings.installation_range_deg.to_radians();
+        let tr = settings.installation_range_mm;
         Self {
             s2,
-            w: Vector6::new(rot, rot, rot, tr, tr, tr),
-            t,
-        }
-    }
-
-    /// `1 / |W T v|`: the amplitude of the scaled direction `v` at the range ellipsoid.
-    fn range(&self, v: &Vector6<f64>) -> f64 {
-        let d = (self.t * v).component_mul(&self.w).norm();
-        if d > 0.0 {
-            1.0 / d
-        } else {
-            f64::INFINITY
+            range: Vector6::new(rot, rot, rot, tr, tr, tr),
         }
     }
 }
 
-/// Minimises `|J y + r|^2` subject to `C y = d`: `y = y_p + Z u` with `y_p` the minimum-norm
-/// solution of the constraints and `Z` an orthonormal basis of their null space; then
-/// `Z^T A Z u = -Z^T (b + A y_p)` by eigen-decomposition, where eigen-directions that are zero to
-/// rounding or whose standard deviation `s / sqrt(mu)` exceeds their installation range get no
-/// step.
-fn solve_constrained(
-    a: &Matrix6<f64>,
-    b: &Vector6<f64>,
-    cons: &[Constraint],
-    det: &Determinacy,
-    lam_max: f64,
-) -> Solved {
+/// The particular solution `y_p` of the constraints `C y = d` (minimum norm) and an orthonormal
+/// basis of their null space.
+fn constraint_space(cons: &[(Vector6<f64>, f64)]) -> (Vector6<f64>, Vec<Vector6<f64>>) {
     let mut ctc = Matrix6::zeros();
     let mut ctd = Vector6::zeros();
-    for c in cons {
-        let norm = c.row.norm();
+    for (row, rhs) in cons {
+        let norm = row.norm();
         if norm > 0.0 {
-            let r = c.row / norm;
+            let r = row / norm;
             ctc += r * r.transpose();
-            ctd += r * (c.rhs / norm);
+            ctd += r * (rhs / norm);
         }
     }
     let e = SymmetricEigen::new(ctc);
@@ -442,39 +464,148 @@ fn solve_constrained(
             delta += v * (v.dot(&ctd) / l);
         }
     }
-    let mut out = Solved {
-        delta,
-        kept: Vec::new(),
-        weak: Vec::new(),
-    };
-    if null.is_empty() {
+    (delta, null)
+}
+
+/// The standard deviation (scaled mm) of each motion not fixed by the constraints, given the
+/// eigen-decomposition `(v, mu)` of the information over the free space: `s sqrt(sum v_k^2 / mu)`
+/// over the eigen-directions above the rank floor; unbounded where a numerically zero one moves
+/// the motion. With it, the size of that zero direction's component on the motion (to choose
+/// among unbounded motions). `None` for a motion the constraints fix.
+fn motion_sigmas(
+    z: &[Vector6<f64>],
+    eig: &[(Vector6<f64>, f64)],
+    s2: f64,
+    floor: f64,
+) -> [Option<(f64, f64)>; 6] {
+    std::array::from_fn(|k| {
+        let free = z.iter().map(|v| v[k] * v[k]).sum::<f64>().sqrt();
+        if free <= FREE_COMPONENT {
+            return None;
+        }
+        let mut var = 0.0;
+        let mut zero_component: f64 = 0.0;
+        for (v, mu) in eig {
+            if *mu > floor {
+                var += v[k] * v[k] / mu;
+            } else if v[k].abs() > FREE_COMPONENT {
+                zero_component = zero_component.max(v[k].abs());
+            }
+        }
+        if zero_component > 0.0 {
+            Some((f64::INFINITY, zero_component))
+        } else {
+            Some(((s2 * var).sqrt(), 0.0))
+        }
+    })
+}
+
+/// Minimises `|J y + r|^2` subject to `C y = d`: `y = y_p + Z u` with `y_p` the minimum-norm
+/// solution of the constraints and `Z` an orthonormal basis of their null space; then
+/// `Z^T A Z u = -Z^T (b + A y_p)` by eigen-decomposition. Before the step, motions are held one
+/// at a time while a free motion's standard deviation exceeds its installation range, or the
+/// free motions' deviations in units of their ranges exceed 1 in some direction (the largest
+/// multiple of its range first; an undetermined motion, the largest zero-information component
+/// against its range first), each hold an added constraint `y_k = 0`.
+fn solve_constrained(
+    a: &Matrix6<f64>,
+    b: &Vector6<f64>,
+    cons: &[Constraint],
+    det: &Determinacy,
+    lam_max: f64,
+) -> Solved {
+    let floor = RANK_FLOOR * lam_max;
+    let mut weak: Vec<Weak> = Vec::new();
+    loop {
+        let mut rows: Vec<(Vector6<f64>, f64)> = cons.iter().map(|c| (c.row, c.rhs)).collect();
+        rows.extend(weak.iter().map(|w| (Vector6::ith(w.k, 1.0), 0.0)));
+        let (delta, null) = constraint_space(&rows);
+        if null.is_empty() {
+            return Solved {
+                delta,
+                restore: delta,
+                kept: Vec::new(),
+                weak,
+            };
+        }
+        let z = DMatrix::from_fn(6, null.len(), |i, j| null[j][i]);
+        let a_d = DMatrix::from_fn(6, 6, |i, j| a[(i, j)]);
+        let ar = z.transpose() * &a_d * &z;
+        let er = SymmetricEigen::new(ar);
+        let eig: Vec<(Vector6<f64>, f64)> = (0..null.len())
+            .map(|j| {
+                let vz = &z * er.eigenvectors.column(j);
+                (Vector6::from_column_slice(vz.as_slice()), er.eigenvalues[j])
+            })
+            .collect();
+        let sigmas = motion_sigmas(&null, &eig, det.s2, floor);
+        // Whether the free motions' deviation, in units of their ranges, exceeds 1 in some
+        // direction (a combination of motions each within its range can be beyond it together).
+        let beyond = {
+            let mut p = Matrix6::zeros();
+            for (v, mu) in eig.iter().filter(|(_, mu)| *mu > floor) {
+                let u = v.component_div(&det.range);
+                p += u * u.transpose() / *mu;
+            }
+            let worst = SymmetricEigen::new(p * det.s2)
+                .eigenvalues
+                .iter()
+                .copied()
+                .fold(0.0, f64::max);
+            worst > 1.0
+        };
+        // The motion furthest beyond its range: the largest multiple of its range, ties (the
+        // undetermined motions) by the zero direction's component against the range.
+        let worst = (0..6)
+            .filter_map(|k| sigmas[k].map(|(sig, zc)| (k, sig, zc / det.range[k])))
+            .filter(|&(k, sig, _)| sig > det.range[k] || (beyond && sig > 0.0))
+            .max_by(|x, y| {
+                (x.1 / det.range[x.0])
+                    .total_cmp(&(y.1 / det.range[y.0]))
+                    .then(x.2.total_cmp(&y.2))
+                    .then(y.0.cmp(&x.0))
+            });
+        if let Some((k, sigma, _)) = worst {
+            weak.push(Weak {
+                k,
+                sigma,
+                range: det.range[k],
+            });
+            continue;
+        }
+        let rhs = b + a * delta;
+        let mut out = Solved {
+            delta,
+            restore: delta,
+            kept: Vec::new(),
+            weak,
+        };
+        for (v, mu) in eig {
+            if mu > floor {
+                out.delta += v * (-v.dot(&rhs) / mu);
+                out.kept.push((v, mu));
+            }
+        }
         return out;
     }
-    let z = DMatrix::from_fn(6, null.len(), |i, j| null[j][i]);
-    let a_d = DMatrix::from_fn(6, 6, |i, j| a[(i, j)]);
-    let ar = z.transpose() * &a_d * &z;
-    let rhs = b + a * delta;
-    let g = z.transpose() * DVector::from_column_slice(rhs.as_slice());
-    let er = SymmetricEigen::new(ar);
-    for j in 0..null.len() {
-        let mu = er.eigenvalues[j];
-        let u = er.eigenvectors.column(j);
-        let vz = &z * u;
-        let v = Vector6::from_column_slice(vz.as_slice());
-        let range = det.range(&v);
-        let sigma = if mu > RANK_FLOOR * lam_max {
-            (det.s2 / mu).sqrt()
-        } else {
-            f64::INFINITY
-        };
-        if sigma <= range {
-            out.delta += v * (-u.dot(&g) / mu);
-            out.kept.push((v, mu));
-        } else {
-            out.weak.push(Weak { v, sigma, range });
+}
+
+/// `m` with the DOFs the user locked set to zero exactly (the linearised step holds them to
+/// first order only; its second-order part would otherwise let a lock drift, step by step).
+fn held_at_zero(m: Isometry3<f64>, lock: &[bool; 6]) -> Isometry3<f64> {
+    if !lock.iter().any(|&l| l) {
+        return m;
+    }
+    let mut theta = dofs_of(&m);
+    for (k, &l) in lock.iter().enumerate() {
+        if l {
+            theta[k] = 0.0;
         }
     }
-    out
+    Isometry3::new(
+        Vector3::new(theta[3], theta[4], theta[5]),
+        Vector3::new(theta[0], theta[1], theta[2]),
+    )
 }
 
 /// Current DOFs of `m`: rotation vector (rad) and translation (mm).
@@ -498,7 +629,6 @@ struct StepState {
     a: Matrix6<f64>,
     lam_max: f64,
     t: Matrix6<f64>,
-    det: Determinacy,
     cons: Vec<Constraint>,
     solved: Solved,
 }
@@ -527,7 +657,7 @@ fn constrained_step(
         });
     }
     let t = to_dofs(&f);
-    let det = Determinacy::new(corr, w, t, settings);
+    let det = Determinacy::new(corr, w, &f, settings);
     let theta = dofs_of(m);
     let bound = bounds(settings);
     let mut held = settings.lock;
@@ -569,7 +699,6 @@ fn constrained_step(
                 a,
                 lam_max,
                 t,
-                det,
                 cons,
                 solved,
             });
@@ -577,9 +706,36 @@ fn constrained_step(
     }
 }
 
+/// A Gauss-Newton step in the scaled parameters about the centroid `c` (RMS radius `len`):
+/// `restore`, the part that meets the constraints, plus `free`, the step within the space they
+/// leave free.
 struct Step {
-    isometry: Isometry3<f64>,
-    size_mm: f64,
+    full: Vector6<f64>,
+    restore: Vector6<f64>,
+    free: Vector6<f64>,
+    c: Vector3<f64>,
+    len: f64,
+}
+
+impl Step {
+    /// The constraints' part and the fraction `alpha` of the free step as an isometry: with
+    /// `y = restore + alpha free = [L omega, tau]`, `p -> c + tau + Exp(omega) (p - c)`.
+    fn isometry(&self, alpha: f64) -> Isometry3<f64> {
+        let y = if alpha == 1.0 {
+            self.full
+        } else {
+            self.restore + self.free * alpha
+        };
+        let omega = Vector3::new(y[0], y[1], y[2]) / self.len;
+        let tau = Vector3::new(y[3], y[4], y[5]);
+        let rot = nalgebra::Rotation3::new(omega);
+        Isometry3::new(self.c + tau - rot * self.c, omega)
+    }
+
+    /// Length of that step, mm (rotation scaled by `L`).
+    fn size_mm(&self, alpha: f64) -> f64 {
+        (self.restore + self.free * alpha).norm()
+    }
 }
 
 fn gauss_newton_step(
@@ -589,14 +745,12 @@ fn gauss_newton_step(
     settings: &RegisterSettings,
 ) -> Result<Step> {
     let st = constrained_step(corr, w, m, settings)?;
-    let delta = st.solved.delta;
-    let omega = Vector3::new(delta[0], delta[1], delta[2]) / st.f.len;
-    let tau = Vector3::new(delta[3], delta[4], delta[5]);
-    let rot = nalgebra::Rotation3::new(omega);
-    let t = st.f.c + tau - rot * st.f.c;
     Ok(Step {
-        isometry: Isometry3::new(t, omega),
-        size_mm: delta.norm(),
+        full: st.solved.delta,
+        restore: st.solved.restore,
+        free: st.solved.delta - st.solved.restore,
+        c: st.f.c,
+        len: st.f.len,
     })
 }
 
@@ -607,29 +761,6 @@ struct Analysis {
     dof_sigma: [f64; 6],
     locked: Vec<LockedMotion>,
     form_correlation: [f64; 6],
-}
-
-/// `0.998 tx + 0.062 ry`: the components of a unit direction above 1 %, largest first, signed so
-/// that the largest is positive.
-fn direction_label(v: &Vector6<f64>) -> String {
-    let k = v.iamax();
-    let s = if v[k] < 0.0 { -1.0 } else { 1.0 };
-    let mut order: Vec<usize> = (0..6).collect();
-    order.sort_by(|&a, &b| v[b].abs().total_cmp(&v[a].abs()));
-    let mut out = String::new();
-    for (i, &j) in order.iter().enumerate() {
-        let c = s * v[j];
-        if i > 0 && c.abs() < 0.01 {
-            break;
-        }
-        if i == 0 {
-            out.push_str(&format!("{c:.3} {}", Dof::ALL[j].name()));
-        } else {
-            let sign = if c < 0.0 { '-' } else { '+' };
-            out.push_str(&format!(" {sign} {:.3} {}", c.abs(), Dof::ALL[j].name()));
-        }
-    }
-    out
 }
 
 fn analyse(
@@ -650,11 +781,21 @@ fn analyse(
     let ss: f64 = corr.iter().zip(w).map(|(c, wk)| wk * c.r * c.r).sum();
     let dof = corr.len().saturating_sub(st.solved.kept.len()).max(1);
     let s2 = ss / dof as f64;
-    let mut cov = Matrix6::zeros();
+    // `P = sum v v^T / mu` over the estimated directions: the estimate's covariance is `s^2 P`.
+    let mut pinv = Matrix6::zeros();
     for (v, mu) in &st.solved.kept {
-        cov += v * v.transpose() / *mu;
+        pinv += v * v.transpose() / *mu;
     }
-    let cov = st.t * cov * st.t.transpose() * s2;
+    // A held motion `k` is somewhere within its range `rho_k` (held at the current value, its
+    // error is up to the range); the estimated motions absorb what they can of it, moving by
+    // `-P A e_k` per unit: its share of the covariance is `rho_k^2 g g^T`, `g = e_k - P A e_k`.
+    let mut cov = pinv * s2;
+    for weak in &st.solved.weak {
+        let e = Vector6::ith(weak.k, 1.0);
+        let g = e - pinv * (st.a * e);
+        cov += g * g.transpose() * (weak.range * weak.range);
+    }
+    let cov = st.t * cov * st.t.transpose();
     let held: Vec<usize> = st.cons.iter().map(|c| c.dof.index()).collect();
     let dof_sigma: [f64; 6] = std::array::from_fn(|k| {
         let unit = if k < 3 { ARCSEC_PER_RAD } else { 1e3 };
@@ -678,53 +819,59 @@ fn analyse(
                 LockSource::Bound => "held at its prior bound".to_string(),
                 LockSource::Weak => String::new(),
             },
+            undetermined: false,
         });
     }
     for weak in &st.solved.weak {
-        let s = if weak.v[weak.v.iamax()] < 0.0 {
-            -1.0
-        } else {
-            1.0
-        };
-        let v = weak.v * s;
+        let v = Vector6::ith(weak.k, 1.0);
         locked.push(LockedMotion {
             source: LockSource::Weak,
-            label: direction_label(&v),
+            label: Dof::ALL[weak.k].name().to_string(),
             direction: std::array::from_fn(|k| v[k]),
             relative_eigenvalue: rel(&v).max(0.0),
-            reason: weak_reason(weak, &st.det),
+            reason: weak_reason(weak, st.f.len),
+            undetermined: !weak.sigma.is_finite(),
         });
     }
+    // The form correlation of a motion held about the centroid is that of its design-frame DOF.
+    let mut held_all = held;
+    held_all.extend(st.solved.weak.iter().map(|w| w.k));
     Ok(Analysis {
         eigenvalues,
         condition_number,
         dof_sigma,
         locked,
-        form_correlation: form_correlation(corr, w, &held),
+        form_correlation: form_correlation(corr, w, &held_all),
     })
 }
 
-/// `sigma` and `range` of a held direction in the units of the DOF it moves most against its
-/// range (arcsec or um).
-fn weak_reason(weak: &Weak, det: &Determinacy) -> String {
-    let d = det.t * weak.v;
-    let k = d.component_mul(&det.w).iamax();
-    let (unit, name) = if k < 3 {
-        (ARCSEC_PER_RAD, "arcsec")
+/// Why a motion is held: its standard deviation against its installation range, in arcsec (a
+/// rotation about the points' centroid) or um (a translation of the centroid); `len` is the
+/// scaled parameters' length, mm.
+fn weak_reason(weak: &Weak, len: f64) -> String {
+    let (unit, name, what) = if weak.k < 3 {
+        (
+            ARCSEC_PER_RAD / len,
+            "arcsec",
+            "rotation about the points' centroid",
+        )
     } else {
-        (1e3, "um")
+        (1e3, "um", "translation of the points' centroid")
     };
-    let per = d[k].abs() * unit;
     if weak.sigma.is_finite() {
         format!(
             "the data do not determine it: its standard deviation from the residual's scatter \
-             ({:.4} {name} of {}) exceeds the installation range along it ({:.4} {name})",
-            weak.sigma * per,
-            Dof::ALL[k].name(),
-            weak.range * per
+             ({:.4} {name}, {what}) exceeds the installation range ({:.4} {name}); held within \
+             that range",
+            weak.sigma * unit,
+            weak.range * unit
         )
     } else {
-        "the points and the surface leave it undetermined (zero information)".to_string()
+        format!(
+            "the points and the surface leave it undetermined (zero information; {what}); held \
+             within the installation range ({:.4} {name})",
+            weak.range * unit
+        )
     }
 }
 

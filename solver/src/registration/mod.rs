@@ -19,18 +19,15 @@ use serde::{Deserialize, Serialize};
 pub const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
 
 /// Default range of the installation error's translations, mm: what a fixture or a setter's
-/// indicator leaves on an optical part mounted for measurement. A motion whose standard deviation
-/// (estimated from the residual's own scatter) exceeds its share of this range is not determined
-/// by the data to within what the mounting can be, and is held instead of estimated.
+/// indicator leaves on an optical part mounted for measurement, about the part itself (the
+/// measured points' centroid). A motion whose standard deviation (estimated from the residual's
+/// own scatter) exceeds its range is not determined by the data to within what the mounting can
+/// be, and is held instead of estimated.
 pub const INSTALLATION_RANGE_MM: f64 = 0.5;
 
-/// Default range of the installation error's rotations, degrees (see [`INSTALLATION_RANGE_MM`]).
+/// Default range of the installation error's rotations about the measured points' centroid,
+/// degrees (see [`INSTALLATION_RANGE_MM`]).
 pub const INSTALLATION_RANGE_DEG: f64 = 0.2;
-
-/// Relative eigenvalue of the information matrix below which a locked weak motion counts as
-/// undetermined by the points and the surface (rank deficiency up to rounding), not merely weak:
-/// see [`Registration::undetermined`].
-pub const UNDETERMINED_REL: f64 = 1e-10;
 
 /// A rigid-body degree of freedom of the transform `M`, in the design frame (rotations about the
 /// design origin's axes, translations along them).
@@ -73,9 +70,10 @@ impl Dof {
 pub enum LockSource {
     /// Locked by the user (`RegisterSettings::lock`): held at zero.
     User,
-    /// An eigen-direction of the information matrix that the data do not determine: its standard
-    /// deviation from the residual's scatter exceeds the installation range along it (or its
-    /// eigenvalue is zero to rounding). Held, not estimated.
+    /// A rigid-body motion (a rotation about an axis through the measured points' centroid, or a
+    /// translation of the centroid) that the data do not determine: its standard deviation from
+    /// the residual's scatter exceeds its installation range (or the points and the surface give
+    /// no information on it at all). Held within that range, not estimated.
     Weak,
     /// A DOF held at its prior bound (`max_rotation_arcsec`, `max_translation_um`).
     Bound,
@@ -86,16 +84,20 @@ pub enum LockSource {
 pub struct LockedMotion {
     /// Why it was held.
     pub source: LockSource,
-    /// Readable combination of DOFs, e.g. `tz` or `0.998 tx + 0.062 ry`.
+    /// The motion held: a DOF's name (`tz`; a held weak motion is about the points' centroid).
     pub label: String,
     /// Unit direction in the scaled parameters `[rx, ry, rz, tx, ty, tz]`: rotations about the
     /// centroid of the points, multiplied by their RMS radius (mm), and translations (mm).
     pub direction: [f64; 6],
     /// `v^T A v / lambda_max` of the direction: how strongly the surface determines it.
     pub relative_eigenvalue: f64,
-    /// Why it was held, in physical terms (for a weak motion: its standard deviation against the
-    /// installation range along it).
+    /// Why it was held, in physical terms (for a weak motion: its standard deviation against its
+    /// installation range).
     pub reason: String,
+    /// A weak motion on which the points and the surface give no information at all (zero to
+    /// rounding, whatever the noise): [`Registration::refuse_undetermined`] refuses it.
+    #[serde(default)]
+    pub undetermined: bool,
 }
 
 /// Robust weighting of the Gauss-Newton steps.
@@ -134,12 +136,14 @@ pub struct RegisterSettings {
     pub probe_radius_mm: f64,
     /// DOFs held at zero, indexed by [`Dof::index`].
     pub lock: [bool; 6],
-    /// Range of the installation error's translations, mm ([`INSTALLATION_RANGE_MM`]). An
-    /// eigen-direction `v` of the information matrix is held when its standard deviation
-    /// `s / sqrt(mu)` (`s^2 = sum w r^2 / (N - 6)` the residual variance) exceeds the amplitude
-    /// `1 / |W T v|` at which it reaches the range ellipsoid `W = diag(1/range_rad x3, 1/range_mm x3)`.
+    /// Range of the installation error's translations of the measured points' centroid, mm
+    /// ([`INSTALLATION_RANGE_MM`]). A motion (a translation of the centroid, or a rotation about
+    /// it) is held when its standard deviation `s sqrt((A^-1)_kk)` over the motions left free
+    /// (`s^2 = sum w r^2 / (N - 6)` the residual variance) is the largest multiple of its range
+    /// while the free motions' deviations, in units of their ranges, exceed 1 in some direction.
     pub installation_range_mm: f64,
-    /// Range of the installation error's rotations, degrees ([`INSTALLATION_RANGE_DEG`]).
+    /// Range of the installation error's rotations about the measured points' centroid, degrees
+    /// ([`INSTALLATION_RANGE_DEG`]).
     pub installation_range_deg: f64,
     /// Prior bound on each rotation component `|rx|, |ry|, |rz|`, arcsec (`None`: unbounded).
     pub max_rotation_arcsec: Option<f64>,
@@ -251,8 +255,12 @@ pub struct Registration {
     /// `lambda_max / lambda_min` of `A` (`None` when `lambda_min` is zero).
     pub condition_number: Option<f64>,
     /// Standard deviation of each DOF `[rx, ry, rz]` arcsec, `[tx, ty, tz]` um:
-    /// `sqrt(diag(T (sum_kept v v^T / mu) T^T) s^2)` with the residual variance
-    /// `s^2 = sum w r^2 / (N - k)` over the `k` estimated directions; 0 for held motions.
+    /// `sqrt(diag(T C T^T))` with `C = s^2 P + sum_held rho_k^2 g_k g_k^T`, `P = sum_kept v v^T /
+    /// mu` over the estimated directions, the residual variance `s^2 = sum w r^2 / (N - k)` over
+    /// the `k` estimated directions, and for each motion held because the data do not determine
+    /// it, its installation range `rho_k` carried through the estimated motions that absorb it
+    /// (`g_k = e_k - P A e_k`): a held motion's uncertainty is the range it was held within. 0 for
+    /// a DOF the user locked or a prior bound holds.
     pub dof_sigma: [f64; 6],
     /// Motions held fixed (user locks, weak eigen-directions, active prior bounds).
     pub locked: Vec<LockedMotion>,
@@ -301,12 +309,13 @@ impl Registration {
     }
 
     /// Labels of the motions the points and the surface leave exactly undetermined: weak locks
-    /// whose relative eigenvalue is below [`UNDETERMINED_REL`] (coplanar points on a plane
-    /// design leave rz, tx, ty free). [`Registration::refuse_undetermined`] refuses them.
+    /// with no information at all, whatever the noise and the installation range (coplanar points
+    /// on a plane design leave rz, tx, ty free). A motion that is merely weak is held within its
+    /// range, not refused. [`Registration::refuse_undetermined`] refuses them.
     pub fn undetermined(&self) -> Vec<&str> {
         self.locked
             .iter()
-            .filter(|m| m.source == LockSource::Weak && m.relative_eigenvalue < UNDETERMINED_REL)
+            .filter(|m| m.source == LockSource::Weak && m.undetermined)
             .map(|m| m.label.as_str())
             .collect()
     }
@@ -320,8 +329,8 @@ impl Registration {
             return Ok(());
         }
         Err(Error::Geometry(format!(
-            "the points and the design surface do not determine these motions (information \
-             matrix rank-deficient, relative eigenvalue below {UNDETERMINED_REL:e}): {}; hold them \
+            "the points and the design surface do not determine these motions (no point's \
+             distance to the surface changes with them): {}; hold them \
              with {lock_hint} (for points on a plane design: rz, tx, ty) or measure where the \
              surface is curved",
             undetermined.join("; ")

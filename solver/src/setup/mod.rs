@@ -259,11 +259,35 @@ pub struct Built {
     pub problem: Problem,
     /// Edge extension points appended to the map's rows.
     pub edge_points: usize,
-    /// Warnings about the operator choice.
+    /// Warnings about the operator choice and the inputs' sizes.
     pub warnings: Vec<String>,
+    /// Notes: what the set-up chose, for information (the operator `auto` chose, the swept
+    /// columns made exact); printed as notes, not warnings.
+    pub notes: Vec<String>,
     /// A robust plan's scenario weights ([`robust::SCENARIOS`] order, summing to their count);
     /// `None` for a nominal plan.
     pub scenario_weights: Option<Vec<f64>>,
+}
+
+/// Marks a message of the set-up's list as a note (a choice made, for information) rather than
+/// a warning; [`split_notes`] takes the notes out of the list.
+pub(crate) const NOTE_MARK: &str = "\u{1}note\u{1}";
+
+/// A note for the set-up's list of messages (see [`NOTE_MARK`]).
+pub(crate) fn note(text: String) -> String {
+    format!("{NOTE_MARK}{text}")
+}
+
+/// The set-up's messages split into warnings and notes (the marked ones, unmarked), each in its
+/// order.
+pub(crate) fn split_notes(messages: Vec<String>) -> (Vec<String>, Vec<String>) {
+    let (notes, warnings): (Vec<String>, Vec<String>) =
+        messages.into_iter().partition(|m| m.starts_with(NOTE_MARK));
+    let notes = notes
+        .into_iter()
+        .map(|n| n.trim_start_matches(NOTE_MARK).to_string())
+        .collect();
+    (warnings, notes)
 }
 
 /// The default program executed at the acceleration limit on the map: what the machine would

@@ -208,7 +208,7 @@ impl Setup {
             taken = Some((OffLatticeOperator::Spread(p.op), p.ns, p.note));
         }
         Ok(taken.map(|(op, _, note)| {
-            warnings.extend(note);
+            warnings.extend(note.map(super::note));
             op
         }))
     }

@@ -70,8 +70,46 @@ pub fn volume_rate_nm_mm2_per_s(tif: &Tif) -> f64 {
     sum * h * h
 }
 
-/// Warnings on sizes that are implausible together: the TIF against the map's extent and point
-/// spacing, the map's height range, and the total removal against the TIF's volume rate.
+/// The map's point spacing, mm, against which a TIF's footprint is judged: the smaller of the
+/// typical spacing over its bounding box (`sqrt(area / points)`, exact for a full rectangular
+/// grid, larger for a round aperture) and the pitch of the lattice its points lie on (the
+/// smallest step between distinct coordinates; small for scattered points, so that they are
+/// never judged on it). `None` for a map with no area.
+pub fn map_spacing_mm(map: &HeightMap) -> Option<f64> {
+    let b = map.bounding_box_mm()?;
+    let area = ((b.x_max_mm - b.x_min_mm) * (b.y_max_mm - b.y_min_mm)).max(0.0);
+    if !(area > 0.0) {
+        return None;
+    }
+    let typical = (area / map.len().max(1) as f64).sqrt();
+    let lattice =
+        crate::influence::FftOperator::lattice_pitch_mm(map.x_mm(), map.y_mm()).unwrap_or(typical);
+    Some(typical.min(lattice))
+}
+
+/// The refusal of a TIF whose support radius is below half the map's point spacing
+/// ([`map_spacing_mm`]): its footprint fits between map points, so each dwell point feels at
+/// most the map point it sits on, and whatever a few such points reach, the plan is not the
+/// tool's. A measured TIF in metres under an `x_mm` header is the usual cause (a 10 mm TIF
+/// reads 10 um across). `None` where the footprint spans the spacing.
+pub fn tif_narrower_than_the_map_spacing(map: &HeightMap, tif: &Tif) -> Option<String> {
+    let spacing = map_spacing_mm(map)?;
+    let r = tif.support_radius_mm();
+    (r < 0.5 * spacing).then(|| {
+        format!(
+            "the TIF is narrower than the map's point spacing: its support radius ({r:.3e} mm) \
+             is below half the spacing ({spacing:.4} mm), so its footprint fits between map \
+             points and no dwell point can shape the surface; are the TIF's coordinates in mm? \
+             A TIF written in metres under an x_mm header reads 1000 times too small (a {:.3} \
+             mm footprint if they are m)",
+            2.0e3 * r
+        )
+    })
+}
+
+/// Warnings on sizes that are implausible together: the TIF against the map's extent, the map's
+/// height range, and the total removal against the TIF's volume rate. (A TIF narrower than the
+/// map's spacing is refused: [`tif_narrower_than_the_map_spacing`].)
 pub fn size_warnings(map: &HeightMap, tif: &Tif) -> Vec<String> {
     let mut out = Vec::new();
     let Some(b) = map.bounding_box_mm() else {
@@ -80,17 +118,6 @@ pub fn size_warnings(map: &HeightMap, tif: &Tif) -> Vec<String> {
     let m = map.len().max(1) as f64;
     let (w, h) = (b.x_max_mm - b.x_min_mm, b.y_max_mm - b.y_min_mm);
     let area = (w * h).max(0.0);
-    // The typical spacing of the map's points (exact for a full rectangular grid).
-    let spacing = if area > 0.0 { (area / m).sqrt() } else { 0.0 };
-    let r = tif.support_radius_mm();
-    if spacing > 0.0 && 2.0 * r < spacing {
-        out.push(format!(
-            "the TIF's footprint ({:.3e} mm across) is narrower than the map's point spacing \
-             (about {spacing:.3} mm): most map points feel no dwell point; are the TIF's \
-             coordinates in mm (not m)?",
-            2.0 * r
-        ));
-    }
     let extent = w.max(h);
     if extent > 0.0 && tif.nominal_radius_mm() > extent {
         out.push(format!(
@@ -167,9 +194,6 @@ mod tests {
     #[test]
     fn each_implausible_size_is_named() {
         let map = grid_map(41, 0.5, |x, y| 20.0 * (x / 5.0).sin() + 0.5 * y);
-        // TIF in metres: a footprint of micrometres against a 0.5 mm spacing.
-        let w = size_warnings(&map, &gaussian(1e-3, 50.0));
-        assert!(w.iter().any(|s| s.contains("narrower")), "{w:?}");
         // TIF in pixels: wider than the whole map.
         let w = size_warnings(&map, &gaussian(100.0, 50.0));
         assert!(w.iter().any(|s| s.contains("extent")), "{w:?}");
@@ -182,6 +206,40 @@ mod tests {
         let w = size_warnings(&deep, &gaussian(1.0, 1.0));
         assert!(w.iter().any(|s| s.contains("of dwell")), "{w:?}");
     }
+
+    /// A 10 mm TIF (sigma 1.5 mm, support 4.5 mm) read as metres is 1000 times smaller: its
+    /// 4.5 um support radius against a 0.5 mm pitch is refused, the message suggesting the
+    /// unit; the same TIF in mm, and one whose support radius is just over half the pitch,
+    /// pass. On a round aperture the pitch, not the coarser box spacing, is the measure.
+    #[test]
+    fn a_tif_narrower_than_the_map_spacing_is_refused() {
+        let map = grid_map(41, 0.5, |x, y| 20.0 * (x / 5.0).sin() + 0.5 * y);
+        let why = tif_narrower_than_the_map_spacing(&map, &gaussian(1.5e-3, 50.0))
+            .expect("a TIF in metres is refused");
+        assert!(why.contains("in mm") && why.contains("metres"), "{why}");
+        assert!(tif_narrower_than_the_map_spacing(&map, &gaussian(1.5, 50.0)).is_none());
+        // Support radius 3 sigma: 0.26 mm passes, 0.24 mm is refused (half the pitch: 0.25).
+        assert!(tif_narrower_than_the_map_spacing(&map, &gaussian(0.26 / 3.0, 50.0)).is_none());
+        assert!(tif_narrower_than_the_map_spacing(&map, &gaussian(0.24 / 3.0, 50.0)).is_some());
+        let (mut xs, mut ys, mut zs) = (vec![], vec![], vec![]);
+        for i in -20..=20 {
+            for j in -20..=20 {
+                let (x, y) = (i as f64 * 0.5, j as f64 * 0.5);
+                if x * x + y * y <= 100.0 {
+                    xs.push(x);
+                    ys.push(y);
+                    zs.push(x);
+                }
+            }
+        }
+        let round = HeightMap::new(xs, ys, zs).unwrap();
+        let spacing = map_spacing_mm(&round).unwrap();
+        assert!((spacing - 0.5).abs() < SPACING_TOL_MM, "{spacing}");
+        assert!(tif_narrower_than_the_map_spacing(&round, &gaussian(0.26 / 3.0, 50.0)).is_none());
+    }
+
+    /// Agreement of a lattice's spacing with its pitch, mm.
+    const SPACING_TOL_MM: f64 = 1e-12;
 
     #[test]
     fn refusal_only_when_no_dwell_point_reaches() {

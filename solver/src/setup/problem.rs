@@ -199,12 +199,12 @@ impl Setup {
                     },
                 });
                 if choice.operator == policy::OperatorKind::Fft {
-                    warnings.push(format!(
+                    warnings.push(super::note(format!(
                         "operator auto: about {estimate:.2e} non-zeros in R; the FFT operator is \
                          predicted faster ({:.2} s against {:.2} s first-order with R, {:.2} s QP), \
                          so products use it (operator = \"sparse\" assembles R)",
                         choice.first_order_fft_s, choice.first_order_sparse_s, choice.qp_s
-                    ));
+                    )));
                     Ok(OperatorPlan::Fft { pitch_mm: p })
                 } else {
                     Ok(OperatorPlan::Assembled)
@@ -307,6 +307,9 @@ impl Setup {
     /// validated [`Problem`].
     pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Built> {
         observer.setup_step(SetupStep::BuildProblem);
+        if let Some(why) = plausible::tif_narrower_than_the_map_spacing(&self.map, &self.tif) {
+            return Err(Error::invalid("TIF", why)).at(SetupInput::None);
+        }
         let (rows, edge_points) = self.rows()?;
         let mut warnings = plausible::size_warnings(&self.map, &self.tif);
         if self.settings.robust {
@@ -406,10 +409,12 @@ impl Setup {
             return Err(Error::invalid("dwell path", why)).at(SetupInput::None);
         }
         warnings.extend(plausible::unreachable_share_warning(empty, problem.n()));
+        let (warnings, notes) = super::split_notes(warnings);
         Ok(Built {
             problem,
             edge_points,
             warnings,
+            notes,
             scenario_weights: None,
         })
     }
@@ -459,12 +464,12 @@ impl Setup {
         .at(SetupInput::None)?
         {
             Ok(corrected) => {
-                warnings.push(format!(
+                warnings.push(super::note(format!(
                     "influence swept: {} dwell points whose stretch differs from the lattice \
                      operator's shared kernel (row ends, the path's ends) have their exact \
                      columns",
                     corrected.corrected_columns()
-                ));
+                )));
                 Ok(Some(Box::new(corrected)))
             }
             Err(op) => Ok(Some(op)),
