@@ -118,7 +118,8 @@ pub struct Report {
     /// How the expected reading was drawn: the uncertainty, the nominal RMS, the draws.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub expected: Option<preston_solver::calibrate::Expected>,
-    /// Whether the run is expected to improve the part: its expected RMS below the measured one.
+    /// Whether the run is expected to improve the part: its expected RMS below the measured one
+    /// (both with piston and tilt removed, as the interferometer reads them).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub run_pays: Option<bool>,
     /// Machining time of the feed schedule, s: every stretch at its point's feed (`sum t_j`),
@@ -594,7 +595,7 @@ impl Report {
         self.expected_rms_nm = expected.map(|e| e.expected_rms_nm);
         self.expected_pv_nm = expected.map(|e| e.expected_pv_nm);
         self.expected_rms_range_nm = expected.map(|e| e.expected_rms_range_nm);
-        self.run_pays = expected.map(|e| e.expected_rms_nm < self.rms_before_nm);
+        self.run_pays = expected.map(|e| e.expected_rms_nm < e.measured_rms_nm);
         self.expected = expected.cloned();
     }
 

@@ -408,7 +408,7 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
             crate::errln!(
                 "  warning: this run is not expected to improve the part: {:.3} nm expected against {:.3} nm measured; the floor is the tool's uncertainty and the metrology noise ({:.3} nm); calibrate the tool or stop",
                 e.expected_rms_nm,
-                r.rms_before_nm,
+                e.measured_rms_nm,
                 u.noise_rms_nm
             );
         }

@@ -99,6 +99,9 @@ pub struct Expected {
     /// RMS the nominal tool leaves (its drift included), piston and tilt removed, without noise,
     /// nm.
     pub nominal_rms_nm: f64,
+    /// RMS of the map measured before the run with piston and tilt removed, as the
+    /// interferometer reads it, nm: what a run must beat to pay.
+    pub measured_rms_nm: f64,
     /// The uncertainty drawn from.
     pub uncertainty: ToolUncertainty,
     /// Number of draws.
@@ -182,6 +185,7 @@ pub fn expected_reading(
         .map(|i| removal_nm[i] + u.drift_per_hour * nominal_parts[1][i])
         .collect();
     let nominal_rms_nm = HeightStats::of(&reading(&nominal, None)?).rms_nm;
+    let measured_rms_nm = HeightStats::of(&reading(&vec![0.0; m], None)?).rms_nm;
     let mut rng = SplitMix64::new(seed);
     let mut rms = Vec::with_capacity(draws);
     let mut pv = Vec::with_capacity(draws);
@@ -219,6 +223,7 @@ pub fn expected_reading(
         expected_pv_nm: percentile(&pv, 0.5),
         expected_rms_range_nm: [percentile(&rms, 0.05), percentile(&rms, 0.95)],
         nominal_rms_nm,
+        measured_rms_nm,
         uncertainty: *uncertainty,
         draws,
     })

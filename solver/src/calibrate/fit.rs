@@ -438,8 +438,8 @@ fn covariance(model: &Model, nl: &[f64; 9], eval: &Eval) -> Result<Covariance> {
     let norms: Vec<f64> = (0..q)
         .map(|j| jac.column(j).norm().max(f64::MIN_POSITIVE))
         .collect();
-    for j in 0..q {
-        jac.column_mut(j).scale_mut(1.0 / norms[j]);
+    for (j, n) in norms.iter().enumerate() {
+        jac.column_mut(j).scale_mut(1.0 / n);
     }
     let normal = jac.tr_mul(&jac);
     let inv = normal

@@ -299,5 +299,30 @@ pub(super) fn calibrated_grid(
             (tif.rate_nm_per_s(x, y) + extra).max(0.0)
         })
         .collect();
-    GridTif::new(x0, y0, pitch, pitch, side, side, rates)
+    // Cropped to the nodes with a rate, and one node beyond.
+    let positive = |k: usize| rates[k] > 0.0;
+    let (mut i0, mut i1, mut j0, mut j1) = (side, 0, side, 0);
+    for k in (0..side * side).filter(|&k| positive(k)) {
+        let (i, j) = (k % side, k / side);
+        (i0, i1, j0, j1) = (i0.min(i), i1.max(i), j0.min(j), j1.max(j));
+    }
+    if i0 > i1 {
+        return Err(Error::invalid("calibrated TIF", "every rate is zero"));
+    }
+    let (i0, j0) = (i0.saturating_sub(1), j0.saturating_sub(1));
+    let (i1, j1) = ((i1 + 1).min(side - 1), (j1 + 1).min(side - 1));
+    let (nx, ny) = (i1 - i0 + 1, j1 - j0 + 1);
+    let cropped = (j0..=j1)
+        .flat_map(|j| (i0..=i1).map(move |i| (i, j)))
+        .map(|(i, j)| rates[j * side + i])
+        .collect();
+    GridTif::new(
+        x0 + i0 as f64 * pitch,
+        y0 + j0 as f64 * pitch,
+        pitch,
+        pitch,
+        nx,
+        ny,
+        cropped,
+    )
 }
