@@ -588,8 +588,6 @@ impl Report {
         }
     }
 
-    /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the
-    /// acceleration-limited solve's account when there was one.
     /// Sets the expected reading after the run and whether the run pays.
     pub fn set_expected(&mut self, expected: Option<&preston_solver::calibrate::Expected>) {
         self.expected_rms_nm = expected.map(|e| e.expected_rms_nm);
@@ -599,7 +597,8 @@ impl Report {
         self.expected = expected.cloned();
     }
 
-    /// Sets the machine figures from the feed schedule and the acceleration account.
+    /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the
+    /// acceleration-limited solve's account when there was one.
     pub fn set_machine(&mut self, schedule: &FeedSchedule, accel: Option<&AccelReport>) {
         self.machining_time_s = schedule.machining_time_s;
         self.max_accel_mm_per_s2 = schedule.max_accel_mm_per_s2;

@@ -20,6 +20,9 @@ mm/min.
 * :func:`register` -- installation and form error of measured points (ICP);
   :func:`simulate_program` -- the removal a G-code program produces on the machine;
   :func:`iterate` -- the measure-register-solve-polish loop.
+* :func:`calibrate` -- the tool that ran, learned from a run's measured change (``solve(...,
+  calibration=)`` plans the next run with it); :func:`shop` -- a virtual shop to rehearse the
+  loop.
 * :func:`batch` / :func:`grid` -- many solves (job dicts, job files, a parameter grid over one
   job) on a ``dask.distributed`` cluster, outputs written atomically per job.
 
@@ -80,6 +83,8 @@ __all__ = [
     "register",
     "simulate_program",
     "iterate",
+    "calibrate",
+    "shop",
     "SolveResult",
     "PrestonError",
     "InputError",
@@ -349,7 +354,7 @@ def _abs(p: PathLike) -> str:
     return os.path.abspath(os.fspath(p))
 
 
-_PATH_KEYWORDS = ("map", "tif", "dwell", "warm_start", "surface")
+_PATH_KEYWORDS = ("map", "tif", "dwell", "warm_start", "surface", "calibration")
 
 
 def _job_of(
@@ -398,7 +403,10 @@ def _job_of(
         arrays["map_xyz"] = _columns(map_xyz, 3, "map_xyz")
     j["map"] = m
     if tif_xyr is not None:
-        j["tif"] = {"file": None, "gaussian": None}
+        # The grid replaces the TIF's source; what the job knows of the tool stays with it.
+        known = ("calibration", "rate_sigma", "width_sigma", "offset_sigma_mm")
+        t = j.get("tif") or {}
+        j["tif"] = {"file": None, "gaussian": None, **{k: t[k] for k in known if t.get(k) is not None}}
         arrays["tif_xyr"] = _columns(tif_xyr, 3, "tif_xyr")
     if dwell_xy is not None:
         d = j.get("dwell") or {}
@@ -492,6 +500,10 @@ def solve(
       default 10, 5 with the FFT operator, as ``--lbfgs-memory``),
       ``tolerance`` (relative; both solvers), ``max_iterations``, ``warm_start`` (a previous
       dwell.csv).
+    * the tool's calibration: ``calibration`` (``calibration.json`` of :func:`calibrate` or
+      ``preston calibrate``): the plan includes the calibrated drift, ``report["expected_rms_nm"]``
+      draws from the calibration's uncertainty, and its calibrated TIF (``tif.csv`` beside it)
+      is the TIF unless one is given.
     * curved parts: ``surface`` (design surface JSON) and ``tif_frame`` (``"path_tangent"``,
       ``"machine_x"``).
     * the plan's model: ``influence`` (``"swept"``, the default, or ``"point"``), ``robust``
@@ -692,6 +704,7 @@ def _write_text_atomic(path: str, text: str) -> None:
 
 
 from ._batch import batch, grid  # noqa: E402  (needs the names above)
+from ._shop import calibrate, shop  # noqa: E402
 from ._paths import (  # noqa: E402
     ToolPath,
     path_chord_height,

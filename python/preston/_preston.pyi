@@ -266,3 +266,36 @@ def iterate(
     threads: Optional[int] = None,
 ) -> Tuple[str, F64, F64, F64, Optional[Tuple[F64, F64, F64, F64, F64, F64]]]:
     """The polishing loop: ``(outcome_json, final_x_mm, final_y_mm, final_z_nm, last_run)``."""
+
+def calibrate(
+    before_json: str,
+    after_json: str,
+    program: str,
+    tif_json: str = "{}",
+    tif_xyr: Optional[F64] = None,
+    tif_file: Optional[str] = None,
+    a_max_mm_per_s2: Optional[float] = None,
+    corner_angle_deg: float = 60.0,
+    dialect: Optional[str] = None,
+    settings_json: str = "{}",
+    out: Optional[str] = None,
+    plot_format: Optional[str] = None,
+) -> Tuple[str, Tuple[F64, F64, F64], bool]:
+    """The tool that ran, from the maps before and after a run and its program: ``(record_json,
+    (tif_x_mm, tif_y_mm, tif_rate_nm_per_s), converged)``, the record as ``calibration.json``."""
+
+def shop(
+    surface_json: str,
+    program: Optional[str] = None,
+    tif_json: str = "{}",
+    tif_xyr: Optional[F64] = None,
+    a_max_mm_per_s2: Optional[float] = None,
+    corner_angle_deg: float = 60.0,
+    dialect: Optional[str] = None,
+    tool_json: str = "{}",
+    noise_rms_nm: float = 0.3,
+    seed: int = 1,
+    out: Optional[str] = None,
+) -> Tuple[str, Tuple[F64, F64, F64, F64]]:
+    """A visit to the virtual shop: ``(record_json, (x_mm, y_mm, surface_after_nm,
+    measured_nm))``, the record as ``shop.json``."""

@@ -11,6 +11,7 @@ mod errors;
 mod figures;
 mod paths;
 mod progress;
+mod shop;
 mod solve;
 mod workflow;
 
@@ -341,6 +342,8 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(workflow::register, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::simulate_program, m)?)?;
     m.add_function(wrap_pyfunction!(workflow::iterate, m)?)?;
+    m.add_function(wrap_pyfunction!(shop::calibrate, m)?)?;
+    m.add_function(wrap_pyfunction!(shop::shop, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }
