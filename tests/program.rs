@@ -693,9 +693,16 @@ fn arcs_program_removes_what_the_straight_one_does() {
         let w = write_program(&nc, &[]).unwrap();
         assert_eq!(w.arc_blocks > 0, arcs.is_some());
         let p = Program::parse(&w.text, Dialect::Iso).unwrap();
-        let run = run_on_map(&p, Kinematics::ProgrammedFeed, 0.05, None, &|samples| {
-            preston::solver::simulate::removal_of_samples(&mx, &my, samples, &tif, &Silent)
-        })
+        let run = run_on_map(
+            &p,
+            Kinematics::ProgrammedFeed,
+            0.05,
+            None,
+            0.0,
+            &|samples| {
+                preston::solver::simulate::removal_of_samples(&mx, &my, samples, &tif, &Silent)
+            },
+        )
         .unwrap();
         removal.push(run.removal_nm);
     }
