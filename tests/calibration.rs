@@ -167,6 +167,44 @@ fn check(name: &str, value: f64, sigma: f64, truth: f64, tol: f64) {
     );
 }
 
+/// The rate and width against the truth, within the shop's tolerances and 3 sigma.
+fn check_rate_and_width(c: &preston::solver::calibrate::Calibration, truth: &Truth) {
+    let (f, s) = (c.figures, c.sigma);
+    check(
+        "rate_factor",
+        f.rate_factor,
+        s.rate_factor,
+        truth.rate,
+        RATE_TOL * truth.rate,
+    );
+    check(
+        "width_factor",
+        f.width_factor,
+        s.width_factor,
+        truth.width,
+        WIDTH_TOL,
+    );
+}
+
+/// The centroid offset against the truth, within the shop's tolerance and 3 sigma.
+fn check_offset(c: &preston::solver::calibrate::Calibration, truth: &Truth) {
+    let (f, s) = (c.figures, c.sigma);
+    check(
+        "offset_x_mm",
+        f.offset_x_mm,
+        s.offset_x_mm,
+        truth.offset.0,
+        OFFSET_TOL_MM,
+    );
+    check(
+        "offset_y_mm",
+        f.offset_y_mm,
+        s.offset_y_mm,
+        truth.offset.1,
+        OFFSET_TOL_MM,
+    );
+}
+
 #[test]
 fn the_true_tool_is_recovered_from_one_run() {
     let motion = motion();
@@ -184,35 +222,9 @@ fn the_true_tool_is_recovered_from_one_run() {
     };
     let c = calibrate(&change, &motion, &spot(), &settings).expect("calibration");
     assert!(c.status.is_converged(), "{:?}", c.status);
-    let (f, s) = (c.figures, c.sigma);
-    check(
-        "rate_factor",
-        f.rate_factor,
-        s.rate_factor,
-        truth.rate,
-        RATE_TOL * truth.rate,
-    );
-    check(
-        "width_factor",
-        f.width_factor,
-        s.width_factor,
-        truth.width,
-        WIDTH_TOL,
-    );
-    check(
-        "offset_x_mm",
-        f.offset_x_mm,
-        s.offset_x_mm,
-        truth.offset.0,
-        OFFSET_TOL_MM,
-    );
-    check(
-        "offset_y_mm",
-        f.offset_y_mm,
-        s.offset_y_mm,
-        truth.offset.1,
-        OFFSET_TOL_MM,
-    );
+    let f = c.figures;
+    check_rate_and_width(&c, &truth);
+    check_offset(&c, &truth);
     // The residual is the noise of the two maps: sqrt(2) x 0.3 nm, and the noise estimate one map's.
     assert!(c.fit_rms_nm < 0.6, "fit RMS {} nm", c.fit_rms_nm);
     assert!(
@@ -244,21 +256,7 @@ fn a_shift_between_the_measurements_is_not_a_tool_offset() {
     let change = MeasuredChange::new(&before, &after).expect("change");
     let c =
         calibrate(&change, &motion, &spot(), &CalibrationSettings::default()).expect("calibration");
-    let (f, s) = (c.figures, c.sigma);
-    check(
-        "rate_factor",
-        f.rate_factor,
-        s.rate_factor,
-        truth.rate,
-        RATE_TOL * truth.rate,
-    );
-    check(
-        "width_factor",
-        f.width_factor,
-        s.width_factor,
-        truth.width,
-        WIDTH_TOL,
-    );
+    check_rate_and_width(&c, &truth);
     // The after map's points are part points x + frame: the before map is read at x + frame.
     assert!(
         (c.nuisance.map_shift_x_mm - frame.0).abs() < 0.02,
@@ -270,20 +268,7 @@ fn a_shift_between_the_measurements_is_not_a_tool_offset() {
         "{:?}",
         c.nuisance
     );
-    check(
-        "offset_x_mm",
-        f.offset_x_mm,
-        s.offset_x_mm,
-        truth.offset.0,
-        OFFSET_TOL_MM,
-    );
-    check(
-        "offset_y_mm",
-        f.offset_y_mm,
-        s.offset_y_mm,
-        truth.offset.1,
-        OFFSET_TOL_MM,
-    );
+    check_offset(&c, &truth);
 }
 
 #[test]
@@ -300,20 +285,7 @@ fn the_drift_over_the_run_is_learned_or_said_to_be_undetermined() {
     let c =
         calibrate(&change, &motion, &spot(), &CalibrationSettings::default()).expect("calibration");
     let (f, s) = (c.figures, c.sigma);
-    check(
-        "rate_factor",
-        f.rate_factor,
-        s.rate_factor,
-        truth.rate,
-        RATE_TOL * truth.rate,
-    );
-    check(
-        "width_factor",
-        f.width_factor,
-        s.width_factor,
-        truth.width,
-        WIDTH_TOL,
-    );
+    check_rate_and_width(&c, &truth);
     if let Some(h) = c.held.iter().find(|h| h.name == "drift_per_hour") {
         assert!(h.reason.contains("confounded"), "{}", h.reason);
     }
