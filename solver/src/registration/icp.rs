@@ -120,10 +120,12 @@ pub fn register(
         m = trial_m;
         corr = trial_corr;
         feet = trial_feet;
-        let cost_change = (cost - new_cost).abs();
+        // A step that lowers the cost by no more than the tolerance (or raises it within rounding)
+        // ends the iteration: the iterate is a minimum to the precision of the foot points.
+        let cost_decrease = cost - new_cost;
         cost = new_cost;
         if step.size_mm(alpha) <= settings.step_tol_mm
-            || cost_change <= settings.cost_rel_tol * cost.max(f64::MIN_POSITIVE)
+            || cost_decrease <= settings.cost_rel_tol * cost.max(f64::MIN_POSITIVE)
         {
             converged = true;
             break;

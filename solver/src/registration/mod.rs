@@ -128,7 +128,8 @@ pub struct RegisterSettings {
     /// Stop when a step moves the points by less than this (rotation scaled by the RMS radius of
     /// the points about their centroid), mm.
     pub step_tol_mm: f64,
-    /// Stop when the cost changes by less than this fraction.
+    /// Stop when a step lowers the cost by less than this fraction (a step that raises it within
+    /// rounding also stops).
     pub cost_rel_tol: f64,
     /// Robust weights.
     pub robust: Robust,
