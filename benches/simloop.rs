@@ -60,6 +60,7 @@ fn main() {
             disturbances: Disturbances {
                 tif_rate_error: 0.03,
                 positioning_noise_mm: 0.02,
+                ..Disturbances::default()
             },
             solver: Settings {
                 solver: choice,

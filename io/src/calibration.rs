@@ -16,7 +16,7 @@ use preston_solver::calibrate::{
 };
 use preston_solver::machine::gcode::dialect::Dialect;
 use preston_solver::machine::gcode::motion::{execute, sample_contact, Kinematics};
-use preston_solver::tif::{GridTif, InfluenceFunction, Tif};
+use preston_solver::tif::{GridTif, Tif};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -24,8 +24,6 @@ use std::path::{Path, PathBuf};
 pub const CALIBRATED_TIF: &str = "tif.csv";
 /// Name of the calibration record.
 pub const CALIBRATION_JSON: &str = "calibration.json";
-/// Grid nodes per Gaussian sigma when a Gaussian spot test is sampled for the calibration.
-const GAUSSIAN_NODES_PER_SIGMA: f64 = 12.0;
 /// Removal samples per footprint radius along the executed motion.
 const SAMPLES_PER_RADIUS: f64 = 32.0;
 
@@ -61,22 +59,9 @@ pub struct Calibrated {
     pub record: CalibrationRecord,
 }
 
-/// A TIF as a grid: a grid as it is, a Gaussian sampled at [`GAUSSIAN_NODES_PER_SIGMA`].
+/// A TIF as a grid ([`preston_solver::calibrate::tool::tif_grid`]).
 pub fn tif_grid(tif: &Tif) -> Result<GridTif> {
-    match tif {
-        Tif::Grid(g) => Ok(g.clone()),
-        Tif::Gaussian(g) => {
-            let pitch = g.sigma_mm / GAUSSIAN_NODES_PER_SIGMA;
-            let reach = g.support_radius_mm();
-            let half = (reach / pitch).ceil() as usize;
-            let n = 2 * half + 1;
-            let x0 = -(half as f64) * pitch;
-            let rates = (0..n * n)
-                .map(|k| g.rate_nm_per_s(x0 + (k % n) as f64 * pitch, x0 + (k / n) as f64 * pitch))
-                .collect();
-            GridTif::new(x0, x0, pitch, pitch, n, n, rates).map_err(Error::Solver)
-        }
-    }
+    preston_solver::calibrate::tool::tif_grid(tif).map_err(Error::Solver)
 }
 
 /// The contact motion of `program` executed under `kinematics`, sampled every `step_mm`.

@@ -358,7 +358,7 @@ const CALIBRATED_RATE_TOL_NM_PER_S: f64 = 1e-8;
 /// since the calibration wrote it): the calibration's figures describe that TIF. The grids are
 /// compared node by node to the file's printed precision, so the file itself, the same file read
 /// again or the grid `preston.calibrate` returns all count as the calibrated TIF.
-fn calibrated_tif_warning(c: &CalibrationRecord, tif: &Tif) -> Option<String> {
+pub fn calibrated_tif_warning(c: &CalibrationRecord, tif: &Tif) -> Option<String> {
     let file = c.tif_file.display();
     let bytes = match crate::limits::read_regular(&c.tif_file, 1 << 30, "calibrated TIF") {
         Ok(b) => b,
@@ -404,9 +404,7 @@ fn calibrated_tif_warning(c: &CalibrationRecord, tif: &Tif) -> Option<String> {
     }
 }
 
-/// Relative run-to-run wander of the rate a calibrated plan allows for: the rate learned from one
-/// run is the next run's to within this.
-pub const RUN_TO_RUN_RATE_SIGMA: f64 = 0.01;
+pub use preston_solver::iterate::learned::RUN_TO_RUN_RATE_SIGMA;
 
 /// How well the tool of the next run is known: a calibration's figures and their uncertainty
 /// (its rate with [`RUN_TO_RUN_RATE_SIGMA`] beside), else the job's `[tif]` spot-test

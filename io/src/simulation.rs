@@ -600,19 +600,22 @@ pub const CONVERGENCE_HEADER: &str = "iteration,pv_nm,rms_nm,max_abs_nm,mean_abs
 
 /// Stages `convergence.csv`: one row per measurement, then as extra columns the prediction of
 /// the next measurement, the TIF rate error applied, the rate factor the run was planned with and
-/// its relative uncertainty, and the RMS of the measured error outside the correctable band.
+/// its relative uncertainty, the RMS of the measured error outside the correctable band, and
+/// (when the loop calibrates each run) the width factor, offset and drift the run was planned
+/// with.
 pub fn stage_convergence_csv(path: &Path, records: &[IterationRecord]) -> Result<Staged> {
     stage(path, |w: &mut dyn Write| {
         writeln!(
             w,
             "{CONVERGENCE_HEADER},predicted_rms_nm,tif_rate_error,rate_factor_estimate,\
-             rate_factor_sigma,uncorrectable_rms_nm"
+             rate_factor_sigma,uncorrectable_rms_nm,width_factor_estimate,offset_x_mm_estimate,\
+             offset_y_mm_estimate,drift_per_hour_estimate"
         )?;
         for r in records {
             let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
             writeln!(
                 w,
-                "{},{},{},{},{},{},{},{},{},{},{}",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
                 r.iteration,
                 r.pv_nm,
                 r.rms_nm,
@@ -623,7 +626,11 @@ pub fn stage_convergence_csv(path: &Path, records: &[IterationRecord]) -> Result
                 opt(r.tif_rate_error),
                 opt(r.rate_factor_estimate),
                 opt(r.rate_factor_sigma),
-                opt(r.uncorrectable_rms_nm)
+                opt(r.uncorrectable_rms_nm),
+                opt(r.width_factor_estimate),
+                opt(r.offset_x_mm_estimate),
+                opt(r.offset_y_mm_estimate),
+                opt(r.drift_per_hour_estimate)
             )?;
         }
         Ok(())

@@ -2,12 +2,18 @@
 //! run on a real part's measured map (`--map`).
 
 use super::map_input::{print_input_notes, MapInputArgs};
+use super::shop_tool_args::ShopToolArgs;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::{bail, Context};
+use preston_io::calibration::read_calibration;
+use preston_io::pipeline::calibrated_tif_warning;
+use preston_io::readers::read_tif;
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FeedLimits, Settings};
+use preston_solver::influence::surface::TifFrame;
+use preston_solver::iterate::learned::RUN_TO_RUN_RATE_SIGMA;
 use preston_solver::iterate::{band::BAND_MIN_GAIN, CorrectableBand, MIN_GAIN_NM};
 use preston_solver::iterate::{
     plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
@@ -18,6 +24,7 @@ use preston_solver::registration::{
     RegisterSettings, INSTALLATION_RANGE_DEG, INSTALLATION_RANGE_MM,
 };
 use preston_solver::surface::{Plane, Surface};
+use preston_solver::tif::Tif;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -112,6 +119,26 @@ pub struct Args {
     /// Standard deviation of the dwell-position error per axis, mm.
     #[arg(long, default_value_t = 0.0)]
     pub positioning_noise_mm: f64,
+    #[command(flatten)]
+    pub tool: ShopToolArgs,
+    /// Virtual part: relative standard deviation of each run's step of the tool rate's random
+    /// walk (the rate wanders from run to run).
+    #[arg(long, default_value_t = 0.0)]
+    pub rate_walk_per_run: f64,
+    /// Virtual part: learn the whole tool from each run (its measured removal calibrated for
+    /// rate, width, offset, shape and drift, as `preston calibrate` does) instead of its rate
+    /// alone; flat parts only.
+    #[arg(long)]
+    pub calibrate: bool,
+    /// Real part: plan with this calibration (`preston calibrate`'s calibration.json): its
+    /// calibrated TIF (unless --tif names one), its rate's uncertainty and its drift.
+    #[arg(
+        long,
+        value_name = "calibration.json",
+        requires = "map",
+        conflicts_with = "rate_factor"
+    )]
+    pub calibration: Option<PathBuf>,
     /// Seed of the noise generators.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
@@ -162,7 +189,33 @@ fn triple(v: &[f64], what: &str) -> anyhow::Result<[f64; 3]> {
 
 /// Runs `preston iterate`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let tif = args.tif.load()?;
+    let calibration = args
+        .calibration
+        .as_deref()
+        .map(read_calibration)
+        .transpose()?;
+    let tif = match &calibration {
+        Some(c) if !args.tif.given() => Tif::Grid(read_tif(&c.tif_file)?),
+        _ => args.tif.load()?,
+    };
+    if let Some(w) = calibration
+        .as_ref()
+        .and_then(|c| calibrated_tif_warning(c, &tif))
+    {
+        crate::errln!("  warning: {w}");
+    }
+    if let Some(c) = &calibration {
+        crate::note!(
+            "  calibrated tool: rate {:.4} +- {:.4}, width {:.4}, offset ({:+.4}, {:+.4}) mm, drift {:+.4} per hour (the TIF {})",
+            c.rate_factor,
+            c.rate_factor_sigma,
+            c.width_factor,
+            c.offset_x_mm,
+            c.offset_y_mm,
+            c.drift_per_hour,
+            c.tif_file.display()
+        );
+    }
     let surface = match &args.surface {
         Some(p) => read_surface(p)?,
         None => Surface::Plane(Plane {}),
@@ -191,7 +244,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         disturbances: Disturbances {
             tif_rate_error: args.tif_rate_error,
             positioning_noise_mm: args.positioning_noise_mm,
+            tool: args.tool.tool()?,
+            rate_walk_per_run: args.rate_walk_per_run,
         },
+        calibrate: args.calibrate,
+        // A spot test and a calibration state the footprint in the machine's axes.
+        tif_frame: if args.calibrate || calibration.is_some() {
+            TifFrame::MachineX
+        } else {
+            TifFrame::PathTangent
+        },
+        drift_per_hour: calibration.as_ref().map_or(0.0, |c| c.drift_per_hour),
         seed: args.seed,
         band: if args.no_band {
             CorrectableBand::All
@@ -200,9 +263,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 min_gain: args.band_gain,
             }
         },
-        rate_factor: args.rate_factor,
+        rate_factor: if calibration.is_some() {
+            1.0
+        } else {
+            args.rate_factor
+        },
         min_gain_nm: args.min_gain_nm,
-        rate_uncertainty: LoopSettings::default().rate_uncertainty,
+        rate_uncertainty: calibration
+            .as_ref()
+            .map_or(LoopSettings::default().rate_uncertainty, |c| {
+                (c.rate_factor_sigma / c.rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA)
+            }),
         register: RegisterSettings {
             installation_range_mm: args.installation_range_mm,
             installation_range_deg: args.installation_range_deg,
@@ -214,6 +285,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             solver: args.solver,
             ..Settings::default()
         },
+        ..LoopSettings::default()
     };
     settings.validate()?;
     let bars = Bars::new();

@@ -11,6 +11,7 @@ pub mod nc;
 pub mod path;
 pub mod register;
 pub mod shop;
+pub mod shop_tool_args;
 pub mod simulate;
 pub mod solve;
 pub mod surface;

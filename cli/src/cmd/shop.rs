@@ -2,11 +2,12 @@
 //! program with the tool it really has (rate, width, offset, shape and drift off the spot test)
 //! and reads the part with an interferometer that adds noise and drops piston and tilt.
 
+use super::shop_tool_args::ShopToolArgs;
 use super::tif_source::TifArgs;
 use crate::output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::shop::{visit, write_visit, ShopInputs};
-use preston_solver::iterate::shop::{Interferometer, ShopTool};
+use preston_solver::iterate::shop::Interferometer;
 use preston_solver::machine::gcode::motion::Kinematics;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -32,27 +33,8 @@ pub struct Args {
     /// Turn angle above which the tool stops, degrees.
     #[arg(long, value_name = "DEG", default_value_t = 60.0)]
     pub corner_angle_deg: f64,
-    /// The true tool's rate against the spot test's.
-    #[arg(long, default_value_t = 1.0)]
-    pub tool_rate_factor: f64,
-    /// The true tool's width against the spot test's (volume kept).
-    #[arg(long, default_value_t = 1.0)]
-    pub tool_width_factor: f64,
-    /// Where the tool lands off the programmed point, mm: X,Y.
-    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0], allow_hyphen_values = true)]
-    pub tool_offset_mm: Vec<f64>,
-    /// The true tool's ellipticity (log stretch along x).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub tool_ellipticity: f64,
-    /// A linear skew across the footprint: relative rate change per second-moment radius.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub tool_skew: f64,
-    /// Direction of the skew, degrees from x.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub tool_skew_angle_deg: f64,
-    /// The rate's relative change from the run's first contact to its last.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub tool_drift_per_run: f64,
+    #[command(flatten)]
+    pub tool: ShopToolArgs,
     /// The interferometer's noise per pixel, nm RMS.
     #[arg(long, default_value_t = 0.3)]
     pub noise_rms_nm: f64,
@@ -69,9 +51,6 @@ pub struct Args {
 /// Runs `preston shop`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     args.output.apply();
-    let [ox, oy] = args.tool_offset_mm[..] else {
-        anyhow::bail!("--tool-offset-mm: give X,Y");
-    };
     let inputs = ShopInputs {
         surface: preston_io::metrology::MapSource {
             file: Some(args.surface.clone()),
@@ -81,16 +60,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         dialect: args.dialect,
         tif: args.tif.load()?,
         kinematics: Kinematics::of_limit(args.a_max_mm_per_s2, args.corner_angle_deg)?,
-        tool: ShopTool {
-            rate_factor: args.tool_rate_factor,
-            width_factor: args.tool_width_factor,
-            offset_x_mm: ox,
-            offset_y_mm: oy,
-            ellipticity: args.tool_ellipticity,
-            skew: args.tool_skew,
-            skew_angle_deg: args.tool_skew_angle_deg,
-            drift_per_run: args.tool_drift_per_run,
-        },
+        tool: args.tool.tool()?,
         interferometer: Interferometer {
             noise_rms_nm: args.noise_rms_nm,
         },

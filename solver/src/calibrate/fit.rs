@@ -30,6 +30,9 @@ const NONLINEAR: [&str; 9] = [
 const WIDTH: usize = 0;
 const SHIFT_X: usize = 7;
 const SHIFT_Y: usize = 8;
+/// A Levenberg-Marquardt step that moves every free figure by less than this fraction of its
+/// finite-difference step ends the fit.
+const STEP_REL_TOL: f64 = 1e-3;
 /// Relative decrease of the cost below which a step counts as converged.
 const COST_REL_TOL: f64 = 1e-7;
 /// Largest lag-one correlation of the residual taken into the variance inflation.
@@ -301,11 +304,16 @@ fn levenberg_marquardt(
             // No step lowers the cost: a stationary point.
             return Ok((Status::Converged, iterations, current));
         };
+        // A step below what the finite-difference Jacobian resolves in every figure ends the
+        // fit as well: the cost then falls by rounding-level amounts for many steps.
+        let resolved = free
+            .iter()
+            .all(|&j| (p[j] - nl[j]).abs() <= STEP_REL_TOL * model.step[j]);
         *nl = p;
         current = e;
         let decrease = c0 - c1;
         c0 = c1;
-        if decrease <= COST_REL_TOL * c1.max(f64::MIN_POSITIVE) {
+        if resolved || decrease <= COST_REL_TOL * c1.max(f64::MIN_POSITIVE) {
             return Ok((Status::Converged, iterations, current));
         }
     }

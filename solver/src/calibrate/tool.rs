@@ -29,7 +29,7 @@
 //! `1 + δ (t - t_mid) / 3600` ([`super::forward`]).
 
 use crate::error::{Error, Result};
-use crate::tif::{GridTif, InfluenceFunction};
+use crate::tif::{GridTif, InfluenceFunction, Tif};
 use serde::{Deserialize, Serialize};
 
 /// The figures of a calibrated tool (module documentation), with their units in their names.
@@ -155,7 +155,33 @@ pub struct SpotFootprint {
     second_mm2: [f64; 3],
 }
 
+/// Nodes per standard deviation at which a Gaussian spot test is sampled onto a grid.
+pub const GAUSSIAN_NODES_PER_SIGMA: f64 = 12.0;
+
+/// A TIF as a grid: a measured grid as it is, a Gaussian sampled at
+/// [`GAUSSIAN_NODES_PER_SIGMA`] nodes per sigma over its support.
+pub fn tif_grid(tif: &Tif) -> Result<GridTif> {
+    match tif {
+        Tif::Grid(g) => Ok(g.clone()),
+        Tif::Gaussian(g) => {
+            let pitch = g.sigma_mm / GAUSSIAN_NODES_PER_SIGMA;
+            let half = (g.support_radius_mm() / pitch).ceil() as usize;
+            let n = 2 * half + 1;
+            let x0 = -(half as f64) * pitch;
+            let rates = (0..n * n)
+                .map(|k| g.rate_nm_per_s(x0 + (k % n) as f64 * pitch, x0 + (k / n) as f64 * pitch))
+                .collect();
+            GridTif::new(x0, x0, pitch, pitch, n, n, rates)
+        }
+    }
+}
+
 impl SpotFootprint {
+    /// The footprint of a spot test given as any TIF ([`tif_grid`]).
+    pub fn of_tif(tif: &Tif) -> Result<Self> {
+        Self::new(tif_grid(tif)?)
+    }
+
     /// The footprint of a spot test sampled on a grid.
     ///
     /// Errors: a grid whose rates sum to zero.

@@ -32,12 +32,18 @@
 //! piston and tilt of the true error are indistinguishable from the installation error.
 
 pub mod band;
+pub mod learned;
 pub mod rate;
 pub mod shop;
 
 pub use band::{BandSplit, CorrectableBand};
+pub use learned::LearnedTool;
 pub use rate::{RateEstimate, RateObservation};
+pub use shop::ShopTool;
 
+use crate::calibrate::{
+    calibrate, Calibration, CalibrationSettings, MeasuredChange, SpotFootprint,
+};
 use crate::dwell::{FeedLimits, OperatorChoice, Settings, Status};
 use crate::edge::{EdgeMethod, EdgeSettings};
 use crate::error::{Error, Result};
@@ -166,10 +172,17 @@ pub struct VirtualPart {
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Disturbances {
-    /// Largest relative error of the TIF's removal rate (0.03 = 3%), drawn per iteration.
+    /// Largest relative error of the TIF's removal rate (0.03 = 3%), drawn afresh per run.
     pub tif_rate_error: f64,
     /// Standard deviation of the dwell-position error per axis, mm.
     pub positioning_noise_mm: f64,
+    /// The tool the shop really has against the nominal TIF: rate, width, offset, ellipticity,
+    /// a linear skew and a drift of the rate within each run ([`ShopTool`]).
+    pub tool: ShopTool,
+    /// Relative standard deviation of each run's step of the rate's random walk: the rate of run
+    /// `k` is that of run `k - 1` times `1 + s N(0, 1)` (a rate that wanders rather than being
+    /// drawn afresh).
+    pub rate_walk_per_run: f64,
 }
 
 /// Relative optimality tolerance of each run's dwell solve in the loop (the QP's duality gap, the
@@ -220,6 +233,19 @@ pub struct LoopSettings {
     pub rate_uncertainty: f64,
     /// Stop when the next run is predicted to lower the measured RMS by less than this, nm.
     pub min_gain_nm: f64,
+    /// Learn the whole tool from each run ([`learned`]: its measured removal calibrated for rate,
+    /// width, offset, shape and drift, and the next run planned with the calibrated footprint)
+    /// instead of its rate alone ([`rate`]). Flat parts only (the calibration works in x, y).
+    pub calibrate: bool,
+    /// How each run is calibrated when [`LoopSettings::calibrate`] is set.
+    pub calibration: CalibrationSettings,
+    /// The rate's drift the first run's dwell compensates, relative per hour of program time (a
+    /// calibration's, [`learned::drift_compensated`]).
+    pub drift_per_hour: f64,
+    /// How the plans orient the TIF on the part: turning with the path (the default), or in the
+    /// machine's axes, as a spot test and a calibration state it and as a tool that does not turn
+    /// with the path removes (required with [`LoopSettings::calibrate`]).
+    pub tif_frame: TifFrame,
 }
 
 /// Default [`LoopSettings::min_gain_nm`]: a run that cannot take 0.05 nm off the measured RMS is
@@ -259,6 +285,10 @@ impl Default for LoopSettings {
             rate_factor: 1.0,
             rate_uncertainty: 0.03,
             min_gain_nm: MIN_GAIN_NM,
+            calibrate: false,
+            calibration: CalibrationSettings::default(),
+            drift_per_hour: 0.0,
+            tif_frame: TifFrame::PathTangent,
         }
     }
 }
@@ -335,6 +365,7 @@ impl LoopSettings {
             ("min_gain_nm", self.min_gain_nm),
             ("lambda", self.lambda),
             ("tif_rate_error", self.disturbances.tif_rate_error),
+            ("rate_walk_per_run", self.disturbances.rate_walk_per_run),
             (
                 "positioning_noise_mm",
                 self.disturbances.positioning_noise_mm,
@@ -356,7 +387,22 @@ impl LoopSettings {
                 format!("must be positive, got {}", self.rate_factor),
             ));
         }
+        if !self.drift_per_hour.is_finite() {
+            return Err(Error::invalid(
+                "drift_per_hour",
+                format!("must be finite, got {}", self.drift_per_hour),
+            ));
+        }
+        if self.calibrate && self.tif_frame != TifFrame::MachineX {
+            return Err(Error::invalid(
+                "tif_frame",
+                "a calibrating loop plans in the machine's axes (machine_x), where the \
+                 calibration states the footprint",
+            ));
+        }
         self.band.validate()?;
+        self.disturbances.tool.validate()?;
+        self.calibration.validate()?;
         self.solver.validate()?;
         self.register.validate()
     }
@@ -390,6 +436,15 @@ pub struct IterationRecord {
     pub rate_factor_estimate: Option<f64>,
     /// The relative uncertainty of that factor (the runs' spread, or the prior).
     pub rate_factor_sigma: Option<f64>,
+    /// The width factor this run was planned with (a calibration's; `None` when only the rate is
+    /// learned).
+    pub width_factor_estimate: Option<f64>,
+    /// The tool's offset this run was planned with, along x, mm (a calibration's).
+    pub offset_x_mm_estimate: Option<f64>,
+    /// Along y, mm.
+    pub offset_y_mm_estimate: Option<f64>,
+    /// The rate's drift this run's dwell compensates, relative per hour (a calibration's).
+    pub drift_per_hour_estimate: Option<f64>,
 }
 
 /// What the last polishing run used and produced, for output files and plots.
@@ -503,7 +558,7 @@ pub fn plan_run(
             ..EdgeSettings::default()
         },
         tif_model: TifModel::ShiftInvariant,
-        tif_frame: TifFrame::PathTangent,
+        tif_frame: settings.tif_frame,
         warm_start: false,
     };
     let data = SetupData {
@@ -561,7 +616,7 @@ pub fn plan_measured(
     let margin = settings
         .path_margin_mm
         .unwrap_or_else(|| tif.nominal_radius_mm());
-    let plan = plan_run(
+    let mut plan = plan_run(
         surface,
         measured,
         tif,
@@ -571,6 +626,7 @@ pub fn plan_measured(
         settings.rate_factor,
         observer,
     )?;
+    plan.dwell_s = learned::drift_compensated(&plan.dwell_s, settings.drift_per_hour)?;
     let mut first = record(k, measured);
     first.time_s = plan.dwell_s.iter().sum();
     first.predicted_rms_nm = Some(plan.predicted_measured_rms_nm(settings.rate_uncertainty));
@@ -613,6 +669,8 @@ pub enum InnerStep {
     Registration,
     /// A run's dwell solve.
     DwellSolve,
+    /// The calibration of a run's measured removal.
+    Calibration,
 }
 
 impl InnerStep {
@@ -621,6 +679,7 @@ impl InnerStep {
         match self {
             InnerStep::Registration => "registration",
             InnerStep::DwellSolve => "dwell solve",
+            InnerStep::Calibration => "calibration",
         }
     }
 }
@@ -779,6 +838,10 @@ fn record(iteration: usize, map: &HeightMap) -> IterationRecord {
         uncorrectable_rms_nm: None,
         rate_factor_estimate: None,
         rate_factor_sigma: None,
+        width_factor_estimate: None,
+        offset_x_mm_estimate: None,
+        offset_y_mm_estimate: None,
+        drift_per_hour_estimate: None,
     }
 }
 
@@ -811,6 +874,9 @@ pub fn run_virtual(
     not_converged.extend(registration_failure(0, measured.failed));
     let mut met = false;
     let mut stop = StopReason::Iterations;
+    // The tool learned from the last calibrated run, and the rate's random walk so far.
+    let mut learned: Option<LearnedTool> = None;
+    let mut walk = 1.0;
     for k in 0..settings.max_iterations {
         let mut row = record(k, &measured.map);
         if meets(settings, &row) {
@@ -819,23 +885,49 @@ pub fn run_virtual(
             stop = StopReason::Spec;
             break;
         }
-        let rate = rate::estimate(
-            &observations,
-            settings.rate_factor,
-            settings.rate_uncertainty,
-        );
-        let plan = plan_run(
+        let (plan_tif, rate) = match &learned {
+            Some(l) => (
+                &l.tif,
+                rate::RateEstimate {
+                    factor: 1.0,
+                    sigma: l.rate_sigma(),
+                },
+            ),
+            None => (
+                tif,
+                rate::estimate(
+                    &observations,
+                    settings.rate_factor,
+                    settings.rate_uncertainty,
+                ),
+            ),
+        };
+        let mut plan = plan_run(
             &part.surface,
             &measured.map,
-            tif,
+            plan_tif,
             &region,
             settings,
             k,
             rate.factor,
             observer,
         )?;
+        let drift_per_hour = learned
+            .as_ref()
+            .map_or(settings.drift_per_hour, LearnedTool::drift_per_hour);
+        plan.dwell_s = learned::drift_compensated(&plan.dwell_s, drift_per_hour)?;
+        match &learned {
+            Some(l) => {
+                let f = &l.calibration.figures;
+                row.rate_factor_estimate = Some(f.rate_factor);
+                row.width_factor_estimate = Some(f.width_factor);
+                row.offset_x_mm_estimate = Some(f.offset_x_mm);
+                row.offset_y_mm_estimate = Some(f.offset_y_mm);
+                row.drift_per_hour_estimate = Some(f.drift_per_hour);
+            }
+            None => row.rate_factor_estimate = Some(rate.factor),
+        }
         row.uncorrectable_rms_nm = Some(plan.uncorrectable_rms_nm());
-        row.rate_factor_estimate = Some(rate.factor);
         row.rate_factor_sigma = Some(rate.sigma);
         let predicted = plan.predicted_measured_rms_nm(rate.sigma);
         let gain = row.rms_nm - predicted;
@@ -854,7 +946,7 @@ pub fn run_virtual(
             };
             break;
         }
-        let e = shop.polish(&plan, &measured.transform, &mut truth, &mut rng)?;
+        let e = shop.polish(&plan, &measured.transform, &mut truth, &mut rng, &mut walk)?;
         row.time_s = plan.dwell_s.iter().sum();
         row.predicted_rms_nm = Some(predicted);
         row.tif_rate_error = Some(e);
@@ -862,7 +954,25 @@ pub fn run_virtual(
         observer.advance(Stage::Loop, 1);
         let next = shop.measure(&truth, &mut rng)?;
         not_converged.extend(registration_failure(k + 1, next.failed));
-        observations.extend(observe_rate(&measured, &next, &plan));
+        if settings.calibrate {
+            let calibration = shop.calibrate(&measured, &next, &plan)?;
+            if calibration.status.is_converged() {
+                learned = Some(LearnedTool::of(calibration));
+            } else {
+                // The last converged calibration (or the nominal tool) plans the next run.
+                not_converged.push(InnerFailure {
+                    iteration: k,
+                    step: InnerStep::Calibration,
+                    status: calibration.status,
+                    detail: format!(
+                        "stopped after {} steps before converging",
+                        calibration.iterations
+                    ),
+                });
+            }
+        } else {
+            observations.extend(observe_rate(&measured, &next, &plan));
+        }
         measured = next;
         last_run = Some(plan);
         if k + 1 == settings.max_iterations {
@@ -899,6 +1009,9 @@ struct Shop<'a> {
     gy: Vec<f64>,
     design: Vec<[f64; 3]>,
     normals: Vec<[f64; 3]>,
+    /// The nominal TIF as a spot test: the footprint the true tool and the calibrations are
+    /// stated against (when the loop has a tool other than the nominal or calibrates).
+    spot: Option<SpotFootprint>,
 }
 
 impl<'a> Shop<'a> {
@@ -932,6 +1045,18 @@ impl<'a> Shop<'a> {
             design.push([x, y, d.z]);
             normals.push(d.normal());
         }
+        if settings.calibrate && normals.iter().any(|n| 1.0 - n[2] > CURVED_TOL) {
+            return Err(Error::invalid(
+                "calibrate",
+                "the loop calibrates runs on flat parts only (the calibration fits the removal in \
+                 x, y); use a plane, or learn the rate alone",
+            ));
+        }
+        let spot = if settings.calibrate || settings.disturbances.tool != ShopTool::default() {
+            Some(SpotFootprint::of_tif(tif)?)
+        } else {
+            None
+        };
         Ok(Self {
             part,
             tif,
@@ -943,6 +1068,7 @@ impl<'a> Shop<'a> {
             gy,
             design,
             normals,
+            spot,
         })
     }
 
@@ -962,18 +1088,24 @@ impl<'a> Shop<'a> {
     /// Polishes the run `plan` with disturbances, taking its removal off `truth`; returns the
     /// TIF rate error drawn for the run. The machine places the path through the registered
     /// transform: a design-frame point p is driven to M_est^-1 p, which lies on the true part
-    /// at installation * M_est^-1 p.
+    /// at installation * M_est^-1 p. The tool is the nominal TIF at the run's rate (the random
+    /// walk `walk`, stepped here, times `1 + e`), or the shop's true tool at that rate with its
+    /// drift within the run weighting each dwell point by `1 + δ (τ_j - τ_mid) / T`.
     fn polish(
         &self,
         plan: &RunArtifacts,
         registered: &Isometry3<f64>,
         truth: &mut [f64],
         rng: &mut SplitMix64,
+        walk: &mut f64,
     ) -> Result<f64> {
         let part = self.part;
         let disturbances = &self.settings.disturbances;
         let to_true = self.installation * registered.inverse();
         let e = disturbances.tif_rate_error * (2.0 * rng.uniform() - 1.0);
+        if disturbances.rate_walk_per_run > 0.0 {
+            *walk *= (disturbances.rate_walk_per_run * rng.normal()).exp();
+        }
         let sigma = disturbances.positioning_noise_mm;
         let mut px = Vec::with_capacity(plan.path.len());
         let mut py = Vec::with_capacity(plan.path.len());
@@ -983,25 +1115,92 @@ impl<'a> Shop<'a> {
             px.push(q.x + sigma * rng.normal());
             py.push(q.y + sigma * rng.normal());
         }
-        let actual_tif = ScaledTif::new(self.tif, 1.0 + e);
+        let rate = (1.0 + e) * *walk;
         // The machine sweeps the tool along each stretch of the path it actually follows.
         let actual_path = DwellPath::new(px, py)?;
         let stretches = Stretches::of_path(&actual_path, self.tif.support_radius_mm() / 64.0)?;
-        let actual = assemble_on_surface_swept(
-            &part.surface,
-            &self.gx,
-            &self.gy,
-            &actual_path,
-            &stretches,
-            &actual_tif,
-            TifFrame::PathTangent,
-            self.observer,
-        )?;
-        let removal = actual.removal_nm(&plan.dwell_s)?;
+        let removal = match &self.spot {
+            Some(spot) if disturbances.tool != ShopTool::default() => {
+                let mut tool = disturbances.tool;
+                tool.rate_factor *= rate;
+                let total: f64 = plan.dwell_s.iter().sum();
+                let mut start = 0.0;
+                let dose: Vec<f64> = plan
+                    .dwell_s
+                    .iter()
+                    .map(|&t| {
+                        let at = start + t / 2.0;
+                        start += t;
+                        let drift =
+                            tool.drift_per_run * (at - total / 2.0) / total.max(f64::MIN_POSITIVE);
+                        t * (1.0 + drift)
+                    })
+                    .collect();
+                self.removal(
+                    &actual_path,
+                    &stretches,
+                    &tool.footprint(spot),
+                    &dose,
+                    TifFrame::MachineX,
+                )?
+            }
+            _ => self.removal(
+                &actual_path,
+                &stretches,
+                &ScaledTif::new(self.tif, rate),
+                &plan.dwell_s,
+                self.settings.tif_frame,
+            )?,
+        };
         for (t, h) in truth.iter_mut().zip(&removal) {
             *t -= h;
         }
         Ok(e)
+    }
+
+    /// The removal at the measurement grid of `dwell_s` along `path` by `tool`, swept along each
+    /// stretch in the tangent planes of the part, the footprint oriented by `frame`, nm.
+    fn removal<T: InfluenceFunction + ?Sized>(
+        &self,
+        path: &DwellPath,
+        stretches: &Stretches,
+        tool: &T,
+        dwell_s: &[f64],
+        frame: TifFrame,
+    ) -> Result<Vec<f64>> {
+        let actual = assemble_on_surface_swept(
+            &self.part.surface,
+            &self.gx,
+            &self.gy,
+            path,
+            stretches,
+            tool,
+            frame,
+            self.observer,
+        )?;
+        actual.removal_nm(dwell_s)
+    }
+
+    /// Calibrates the run `plan` from the measurements before and after it, against the nominal
+    /// TIF: the registered errors on the measurement grid and the programmed path's contact
+    /// motion ([`learned::run_motion`]).
+    fn calibrate(
+        &self,
+        before: &Measurement,
+        after: &Measurement,
+        plan: &RunArtifacts,
+    ) -> Result<Calibration> {
+        let spot = self
+            .spot
+            .as_ref()
+            .ok_or_else(|| Error::invalid("calibrate", "the loop has no spot footprint"))?;
+        let on_grid = |m: &Measurement| {
+            HeightMap::new(self.gx.clone(), self.gy.clone(), m.map.z_nm().to_vec())
+        };
+        let change = MeasuredChange::new(&on_grid(before)?, &on_grid(after)?)?;
+        let stretches = Stretches::of_path(&plan.path, self.tif.support_radius_mm() / 64.0)?;
+        let motion = learned::run_motion(&plan.path, &stretches, &plan.dwell_s);
+        calibrate(&change, &motion, spot, &self.settings.calibration)
     }
 }
 
@@ -1191,6 +1390,7 @@ mod tests {
         let d = Disturbances {
             tif_rate_error: 0.05,
             positioning_noise_mm: 0.05,
+            ..Disturbances::default()
         };
         let out = run_virtual(&part(0.5), &tif, &settings(d), &Silent).unwrap();
         let rms: Vec<f64> = out.records.iter().map(|r| r.rms_nm).collect();

@@ -58,7 +58,7 @@ impl Default for ShopTool {
 }
 
 /// The true footprint at a fixed time (drift aside).
-struct TrueFootprint<'a> {
+pub(crate) struct TrueFootprint<'a> {
     transformed: TransformedTif<'a>,
     spot: &'a SpotFootprint,
     tool: ShopTool,
@@ -129,7 +129,7 @@ impl ShopTool {
         Ok(())
     }
 
-    fn footprint<'a>(&self, spot: &'a SpotFootprint) -> TrueFootprint<'a> {
+    pub(crate) fn footprint<'a>(&self, spot: &'a SpotFootprint) -> TrueFootprint<'a> {
         let figures = ToolFigures {
             rate_factor: self.rate_factor,
             width_factor: self.width_factor,

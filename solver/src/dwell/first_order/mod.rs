@@ -393,7 +393,8 @@ impl Data<'_> {
 
 impl<'a> Data<'a> {
     /// The scaled problem for `op` with its work vectors and the KKT normalisation
-    /// `||S (R^T P z)|| + rho ||S 1||` (floored; see [`KKT_FLOOR_NM`]). `z_nm` has `op`'s rows and
+    /// `||S (R^T P z)|| + rho ||S 1_A||`, `A` the points with `(R^T P z)_j > rho` (floored; see
+    /// [`KKT_FLOOR_NM`]). `z_nm` has `op`'s rows and
     /// `bounds` its columns (checked by the callers).
     pub(crate) fn prepare(
         op: &'a dyn LinearOperator,
@@ -455,15 +456,24 @@ impl<'a> Data<'a> {
             hi_w,
         };
 
-        // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1||, with
-        // R^T P z = R^T z - (1'z / m) R^T 1.
+        // Normalisation of the KKT residual: ||S (R^T P z)|| + rho ||S 1_A||, with
+        // R^T P z = R^T z - (1'z / m) R^T 1 and A the dwell points where the time weight does
+        // not by itself hold the dwell at zero ((R^T P z)_j > rho). A point whose tool barely
+        // reaches the map has an almost empty column and a Jacobi scale s_j orders of magnitude
+        // above the others: counted in the time term, a few such points made the norm so large
+        // that the starting point passed the test.
         let kkt_scale = {
             let mean = data.sum_z / m as f64;
+            let rtpz = |j: usize| data.rtz[j] - mean * data.column_sums[j];
             let a: f64 = (0..n)
-                .map(|j| ((data.rtz[j] - mean * data.column_sums[j]) * data.s[j]).powi(2))
+                .map(|j| (rtpz(j) * data.s[j]).powi(2))
                 .sum::<f64>()
                 .sqrt();
-            let b: f64 = data.s.iter().map(|s| s * s).sum::<f64>().sqrt();
+            let b: f64 = (0..n)
+                .filter(|&j| rtpz(j) > rho)
+                .map(|j| data.s[j] * data.s[j])
+                .sum::<f64>()
+                .sqrt();
             // Floor: the scale of an error of KKT_FLOOR_NM over the map, so that a flat map (a and
             // rho both zero) gives a residual relative to a height far below any measurement
             // instead of rounding noise divided by the smallest float.
