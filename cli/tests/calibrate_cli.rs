@@ -8,6 +8,7 @@
 
 mod common;
 use common::*;
+use preston_solver::iterate::learned::RUN_TO_RUN_RATE_SIGMA;
 use std::path::{Path, PathBuf};
 
 /// The spot test: a Gaussian of this sigma, peak and truncation radius.
@@ -365,6 +366,62 @@ fn calibrate_learns_the_shop_tool_and_solve_plans_with_it() {
         not_calibrated(&report(&other)),
         "{}",
         report(&other)["warnings"]
+    );
+
+    // iterate plans one run on the real part with the calibration: its TIF, and its rate's
+    // uncertainty (with the run-to-run wander) behind the prediction.
+    let it = run.root.join("iterate");
+    let o = preston_cmd()
+        .args(["iterate", "--map", s(&run.after)])
+        .args([
+            "--calibration",
+            s(&run.calibration.join("calibration.json")),
+        ])
+        .args(["--out", s(&it)])
+        .output()
+        .unwrap();
+    ok(&o);
+    let said = String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr);
+    assert!(said.contains("calibrated tool: rate"), "{said}");
+    assert!(!said.contains("not the calibrated one"), "{said}");
+    // The first row is the run planned (the second, the prediction, leaves its plan's columns
+    // empty).
+    let text = std::fs::read_to_string(it.join("convergence.csv")).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let first: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let field = |name: &str| -> f64 {
+        let k = header.iter().position(|h| *h == name).unwrap();
+        first[k].parse().unwrap()
+    };
+    let rate_sigma =
+        (num(&c, "rate_factor_sigma") / num(&c, "rate_factor")).hypot(RUN_TO_RUN_RATE_SIGMA);
+    assert!(
+        (field("rate_factor_sigma") - rate_sigma).abs() < 1e-12,
+        "rate sigma {} against the calibration's {rate_sigma}",
+        field("rate_factor_sigma")
+    );
+    // The prediction carries the map's noise (outside the band): not below it, and a gain.
+    let (measured, predicted) = (field("rms_nm"), field("predicted_rms_nm"));
+    assert!(
+        predicted >= 0.9 * noise && predicted < measured,
+        "predicted {predicted} nm, measured {measured} nm"
+    );
+    // The calibration is for a real part's map: refused without one.
+    let o = preston_cmd()
+        .args([
+            "iterate",
+            "--calibration",
+            s(&run.calibration.join("calibration.json")),
+        ])
+        .args(["--out", s(&run.root.join("iterate_virtual"))])
+        .output()
+        .unwrap();
+    assert_eq!(
+        o.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
     );
 
     // Bad input: an after map with no point over the before map.

@@ -122,6 +122,10 @@ pub struct Report {
     /// (both with piston and tilt removed, as the interferometer reads them).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub run_pays: Option<bool>,
+    /// The largest part of the expected reading (`expected.parts`): what keeps the run from
+    /// doing better (`band`, `tool_uncertainty` or `noise`).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub expected_floor_cause: Option<preston_solver::calibrate::FloorCause>,
     /// Machining time of the feed schedule, s: every stretch at its point's feed (`sum t_j`),
     /// plus the acceleration ramps when `a_max` is set
     /// ([`preston_solver::machine::feeds`]). Set by [`Report::set_machine`].
@@ -570,6 +574,7 @@ impl Report {
             expected_rms_range_nm: None,
             expected: None,
             run_pays: None,
+            expected_floor_cause: None,
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,
             a_max_mm_per_s2: None,
@@ -594,6 +599,7 @@ impl Report {
         self.expected_pv_nm = expected.map(|e| e.expected_pv_nm);
         self.expected_rms_range_nm = expected.map(|e| e.expected_rms_range_nm);
         self.run_pays = expected.map(|e| e.expected_rms_nm < e.measured_rms_nm);
+        self.expected_floor_cause = expected.map(|e| e.parts.cause());
         self.expected = expected.cloned();
     }
 

@@ -404,12 +404,19 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
             u.offset_y_sigma_mm,
             u.noise_rms_nm
         );
+        let p = &e.parts;
+        crate::note!(
+            "  of which: {:.3} nm the plan leaves with the nominal tool, {:.3} nm the tool's uncertainty, {:.3} nm the metrology's noise (in quadrature)",
+            p.residual_nm,
+            p.tool_nm,
+            p.noise_nm
+        );
         if r.run_pays == Some(false) {
             crate::errln!(
-                "  warning: this run is not expected to improve the part: {:.3} nm expected against {:.3} nm measured; the floor is the tool's uncertainty and the metrology noise ({:.3} nm); calibrate the tool or stop",
+                "  warning: this run is not expected to improve the part: {:.3} nm expected against {:.3} nm measured; the floor is set by {}; calibrate the tool or stop",
                 e.expected_rms_nm,
                 e.measured_rms_nm,
-                u.noise_rms_nm
+                p.cause().describe()
             );
         }
     }

@@ -106,6 +106,70 @@ pub struct Expected {
     pub uncertainty: ToolUncertainty,
     /// Number of draws.
     pub draws: usize,
+    /// What the expected reading is made of, in quadrature.
+    pub parts: ReadingParts,
+}
+
+/// The expected reading's parts, nm RMS, which add in quadrature to it:
+/// `expected² = residual² + tool² + noise²`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ReadingParts {
+    /// What the plan leaves with the nominal tool ([`Expected::nominal_rms_nm`]): structure
+    /// outside the band the tool can correct, and what the plan chose not to remove.
+    pub residual_nm: f64,
+    /// What the tool's uncertainty adds: `sqrt(expected² - residual² - noise²)` (zero when the
+    /// draws fall below the other two).
+    pub tool_nm: f64,
+    /// The measurement's noise.
+    pub noise_nm: f64,
+}
+
+/// The largest part of an expected reading: what keeps a run from doing better.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FloorCause {
+    /// The plan's residual with the nominal tool: structure outside the tool's band.
+    Band,
+    /// How well the tool is known: calibrate it.
+    ToolUncertainty,
+    /// The metrology's noise.
+    Noise,
+}
+
+impl ReadingParts {
+    /// The parts of `expected_rms_nm` given the nominal residual and the noise.
+    pub fn of(expected_rms_nm: f64, residual_nm: f64, noise_nm: f64) -> Self {
+        let rest = expected_rms_nm.powi(2) - residual_nm.powi(2) - noise_nm.powi(2);
+        Self {
+            residual_nm,
+            tool_nm: rest.max(0.0).sqrt(),
+            noise_nm,
+        }
+    }
+
+    /// The largest part.
+    pub fn cause(&self) -> FloorCause {
+        if self.tool_nm >= self.residual_nm && self.tool_nm >= self.noise_nm {
+            FloorCause::ToolUncertainty
+        } else if self.noise_nm >= self.residual_nm {
+            FloorCause::Noise
+        } else {
+            FloorCause::Band
+        }
+    }
+}
+
+impl FloorCause {
+    /// Words for a console or a page.
+    pub fn describe(self) -> &'static str {
+        match self {
+            FloorCause::Band => {
+                "the structure the tool cannot correct (outside its band, or left by the plan)"
+            }
+            FloorCause::ToolUncertainty => "how well the tool is known (calibrate it)",
+            FloorCause::Noise => "the metrology's noise",
+        }
+    }
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -219,6 +283,7 @@ pub fn expected_reading(
     rms.sort_by(f64::total_cmp);
     pv.sort_by(f64::total_cmp);
     Ok(Expected {
+        parts: ReadingParts::of(mean_square.sqrt(), nominal_rms_nm, u.noise_rms_nm),
         expected_rms_nm: mean_square.sqrt(),
         expected_pv_nm: percentile(&pv, 0.5),
         expected_rms_range_nm: [percentile(&rms, 0.05), percentile(&rms, 0.95)],

@@ -41,7 +41,9 @@ mod freeform;
 pub mod tool;
 
 pub use change::{GriddedMap, MeasuredChange};
-pub use expect::{expected_reading, map_noise_rms_nm, Expected, ToolUncertainty};
+pub use expect::{
+    expected_reading, map_noise_rms_nm, Expected, FloorCause, ReadingParts, ToolUncertainty,
+};
 pub use forward::{ContactMotion, LatticeRemoval};
 pub use freeform::FreeformCorrection;
 pub use tool::{SpotFootprint, ToolFigures, TransformedTif};

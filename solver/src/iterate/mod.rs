@@ -10,9 +10,12 @@
 //!    and the form error of every point is its signed normal deviation (nm).
 //! 3. *Correctable band* ([`band`]): the measured error is split into the smooth part the TIF can
 //!    remove and the rest (noise, structure finer than the tool), reported as uncorrectable.
-//! 4. *Learn the rate* ([`rate`]): each run's measured removal against its plan gives the tool's
-//!    actual rate factor; the next run is planned with the precision-weighted mean of them, and
-//!    its prediction carries their spread.
+//! 4. *Learn the tool*: each run's measured removal against its plan gives the tool's actual
+//!    rate factor ([`rate`]); the next run is planned with the precision-weighted mean of them,
+//!    and its prediction carries their spread. With [`LoopSettings::calibrate`] the whole tool is
+//!    learned instead ([`learned`]): the run's measured change calibrated for rate, width,
+//!    offset, shape and drift, and the next run planned with the calibrated footprint, its drift
+//!    compensated.
 //! 5. *Path*: iteration `k` uses an intersection raster over the aperture extended by the TIF
 //!    radius: lines along x for even `k`, along y for odd `k`, shifted by half a pitch every
 //!    other pair (`k mod 4 >= 2`), so the ridges of one pass fall between the lines of the next.
@@ -24,7 +27,9 @@
 //! 7. *Polish*: the machine runs the path through the registered transform, so the tool lands on
 //!    the true part off by the registration's error; the removal uses the TIF rate scaled by
 //!    `1 + e` (`e` uniform in `[-tif_rate_error, tif_rate_error]`, drawn once per iteration) and
-//!    dwell positions moved by Gaussian noise of `positioning_noise_mm` per axis; the tool sweeps
+//!    dwell positions moved by Gaussian noise of `positioning_noise_mm` per axis (and, with
+//!    [`Disturbances::tool`], the shop's true tool [`ShopTool`] in the machine's axes, its drift
+//!    within the run, and a rate walking from run to run); the tool sweeps
 //!    along each stretch of the path it actually follows (the swept model in each point's tangent
 //!    frame, [`crate::influence::surface::assemble_on_surface_swept`]).
 //!
