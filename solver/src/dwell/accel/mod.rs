@@ -82,6 +82,10 @@ impl AccelMethod {
     }
 }
 
+/// Relative excess over the limit that a returned plan may show from rounding alone (the
+/// acceleration recomputed from `t = ds / sqrt(u)` against the `u` a method held).
+const LIMIT_HELD: f64 = 1e-9;
+
 /// Relative excess over the limit up to which the feed-limited optimum is taken as meeting it
 /// (round-off in `|v_{j+1}^2 - v_j^2| / (2 s)`): beyond it the constrained problem is solved.
 const REFERENCE_MEETS_LIMIT: f64 = 1e-9;
@@ -576,6 +580,30 @@ impl Limited<'_> {
                 )
             }))
         })?;
+        // The iteration ends on the constraint set up to rounding; should it end further off,
+        // the squared speeds are clamped into the reachable chain, which one feed schedule
+        // within the bounds always satisfies, so the limit holds in what is returned. The
+        // iteration's status stands for the clamped plan only where the clamp cost no more
+        // than the method's tolerance in objective.
+        let r = if kin.violation(&r.dwell_s) > LIMIT_HELD {
+            let clamped = feasible_start(kin, self.reachable, &r.dwell_s, bounds);
+            let (before, after) = (
+                problem.evaluate(&r.dwell_s)?.objective,
+                problem.evaluate(&clamped)?.objective,
+            );
+            let status = if after <= before + limits.kkt_tolerance * before.abs() {
+                r.status
+            } else {
+                Status::Stalled
+            };
+            speed::SpeedResult {
+                dwell_s: clamped,
+                status,
+                ..r
+            }
+        } else {
+            r
+        };
         if limits.method != AccelMethod::SquaredSpeedThenScpQp {
             return Ok(LimitedRun {
                 dwell_s: r.dwell_s,
