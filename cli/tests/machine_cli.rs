@@ -237,10 +237,12 @@ fn acceleration_limit_binds_and_holds() {
 
     let a_max = 0.2 * a_free;
     let lim_dir = d.path().join("limited");
+    // The limit in the plan's own feeds (the default leaves it to the controller).
     run_ok(
         preston_cmd()
             .args(&base)
             .args(["--a-max-mm-per-s2", &a_max.to_string()])
+            .args(["--accel-method", "squared-speed"])
             .arg("--out")
             .arg(&lim_dir),
     );
@@ -883,6 +885,77 @@ fn bad_machine_input_fails_cleanly() {
     );
 }
 
+/// Relative margin by which the default plan's executed residual may exceed the best method's.
+const DEFAULT_TO_BEST: f64 = 0.05;
+
+/// The RMS of the program written for the plan in `plan_dir` (`preston nc`), executed at `a_max`
+/// with look-ahead and integrated on the raster case's map (`preston simulate --program`): the
+/// part as the machine makes it, computed apart from the solve.
+fn executed_rms_nm(dir: &Path, plan_dir: &Path, a_max: f64) -> f64 {
+    let prog = plan_dir.join("plan.nc");
+    run_ok(
+        preston_cmd()
+            .args(["nc", "--dwell"])
+            .arg(plan_dir.join("dwell.csv"))
+            .args(["--v-max", "2000", "--out"])
+            .arg(&prog),
+    );
+    let sim_dir = plan_dir.join("executed");
+    run_ok(
+        preston_cmd()
+            .args(["simulate", "--map"])
+            .arg(dir.join("map.csv"))
+            .arg("--program")
+            .arg(&prog)
+            .args(["--a-max-mm-per-s2", &a_max.to_string()])
+            .args([
+                "--gaussian-sigma-mm",
+                "1.5",
+                "--gaussian-peak-nm-per-s",
+                "50",
+            ])
+            .arg("--out")
+            .arg(&sim_dir),
+    );
+    read_json(&sim_dir.join("report.json"))["rms_after_nm"]
+        .as_f64()
+        .unwrap()
+}
+
+/// With flags only (feed and acceleration limits, no method named) the plan is the one that
+/// makes the best part: its program, executed apart from the solve, leaves a residual within
+/// [`DEFAULT_TO_BEST`] of the best method's.
+#[test]
+fn the_default_acceleration_method_makes_the_best_part_as_executed() {
+    let d = tempfile::tempdir().unwrap();
+    let base = raster_case(d.path());
+    let free_dir = d.path().join("free");
+    run_ok(preston_cmd().args(&base).arg("--out").arg(&free_dir));
+    let a_max = 0.1 * max_accel(&dwell_rows(&free_dir));
+    let solve = |name: &str, method: Option<&str>| {
+        let out = d.path().join(name);
+        let mut cmd = preston_cmd();
+        cmd.args(&base)
+            .args(["--a-max-mm-per-s2", &a_max.to_string()]);
+        if let Some(m) = method {
+            cmd.args(["--accel-method", m]);
+        }
+        run_ok(cmd.arg("--out").arg(&out));
+        let report = read_json(&out.join("report.json"));
+        (report, executed_rms_nm(d.path(), &out, a_max))
+    };
+    let (default, default_nm) = solve("default", None);
+    assert_eq!(default["accel"]["method"], "correction-passes");
+    let best_nm = ["squared-speed", "correction-passes"]
+        .into_iter()
+        .map(|m| solve(m, Some(m)).1)
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        default_nm <= best_nm * (1.0 + DEFAULT_TO_BEST),
+        "the default executes to {default_nm} nm RMS, the best method to {best_nm} nm"
+    );
+}
+
 /// Turn of the path at each point of `rows`, degrees (0 at the ends).
 fn turns_deg(rows: &[[f64; 4]]) -> Vec<f64> {
     let mut out = vec![0.0; rows.len()];
@@ -952,6 +1025,9 @@ fn the_limit_holds_with_an_aperture_where_points_are_out_of_reach() {
             "{peak} nm/s along {along}: {a} mm/s^2 in dwell.csv"
         );
         let reported = r["max_accel_mm_per_s2"].as_f64().unwrap();
-        assert!((reported - a).abs() <= LIMIT_ROUNDING * A_MAX, "{reported} vs {a}");
+        assert!(
+            (reported - a).abs() <= LIMIT_ROUNDING * A_MAX,
+            "{reported} vs {a}"
+        );
     }
 }

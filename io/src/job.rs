@@ -295,8 +295,10 @@ pub struct MachineSection {
     /// acceleration constraint, the machine stops there); default 60.
     #[serde(default)]
     pub corner_angle_deg: Option<f64>,
-    /// How the acceleration limit is imposed: `"squared-speed"` (default; projected gradient in
-    /// squared speed, any size and operator), `"scp-qp"` (the sequential QP reference) or
+    /// How the acceleration limit is imposed: `"correction-passes"` (default; the feed-limited
+    /// plan re-solved against the program executed at the limit, the best part as made),
+    /// `"squared-speed"` (the limit in the plan's own feeds: projected gradient in squared
+    /// speed, any size and operator), `"scp-qp"` (the sequential QP reference) or
     /// `"squared-speed-then-scp-qp"` (the first, refined by the second).
     #[serde(default)]
     pub accel_method: Option<AccelMethod>,
