@@ -650,6 +650,25 @@ impl Job {
 mod tests {
     use super::*;
 
+    /// A job that names no acceleration method plans by correction passes against the program
+    /// executed at the limit, as the command line and Python do.
+    #[test]
+    fn a_job_without_an_acceleration_method_plans_by_correction_passes() {
+        let job = Job::parse(
+            "[machine]\nv_max_mm_per_min = 3000\na_max_mm_per_s2 = 1000\n",
+            Path::new("j.toml"),
+        )
+        .unwrap();
+        assert_eq!(
+            job.choices().unwrap().accel_method,
+            AccelMethod::CorrectionPasses
+        );
+        assert_eq!(
+            job.accel_limits().unwrap().map(|l| l.method),
+            Some(AccelMethod::CorrectionPasses)
+        );
+    }
+
     #[test]
     fn unknown_keys_are_named() {
         let e = Job::parse(
