@@ -52,7 +52,7 @@ fn trench_case(width_mm: f64, height_mm: f64) -> (Problem, DwellPath) {
 }
 
 /// The acceleration-limited solve at a fifth of the feed-limited optimum's acceleration, by size:
-/// the squared-speed method (default) on every case, the SCP-QP reference on the two small ones.
+/// the squared-speed method on every case, the SCP-QP reference on the two small ones.
 fn accel_limit(c: &mut Criterion) {
     let mut group = c.benchmark_group("accel_limit");
     group.sample_size(10);

@@ -475,7 +475,7 @@ fn a_curvature_dependent_plan_sweeps_and_runs_its_program() {
         "job.toml",
         &format!(
             "[map]\nfile = 'map.csv'\n[dwell]\nraster_pitch_mm = 1.0\n[machine]\n\
-             v_max_mm_per_min = 3000\na_max_mm_per_s2 = 300\n[edge]\nmethod = 'none'\n\
+             v_max_mm_per_min = 3000\na_max_mm_per_s2 = 300\naccel_method = 'squared-speed'\n[edge]\nmethod = 'none'\n\
              [surface]\nfile = 'surface.json'\n\
              [tif]\npitch_mm = {TIF_PITCH_MM}\ncurvature_dependent = true\n\
              hertz = {{ force_n = {FORCE_N:?}, tool_radius_mm = {TOOL_RADIUS_MM:?}, \
@@ -496,7 +496,9 @@ fn a_curvature_dependent_plan_sweeps_and_runs_its_program() {
             .unwrap()
             > executed
     );
-    // Against the point model's plan of the same job: the swept plan executes better.
+    // Against the point model's plan of the same job: the swept plan executes better. (The job
+    // keeps the limit in the plan's feeds: correction passes against the executed program, the
+    // default, correct either model's plan to the same part, 0.8747 against 0.8745 nm.)
     let point = dir.path().join("point");
     ok(&preston(&[
         "solve",

@@ -295,8 +295,10 @@ pub struct MachineSection {
     /// acceleration constraint, the machine stops there); default 60.
     #[serde(default)]
     pub corner_angle_deg: Option<f64>,
-    /// How the acceleration limit is imposed: `"squared-speed"` (default; projected gradient in
-    /// squared speed, any size and operator), `"scp-qp"` (the sequential QP reference) or
+    /// How the acceleration limit is imposed: `"correction-passes"` (default; the feed-limited
+    /// plan re-solved against the program executed at the limit, the best part as made),
+    /// `"squared-speed"` (the limit in the plan's own feeds: projected gradient in squared
+    /// speed, any size and operator), `"scp-qp"` (the sequential QP reference) or
     /// `"squared-speed-then-scp-qp"` (the first, refined by the second).
     #[serde(default)]
     pub accel_method: Option<AccelMethod>,
@@ -647,6 +649,25 @@ impl Job {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A job that names no acceleration method plans by correction passes against the program
+    /// executed at the limit, as the command line and Python do.
+    #[test]
+    fn a_job_without_an_acceleration_method_plans_by_correction_passes() {
+        let job = Job::parse(
+            "[machine]\nv_max_mm_per_min = 3000\na_max_mm_per_s2 = 1000\n",
+            Path::new("j.toml"),
+        )
+        .unwrap();
+        assert_eq!(
+            job.choices().unwrap().accel_method,
+            AccelMethod::CorrectionPasses
+        );
+        assert_eq!(
+            job.accel_limits().unwrap().map(|l| l.method),
+            Some(AccelMethod::CorrectionPasses)
+        );
+    }
 
     #[test]
     fn unknown_keys_are_named() {

@@ -81,10 +81,12 @@ pub struct Overrides {
     #[cfg_attr(feature = "clap", arg(long, value_name = "MM_PER_S2"))]
     #[serde(alias = "a_max")]
     pub a_max_mm_per_s2: Option<f64>,
-    /// How the acceleration limit is imposed: squared-speed (default; projected gradient in
-    /// squared speed, any size and operator), scp-qp (sequential QP, the small-case reference),
-    /// squared-speed-then-scp-qp (the first, refined by the second) or correction-passes (the
-    /// plan re-solved against the program executed at the limit).
+    /// How the acceleration limit is imposed (default: the job's, else correction-passes):
+    /// correction-passes (default; the feed-limited plan re-solved against the program executed
+    /// at the limit with look-ahead: the best part as the machine makes it, the controller holds
+    /// the limit), squared-speed (the limit in the plan's own feeds: projected gradient in
+    /// squared speed, any size and operator), scp-qp (sequential QP, the small-case reference)
+    /// or squared-speed-then-scp-qp (the second refining the first).
     #[cfg_attr(feature = "clap", arg(long, value_enum))]
     pub accel_method: Option<AccelMethod>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit

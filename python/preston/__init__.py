@@ -489,9 +489,11 @@ def solve(
       mm) or ``raster_pitch_mm`` (a serpentine raster at this pitch, mm, over the map extended by
       the TIF radius; lines along ``raster_along`` = ``"x"`` or ``"y"``).
     * limits: ``v_max`` / ``v_min`` (feed, mm/min; ``v_max`` required), ``a_max`` (acceleration
-      along a line, mm/s^2), ``accel_method`` (``"squared-speed"``, the default, ``"scp-qp"`` or
-      ``"squared-speed-then-scp-qp"``, as ``--accel-method``), ``corner_angle_deg`` (turns
-      splitting lines, degrees).
+      along a line, mm/s^2), ``accel_method`` (``"correction-passes"``, the default: the plan
+      re-solved against the program executed at the limit, the best part as made;
+      ``"squared-speed"``, ``"scp-qp"`` or ``"squared-speed-then-scp-qp"``: the limit in the
+      plan's own feeds; as ``--accel-method``), ``corner_angle_deg`` (turns splitting lines,
+      degrees).
     * objective: ``rho`` (weight of total dwell, nm^2/s), ``lambda_`` (weight of dwell
       differences, nm^2/s^2), ``min_time`` and ``min_time_tolerance`` (relative).
     * solver: ``solver`` (``"auto"``, ``"qp"``, ``"first-order"``), ``operator`` (``"auto"``,

@@ -88,6 +88,7 @@ def test_arrays_in_equal_files_in(cli_out, py_job_result):
         raster_along="x",
         v_max=3000.0,
         a_max=1000.0,
+        accel_method="squared-speed",
         edge="gerchberg-papoulis",
         influence="point",
     )
@@ -218,6 +219,11 @@ def test_accel_method_reaches_the_engine(small_job):
         assert r.report["max_accel_mm_per_s2"] <= 50.0 * 1.01
         results[method] = r.report["objective"]
     assert results["squared-speed-then-scp-qp"] <= results["squared-speed"] * (1 + 1e-12)
+    # Without a method named: correction passes against the program executed at the limit, as
+    # on the command line and in a job.
+    default = preston.solve(small_job, a_max=50.0)
+    assert default.report["accel"]["method"] == "correction-passes"
+    assert default.report["rms_after_nm"] == default.report["executed"]["rms_after_nm"]
     with pytest.raises(preston.InputError, match="newton"):
         preston.solve(small_job, a_max=50.0, accel_method="newton")
 

@@ -1126,6 +1126,60 @@ mod tests {
         }
     }
 
+    /// Relative margin by which the default plan's executed residual may exceed the best
+    /// method's on the same part.
+    const DEFAULT_TO_BEST: f64 = 0.05;
+
+    /// The default acceleration method is the one that makes the best part as executed: with
+    /// nothing chosen (feed and acceleration limits only), the program executed at the limit
+    /// with look-ahead leaves a residual within [`DEFAULT_TO_BEST`] of the best method's, each
+    /// plan executed independently of its solve.
+    #[test]
+    fn the_default_acceleration_method_makes_the_best_part_as_executed() {
+        assert_eq!(AccelMethod::default(), AccelMethod::CorrectionPasses);
+        assert_eq!(AccelLimits::default().method, AccelMethod::default());
+        const A_MAX: f64 = 5.0;
+        let mut d = data();
+        d.dwell = DwellPoints::Raster {
+            pitch_mm: 0.5,
+            along: RasterAxis::X,
+        };
+        d.map = grid_map_21(|x, y| 40.0 + 20.0 * (0.9 * x).sin() * (0.6 * y).cos());
+        let executed_rms_nm = |method: Option<AccelMethod>| {
+            let mut c = choices();
+            c.a_max_mm_per_s2 = Some(A_MAX);
+            if let Some(m) = method {
+                c.accel_method = m;
+            }
+            c.feed = Some(FeedLimits {
+                v_max_mm_per_min: 3000.0,
+                v_min_mm_per_min: 1.0,
+            });
+            let checked = c.check(&Silent).unwrap();
+            assert_eq!(
+                checked.accel().map(|l| l.method),
+                Some(method.unwrap_or_default())
+            );
+            let setup = Setup::resolve(checked, d.clone(), &Silent).unwrap();
+            let built = setup.problem(&Silent).unwrap();
+            let o = setup.solve(&built.problem, &Silent).unwrap();
+            setup
+                .executed_at_limit(&o.solution.dwell_s, A_MAX, &Silent)
+                .unwrap()
+                .after
+                .rms_nm
+        };
+        let default_nm = executed_rms_nm(None);
+        let best_nm = [AccelMethod::SquaredSpeed, AccelMethod::CorrectionPasses]
+            .into_iter()
+            .map(|m| executed_rms_nm(Some(m)))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            default_nm <= best_nm * (1.0 + DEFAULT_TO_BEST),
+            "the default executes to {default_nm} nm RMS, the best method to {best_nm} nm"
+        );
+    }
+
     #[test]
     fn correction_passes_never_worsen_the_executed_residual_and_report_it() {
         // A fine raster at a low acceleration limit: the ramps matter.

@@ -159,6 +159,15 @@ pub struct Chain<'a> {
 }
 
 impl ChainScratch {
+    /// The linked segments `j -> j + 1` the last [`project_chain`] cut (rounding, or boxes that
+    /// leave no overlap), by their first point `j`.
+    pub fn cut_segments(&self) -> impl Iterator<Item = usize> + '_ {
+        self.cut
+            .iter()
+            .enumerate()
+            .filter_map(|(j, &c)| c.then_some(j))
+    }
+
     /// The actual end of the left side (the minimiser split), or `fallback` when the right side
     /// is empty.
     fn split(&self, fallback: f64) -> f64 {

@@ -1,6 +1,9 @@
 //! Acceleration limits inside the dwell optimisation.
 //!
-//! Two methods ([`AccelMethod`]): the default, [`speed`], an accelerated projected gradient in
+//! The default method ([`AccelMethod::CorrectionPasses`]) puts no constraint in the plan: the
+//! set-up re-solves the feed-limited plan against the program executed at the limit (the
+//! controller holds it), which leaves the smallest residual on the part as made. Two methods put
+//! the limit into the plan's own feeds: [`speed`], an accelerated projected gradient in
 //! squared speed with an exact linear-time projection onto each line's chain of constraints
 //! ([`chain`]), which needs only products with `R` and scales to 10^5 dwell points and more; and
 //! the reference, sequential convex programming around the Clarabel QP (below), exact on small
@@ -46,11 +49,10 @@ use std::time::Instant;
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum AccelMethod {
-    /// Projected gradient in squared speed (the default; any size and operator).
+    /// Projected gradient in squared speed: the limit in the plan's feeds (any size and operator).
     ///
     /// Accelerated projected gradient in squared speed ([`speed`]): products with `R` only, any
-    /// operator, 10^5 points and more. The default.
-    #[default]
+    /// operator, 10^5 points and more. The plan's own feeds meet the limit.
     SquaredSpeed,
     /// Sequential convex programming with one Clarabel QP per iteration: the reference for small
     /// cases (it needs the assembled `R`).
@@ -60,15 +62,20 @@ pub enum AccelMethod {
     /// The squared-speed method, then the SCP-QP from its result: a KKT point of the first refined
     /// by the second (QP-exact where the QP is affordable; it needs the assembled `R`).
     SquaredSpeedThenScpQp,
-    /// No constraint in the plan: the feed-limited optimum, then correction passes against the
-    /// program executed at the limit, kept while the executed residual falls.
+    /// The default: the feed-limited optimum, then correction passes against the program executed
+    /// at the limit, kept while the executed residual falls (the best part as executed).
     ///
     /// No constraint in the plan: the feed-limited optimum, then correction passes against the
     /// program executed at the limit with look-ahead (the set-up's
     /// [`crate::setup::Setup::solve`]): each pass re-solves for the target less the executed
     /// removal's departure from the plan's, `z - (h_exec - R t)`, from the last dwell times,
     /// and is kept while the executed residual falls. The controller holds the limit; the plan
-    /// is the program as the controller runs it.
+    /// is the program as the controller runs it. The default: of the methods it leaves the
+    /// smallest residual on the part as the machine makes it (the other methods meet the limit
+    /// in the plan's feeds, and the controller's ramps then still depart from the plan). The
+    /// dwell-level [`solve`] has no program to execute and returns the feed-limited optimum the
+    /// passes start from.
+    #[default]
     CorrectionPasses,
 }
 
@@ -81,6 +88,10 @@ impl AccelMethod {
         )
     }
 }
+
+/// Relative excess over the limit that a returned plan may show from rounding alone (the
+/// acceleration recomputed from `t = ds / sqrt(u)` against the `u` a method held).
+const LIMIT_HELD: f64 = 1e-9;
 
 /// Relative excess over the limit up to which the feed-limited optimum is taken as meeting it
 /// (round-off in `|v_{j+1}^2 - v_j^2| / (2 s)`): beyond it the constrained problem is solved.
@@ -120,7 +131,7 @@ impl Default for AccelLimits {
             objective_tolerance: 1e-4,
             max_iterations: 50,
             trust_region: 0.5,
-            method: AccelMethod::SquaredSpeed,
+            method: AccelMethod::default(),
             kkt_tolerance: 1e-4,
             max_gradient_steps: 20_000,
         }
@@ -576,6 +587,30 @@ impl Limited<'_> {
                 )
             }))
         })?;
+        // The iteration ends on the constraint set up to rounding; should it end further off,
+        // the squared speeds are clamped into the reachable chain, which one feed schedule
+        // within the bounds always satisfies, so the limit holds in what is returned. The
+        // iteration's status stands for the clamped plan only where the clamp cost no more
+        // than the method's tolerance in objective.
+        let r = if kin.violation(&r.dwell_s) > LIMIT_HELD {
+            let clamped = feasible_start(kin, self.reachable, &r.dwell_s, bounds);
+            let (before, after) = (
+                problem.evaluate(&r.dwell_s)?.objective,
+                problem.evaluate(&clamped)?.objective,
+            );
+            let status = if after <= before + limits.kkt_tolerance * before.abs() {
+                r.status
+            } else {
+                Status::Stalled
+            };
+            speed::SpeedResult {
+                dwell_s: clamped,
+                status,
+                ..r
+            }
+        } else {
+            r
+        };
         if limits.method != AccelMethod::SquaredSpeedThenScpQp {
             return Ok(LimitedRun {
                 dwell_s: r.dwell_s,
@@ -995,7 +1030,7 @@ mod tests {
         let free = crate::dwell::solve(&problem, &settings, &Silent).unwrap();
         let a_free = max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
         let a_max = 0.2 * a_free;
-        let limits = AccelLimits::new(a_max);
+        let limits = with_method(a_max, AccelMethod::SquaredSpeed);
         let out = solve(&problem, &path, &limits, &settings, &Silent).unwrap();
         let a = max_acceleration_mm_per_s2(&path, &out.solution.dwell_s, 60.0);
         assert!(
@@ -1156,7 +1191,7 @@ mod tests {
         };
         let free = crate::dwell::solve(&sparse, &settings, &Silent).unwrap();
         let a_max = 0.1 * max_acceleration_mm_per_s2(&path, &free.dwell_s, 60.0);
-        let limits = AccelLimits::new(a_max);
+        let limits = with_method(a_max, AccelMethod::SquaredSpeed);
         let a = solve(&sparse, &path, &limits, &settings, &Silent).unwrap();
         let f = solve(&matrix_free, &path, &limits, &settings, &Silent).unwrap();
         for out in [&a, &f] {

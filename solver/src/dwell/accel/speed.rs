@@ -84,7 +84,12 @@ pub(crate) struct SpeedResult {
 /// Points of a line weighing more than this times its lightest point are fixed at their target
 /// in the projection: the exact projection would move them by at most about `1 / PIN_RATIO` of
 /// the lightest point's move, and keeping them in would cost the chain projection its precision
-/// ([`super::chain`]). They are the slow points, whose squared speed is tiny.
+/// ([`super::chain`]). They are the slow points, whose squared speed is tiny. Two fixed points
+/// may be further apart than the caps between them allow (a slow point a few segments from one
+/// at the fastest feed, which is heavy too when the line's lightest point barely reaches the
+/// map): the exact projection then moves the lighter of the two, so that one is freed (its
+/// weight capped at `PIN_RATIO` times the lightest) and the line projected again, until no
+/// fixed points conflict.
 const PIN_RATIO: f64 = 1e10;
 
 /// One line's chain projection: its index range and scratch (kept between iterations).
@@ -93,6 +98,7 @@ struct Line {
     end: usize,
     scratch: ChainScratch,
     out: Vec<f64>,
+    pinned: Vec<bool>,
     weight: Vec<f64>,
     lower: Vec<f64>,
     upper: Vec<f64>,
@@ -124,6 +130,7 @@ impl Projection {
                     end: j + 1,
                     scratch: ChainScratch::default(),
                     out: vec![0.0; j + 1 - start],
+                    pinned: Vec::with_capacity(j + 1 - start),
                     weight: vec![0.0; j + 1 - start],
                     lower: vec![0.0; j + 1 - start],
                     upper: vec![0.0; j + 1 - start],
@@ -174,28 +181,57 @@ impl Projection {
         self.lines.par_iter_mut().for_each(|line| {
             let (a, b) = (line.start, line.end);
             let lightest = weight[a..b].iter().copied().fold(f64::INFINITY, f64::min);
-            for k in 0..b - a {
-                let (w, l, h) = (weight[a + k], lower[a + k], upper[a + k]);
-                if w > PIN_RATIO * lightest {
-                    let fixed = target[a + k].max(l).min(h);
-                    line.weight[k] = lightest;
-                    line.lower[k] = fixed;
-                    line.upper[k] = fixed;
-                } else {
-                    line.weight[k] = w;
-                    line.lower[k] = l;
-                    line.upper[k] = h;
+            let heaviest = PIN_RATIO * lightest;
+            line.pinned.clear();
+            line.pinned
+                .extend(weight[a..b].iter().map(|&w| w > heaviest));
+            // Each round frees at least one fixed point, so the rounds end.
+            loop {
+                for k in 0..b - a {
+                    let (w, l, h) = (weight[a + k], lower[a + k], upper[a + k]);
+                    if line.pinned[k] {
+                        let fixed = target[a + k].max(l).min(h);
+                        line.weight[k] = lightest;
+                        line.lower[k] = fixed;
+                        line.upper[k] = fixed;
+                    } else {
+                        line.weight[k] = w.min(heaviest);
+                        line.lower[k] = l;
+                        line.upper[k] = h;
+                    }
+                }
+                let chain = Chain {
+                    target: &target[a..b],
+                    weight: &line.weight,
+                    lower: &line.lower,
+                    upper: &line.upper,
+                    cap: &cap[a..b.saturating_sub(1).max(a)],
+                    linked: &linked[a..b.saturating_sub(1).max(a)],
+                };
+                line.cuts = project_chain(&chain, &mut line.scratch, &mut line.out);
+                if line.cuts == 0 {
+                    break;
+                }
+                // At each cut `k -> k + 1`: the fixed point there and the last one before it
+                // conflict; the lighter is freed.
+                let mut freed = false;
+                for k in line.scratch.cut_segments() {
+                    let after = Some(k + 1).filter(|&i| line.pinned[i]);
+                    let before = (0..=k).rev().find(|&i| line.pinned[i]);
+                    let lighter = match (before, after) {
+                        (Some(i), Some(j)) => {
+                            Some(if weight[a + i] <= weight[a + j] { i } else { j })
+                        }
+                        (i, j) => i.or(j),
+                    };
+                    if let Some(i) = lighter {
+                        freed |= std::mem::replace(&mut line.pinned[i], false);
+                    }
+                }
+                if !freed {
+                    break;
                 }
             }
-            let chain = Chain {
-                target: &target[a..b],
-                weight: &line.weight,
-                lower: &line.lower,
-                upper: &line.upper,
-                cap: &cap[a..b.saturating_sub(1).max(a)],
-                linked: &linked[a..b.saturating_sub(1).max(a)],
-            };
-            line.cuts = project_chain(&chain, &mut line.scratch, &mut line.out);
         });
         let mut cuts = 0;
         for line in &self.lines {
@@ -466,4 +502,55 @@ fn kkt_residual(
         .for_each(|(wh, (x, (g, s)))| *wh = x - s * g);
     state.project_linearised(x, w_hat, out);
     fixed_sum(x.len(), &mut work.partials, |j| (x[j] - out[j]).powi(2)).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Relative rounding allowed on a cap the projection holds.
+    const CAP_ROUNDING: f64 = 1e-12;
+
+    /// A point at the fastest feed next to a slow one, both far heavier than the line's lightest
+    /// point (one that barely reaches the map): fixing both at their targets would leave them out
+    /// of each other's reach. The exact projection moves the lighter of the two onto the cap and
+    /// keeps the heavier where it is; the line is projected without a cut.
+    #[test]
+    fn heavy_points_out_of_each_others_reach_are_projected_onto_the_cap() {
+        const CAP: f64 = 2000.0;
+        const FAST: f64 = 2500.0;
+        let kin = Kinematics {
+            ds: vec![1.0; 4],
+            cap: vec![CAP; 3],
+            constrained: vec![true; 3],
+        };
+        let mut proj = Projection::new(&kin);
+        // (target, weight, lower, upper) per point: the lightest, two at the fastest feed
+        // (one heavy), the slow point (heaviest).
+        let points = [
+            (FAST, 1e-30, 0.0, FAST),
+            (FAST, 1e-12, 0.0, FAST),
+            (FAST, 1.0, 0.0, FAST),
+            (1e-8, 1e20, 0.0, FAST),
+        ];
+        proj.fill(&kin.ds, |j| points[j]);
+        let cuts = proj.run();
+        let z = &proj.z;
+        assert_eq!(cuts, 0, "{z:?}");
+        for (j, w) in z.windows(2).enumerate() {
+            assert!(
+                (w[1] - w[0]).abs() <= CAP * (1.0 + CAP_ROUNDING),
+                "segment {j}: {z:?}"
+            );
+        }
+        for (j, &(_, _, l, h)) in points.iter().enumerate() {
+            assert!(z[j] >= l && z[j] <= h, "point {j}: {z:?}");
+        }
+        // The heaviest point keeps its target; its neighbour lands on the cap from it.
+        assert_eq!(z[3], points[3].0);
+        assert!(
+            (z[2] - (points[3].0 + CAP)).abs() <= CAP * CAP_ROUNDING,
+            "{z:?}"
+        );
+    }
 }
