@@ -812,6 +812,7 @@ pub fn run_virtual(
     let mut met = false;
     let mut stop = StopReason::Iterations;
     for k in 0..settings.max_iterations {
+        crate::observer::check_cancelled(observer)?;
         let mut row = record(k, &measured.map);
         if meets(settings, &row) {
             records.push(row);

@@ -576,6 +576,7 @@ impl Limited<'_> {
                 )
             }))
         })?;
+        crate::observer::check_cancelled(observer)?;
         if limits.method != AccelMethod::SquaredSpeedThenScpQp {
             return Ok(LimitedRun {
                 dwell_s: r.dwell_s,
@@ -684,6 +685,7 @@ fn scp(
     let mut qp_iterations = 0;
     observer.start(Stage::Loop, limits.max_iterations as u64);
     while iterations < limits.max_iterations {
+        crate::observer::check_cancelled(observer)?;
         iterations += 1;
         let (trust, rows) = linearise(kin, &t, bounds, tau)?;
         let (st, t_new, it) = qp::solve_with_rows(problem, &trust, &rows, settings, observer)?;
