@@ -1,7 +1,9 @@
 //! `preston`: dwell-time computation for deterministic sub-aperture polishing.
 //!
-//! A thin binary: each subcommand lives in `cmd/<name>.rs`, parses its arguments with clap,
-//! converts them into library settings and calls the library.
+//! The command line as a library: [`run_from_args`] is the whole program, called by the
+//! `preston` binary (`src/main.rs`) and by the Python package's `preston` console script, so
+//! that both run the same code. Each subcommand lives in `cmd/<name>.rs`, parses its arguments
+//! with clap, converts them into library settings and calls the library.
 
 mod cmd;
 mod out;
@@ -9,7 +11,6 @@ mod output;
 mod progress;
 
 use clap::{Parser, Subcommand};
-use std::process::ExitCode;
 
 /// Dwell-time computation for deterministic sub-aperture polishing of optics.
 #[derive(Debug, Parser)]
@@ -110,6 +111,8 @@ enum Command {
     /// A virtual shop: run a program with a tool unlike its spot test, measure like an
     /// interferometer.
     Shop(cmd::shop::Args),
+    /// Write the sample job (a mirror's error map, a measured TIF) into a directory.
+    Sample(cmd::sample::Args),
     /// Shell completions for bash, zsh, fish or PowerShell, on stdout.
     Completions(CompletionsArgs),
 }
@@ -136,7 +139,7 @@ enum ShellArg {
 }
 
 /// Writes the completions of the whole command tree for `shell` on stdout.
-fn completions(args: CompletionsArgs) -> anyhow::Result<ExitCode> {
+fn completions(args: CompletionsArgs) -> anyhow::Result<u8> {
     use clap_complete::Shell;
     let shell = match args.shell {
         ShellArg::Bash => Shell::Bash,
@@ -150,18 +153,51 @@ fn completions(args: CompletionsArgs) -> anyhow::Result<ExitCode> {
     let mut out = std::io::stdout().lock();
     out.write_all(&buf)?;
     out.flush()?;
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }
 
-fn main() -> ExitCode {
+/// Exit code of a run that succeeded.
+pub const EXIT_OK: u8 = 0;
+/// Exit code of bad input: an unusable argument, file or setting (the message says which).
+pub const EXIT_BAD_INPUT: u8 = 2;
+/// Exit code of a run whose iterative step did not converge (the outputs are written).
+pub const EXIT_NOT_CONVERGED: u8 = cmd::EXIT_NOT_CONVERGED;
+
+/// Runs the command line on `args` (the program name first, as `std::env::args_os` gives it)
+/// and returns the process's exit code: [`EXIT_OK`], [`EXIT_BAD_INPUT`] or
+/// [`EXIT_NOT_CONVERGED`] (clap's own code for `--help`, `--version` and usage errors: 0 and
+/// 2). Messages go to stdout and stderr as the binary prints them; a closed pipe ends printing
+/// and is not an error. Never exits the process itself.
+pub fn run_from_args<I, T>(args: I) -> u8
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
     use clap::FromArgMatches;
-    let cli = match Cli::from_arg_matches(&command_tree().get_matches()) {
+    let parsed = command_tree()
+        .try_get_matches_from(args)
+        .and_then(|m| Cli::from_arg_matches(&m));
+    let cli = match parsed {
         Ok(cli) => cli,
-        Err(e) => e.exit(),
+        Err(e) => {
+            // Help and version on stdout, usage errors on stderr; a closed pipe is not an error.
+            let _ = e.print();
+            return u8::try_from(e.exit_code()).unwrap_or(EXIT_BAD_INPUT);
+        }
     };
+    let code = run(cli);
+    // The caller may not be a Rust `main` that flushes stdout on return (the Python console
+    // script exits through the interpreter).
+    use std::io::Write;
+    let _ = std::io::stdout().lock().flush();
+    code
+}
+
+/// Runs the parsed command line.
+fn run(cli: Cli) -> u8 {
     if let Err(e) = apply_limits(&cli) {
         crate::errln!("error: {}", message(&e));
-        return ExitCode::from(2);
+        return EXIT_BAD_INPUT;
     }
     let result = match cli.command {
         Command::Solve(args) => cmd::solve::run(*args),
@@ -178,6 +214,7 @@ fn main() -> ExitCode {
         Command::Shop(args) => cmd::shop::run(args),
         Command::Map(args) => cmd::map::run(args),
         Command::Bench(args) => cmd::bench::run(args),
+        Command::Sample(args) => cmd::sample::run(args),
         Command::Completions(args) => completions(args),
     };
     print_debug_counts();
@@ -185,10 +222,10 @@ fn main() -> ExitCode {
         Ok(code) => code,
         Err(e) => {
             if is_broken_pipe(&e) {
-                return ExitCode::SUCCESS;
+                return EXIT_OK;
             }
             crate::errln!("error: {}", message(&e));
-            ExitCode::from(2)
+            EXIT_BAD_INPUT
         }
     }
 }

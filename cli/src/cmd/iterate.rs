@@ -19,7 +19,6 @@ use preston_solver::registration::{
 };
 use preston_solver::surface::{Plane, Surface};
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
 
@@ -161,7 +160,7 @@ fn triple(v: &[f64], what: &str) -> anyhow::Result<[f64; 3]> {
 }
 
 /// Runs `preston iterate`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let tif = args.tif.load()?;
     let surface = match &args.surface {
         Some(p) => read_surface(p)?,
@@ -287,7 +286,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 f.detail
             );
         }
-        return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+        return Ok(EXIT_NOT_CONVERGED);
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -9,7 +9,6 @@ use preston_io::shop::{visit, write_visit, ShopInputs};
 use preston_solver::iterate::shop::{Interferometer, ShopTool};
 use preston_solver::machine::gcode::motion::Kinematics;
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Arguments of `preston shop`.
 #[derive(Debug, clap::Args)]
@@ -67,7 +66,7 @@ pub struct Args {
 }
 
 /// Runs `preston shop`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     args.output.apply();
     let [ox, oy] = args.tool_offset_mm[..] else {
         anyhow::bail!("--tool-offset-mm: give X,Y");
@@ -115,5 +114,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.output.json {
         print_json(&serde_json::json!({"command": "shop", "out": args.out, "shop": r}))?;
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }
