@@ -1,7 +1,8 @@
 """Preston from Python, worked through: from a measured map to the machine program, the plots and
 the report a metrologist hands on.
 
-Run it from the repository root (the sample data are in ``data/``)::
+Run it from anywhere (the sample data come with the package; step 5 needs scipy, which
+``pip install 'preston-dwell[scipy]'`` installs with the package)::
 
     python docs/tutorial.py [OUT_DIR]
 
@@ -20,18 +21,18 @@ import numpy as np
 
 import preston
 
-HERE = Path(__file__).resolve().parent
-DATA = HERE.parent / "data"
-
-
 def main(out_dir: str = "tutorial-out") -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
 
+    # 0. The sample data, shipped in the package: a job, its map and its TIF, written into a
+    #    directory (as `preston sample --out DIR` does).
+    data = preston.sample_job(out / "sample", overwrite=True).parent
+
     # 1. The measured map: the 118 x 8 mm mirror strip, x_mm, y_mm, z_nm. Any format the CLI
     #    reads works here (Zygo .datx, 4D .h5, .npy, XYZ text), with its units, an aperture and
     #    form removal: preston.read_map(path, aperture="rect:110,7", remove="piston,tilt").
-    x, y, z = preston.read_map(DATA / "mirror_error_118x8mm.csv")
+    x, y, z = preston.read_map(data / "mirror_error_118x8mm.csv")
     print(f"map: {x.size} points, PV {np.ptp(z):.1f} nm, RMS {np.std(z):.1f} nm")
 
     # 2. Bad input raises preston.InputError, which is a ValueError and names the keyword.
@@ -44,7 +45,7 @@ def main(out_dir: str = "tutorial-out") -> dict:
     #    keywords are the CLI's flags (preston solve --help).
     result = preston.solve(
         map_xyz=(x, y, z),
-        tif=DATA / "tif_fluid_jet_10mm.csv",
+        tif=data / "tif_fluid_jet_10mm.csv",
         raster_pitch_mm=1.0,
         v_max=3000.0,
         edge="gerchberg-papoulis",
@@ -62,10 +63,11 @@ def main(out_dir: str = "tutorial-out") -> dict:
         f"(x {grid.x_mm[0]:.2f}..{grid.x_mm[-1]:.2f} mm, y {grid.y_mm[0]:.2f}..{grid.y_mm[-1]:.2f} mm)"
     )
 
-    # 5. R itself, for trying another optimiser: removal = R @ dwell.
+    # 5. R itself, for trying another optimiser: removal = R @ dwell (a scipy.sparse matrix:
+    #    pip install 'preston-dwell[scipy]').
     R = preston.influence_matrix(
         map_xyz=(x, y, z),
-        tif=DATA / "tif_fluid_jet_10mm.csv",
+        tif=data / "tif_fluid_jet_10mm.csv",
         raster_pitch_mm=1.0,
         v_max=3000.0,
     )
@@ -80,7 +82,7 @@ def main(out_dir: str = "tutorial-out") -> dict:
         out=out / "program.nc",
     )
     executed = preston.simulate_program(
-        DATA / "mirror_error_118x8mm.csv", program, tif=DATA / "tif_fluid_jet_10mm.csv"
+        data / "mirror_error_118x8mm.csv", program, tif=data / "tif_fluid_jet_10mm.csv"
     )
     check = executed["check"]
     print(

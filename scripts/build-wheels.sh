@@ -4,8 +4,9 @@
 # manylinux2014 (glibc 2.17: RHEL/CentOS 7 and every newer distribution), linked by zig (the
 # `ziglang` package from PyPI) so that the host's glibc does not matter; then checks the wheel's
 # tag and external libraries with auditwheel, and installs it into a fresh virtual environment
-# with no Rust toolchain on PATH to import it and compare `preston.__version__` with the command
-# line's version (docs/install.md). Needs python3 (>= 3.9) with venv and pip, cargo with Rust 1.89
+# with no Rust toolchain on PATH to import it, compare `preston.__version__` and the wheel's
+# `preston --version` with the command line's version, and solve the sample job the wheel ships,
+# outside the checkout (docs/install.md). Needs python3 (>= 3.9) with venv and pip, cargo with Rust 1.89
 # or newer, and crates.io and PyPI reachable.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -34,12 +35,20 @@ else
     cli_version="$(cargo metadata --no-deps --format-version 1 | "$PY" -c \
         'import json, sys; print(next(p["version"] for p in json.load(sys.stdin)["packages"] if p["name"] == "preston-cli"))')"
 fi
-env -i PATH=/usr/bin:/bin HOME="$HOME" target/clean-venv/bin/python - "$cli_version" data/job.toml <<'PY'
-import shutil, sys
+clean_bin="$PWD/target/clean-venv/bin"
+elsewhere="$(mktemp -d)"
+trap 'rm -rf "$elsewhere"' EXIT
+(cd "$elsewhere" && env -i PATH=/usr/bin:/bin HOME="$HOME" "$clean_bin/python" - "$cli_version" "$clean_bin/preston" <<'PY'
+import shutil, subprocess, sys
 import preston
 assert shutil.which("cargo") is None and shutil.which("rustc") is None, "Rust on PATH"
 assert preston.__version__ == sys.argv[1], (preston.__version__, sys.argv[1])
-r = preston.solve(sys.argv[2])
+# The wheel's command line: the same version.
+v = subprocess.run([sys.argv[2], "--version"], capture_output=True, text=True, check=True).stdout
+assert v == f"preston {sys.argv[1]}\n", v
+# The sample job shipped in the wheel, solved outside the checkout.
+r = preston.solve(preston.sample_job("sample"))
 print(f"preston {preston.__version__}: sample job RMS {r.report['rms_before_nm']:.2f} -> "
       f"{r.report['rms_after_nm']:.2f} nm, status {r.report['status']}")
 PY
+)

@@ -121,6 +121,14 @@ pub enum Error {
         /// Why it was rejected.
         why: String,
     },
+    /// An output that is written only where nothing is yet exists already.
+    #[error("{}: already exists; {why}", file.display())]
+    Exists {
+        /// The existing file.
+        file: PathBuf,
+        /// How to write over it.
+        why: String,
+    },
     /// An engine error not tied to one file.
     #[error(transparent)]
     Solver(#[from] preston_solver::Error),

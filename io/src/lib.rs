@@ -17,6 +17,7 @@ pub mod overrides;
 pub mod readers;
 pub mod report;
 pub mod residual;
+pub mod sample;
 pub mod shop;
 pub mod surface;
 pub mod table;

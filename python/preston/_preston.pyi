@@ -117,6 +117,10 @@ def solve(
     ``threads`` engine threads (None: the global pool)."""
 
 def _raise_numerical() -> None: ...
+def run_cli(argv: List[str]) -> int:
+    """The `preston` command line on argv (program name first); its exit code."""
+def sample_job(dir: str, overwrite: bool = False) -> Any:
+    """Writes the sample job into dir; its job file."""
 
 def simulate(
     map_xy: F64,

@@ -19,7 +19,7 @@ pub(crate) use errors::{
     engine_to_py, json_error_in_python_terms, make_input_types, to_py, InputError,
     NotConvergedError, PrestonError, SolverError, INPUT_TYPES,
 };
-pub(crate) use progress::PyProgress;
+pub(crate) use progress::{interruptible, PyProgress};
 pub(crate) use solve::SolveResult;
 
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1, PyReadonlyArray2};
@@ -294,6 +294,22 @@ fn nc(
     Ok((check.written.text, check.written.feed_blocks))
 }
 
+/// The `preston` command line run in this process on `argv` (the program name first), with the
+/// interpreter released: the code of the `preston` binary, for the package's console script.
+/// Returns the exit code (0 ok, 2 bad input, 3 not converged).
+#[pyfunction]
+fn run_cli(py: Python<'_>, argv: Vec<std::ffi::OsString>) -> u8 {
+    py.detach(|| preston_cli::run_from_args(argv))
+}
+
+/// Writes the sample job into `dir` (`preston sample --out DIR`); returns its job file.
+#[pyfunction]
+#[pyo3(signature = (dir, overwrite = false))]
+fn sample_job(py: Python<'_>, dir: PathBuf, overwrite: bool) -> PyResult<PathBuf> {
+    py.detach(|| preston_io::sample::write_sample(&dir, overwrite))
+        .map_err(to_py)
+}
+
 /// An engine error raised on purpose, for the exception-mapping tests.
 #[pyfunction]
 fn _raise_numerical() -> PyResult<()> {
@@ -344,6 +360,8 @@ fn _preston(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(workflow::iterate, m)?)?;
     m.add_function(wrap_pyfunction!(shop::calibrate, m)?)?;
     m.add_function(wrap_pyfunction!(shop::shop, m)?)?;
+    m.add_function(wrap_pyfunction!(run_cli, m)?)?;
+    m.add_function(wrap_pyfunction!(sample_job, m)?)?;
     m.add_function(wrap_pyfunction!(_raise_numerical, m)?)?;
     Ok(())
 }

@@ -425,15 +425,9 @@ pub(crate) fn solve(
     };
     let job_path = PathBuf::from(job_name);
     let observer = progress.map(PyProgress::new);
-    let solved = py.detach(|| {
-        with_threads(threads, || {
-            let obs: &dyn Observer = match &observer {
-                Some(o) => o,
-                None => &Silent,
-            };
-            run_solve(&job, &job_path, arrays, obs)
-        })
-    })?;
+    let solved = crate::interruptible(py, observer.as_ref(), |obs| {
+        with_threads(threads, || run_solve(&job, &job_path, arrays, obs))
+    })??;
     if let Some(e) = observer.as_ref().and_then(PyProgress::take_error) {
         return Err(e);
     }

@@ -475,18 +475,12 @@ pub(crate) fn iterate<'py>(
     let part: VirtualPart = serde_json::from_value(part)
         .map_err(|e| InputError::new_err(format!("virtual part: {e}")))?;
     let observer = progress.map(PyProgress::new);
-    let outcome = py.detach(|| {
-        crate::with_threads(threads, || {
-            let obs: &dyn Observer = match &observer {
-                Some(o) => o,
-                None => &Silent,
-            };
-            match &measured {
-                Some(m) => plan_measured(&surface, m, &tif, &loop_settings, iteration, obs),
-                None => run_virtual(&part, &tif, &loop_settings, obs),
-            }
+    let outcome = crate::interruptible(py, observer.as_ref(), |obs| {
+        crate::with_threads(threads, || match &measured {
+            Some(m) => plan_measured(&surface, m, &tif, &loop_settings, iteration, obs),
+            None => run_virtual(&part, &tif, &loop_settings, obs),
         })
-    })?;
+    })??;
     if let Some(e) = observer.as_ref().and_then(PyProgress::take_error) {
         return Err(e);
     }

@@ -61,6 +61,10 @@ pub enum Error {
         /// What the back end reported.
         why: String,
     },
+    /// The caller asked for the work to stop ([`crate::observer::Observer::cancelled`]) and it
+    /// stopped before finishing: there is no result.
+    #[error("cancelled before finishing")]
+    Cancelled,
 }
 
 /// Result alias of the engine library.

@@ -53,6 +53,21 @@ pub trait Observer: Sync {
     fn iteration(&self, _info: &IterationInfo) {}
     /// A step of the set-up stage ([`crate::setup`]) runs.
     fn setup_step(&self, _step: SetupStep) {}
+    /// Whether the caller wants the work stopped (an interrupt). The long loops ask at their
+    /// progress reports and between stages, and then end with [`crate::Error::Cancelled`]
+    /// instead of a result. Called often: it must be cheap.
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+/// [`crate::Error::Cancelled`] once `observer` asks for the work to stop.
+pub fn check_cancelled(observer: &dyn Observer) -> crate::Result<()> {
+    if observer.cancelled() {
+        Err(crate::Error::Cancelled)
+    } else {
+        Ok(())
+    }
 }
 
 /// An observer that ignores everything.

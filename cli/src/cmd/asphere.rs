@@ -7,7 +7,6 @@ use preston_solver::machine::asphere::{
     program, AsphereJob, AsphereProfile, EdgeCorrection, FeedCompensation, SpeedLaw,
 };
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Arguments of `preston asphere`.
 #[derive(Debug, clap::Args)]
@@ -92,7 +91,7 @@ pub struct Args {
 }
 
 /// Runs `preston asphere`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let n_min_rpm = match (args.n_min_rpm, args.match_x_mm, args.match_rpm) {
         (Some(n), _, _) => n,
         (None, Some(x), Some(s)) => {
@@ -163,5 +162,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         },
         args.out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -3,7 +3,6 @@
 use preston_io::bench::{self, BenchRow};
 use preston_solver::dwell::{OperatorChoice, Settings, SolverChoice};
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Solvers to compare.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -57,7 +56,7 @@ pub struct Args {
 }
 
 /// Runs `preston bench`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let mut sizes = args.sizes.clone();
     if args.large {
         sizes.push(1_000_000);
@@ -128,7 +127,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "  warning: {unconverged} of {} solves did not converge",
             rows.len()
         );
-        return Ok(ExitCode::from(super::EXIT_NOT_CONVERGED));
+        return Ok(super::EXIT_NOT_CONVERGED);
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -12,7 +12,6 @@ use preston_io::pipeline::load_tif;
 use preston_solver::calibrate::CalibrationSettings;
 use preston_solver::machine::gcode::motion::Kinematics;
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Arguments of `preston calibrate`.
 #[derive(Debug, clap::Args)]
@@ -80,7 +79,7 @@ pub enum ModelArg {
 }
 
 /// Runs `preston calibrate`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     args.output.apply();
     let job = match &args.job {
         Some(path) => Job::load_with_profile(Some(path), None)?,
@@ -164,8 +163,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }))?;
     }
     Ok(if calibrated.calibration.status.is_converged() {
-        ExitCode::SUCCESS
+        crate::EXIT_OK
     } else {
-        ExitCode::from(EXIT_NOT_CONVERGED)
+        EXIT_NOT_CONVERGED
     })
 }

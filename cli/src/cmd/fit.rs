@@ -6,7 +6,6 @@ use preston_io::surface::{read_points, stage_columns_csv, stage_surface, FitSumm
 use preston_solver::fit::{fit_xy_polynomial, ConicBase, FitSettings};
 use preston_solver::surface::Surface;
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
 
@@ -50,7 +49,7 @@ pub struct Args {
 }
 
 /// Runs `preston fit`: prints the summary JSON (`rms_nm`, `pv_nm`, `terms`, ...) on stdout.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let pts = read_points(&args.points)?;
     let settings = FitSettings {
         order: args.order,
@@ -107,7 +106,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             fit.status,
             fit.iterations
         );
-        return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+        return Ok(EXIT_NOT_CONVERGED);
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -26,7 +26,6 @@ use preston_solver::registration::{
 use preston_solver::surface::{Plane, Surface};
 use preston_solver::tif::Tif;
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
 
@@ -188,7 +187,7 @@ fn triple(v: &[f64], what: &str) -> anyhow::Result<[f64; 3]> {
 }
 
 /// Runs `preston iterate`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let calibration = args
         .calibration
         .as_deref()
@@ -359,7 +358,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 f.detail
             );
         }
-        return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+        return Ok(EXIT_NOT_CONVERGED);
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -10,7 +10,6 @@ use preston_solver::map::HeightStats;
 use preston_solver::modal::{self, Basis, FormRemoval};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 /// Arguments of `preston map`.
 #[derive(Debug, clap::Args)]
@@ -71,7 +70,7 @@ pub struct FitArgs {
 }
 
 /// Runs `preston map`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     match args.command {
         MapCommand::Convert(a) => convert(a, false),
         MapCommand::Detrend(a) => convert(a, true),
@@ -122,7 +121,7 @@ struct ConvertSummary<'a> {
     removed: Option<&'a FormRemoval>,
 }
 
-fn convert(a: ConvertArgs, detrend: bool) -> anyhow::Result<ExitCode> {
+fn convert(a: ConvertArgs, detrend: bool) -> anyhow::Result<u8> {
     if detrend && a.input.remove.as_ref().is_none_or(|r| r.0.is_empty()) {
         bail!("map detrend needs --remove (for example piston,tilt,power)");
     }
@@ -148,7 +147,7 @@ fn convert(a: ConvertArgs, detrend: bool) -> anyhow::Result<ExitCode> {
         s.pv_nm,
         a.out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }
 
 /// The JSON printed by `map fit`.
@@ -166,7 +165,7 @@ struct FitSummary {
     pv_nm: f64,
 }
 
-fn fit(a: FitArgs) -> anyhow::Result<ExitCode> {
+fn fit(a: FitArgs) -> anyhow::Result<u8> {
     let r = read(&a.map, &a.input, a.pitch)?;
     let m = &r.map;
     let basis: Basis = a.basis;
@@ -201,5 +200,5 @@ fn fit(a: FitArgs) -> anyhow::Result<ExitCode> {
         pv_nm: s.pv_nm,
     };
     crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

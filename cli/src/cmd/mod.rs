@@ -10,6 +10,7 @@ pub mod map_input;
 pub mod nc;
 pub mod path;
 pub mod register;
+pub mod sample;
 pub mod shop;
 pub mod shop_tool_args;
 pub mod simulate;

@@ -13,7 +13,6 @@ use preston_solver::machine::profile::{Coolant, MachineProfile, WorkOffset};
 use preston_solver::machine::{Flat, PartGeometry};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 /// Arguments of `preston nc`. Flags override the job file.
 #[derive(Debug, clap::Args)]
@@ -158,7 +157,7 @@ fn profile_with_flags(args: &Args, job: &Job) -> MachineProfile {
 }
 
 /// Runs `preston nc`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     args.output.apply();
     let job = Job::load_with_profile(args.job.as_deref(), args.machine.as_deref())?;
     let points_out = args
@@ -248,7 +247,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "program_check": program_check_summary(&check),
         }))?;
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }
 
 /// Prints what the program as written does with the plan (`preston nc` and `preston solve`).

@@ -18,7 +18,6 @@ use preston_solver::path::spiral::archimedes;
 use preston_solver::path::{project, DwellPath, PathSummary, ProjectedPath};
 use preston_solver::surface::Surface;
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 /// Arguments of `preston path`.
 #[derive(Debug, clap::Args)]
@@ -319,7 +318,7 @@ fn raster_path(
 }
 
 /// Runs `preston path`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let (summary, out) = match args.kind {
         Kind::Raster(a) => {
             let surface = load_surface(&a.common.surface)?;
@@ -423,5 +422,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let summary = serde_json::to_value(&summary)?;
     crate::outln!("{}", serde_json::to_string_pretty(&summary)?);
     crate::errln!("preston path: wrote {}", out.display());
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -9,7 +9,6 @@ use preston_solver::registration::{
     INSTALLATION_RANGE_MM,
 };
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
 
@@ -67,7 +66,7 @@ pub struct Args {
 }
 
 /// Runs `preston register`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let surface = read_surface(&args.surface)?;
     let pts = read_points(&args.points)?;
     let mut lock = [false; 6];
@@ -165,7 +164,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             reg.status,
             reg.iterations
         );
-        return Ok(ExitCode::from(EXIT_NOT_CONVERGED));
+        return Ok(EXIT_NOT_CONVERGED);
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -10,7 +10,6 @@ use preston_io::shop::{visit, write_visit, ShopInputs};
 use preston_solver::iterate::shop::Interferometer;
 use preston_solver::machine::gcode::motion::Kinematics;
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Arguments of `preston shop`.
 #[derive(Debug, clap::Args)]
@@ -49,7 +48,7 @@ pub struct Args {
 }
 
 /// Runs `preston shop`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     args.output.apply();
     let inputs = ShopInputs {
         surface: preston_io::metrology::MapSource {
@@ -85,5 +84,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.output.json {
         print_json(&serde_json::json!({"command": "shop", "out": args.out, "shop": r}))?;
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

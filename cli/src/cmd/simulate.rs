@@ -20,7 +20,6 @@ use preston_solver::simulate::Motion;
 use preston_solver::tif::Tif;
 use std::path::Path;
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Motion model on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -169,7 +168,7 @@ impl Inputs {
 }
 
 /// Runs `preston simulate`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     args.output.apply();
     let inputs = Inputs::of(&args)?;
     if let Some(program) = &args.program {
@@ -217,11 +216,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "report": r,
         }))?;
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }
 
 /// `preston simulate --program`: the program as the machine runs it.
-fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<ExitCode> {
+fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<u8> {
     let job = &inputs.job;
     let kinematics = Kinematics::of_limit(
         args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2),
@@ -286,5 +285,5 @@ fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<E
             "report": r,
         }))?;
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

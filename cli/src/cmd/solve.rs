@@ -17,7 +17,6 @@ use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::LineAxis;
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 use super::EXIT_NOT_CONVERGED;
 
@@ -195,7 +194,7 @@ fn run_tools(
     out: &std::path::Path,
     accept_best: bool,
     output: OutputArgs,
-) -> anyhow::Result<ExitCode> {
+) -> anyhow::Result<u8> {
     let bars = Bars::new();
     let solved = preston_io::tools::solve_tools(job, job_path, &bars)?;
     preston_io::tools::write_tool_outputs(&solved, out, Some(&job.input_files()))
@@ -242,7 +241,7 @@ fn finish(
     out: &std::path::Path,
     report: &preston_io::report::Report,
     check: Option<&ProgramCheck>,
-) -> anyhow::Result<ExitCode> {
+) -> anyhow::Result<u8> {
     if !converged {
         crate::errln!(
             "  warning: the solver did not converge (status {}); outputs hold the best iterate",
@@ -267,11 +266,11 @@ fn finish(
         }
         print_json(&summary)?;
     }
-    Ok(ExitCode::from(code))
+    Ok(code)
 }
 
 /// Runs `preston solve`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let plots = args.plots;
     let output = args.output;
     output.apply();

@@ -5,7 +5,6 @@ use anyhow::{bail, Context};
 use preston_io::surface::{read_surface, stage_columns_csv};
 use preston_io::table::{read_table, ColumnSpec};
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Arguments of `preston surface`.
 #[derive(Debug, clap::Args)]
@@ -40,7 +39,7 @@ pub struct Args {
 const MAX_GRID_POINTS: f64 = 1e8;
 
 /// Runs `preston surface`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let surface = read_surface(&args.surface)?;
     let (x, y) = match &args.points {
         Some(p) => {
@@ -121,5 +120,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     )?
     .commit()?;
     crate::errln!("preston surface: {n} points; wrote {}", args.out.display());
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

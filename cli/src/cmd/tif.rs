@@ -10,7 +10,6 @@ use preston_solver::tif::{
     TifSummary,
 };
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 /// Arguments of `preston tif`.
 #[derive(Debug, clap::Args)]
@@ -136,7 +135,7 @@ struct GridArgs {
 }
 
 /// Runs `preston tif`.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args) -> anyhow::Result<u8> {
     let (SampledTif { grid, summary }, out) = match args.kind {
         Kind::Spot(a) => return super::tif_spot::run(a),
         Kind::Hertz(a) => {
@@ -193,7 +192,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         summary.ny,
         out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }
 
 /// Writes the grid as `x_mm,y_mm,rate_nm_per_s`, row-major, atomically.

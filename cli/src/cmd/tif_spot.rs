@@ -5,7 +5,6 @@ use anyhow::{bail, Context};
 use preston_solver::modal::FormTerm;
 use preston_solver::tif::spot::{fit_gaussian, tif_from_spot, SpotOptions, SpotSummary};
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 /// Fitted model on the command line.
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -47,7 +46,7 @@ pub struct SpotArgs {
 }
 
 /// Runs `preston tif spot`.
-pub fn run(a: SpotArgs) -> anyhow::Result<ExitCode> {
+pub fn run(a: SpotArgs) -> anyhow::Result<u8> {
     let remove = a
         .input
         .remove
@@ -98,5 +97,5 @@ pub fn run(a: SpotArgs) -> anyhow::Result<ExitCode> {
         summary.fwhm_mm,
         a.out.display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(crate::EXIT_OK)
 }

@@ -949,6 +949,80 @@ mod tests {
         v.iter().fold(0.0_f64, |a, x| a.max(x.abs()))
     }
 
+    /// Says "cancel" from its `after`-th solver iteration report on, and counts the reports.
+    struct CancelAfter {
+        after: usize,
+        reports: std::sync::atomic::AtomicUsize,
+    }
+
+    impl crate::observer::Observer for CancelAfter {
+        fn iteration(&self, _: &crate::observer::IterationInfo) {
+            self.reports
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        fn cancelled(&self) -> bool {
+            self.reports.load(std::sync::atomic::Ordering::Relaxed) >= self.after
+        }
+    }
+
+    /// A solve whose observer asks for a stop ends with `Error::Cancelled` at its next progress
+    /// report, long before the run would have ended, with every first-order method; the
+    /// assembly and the direct removal sums of a cancelled observer return no result either.
+    #[test]
+    fn a_cancelled_solve_stops_at_its_next_report_with_no_result() {
+        let (mx, my, z) = map();
+        let tif = tif();
+        let (dx, dy) = lattice_raster();
+        for method in [
+            FirstOrderMethod::Fista,
+            FirstOrderMethod::NewtonCg,
+            FirstOrderMethod::Lbfgs,
+        ] {
+            let settings = Settings {
+                solver: SolverChoice::FirstOrder,
+                first_order_method: method,
+                // Not met within the iteration limit: the whole run reports many times.
+                first_order_tolerance: 1e-12,
+                first_order_max_iterations: 2_000,
+                ..Settings::default()
+            };
+            let op = FftOperator::new(&mx, &my, &dx, &dy, 0.4, &tif).unwrap();
+            let fft = problem(op, &z);
+            let whole = CancelAfter {
+                after: usize::MAX,
+                reports: Default::default(),
+            };
+            solve(&fft, &settings, &whole).unwrap();
+            let uncancelled = whole.reports.into_inner();
+            assert!(uncancelled > 6, "{method:?}: {uncancelled} reports");
+            let cut = CancelAfter {
+                after: 3,
+                reports: Default::default(),
+            };
+            let e = solve(&fft, &settings, &cut).unwrap_err();
+            assert_eq!(e, Error::Cancelled, "{method:?}");
+            let reports = cut.reports.into_inner();
+            assert!(
+                reports <= 4,
+                "{method:?}: {reports} reports after the cancel at 3"
+            );
+        }
+        let at_once = CancelAfter {
+            after: 0,
+            reports: Default::default(),
+        };
+        assert_eq!(
+            InfluenceMatrix::assemble(&mx, &my, &dx, &dy, &tif, &at_once).unwrap_err(),
+            Error::Cancelled
+        );
+        let t = dwell(dx.len());
+        assert_eq!(
+            crate::influence::direct::removal_nm(&mx, &my, &dx, &dy, &t, &tif, &at_once)
+                .unwrap_err(),
+            Error::Cancelled
+        );
+    }
+
     /// The first-order solver through the FFT operator's two routes for `R^T R t` (the lattice,
     /// and the autocorrelation less the band around the map) reaches the QP's optimum on the
     /// assembled `R`, a raster on a sub-lattice reaching past the map.

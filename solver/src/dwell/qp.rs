@@ -268,6 +268,7 @@ fn run_scaled(
             },
         )?;
     solver.solve();
+    crate::observer::check_cancelled(observer)?;
     let sol = &solver.solution;
     let n = problem.n();
     let t: Vec<f64> = sol.x.iter().take(n).map(|v| v * scale.t_s).collect();

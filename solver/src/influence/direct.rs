@@ -68,6 +68,10 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
     h.par_chunks_mut(POINTS_PER_TASK)
         .enumerate()
         .for_each(|(c, chunk)| {
+            // Cancelled: the remaining chunks are skipped, and the sums are not returned.
+            if observer.cancelled() {
+                return;
+            }
             for (k, hi) in chunk.iter_mut().enumerate() {
                 let i = c * POINTS_PER_TASK + k;
                 let (px, py) = (map_x_mm[i], map_y_mm[i]);
@@ -83,6 +87,7 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
         });
     observer.advance(Stage::Assembly, n as u64);
     observer.finish(Stage::Assembly);
+    crate::observer::check_cancelled(observer)?;
     Ok(h)
 }
 
@@ -126,6 +131,7 @@ pub fn removals_nm<T: InfluenceFunction>(
             }
         },
     );
+    crate::observer::check_cancelled(observer)?;
     Ok(sums)
 }
 
@@ -133,7 +139,8 @@ pub fn removals_nm<T: InfluenceFunction>(
 /// `j` within `search_radius_mm` of it in plan, in the strip index's fixed order, calls
 /// `add(i, j, x_i - X_j, y_i - Y_j, sums)` with map point `i`'s `kernels` sums. Each map point is
 /// summed by one task, so the sums do not depend on the thread count. Returns the sums kernel by
-/// kernel. Lengths are the caller's to check.
+/// kernel. Lengths are the caller's to check. Once `observer` asks for a stop the remaining map
+/// points are skipped: the caller then returns [`Error::Cancelled`], not the sums.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn sum_near<F>(
     map_x_mm: &[f64],
@@ -159,6 +166,9 @@ where
     h.par_chunks_mut(POINTS_PER_TASK * k)
         .enumerate()
         .for_each(|(c, chunk)| {
+            if observer.cancelled() {
+                return;
+            }
             for (p, sums) in chunk.chunks_mut(k).enumerate() {
                 let i = c * POINTS_PER_TASK + p;
                 let (px, py) = (map_x_mm[i], map_y_mm[i]);

@@ -158,6 +158,10 @@ impl InfluenceMatrix {
             .into_par_iter()
             .map(|(columns, rows, vals)| {
                 let count = columns.len();
+                // Cancelled: the remaining columns are left empty, and no matrix is returned.
+                if observer.cancelled() {
+                    return vec![0; count];
+                }
                 let lengths = fill_columns(
                     &index,
                     dwell_x_mm,
@@ -173,6 +177,7 @@ impl InfluenceMatrix {
                 lengths
             })
             .collect();
+        crate::observer::check_cancelled(observer)?;
 
         // Close the gaps left by dropped zeros (none for a Gaussian inside its truncation radius).
         let mut col_offsets = Vec::with_capacity(n + 1);

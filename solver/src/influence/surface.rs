@@ -327,7 +327,7 @@ where
         .collect::<Result<_>>()?;
     let (origin, axes) = dwell_frames(surface, dwell_x_mm, dwell_y_mm, frame)?;
     let r2: Vec<f64> = radii_mm.iter().map(|r| r * r).collect();
-    Ok(super::direct::sum_near(
+    let sums = super::direct::sum_near(
         map_x_mm,
         map_y_mm,
         dwell_x_mm,
@@ -347,7 +347,9 @@ where
                 }
             }
         },
-    ))
+    );
+    crate::observer::check_cancelled(observer)?;
+    Ok(sums)
 }
 
 #[cfg(test)]

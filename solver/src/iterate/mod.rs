@@ -883,6 +883,7 @@ pub fn run_virtual(
     let mut learned: Option<LearnedTool> = None;
     let mut walk = 1.0;
     for k in 0..settings.max_iterations {
+        crate::observer::check_cancelled(observer)?;
         let mut row = record(k, &measured.map);
         if meets(settings, &row) {
             records.push(row);

@@ -4,6 +4,7 @@
 
 use super::*;
 use crate::dwell::first_order::FIT_RMS_SETTLED_NM;
+use crate::observer::check_cancelled;
 
 /// Most correction passes against the executed program.
 pub const MAX_CORRECTION_PASSES: usize = 4;
@@ -206,6 +207,7 @@ impl Setup {
         if !solution_is_finite(&solution, &removal_nm) {
             solution.status = Status::NumericalError;
         }
+        check_cancelled(observer)?;
         let approximation = self.exact_removal(problem, &solution.dwell_s, observer)?;
         if let Some(a) = &approximation {
             // The report gives the exact residual of the dwell returned, and where the problem
@@ -231,6 +233,7 @@ impl Setup {
             self.accel.as_ref().map(|l| l.a_max_mm_per_s2),
             self.corner_angle_deg,
         )?;
+        check_cancelled(observer)?;
         // The sensitivity of the executed motion, or of the plan's own where no program is
         // executed.
         let sensitivity = match &executed {
@@ -327,6 +330,7 @@ impl Setup {
         let (mut solution, mut removal_all) = (solution, removal_all);
         let m = self.map.len();
         for _ in 0..MAX_CORRECTION_PASSES {
+            check_cancelled(observer)?;
             // The executed departure from the plan (the nominal block's removal over its
             // scale), on the measured rows of every scenario's block, each at its scale (one
             // unscaled block unless the plan is robust).
@@ -343,7 +347,9 @@ impl Setup {
             let s =
                 dwell::solve_validated(&pass, &self.settings, observer, Some(&solution.dwell_s))?;
             // A pass whose plan cannot be written as a program is not kept.
-            let Ok(e) = self.executed_at_limit(&s.dwell_s, limits.a_max_mm_per_s2, observer) else {
+            let executed = self.executed_at_limit(&s.dwell_s, limits.a_max_mm_per_s2, observer);
+            check_cancelled(observer)?;
+            let Ok(e) = executed else {
                 break;
             };
             if e.after.rms_nm >= current.after.rms_nm * (1.0 - PASS_GAIN) {
@@ -361,6 +367,7 @@ impl Setup {
                 break;
             }
         }
+        check_cancelled(observer)?;
         Ok((solution, removal_all, Some(Ok(current))))
     }
 

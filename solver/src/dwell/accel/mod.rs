@@ -587,6 +587,7 @@ impl Limited<'_> {
                 )
             }))
         })?;
+        crate::observer::check_cancelled(observer)?;
         // The iteration ends on the constraint set up to rounding; should it end further off,
         // the squared speeds are clamped into the reachable chain, which one feed schedule
         // within the bounds always satisfies, so the limit holds in what is returned. The
@@ -719,6 +720,7 @@ fn scp(
     let mut qp_iterations = 0;
     observer.start(Stage::Loop, limits.max_iterations as u64);
     while iterations < limits.max_iterations {
+        crate::observer::check_cancelled(observer)?;
         iterations += 1;
         let (trust, rows) = linearise(kin, &t, bounds, tau)?;
         let (st, t_new, it) = qp::solve_with_rows(problem, &trust, &rows, settings, observer)?;

@@ -471,6 +471,11 @@ pub(crate) fn minimise(
                 status = Status::TimeLimit;
                 break;
             }
+            // Cancelled: the caller returns `Error::Cancelled`, not this result.
+            if observer.cancelled() {
+                status = Status::Stalled;
+                break;
+            }
         }
     }
     observer.finish(Stage::Loop);

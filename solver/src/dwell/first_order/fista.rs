@@ -62,7 +62,7 @@ pub(super) fn fista(it: Iteration<'_, '_>, mut x: Vec<f64>) -> Outcome {
                 y.copy_from_slice(&x);
             }
             best_f = best_f.min(cert.f);
-            if let Some(s) = limits.stop(&cert, it) {
+            if let Some(s) = stop_or_cancel(limits, observer, &cert, it) {
                 status = s;
                 break;
             }

@@ -54,7 +54,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
         objective: cert.f,
         kkt_residual: Some(cert.kkt),
     });
-    if let Some(st) = limits.stop(&cert, it) {
+    if let Some(st) = stop_or_cancel(limits, observer, &cert, it) {
         return (st, x, it, cert);
     }
     while it < limits.max_it {
@@ -76,7 +76,8 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             // each step), so its KKT residual tells when to form the certificate that decides.
             let carried_kkt = carried_kkt2.sqrt() / limits.kkt_norm.at(carried_f);
             let report = reports.due(it);
-            let out_of_time = limits.began.elapsed().as_secs_f64() > limits.time_limit_s;
+            let out_of_time =
+                limits.began.elapsed().as_secs_f64() > limits.time_limit_s || observer.cancelled();
             if (carried_kkt <= limits.tol && limits.recheck_due(it))
                 || (periodic && report)
                 || out_of_time
@@ -86,7 +87,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
                 exact_at = it;
                 carried_f = cert.f;
                 reports.report(observer, it, (cert.f, cert.kkt), true);
-                if let Some(st) = limits.stop(&cert, it) {
+                if let Some(st) = stop_or_cancel(limits, observer, &cert, it) {
                     status = st;
                     break;
                 }
@@ -111,7 +112,7 @@ pub(super) fn projected_lbfgs(it: Iteration<'_, '_>, mut x: Vec<f64>, mem: usize
             let fresh = it == exact_at;
             exact_at = it;
             carried_f = cert.f;
-            if let Some(st) = limits.stop(&cert, it) {
+            if let Some(st) = stop_or_cancel(limits, observer, &cert, it) {
                 status = st;
                 break;
             }

@@ -689,6 +689,7 @@ fn minimise_here(request: &Request<'_>) -> Result<FirstOrderResult> {
         FirstOrderMethod::Lbfgs => projected_lbfgs(iteration, x, mem),
     };
     observer.finish(Stage::Solve);
+    crate::observer::check_cancelled(observer)?;
     let dwell_s: Vec<f64> = x.iter().zip(&data.s).map(|(w, s)| w * s).collect();
     Ok(FirstOrderResult {
         status,
@@ -764,6 +765,20 @@ pub const FIT_RMS_FALL_TOLERANCE: f64 = 0.025;
 /// A fall of the fit's RMS over the last half of the iterations, nm, that counts as settled
 /// whatever its share: ten picometres, a tenth or less of an interferometer's repeatability.
 pub const FIT_RMS_SETTLED_NM: f64 = 0.01;
+
+/// [`Limits::stop`], or a stop once `observer` asks for the work to be cancelled: the status is
+/// then only the loop's exit, the solve returns [`Error::Cancelled`] instead of its result.
+fn stop_or_cancel(
+    limits: &Limits,
+    observer: &dyn Observer,
+    cert: &Certificate,
+    it: usize,
+) -> Option<Status> {
+    if observer.cancelled() {
+        return Some(Status::Stalled);
+    }
+    limits.stop(cert, it)
+}
 
 /// Stopping rule shared by the iterations.
 struct Limits {

@@ -58,7 +58,7 @@ pub(super) fn newton_cg(
             objective: cert.f,
             kkt_residual: Some(cert.kkt),
         });
-        if let Some(s) = limits.stop(&cert, it) {
+        if let Some(s) = stop_or_cancel(limits, observer, &cert, it) {
             status = s;
             break;
         }
