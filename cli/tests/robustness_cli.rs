@@ -335,7 +335,13 @@ fn a_killed_solve_leaves_no_partial_output() {
     for e in std::fs::read_dir(&out).unwrap() {
         let name = e.unwrap().file_name().to_string_lossy().to_string();
         assert!(
-            ["dwell.csv", "residual.csv", "report.json"].contains(&name.as_str())
+            [
+                "dwell.csv",
+                "residual.csv",
+                "residual_model.csv",
+                "report.json"
+            ]
+            .contains(&name.as_str())
                 || (name.starts_with('.') && name.ends_with(".tmp")),
             "unexpected file {name}"
         );

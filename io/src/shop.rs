@@ -78,7 +78,7 @@ pub struct ShopRecord {
 
 fn rms_without_plane(x: &[f64], y: &[f64], z: &[f64]) -> Result<f64> {
     let mut z = z.to_vec();
-    preston_solver::iterate::shop::remove_plane(x, y, &mut z).map_err(Error::Solver)?;
+    preston_solver::map::remove_plane(x, y, &mut z).map_err(Error::Solver)?;
     Ok((z.iter().map(|v| v * v).sum::<f64>() / z.len().max(1) as f64).sqrt())
 }
 

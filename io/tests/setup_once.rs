@@ -41,11 +41,17 @@ fn the_sample_job_is_resolved_once_and_its_removal_and_feeds_computed_once() {
             SetupStep::FeedSchedule,
         ]
     );
-    // The outcome's removal is the one the report and the files use: R t on the measured map.
+    // The outcome's model removal is R t on the measured map, computed once; the headline's
+    // (report and files) is the executed program's, this job having an acceleration limit.
     let removal = solved
         .prepared
         .problem
         .removal_nm(&solved.solution().dwell_s)
         .unwrap();
-    assert_eq!(&removal[..solved.prepared.map().len()], solved.removal_nm());
+    assert_eq!(
+        &removal[..solved.prepared.map().len()],
+        &solved.outcome.removal_nm[..]
+    );
+    let executed = preston_io::residual::executed_removal_nm(&solved.outcome);
+    assert_eq!(executed, Some(solved.removal_nm()));
 }

@@ -14,8 +14,7 @@
 use super::forward::{ContactMotion, LatticeRemoval};
 use super::tool::{SpotFootprint, ToolFigures};
 use crate::error::{Error, Result};
-use crate::iterate::shop::remove_plane;
-use crate::map::HeightStats;
+use crate::map::{remove_plane, HeightStats};
 use crate::rng::SplitMix64;
 use crate::tif::{GridTif, InfluenceFunction};
 use serde::{Deserialize, Serialize};

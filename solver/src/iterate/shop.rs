@@ -16,6 +16,7 @@
 
 use crate::calibrate::{ContactMotion, SpotFootprint, ToolFigures, TransformedTif};
 use crate::error::{Error, Result};
+use crate::map::remove_plane;
 use crate::rng::SplitMix64;
 use crate::tif::InfluenceFunction;
 use serde::{Deserialize, Serialize};
@@ -242,35 +243,4 @@ impl Interferometer {
         remove_plane(x_mm, y_mm, &mut z)?;
         Ok(z)
     }
-}
-
-/// Removes the least-squares plane `a + b x + c y` from `z`.
-pub fn remove_plane(x_mm: &[f64], y_mm: &[f64], z: &mut [f64]) -> Result<()> {
-    let n = z.len() as f64;
-    if z.len() < 3 {
-        return Err(Error::invalid("map", "a plane needs at least three points"));
-    }
-    let (mx, my) = (x_mm.iter().sum::<f64>() / n, y_mm.iter().sum::<f64>() / n);
-    let mz = z.iter().sum::<f64>() / n;
-    let (mut sxx, mut sxy, mut syy, mut sxz, mut syz) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for i in 0..z.len() {
-        let (dx, dy, dz) = (x_mm[i] - mx, y_mm[i] - my, z[i] - mz);
-        sxx += dx * dx;
-        sxy += dx * dy;
-        syy += dy * dy;
-        sxz += dx * dz;
-        syz += dy * dz;
-    }
-    let det = sxx * syy - sxy * sxy;
-    let (b, c) = if det.abs() > 1e-12 * (sxx * syy).max(f64::MIN_POSITIVE) {
-        ((sxz * syy - syz * sxy) / det, (syz * sxx - sxz * sxy) / det)
-    } else if sxx > syy {
-        (sxz / sxx.max(f64::MIN_POSITIVE), 0.0)
-    } else {
-        (0.0, syz / syy.max(f64::MIN_POSITIVE))
-    };
-    for i in 0..z.len() {
-        z[i] -= mz + b * (x_mm[i] - mx) + c * (y_mm[i] - my);
-    }
-    Ok(())
 }
