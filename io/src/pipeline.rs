@@ -404,6 +404,7 @@ pub fn calibrated_tif_warning(c: &CalibrationRecord, tif: &Tif) -> Option<String
     }
 }
 
+use preston_solver::iterate::learned::next_run_rate_sigma;
 pub use preston_solver::iterate::learned::RUN_TO_RUN_RATE_SIGMA;
 
 /// How well the tool of the next run is known: a calibration's figures and their uncertainty
@@ -413,7 +414,7 @@ pub use preston_solver::iterate::learned::RUN_TO_RUN_RATE_SIGMA;
 fn tool_uncertainty(job: &Job, calibration: Option<&CalibrationRecord>) -> ToolUncertainty {
     match calibration {
         Some(c) => ToolUncertainty {
-            rate_sigma: (c.rate_factor_sigma / c.rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA),
+            rate_sigma: next_run_rate_sigma(c.rate_factor, c.rate_factor_sigma),
             width_sigma: c.width_factor_sigma / c.width_factor,
             offset_x_sigma_mm: c.offset_x_mm_sigma,
             offset_y_sigma_mm: c.offset_y_mm_sigma,
@@ -482,14 +483,7 @@ fn expected_of(prepared: &Prepared, outcome: &Outcome) -> Result<Option<Expected
         }
         _ => {
             let dwell = &outcome.solution.dwell_s;
-            let mut time = 0.0;
-            let time_s = dwell
-                .iter()
-                .map(|t| {
-                    time += t;
-                    time - t / 2.0
-                })
-                .collect();
+            let time_s = preston_solver::iterate::learned::mid_times_s(dwell);
             (
                 ContactMotion {
                     x_mm: setup.path.x_mm().to_vec(),

@@ -13,7 +13,7 @@ use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::influence::surface::TifFrame;
-use preston_solver::iterate::learned::RUN_TO_RUN_RATE_SIGMA;
+use preston_solver::iterate::learned::next_run_rate_sigma;
 use preston_solver::iterate::{band::BAND_MIN_GAIN, CorrectableBand, MIN_GAIN_NM};
 use preston_solver::iterate::{
     plan_measured, run_virtual, Disturbances, FormErrorModel, LoopSettings, VirtualPart,
@@ -271,7 +271,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         rate_uncertainty: calibration
             .as_ref()
             .map_or(LoopSettings::default().rate_uncertainty, |c| {
-                (c.rate_factor_sigma / c.rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA)
+                next_run_rate_sigma(c.rate_factor, c.rate_factor_sigma)
             }),
         register: RegisterSettings {
             installation_range_mm: args.installation_range_mm,

@@ -48,13 +48,34 @@ impl LearnedTool {
     /// [`RUN_TO_RUN_RATE_SIGMA`] in quadrature.
     pub fn rate_sigma(&self) -> f64 {
         let c = &self.calibration;
-        (c.sigma.rate_factor / c.figures.rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA)
+        next_run_rate_sigma(c.figures.rate_factor, c.sigma.rate_factor)
     }
 
     /// The calibrated drift of the rate, relative per hour of program time.
     pub fn drift_per_hour(&self) -> f64 {
         self.calibration.figures.drift_per_hour
     }
+}
+
+/// Relative standard deviation of the next run's rate after a calibration that found the rate
+/// factor `rate_factor` with standard deviation `rate_factor_sigma`: the calibration's relative
+/// one with [`RUN_TO_RUN_RATE_SIGMA`] in quadrature.
+pub fn next_run_rate_sigma(rate_factor: f64, rate_factor_sigma: f64) -> f64 {
+    (rate_factor_sigma / rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA)
+}
+
+/// The program time at the middle of each dwell point's dwell, `Σ_{i<j} t_i + t_j / 2`, s, the
+/// dwell points run in their order.
+pub fn mid_times_s(dwell_s: &[f64]) -> Vec<f64> {
+    let mut start = 0.0;
+    dwell_s
+        .iter()
+        .map(|&t| {
+            let at = start + t / 2.0;
+            start += t;
+            at
+        })
+        .collect()
 }
 
 /// The contact motion of a planned run (module documentation).
@@ -65,17 +86,16 @@ pub fn run_motion(path: &DwellPath, stretches: &Stretches, dwell_s: &[f64]) -> C
         dwell_s: Vec::new(),
         time_s: Vec::new(),
     };
-    let mut start = 0.0;
-    for (j, ((&x, &y), &t)) in path.x_mm().iter().zip(path.y_mm()).zip(dwell_s).enumerate() {
+    let points = path.x_mm().iter().zip(path.y_mm()).zip(dwell_s);
+    for (j, (((&x, &y), &t), at)) in points.zip(mid_times_s(dwell_s)).enumerate() {
         if t > 0.0 {
             for &[dx, dy, w] in stretches.of(j) {
                 m.x_mm.push(x + dx);
                 m.y_mm.push(y + dy);
                 m.dwell_s.push(w * t);
-                m.time_s.push(start + t / 2.0);
+                m.time_s.push(at);
             }
         }
-        start += t;
     }
     m
 }
@@ -89,10 +109,9 @@ pub fn drift_compensated(dwell_s: &[f64], drift_per_hour: f64) -> Result<Vec<f64
     for _ in 0..DRIFT_PASSES {
         let total: f64 = out.iter().sum();
         let mid = total / 2.0;
-        let mut start = 0.0;
         let mut next = Vec::with_capacity(out.len());
-        for (&t0, &t) in dwell_s.iter().zip(&out) {
-            let factor = 1.0 + drift_per_hour * (start + t / 2.0 - mid) / S_PER_HOUR;
+        for (&t0, at) in dwell_s.iter().zip(mid_times_s(&out)) {
+            let factor = 1.0 + drift_per_hour * (at - mid) / S_PER_HOUR;
             if !(factor > 0.0 && factor.is_finite()) {
                 return Err(crate::error::Error::invalid(
                     "drift_per_hour",
@@ -103,7 +122,6 @@ pub fn drift_compensated(dwell_s: &[f64], drift_per_hour: f64) -> Result<Vec<f64
                 ));
             }
             next.push(t0 / factor);
-            start += t;
         }
         out = next;
     }

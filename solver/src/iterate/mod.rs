@@ -1130,17 +1130,11 @@ impl<'a> Shop<'a> {
                 let mut tool = disturbances.tool;
                 tool.rate_factor *= rate;
                 let total: f64 = plan.dwell_s.iter().sum();
-                let mut start = 0.0;
                 let dose: Vec<f64> = plan
                     .dwell_s
                     .iter()
-                    .map(|&t| {
-                        let at = start + t / 2.0;
-                        start += t;
-                        let drift =
-                            tool.drift_per_run * (at - total / 2.0) / total.max(f64::MIN_POSITIVE);
-                        t * (1.0 + drift)
-                    })
+                    .zip(learned::mid_times_s(&plan.dwell_s))
+                    .map(|(&t, at)| t * tool.drift_factor(at, total / 2.0, total))
                     .collect();
                 self.removal(
                     &actual_path,

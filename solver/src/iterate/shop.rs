@@ -182,6 +182,12 @@ impl ShopTool {
         }
     }
 
+    /// The rate's factor from its drift at program time `at_s` of a run whose contacts span
+    /// `span_s` about `mid_s`: `1 + δ_run (t - t_mid) / T`.
+    pub fn drift_factor(&self, at_s: f64, mid_s: f64, span_s: f64) -> f64 {
+        1.0 + self.drift_per_run * (at_s - mid_s) / span_s.max(f64::MIN_POSITIVE)
+    }
+
     /// The removal of `motion` at the points `(x_mm, y_mm)` by this tool, summed directly over
     /// the contact samples, nm.
     pub fn removal_nm(
@@ -199,7 +205,7 @@ impl ShopTool {
             .dwell_s
             .iter()
             .zip(&motion.time_s)
-            .map(|(d, t)| d * (1.0 + self.drift_per_run * (t - mid) / span))
+            .map(|(d, &t)| d * self.drift_factor(t, mid, span))
             .collect();
         crate::influence::direct::removal_nm(
             x_mm,
