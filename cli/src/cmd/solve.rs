@@ -406,10 +406,11 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         );
         let p = &e.parts;
         crate::note!(
-            "  of which: {:.3} nm the plan leaves with the nominal tool, {:.3} nm the tool's uncertainty, {:.3} nm the metrology's noise (in quadrature)",
+            "  of which: {:.3} nm the plan leaves with the nominal tool, {:.3} nm the tool's uncertainty, {:.3} nm the metrology's noise, {:.3} nm the map's noise the plan imprints (in quadrature)",
             p.residual_nm,
             p.tool_nm,
-            p.noise_nm
+            p.noise_nm,
+            p.noise_imprint_nm
         );
         if let (
             Some(PlanScope::Band {

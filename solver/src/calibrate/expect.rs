@@ -4,8 +4,14 @@
 //!
 //! For draws `θ_k` of the tool (rate, width and centroid offset from their standard deviations,
 //! the drift about its estimate), the run leaves `e_k = z - h(θ_k) + n_k`, `h(θ)` the removal of
-//! the executed contact motion with the footprint under `θ` and `n_k` white noise of the
-//! measurement; each `e_k` less its least-squares plane is what the interferometer reads. The
+//! the executed contact motion with the footprint under `θ` and `n_k` white noise; each `e_k`
+//! less its least-squares plane is what the interferometer reads. `n_k` carries the next
+//! measurement's noise `σ` and the noise of the map planned on that the plan removes as if it
+//! were form: the part is `z - n`, so a plan that follows the map's noise `n` leaves `-n` on the
+//! part. A plan that leaves `r` (RMS, nominal tool) on a map with noise `σ` has removed at least
+//! `σ_i = sqrt(max(σ² - r², 0))` of it (all of `r` noise at most), so `n_k` has the RMS
+//! `sqrt(σ² + σ_i²)`: about `√2 σ` for a plan that corrects the map to well below its noise, `σ`
+//! for a plan that leaves the noise alone (a band plan). The
 //! expected RMS is `sqrt(mean_k rms(e_k)²)`, the 90% range the 5th to 95th percentile of
 //! `rms(e_k)`, the expected PV the median of `pv(e_k)`. The removals are the plan's exact one plus
 //! the change the lattice convolution of [`super::forward`] gives for `θ_k` against the nominal
@@ -110,17 +116,21 @@ pub struct Expected {
 }
 
 /// The expected reading's parts, nm RMS, which add in quadrature to it:
-/// `expected² = residual² + tool² + noise²`.
+/// `expected² = residual² + tool² + noise² + noise_imprint²`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ReadingParts {
     /// What the plan leaves with the nominal tool ([`Expected::nominal_rms_nm`]): structure
     /// outside the band the tool can correct, and what the plan chose not to remove.
     pub residual_nm: f64,
-    /// What the tool's uncertainty adds: `sqrt(expected² - residual² - noise²)` (zero when the
-    /// draws fall below the other two).
+    /// What the tool's uncertainty adds: `sqrt(expected² - residual² - noise² -
+    /// noise_imprint²)` (zero when the draws fall below the others).
     pub tool_nm: f64,
     /// The measurement's noise.
     pub noise_nm: f64,
+    /// The noise of the map planned on that the plan removes as if it were form and leaves on
+    /// the part with the opposite sign: `sqrt(max(noise² - residual², 0))` (module
+    /// documentation).
+    pub noise_imprint_nm: f64,
 }
 
 /// The largest part of an expected reading: what keeps a run from doing better.
@@ -131,26 +141,42 @@ pub enum FloorCause {
     Band,
     /// How well the tool is known: calibrate it.
     ToolUncertainty,
-    /// The metrology's noise.
+    /// The metrology's noise: read once more, and, where the plan follows the map's noise,
+    /// imprinted on the part.
     Noise,
 }
 
 impl ReadingParts {
-    /// The parts of `expected_rms_nm` given the nominal residual and the noise.
-    pub fn of(expected_rms_nm: f64, residual_nm: f64, noise_nm: f64) -> Self {
-        let rest = expected_rms_nm.powi(2) - residual_nm.powi(2) - noise_nm.powi(2);
+    /// The parts of `expected_rms_nm` given the nominal residual, the noise and its imprint.
+    pub fn of(
+        expected_rms_nm: f64,
+        residual_nm: f64,
+        noise_nm: f64,
+        noise_imprint_nm: f64,
+    ) -> Self {
+        let rest = expected_rms_nm.powi(2)
+            - residual_nm.powi(2)
+            - noise_nm.powi(2)
+            - noise_imprint_nm.powi(2);
         Self {
             residual_nm,
             tool_nm: rest.max(0.0).sqrt(),
             noise_nm,
+            noise_imprint_nm,
         }
     }
 
-    /// The largest part.
+    /// The noise read and imprinted together, in quadrature, nm RMS.
+    pub fn all_noise_nm(&self) -> f64 {
+        self.noise_nm.hypot(self.noise_imprint_nm)
+    }
+
+    /// The largest part (the noise read and the noise imprinted counted together).
     pub fn cause(&self) -> FloorCause {
-        if self.tool_nm >= self.residual_nm && self.tool_nm >= self.noise_nm {
+        let noise = self.all_noise_nm();
+        if self.tool_nm >= self.residual_nm && self.tool_nm >= noise {
             FloorCause::ToolUncertainty
-        } else if self.noise_nm >= self.residual_nm {
+        } else if noise >= self.residual_nm {
             FloorCause::Noise
         } else {
             FloorCause::Band
@@ -233,11 +259,11 @@ pub fn expected_reading(
         spot.radius_mm() / CELLS_PER_RADIUS,
     )?;
     let nominal_parts = lattice.removal_parts(&spot.transformed(&ToolFigures::NOMINAL));
-    let reading = |h: &[f64], noise: Option<&mut SplitMix64>| -> Result<Vec<f64>> {
+    let reading = |h: &[f64], noise: Option<(&mut SplitMix64, f64)>| -> Result<Vec<f64>> {
         let mut e: Vec<f64> = z_nm.iter().zip(h).map(|(z, h)| z - h).collect();
-        if let Some(rng) = noise {
+        if let Some((rng, noise_rms_nm)) = noise {
             for v in e.iter_mut() {
-                *v += u.noise_rms_nm * rng.normal();
+                *v += noise_rms_nm * rng.normal();
             }
         }
         remove_plane(x_mm, y_mm, &mut e)?;
@@ -249,6 +275,10 @@ pub fn expected_reading(
         .collect();
     let nominal_rms_nm = HeightStats::of(&reading(&nominal, None)?).rms_nm;
     let measured_rms_nm = HeightStats::of(&reading(&vec![0.0; m], None)?).rms_nm;
+    let noise_imprint_nm = (u.noise_rms_nm.powi(2) - nominal_rms_nm.powi(2))
+        .max(0.0)
+        .sqrt();
+    let noise_rms_nm = u.noise_rms_nm.hypot(noise_imprint_nm);
     let mut rng = SplitMix64::new(seed);
     let mut rms = Vec::with_capacity(draws);
     let mut pv = Vec::with_capacity(draws);
@@ -273,7 +303,7 @@ pub fn expected_reading(
                 removal_nm[i] + lattice_change
             })
             .collect();
-        let e = reading(&h, Some(&mut rng))?;
+        let e = reading(&h, Some((&mut rng, noise_rms_nm)))?;
         let s = HeightStats::of(&e);
         rms.push(s.rms_nm);
         pv.push(s.pv_nm);
@@ -282,7 +312,12 @@ pub fn expected_reading(
     rms.sort_by(f64::total_cmp);
     pv.sort_by(f64::total_cmp);
     Ok(Expected {
-        parts: ReadingParts::of(mean_square.sqrt(), nominal_rms_nm, u.noise_rms_nm),
+        parts: ReadingParts::of(
+            mean_square.sqrt(),
+            nominal_rms_nm,
+            u.noise_rms_nm,
+            noise_imprint_nm,
+        ),
         expected_rms_nm: mean_square.sqrt(),
         expected_pv_nm: percentile(&pv, 0.5),
         expected_rms_range_nm: [percentile(&rms, 0.05), percentile(&rms, 0.95)],
@@ -298,4 +333,85 @@ pub fn expected_reading(
 /// it from above).
 pub fn map_noise_rms_nm(x_mm: &[f64], y_mm: &[f64], z_nm: &[f64]) -> f64 {
     super::fit::neighbour_noise(x_mm, y_mm, z_nm)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Relative tolerance of a 32-draw RMS of white noise on 400 points.
+    const DRAW_TOL: f64 = 0.05;
+
+    /// A 20 x 20 map at 1 mm of seeded white noise of `sigma` nm RMS, a 5 x 5 Gaussian grid
+    /// footprint, and a motion with contact time.
+    fn case(sigma: f64) -> (Vec<f64>, Vec<f64>, Vec<f64>, ContactMotion, GridTif) {
+        let mut rng = SplitMix64::new(7);
+        let (mut x, mut y, mut z) = (Vec::new(), Vec::new(), Vec::new());
+        for j in 0..20 {
+            for i in 0..20 {
+                x.push(i as f64);
+                y.push(j as f64);
+                z.push(sigma * rng.normal());
+            }
+        }
+        remove_plane(&x, &y, &mut z).unwrap();
+        let rates = (0..25)
+            .map(|k| {
+                let (dx, dy) = ((k % 5) as f64 - 2.0, (k / 5) as f64 - 2.0);
+                (-(dx * dx + dy * dy) / 2.0).exp()
+            })
+            .collect();
+        let tif = GridTif::new(-2.0, -2.0, 1.0, 1.0, 5, 5, rates).unwrap();
+        let motion = ContactMotion {
+            x_mm: vec![10.0],
+            y_mm: vec![10.0],
+            dwell_s: vec![1.0],
+            time_s: vec![0.5],
+        };
+        (x, y, z, motion, tif)
+    }
+
+    fn exact_tool(noise_rms_nm: f64) -> ToolUncertainty {
+        ToolUncertainty {
+            rate_sigma: 0.0,
+            width_sigma: 0.0,
+            offset_x_sigma_mm: 0.0,
+            offset_y_sigma_mm: 0.0,
+            noise_rms_nm,
+            ..ToolUncertainty::default()
+        }
+    }
+
+    /// With the tool known exactly, a plan that removes the map's noise (`h = z`) leaves the
+    /// noise on the part with the opposite sign, and the next reading adds its own: `√2 σ`. A
+    /// plan that removes nothing leaves the map as it is, read once more: `√2 σ` as well, all of
+    /// it the map's own residual and the reading's noise, none imprinted.
+    #[test]
+    fn a_plan_that_follows_the_noise_imprints_it() {
+        let sigma = 0.3;
+        let (x, y, z, motion, tif) = case(sigma);
+        let map_rms = HeightStats::of(&z).rms_nm;
+        let u = exact_tool(map_rms);
+        let follows = expected_reading(&x, &y, &z, &z, &motion, &tif, &u, 32, 1).unwrap();
+        assert!(follows.nominal_rms_nm < 1e-9, "{follows:?}");
+        assert!(
+            (follows.parts.noise_imprint_nm - map_rms).abs() < 1e-12,
+            "{follows:?}"
+        );
+        let root2 = std::f64::consts::SQRT_2 * map_rms;
+        assert!(
+            (follows.expected_rms_nm - root2).abs() <= DRAW_TOL * root2,
+            "{follows:?}"
+        );
+        assert_eq!(follows.parts.cause(), FloorCause::Noise);
+
+        let idle =
+            expected_reading(&x, &y, &z, &vec![0.0; z.len()], &motion, &tif, &u, 32, 1).unwrap();
+        assert!((idle.nominal_rms_nm - map_rms).abs() < 1e-12, "{idle:?}");
+        assert_eq!(idle.parts.noise_imprint_nm, 0.0, "{idle:?}");
+        assert!(
+            (idle.expected_rms_nm - root2).abs() <= DRAW_TOL * root2,
+            "{idle:?}"
+        );
+    }
 }

@@ -10,8 +10,9 @@
 //! below the RMS measured before the run. A plan of the whole map chases every feature, those
 //! the tool cannot place or size well enough included (structure near the tool's width under a
 //! width or placement uncertainty, noise), and removes as deep as the deepest of them needs.
-//! When it does not pay, the measured error is split into the smooth part the tool corrects at
-//! transfer gains of at least `g` and the rest ([`crate::band`]), for each `g` of
+//! When it does not pay, or when most of its expected reading is the map's noise that it would
+//! imprint on the part ([`crate::calibrate::ReadingParts::noise_imprint_nm`]), the measured error
+//! is split into the smooth part the tool corrects at transfer gains of at least `g` and the rest ([`crate::band`]), for each `g` of
 //! [`BAND_GAINS`], and the same set-up plans against the band alone (the problem's target the
 //! band, its edge rows extrapolated from it; every figure of the outcome still on the measured
 //! map). The plan kept is the one with the smallest expected reading, the whole map's included.
@@ -92,6 +93,13 @@ pub fn pays(e: &Expected) -> bool {
     e.expected_rms_range_nm[1] < e.measured_rms_nm
 }
 
+/// Whether the map's noise that the plan imprints on the part outweighs what the plan leaves
+/// and what the tool's uncertainty adds: a plan of the smooth band may then read lower.
+fn chases_noise(e: &Expected) -> bool {
+    let p = &e.parts;
+    p.noise_imprint_nm > p.residual_nm.max(p.tool_nm)
+}
+
 impl Setup {
     /// The expected reading after the run of `outcome` with the tool known to `uncertainty`
     /// (module documentation); `None` on a curved part or where the plan spends no time in
@@ -164,7 +172,11 @@ impl Setup {
             scope: PlanScope::Map,
             map_plan_expected_rms_nm: None,
         };
-        let Some(map_expected) = best.expected.as_ref().filter(|e| !pays(e)) else {
+        let Some(map_expected) = best
+            .expected
+            .as_ref()
+            .filter(|e| !pays(e) || chases_noise(e))
+        else {
             return Ok(best);
         };
         let map_expected_rms_nm = map_expected.expected_rms_nm;
