@@ -1,4 +1,4 @@
-//! Geometry benchmarks (issue 3): XY-polynomial fitting and ICP registration, grouped by size.
+//! Geometry benchmarks: XY-polynomial fitting and ICP registration, grouped by size.
 //!
 //! `cargo bench --bench geometry`. Targets: fit of 1e6 points at order 10 (65 terms) under 2 s;
 //! registration of 1e5 points under 1 s.

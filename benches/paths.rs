@@ -1,6 +1,6 @@
 //! Tool-path generation and curvature-dependent influence assembly.
 //!
-//! `cargo bench --bench paths` (criterion). Targets (issue 4): paths of 1e6 points in under
+//! `cargo bench --bench paths` (criterion). Targets: paths of 1e6 points in under
 //! 1 s; per-dwell-point curvature TIFs assembled at least at half the speed of the
 //! shift-invariant case.
 

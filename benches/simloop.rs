@@ -1,4 +1,4 @@
-//! One iteration of the polishing loop at the published freeform case's sizes (issue 6): a
+//! One iteration of the polishing loop at the published freeform case's sizes: a
 //! 51 x 51 measured grid and a 127 x 113 dwell path, plots included. Target: under 5 s on 2 cores.
 //!
 //! `cargo bench --bench simloop` (one timed run per solver choice; not a criterion bench: a

@@ -1,4 +1,4 @@
-//! Streaming a very large map through the reader (issue 7): a 10^7-row `x_mm,y_mm,z_nm` file is
+//! Streaming a very large map through the reader: a 10^7-row `x_mm,y_mm,z_nm` file is
 //! read with peak memory under twice the size of its values (3 x 8 bytes per row).
 //!
 //! `cargo bench --bench stream_map` (rows: `PRESTON_STREAM_ROWS`, default 10^7). Not a criterion

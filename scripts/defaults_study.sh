@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # The executed residual of the sample job's settings against the alternatives (edge model, feed
-# floor, raster pitch) on the shipped map and on two other maps of ../shared/data: every row is
+# floor, raster pitch) on the shipped map and on two other maps of data/: every row is
 # the plan executed at the job's acceleration limit with look-ahead (report.json rms_after_nm,
 # the program as the machine runs it). Prints a Markdown table; docs/part_quality.md holds the
-# figures. Usage: scripts/defaults_study.sh [SHARED_DATA_DIR] > table.md
+# figures. Usage: scripts/defaults_study.sh [DATA_DIR, default data] > table.md
 set -euo pipefail
 cd "$(dirname "$0")/.."
-SHARED="${1:-../shared/data}"
+SHARED="${1:-data}"
 BIN="${PRESTON_BIN:-target/release/preston}"
 OUT="${TMPDIR:-/tmp}/preston-defaults-study"
 mkdir -p "$OUT"

@@ -8,10 +8,10 @@
 # the best residual any operator reached on the case; then one line per case with what `auto`
 # chose and its wall time against the fastest operator as good (within 0.1% or 0.01 nm of that
 # best residual). CASES=REGEX runs only the matching cases; OPERATORS="..." only those.
-# docs/off_lattice.md holds the figures. Usage: scripts/operator_study.sh [SHARED_DATA_DIR]
+# docs/off_lattice.md holds the figures. Usage: scripts/operator_study.sh [DATA_DIR, default data]
 set -euo pipefail
 cd "$(dirname "$0")/.."
-SHARED="${1:-../shared/data}"
+SHARED="${1:-data}"
 BIN=target/release/preston
 OUT="${OUT:-${TMPDIR:-/tmp}/preston-operator-study}"
 rm -rf "$OUT"

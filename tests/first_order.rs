@@ -13,7 +13,7 @@ use preston::solver::path::raster::{serpentine, RasterAxis};
 use preston::solver::path::DwellPath;
 use preston::solver::tif::{GaussianTif, GridTif, InfluenceFunction};
 
-/// Relative agreement of the first-order and QP objectives (issue 2).
+/// Relative agreement of the first-order and QP objectives.
 const AGREE_REL_TOL: f64 = 1e-6;
 
 /// A smooth random map on an `nx x ny` grid at 0.5 mm, a Gaussian TIF and a 1 mm raster.
@@ -643,7 +643,7 @@ fn auto_picks_by_size_and_min_time_stays_on_qp() {
     assert!(dwell::solve(&p, &s, &Silent).is_err());
 }
 
-/// Agreement of the FFT operator with the sparse matrix (issue 2: 1e-9 relative).
+/// Agreement of the FFT operator with the sparse matrix (1e-9 relative).
 const FFT_REL_TOL: f64 = 1e-9;
 /// Adjoint identity `<R x, y> = <x, R^T y>` to rounding.
 const ADJOINT_REL_TOL: f64 = 1e-12;

@@ -1,5 +1,5 @@
 //! Geometry integration tests with known answers: fitting, closest point, probe compensation
-//! and registration on an off-axis freeform (issue 3).
+//! and registration on an off-axis freeform.
 
 #[path = "support/geometry_cases.rs"]
 mod cases;
@@ -13,10 +13,10 @@ use preston::solver::Error;
 
 /// Coefficient tolerance of a noise-free fit, mm.
 const COEF_TOL_MM: f64 = 1e-10;
-/// Noise-free registration: translation tolerance, mm, and rotation tolerance, rad (issue 3).
+/// Noise-free registration: translation tolerance, mm, and rotation tolerance, rad.
 const TRANSLATION_TOL_MM: f64 = 1e-6;
 const ROTATION_TOL_RAD: f64 = 1e-9;
-/// Probe compensation: distance of the compensated point from the surface, mm (issue 3).
+/// Probe compensation: distance of the compensated point from the surface, mm.
 const ON_SURFACE_TOL_MM: f64 = 1e-9;
 
 fn sag_all(s: &XyPolynomial, x: &[f64], y: &[f64]) -> Vec<f64> {

@@ -1,4 +1,4 @@
-//! Property tests (issue 7): random valid inputs round-trip through the readers; random invalid
+//! Property tests: random valid inputs round-trip through the readers; random invalid
 //! inputs and random geometry give an error or an answer, never a panic.
 
 use preston::io::job::Job;

@@ -362,3 +362,93 @@ fn the_page_opens_with_a_summary_in_words() {
         .collect();
     assert!(raw.is_empty(), "raw keys in the visible text: {raw:?}");
 }
+
+/// Words that may follow a number in the summary: its unit, a count's noun, or `to` (a range,
+/// the unit after its end).
+const SUMMARY_UNITS: [&str; 11] = [
+    "nm", "s", "mm/min", "mm/s²", "mm", "h", "min", "dwell", "warning", "warnings", "to",
+];
+
+/// The sample job's page (`preston solve --job data/job.toml --report`): the summary comes first
+/// (the measured error, the expected result and the expected reading with its 90% range, the
+/// machining time in hours and minutes, the tool and path, the risks), every number in it is
+/// followed by its unit, and no key of report.json is visible anywhere on the page.
+#[test]
+fn the_sample_page_leads_with_a_summary_whose_numbers_carry_units() {
+    let out = tempfile::tempdir().unwrap();
+    let o = preston_cmd()
+        .args(["solve", "--job"])
+        .arg(data("job.toml"))
+        .args(["--report", "--out"])
+        .arg(out.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let html = std::fs::read_to_string(out.path().join("report.html")).unwrap();
+    let json = common::report(out.path());
+    let summary = html.find("id=\"summary\"").expect("no summary");
+    let first_figure = html.find("<figure").expect("no figure");
+    assert!(summary < first_figure, "the summary is not first");
+    // Nothing but the title and one line of provenance before the summary.
+    assert!(visible_text(&html[..summary]).split_whitespace().count() < 40);
+    let top = visible_text(&html[summary..first_figure]);
+    let t = json["machining_time_s"].as_f64().unwrap();
+    let range = json["expected_rms_range_nm"].as_array().unwrap();
+    for words in [
+        "Measured error",
+        "Expected result",
+        "Expected reading",
+        "90% range",
+        "Machining time",
+        &preston_io::html::hours_minutes(t),
+        "Tool and path",
+        "measured TIF tif_fluid_jet_10mm.csv",
+        "raster along x",
+        "Risks",
+        "TIF 3% wider",
+        "rate 3% high",
+        "tool 0.05 mm off in y",
+    ] {
+        assert!(top.contains(words), "'{words}' not in the summary: {top}");
+    }
+    // The range brackets the expected reading, and both are the report's.
+    let (lo, hi) = (range[0].as_f64().unwrap(), range[1].as_f64().unwrap());
+    let expected = json["expected_rms_nm"].as_f64().unwrap();
+    assert!(lo <= expected && expected <= hi, "{lo} {expected} {hi}");
+    for key in [
+        "expected_rms_nm",
+        "expected_rms_range_nm.0",
+        "expected_rms_range_nm.1",
+        "expected_pv_nm",
+    ] {
+        let v = at(&json, key).unwrap();
+        let cell = format!("data-key=\"{key}\" data-value=\"{v}\"");
+        assert!(html[summary..first_figure].contains(&cell), "{key}");
+    }
+    // Every number a reader sees in the summary is followed by its unit.
+    let tokens: Vec<&str> = top
+        .split_whitespace()
+        .map(|w| w.trim_matches(|c: char| "(),;:".contains(c)))
+        .filter(|w| !w.is_empty())
+        .collect();
+    let mut bare = Vec::new();
+    for (k, w) in tokens.iter().enumerate() {
+        if w.parse::<f64>().is_ok() {
+            let next = tokens.get(k + 1).copied().unwrap_or("");
+            if !SUMMARY_UNITS.contains(&next) {
+                bare.push(format!("{w} {next}"));
+            }
+        }
+    }
+    assert!(bare.is_empty(), "numbers without a unit: {bare:?} in {top}");
+    // No key of report.json in the visible text of the whole page.
+    let visible = visible_text(&html);
+    let mut keys = Vec::new();
+    key_paths("", &json, &mut keys);
+    let raw: Vec<&String> = keys
+        .iter()
+        .filter(|k| k.contains('.') || k.contains('_'))
+        .filter(|k| visible.contains(k.as_str()))
+        .collect();
+    assert!(raw.is_empty(), "raw keys in the visible text: {raw:?}");
+}

@@ -1,4 +1,4 @@
-//! Robustness of `preston solve` (issue 7): every class of bad input fails with a message naming
+//! Robustness of `preston solve`: every class of bad input fails with a message naming
 //! file, line and column, and writes nothing; accepted oddities (BOM, CRLF) give the same answer;
 //! unreachable dwell points are reported; results do not depend on the thread count; a killed run
 //! leaves no partial file.

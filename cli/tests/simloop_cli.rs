@@ -1,4 +1,4 @@
-//! `preston simulate` and `preston iterate` end to end (issue 6): discrete simulation reproduces
+//! `preston simulate` and `preston iterate` end to end: discrete simulation reproduces
 //! the solver's residual, continuous simulation converges as the sampling is refined, the virtual
 //! loop converges and writes its table and plots, a real part's map plans one run.
 

@@ -1,5 +1,5 @@
 //! `preston bench`: a suite of generated dwell problems (and the sample job) solved end to end,
-//! with sizes, accuracy, timings and peak memory (issue 2).
+//! with sizes, accuracy, timings and peak memory.
 //!
 //! Generated problems: a square map at 0.5 mm pitch holding a smooth random error (a sum of
 //! eight cosine modes, wavelengths 8 mm to the map size, amplitudes 20 to 60 nm), a Gaussian TIF

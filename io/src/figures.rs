@@ -59,7 +59,10 @@ pub fn caption(name: &str) -> &'static str {
         "feed" => "Feed per dwell point (mm/min)",
         "tif" => "Tool influence function (nm/s)",
         "path" => "Dwell path, start marked",
-        "psd" => "1-D PSD along the raster direction, raster pitch marked",
+        "psd" => {
+            "1-D PSD along the raster direction (the raster pitch's frequency dashed, \
+             or where it lies off the axis, said in the legend)"
+        }
         "psd_2d" => "2-D PSD of the residual, log10 of nm^2 mm^2",
         "psd_azimuthal" => "Azimuthally averaged 2-D PSD",
         "dwell_planned_vs_executed" => "Planned and executed dwell per point",

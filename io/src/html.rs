@@ -728,6 +728,21 @@ fn summary_section(out: &mut String, report: &Value, extras: &PageExtras<'_>, wa
             &format!("{}, piston removed", rms_pv("rms_after_nm", "pv_after_nm")),
         );
     }
+    if has("expected_rms_nm") && has("expected_rms_range_nm") {
+        summary_row(
+            out,
+            "Expected reading",
+            &format!(
+                "RMS {} nm (90% range {} to {} nm), PV {} nm: what the interferometer should read \
+                 after the run, piston and tilt removed, the tool as it is known (its rate, width and \
+                 offset uncertain) and the measurement's noise included",
+                value_span(report, "expected_rms_nm"),
+                value_span(report, "expected_rms_range_nm.0"),
+                value_span(report, "expected_rms_range_nm.1"),
+                value_span(report, "expected_pv_nm")
+            ),
+        );
+    }
     if let Some(t) = report.get("machining_time_s").and_then(Value::as_f64) {
         summary_row(
             out,
@@ -756,7 +771,8 @@ fn summary_section(out: &mut String, report: &Value, extras: &PageExtras<'_>, wa
         "Warnings",
         &match warnings {
             0 => "none".to_string(),
-            n => format!("<a href=\"#warnings\">{n}, listed below</a>"),
+            1 => "<a href=\"#warnings\">1 warning, listed below</a>".to_string(),
+            n => format!("<a href=\"#warnings\">{n} warnings, listed below</a>"),
         },
     );
     out.push_str("</table>\n");

@@ -119,8 +119,8 @@ pub struct Overrides {
     /// defaults 1e-8 and 1e-6). The first-order solver stops when its gap bound, or its KKT
     /// residual, is below it. The residual is relative to the gradient at zero dwell and, where
     /// the plan removes more than 1 - 1e-5 of the objective (the RMS more than 316-fold), to
-    /// what is left: at 1e-6 the generated benchmarks land 0.03-0.07% above the optimum, a
-    /// two-tool plan 0.07% (docs/preconditioning.md).
+    /// what is left. `preston bench` reports how far above the optimum a tolerance lands
+    /// (docs/benchmarks.md).
     #[cfg_attr(feature = "clap", arg(long))]
     pub tolerance: Option<f64>,
     /// Iteration of the first-order solver (default: the job's, else lbfgs).

@@ -10,6 +10,7 @@
 
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
+use plotters::coord::combinators::BindKeyPoints;
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
@@ -183,6 +184,9 @@ const LEFT_PX: u32 = 10;
 const X_LABELS_PX: u32 = 48;
 /// Margin right of the data, pixels.
 const RIGHT_PX: u32 = 36;
+/// Length of the tick marks of map axes and colour bars, pixels. plotters sets tick labels twice
+/// this far from their axis, so the labels keep clear of the frame and of a colour bar's baseline.
+const TICK_PX: i32 = 5;
 /// Height of the colour-bar strip below the map (bar, ticks, unit), pixels.
 const BAR_AREA_PX: u32 = 76;
 /// Tallest data area, pixels (near-square parts).
@@ -846,7 +850,7 @@ fn map_mesh<DB: DrawingBackend>(
     chart
         .configure_mesh()
         .disable_mesh()
-        .set_all_tick_mark_size(0)
+        .set_all_tick_mark_size(TICK_PX)
         .x_desc(across_name)
         .y_desc(down_name)
         .x_labels(n_across)
@@ -858,7 +862,7 @@ fn map_mesh<DB: DrawingBackend>(
         .map_err(|e| plot_error(path, e))
 }
 
-/// Label of a logarithmic tick `v` (a power of ten): its digits, no exponent.
+/// Label of a logarithmic tick `v` (a digit times a power of ten): its digits, no exponent.
 fn log_tick_label(v: f64) -> String {
     let decimals = (-(v.log10() + 1e-9).floor()).clamp(0.0, 12.0) as usize;
     tick_label(v, decimals)
@@ -951,7 +955,7 @@ fn colour_bar<DB: DrawingBackend>(
             chart
                 .configure_mesh()
                 .disable_mesh()
-                .set_all_tick_mark_size(0)
+                .set_all_tick_mark_size(TICK_PX)
                 .disable_y_axis()
                 .x_labels(6)
                 .x_label_formatter(&label)
@@ -1185,21 +1189,25 @@ pub fn stage_spectrum_plot(
         .filter(|v| *v > 0.0 && v.is_finite())
         .collect();
     let (lo, hi) = value_range(&values).unwrap_or((1e-6, 1.0));
+    let ticks = log_ticks(f0, f1);
     stage_plot!(path, PLOT_SIZE_PX, |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 22))
             .margin(16)
             .x_label_area_size(48)
             .y_label_area_size(80)
-            .build_cartesian_2d((f0..f1).log_scale(), (lo * 0.5..hi * 2.0).log_scale())
+            .build_cartesian_2d(
+                (f0..f1).log_scale().with_key_points(ticks.clone()),
+                (lo * 0.5..hi * 2.0).log_scale(),
+            )
             .map_err(|e| plot_error(path, e))?;
         chart
             .configure_mesh()
             .light_line_style(TRANSPARENT)
             .x_desc("spatial frequency (1/mm)")
             .y_desc(y_desc)
-            .x_labels(8)
-            .x_label_formatter(&|v| format!("{}", (v * 1e3).round() / 1e3))
+            .x_labels(ticks.len())
+            .x_label_formatter(&|v| log_tick_label(*v))
             .y_label_formatter(&|v| format!("{v:.0e}"))
             .label_style(("sans-serif", 14))
             .draw()
@@ -1217,6 +1225,15 @@ pub fn stage_spectrum_plot(
                 .map_err(|e| plot_error(path, e))?
                 .label(*label)
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour));
+        }
+        let off_axis = marker_per_mm.and_then(|m| marker_off_axis(m, f0, f1));
+        if let Some(note) = off_axis {
+            // Said in the legend, where the line would be named.
+            chart
+                .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
+                .map_err(|e| plot_error(path, e))?
+                .label(note)
+                .legend(|(x, y)| EmptyElement::at((x, y)));
         }
         if let Some((f, label)) = marker_per_mm.filter(|m| m.0 >= f0 && m.0 <= f1) {
             let grey = RGBColor(40, 40, 40);
@@ -1237,6 +1254,57 @@ pub fn stage_spectrum_plot(
         }
         draw_legend(&mut chart, path)
     })
+}
+
+/// Ticks of a logarithmic axis over `[lo, hi]` (both positive): the powers of ten inside it, or
+/// where fewer than three are, 1, 2 and 5 times them, or else every digit times them; an axis
+/// narrower than any of these gets its two ends.
+pub fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
+    if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+        return vec![];
+    }
+    let (e0, e1) = (lo.log10().floor() as i32, hi.log10().ceil() as i32);
+    let mut last = Vec::new();
+    for mantissas in [
+        &[1.0][..],
+        &[1.0, 2.0, 5.0],
+        &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0],
+    ] {
+        let ticks: Vec<f64> = (e0..=e1)
+            .flat_map(|e| mantissas.iter().map(move |m| m * 10f64.powi(e)))
+            // Relative slack for the rounding of 10^e.
+            .filter(|t| *t >= lo * (1.0 - 1e-12) && *t <= hi * (1.0 + 1e-12))
+            .collect();
+        if ticks.len() >= 3 {
+            return ticks;
+        }
+        last = ticks;
+    }
+    if last.len() >= 2 {
+        last
+    } else {
+        vec![lo, hi]
+    }
+}
+
+/// The legend's note for a marker `(frequency_per_mm, name)` that lies off a frequency axis of
+/// `[f0, f1]` (none when it is on it), e.g. `raster pitch: 3.125 /mm, beyond this axis (to 1.562 /mm)`.
+pub fn marker_off_axis(marker: (f64, &str), f0: f64, f1: f64) -> Option<String> {
+    let (f, name) = marker;
+    if f >= f0 && f <= f1 {
+        None
+    } else {
+        let (side, end) = if f > f1 {
+            ("beyond", "to")
+        } else {
+            ("below", "from")
+        };
+        Some(format!(
+            "{name}: {} /mm, {side} this axis ({end} {} /mm)",
+            sig(f),
+            sig(if f > f1 { f1 } else { f0 })
+        ))
+    }
 }
 
 /// Plots curves of `(x, y)` points on linear axes named `x_desc` and `y_desc`: for example the
@@ -1904,5 +1972,49 @@ mod tests {
         assert!(
             !colour_range(&[1.0, 2.0, 5.0], ColorLimits::Full, ColourScale::Linear).is_diverging()
         );
+    }
+
+    /// A log axis gets at least three ticks where its range holds them, each inside the range,
+    /// ascending, each a digit times a power of ten; the sparsest such set is taken.
+    #[test]
+    fn log_axes_get_three_or_more_round_ticks() {
+        for (lo, hi) in [
+            (0.0085, 1.56),
+            (0.3, 1.5),
+            (0.02, 0.9),
+            (1e-4, 10.0),
+            (2.1, 5.9),
+        ] {
+            let t = log_ticks(lo, hi);
+            assert!(t.len() >= 3, "{lo}..{hi}: {t:?}");
+            assert!(t.windows(2).all(|w| w[0] < w[1]), "{t:?}");
+            assert!(t.iter().all(|v| *v >= lo && *v <= hi), "{t:?}");
+            for v in &t {
+                let m = v / 10f64.powf(v.log10().floor());
+                assert!(
+                    (m - m.round()).abs() < 1e-9,
+                    "{v} is not a digit times 10^k"
+                );
+            }
+        }
+        // Three decades: the powers of ten alone.
+        assert_eq!(log_ticks(0.0085, 1.56).len(), 3);
+        // Less than a tick step: the ends.
+        assert_eq!(log_ticks(2.1, 2.15), vec![2.1, 2.15]);
+        assert!(log_ticks(0.0, 1.0).is_empty());
+    }
+
+    /// A marker on the frequency axis is drawn and named as given; one off it is named in the
+    /// legend with where it lies, so no caption claims a line that is not there.
+    #[test]
+    fn a_marker_off_the_axis_says_so() {
+        assert_eq!(marker_off_axis((0.5, "raster pitch"), 0.01, 1.5625), None);
+        let note = marker_off_axis((3.125, "raster pitch"), 0.01, 1.5625).unwrap();
+        assert!(
+            note.contains("3.125 /mm") && note.contains("beyond"),
+            "{note}"
+        );
+        let note = marker_off_axis((0.001, "raster pitch"), 0.01, 1.5625).unwrap();
+        assert!(note.contains("below"), "{note}");
     }
 }

@@ -278,7 +278,8 @@ class SolveResult:
         ``dwell.png`` (s), ``feed.png`` (mm/min) and ``path.png`` at equal mm per pixel (1000 px
         wide), ``tif.png`` (nm/s), and ``psd.png`` (900 x 700 px) with ``psd.csv``: the 1-D PSDs
         of error and residual along ``along`` (``"x"``/``"y"``; default: the job's raster
-        direction), the raster pitch marked, and the 2-D and azimuthal PSDs with their CSVs.
+        direction), the raster pitch marked where it lies on the frequency axis (else named in
+        the legend), and the 2-D and azimuthal PSDs with their CSVs.
         ``plot_format="svg"`` writes the figures as SVG (``--plot-format svg``).
 
         Returns ``(files, notes)``: the paths written and why a figure was left out (no PSD for a

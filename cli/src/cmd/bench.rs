@@ -1,4 +1,4 @@
-//! `preston bench`: generated problems and the sample job, solved and timed (issue 2).
+//! `preston bench`: generated problems and the sample job, solved and timed.
 
 use preston_io::bench::{self, BenchRow};
 use preston_solver::dwell::{OperatorChoice, Settings, SolverChoice};

@@ -20,19 +20,19 @@ pub struct HertzArgs {
     /// Tilt of the spindle axis from the part normal, degrees [default: 15].
     #[arg(long, value_name = "DEG")]
     pub tilt_deg: Option<f64>,
-    /// Tool Young's modulus, GPa (required).
+    /// Tool Young's modulus, GPa (no default: needed by the Hertz model).
     #[arg(long, value_name = "GPA")]
     pub tool_e_gpa: Option<f64>,
-    /// Tool Poisson ratio (required).
+    /// Tool Poisson ratio (no default: needed by the Hertz model).
     #[arg(long, value_name = "NU")]
     pub tool_nu: Option<f64>,
-    /// Part Young's modulus, GPa (required).
+    /// Part Young's modulus, GPa (no default: needed by the Hertz model).
     #[arg(long, value_name = "GPA")]
     pub part_e_gpa: Option<f64>,
-    /// Part Poisson ratio (required).
+    /// Part Poisson ratio (no default: needed by the Hertz model).
     #[arg(long, value_name = "NU")]
     pub part_nu: Option<f64>,
-    /// Preston coefficient K, mm^2/N (rate mm/s = K * p MPa * v mm/s) (required).
+    /// Preston coefficient K, mm^2/N (rate mm/s = K * p MPa * v mm/s) (no default: needed by the Hertz model).
     #[arg(long, value_name = "K")]
     pub preston_k: Option<f64>,
 }

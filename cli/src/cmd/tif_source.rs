@@ -8,8 +8,8 @@ use std::path::PathBuf;
 /// Where the TIF comes from.
 #[derive(Debug, clap::Args)]
 pub struct TifArgs {
-    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s` (`preston solve`: repeat, each with its own
-    /// --dwell, for several tools in one solve).
+    /// Gridded TIF CSV `x_mm,y_mm,rate_nm_per_s` (one tool here; several tools in one plan are
+    /// for `preston solve`).
     #[arg(long, value_name = "T.csv", conflicts_with = "gaussian_sigma_mm", action = clap::ArgAction::Append)]
     pub tif: Vec<PathBuf>,
     /// Gaussian TIF instead of a file: sigma, mm.

@@ -572,8 +572,8 @@ pub enum RobustWeighting {
     /// counterpart).
     #[default]
     Mean,
-    /// Weights moved towards the worst scenario over a few rounds, each a solve
-    /// ([`crate::setup::robust::minimax_weights`]): the plan whose worst scenario is smallest.
+    /// Weights moved towards the worst scenario over a few rounds, each a solve: the plan whose
+    /// worst scenario is smallest.
     Minimax,
 }
 

@@ -1,7 +1,8 @@
 //! The `auto` policy: which operator (assembled sparse `R` or the matrix-free FFT operator) and
 //! which solver (the interior-point QP or the first-order solver) a problem runs with, from cost
-//! models fitted to timings on the development machine (2 shared cores; docs/preconditioning.md,
-//! "Policy"). A pure function of sizes, so it can be called wherever the decision is made.
+//! models fitted to `preston bench` timings on 2 cores (docs/preconditioning.md, "The `auto`
+//! policy", has the commands; refit the constants below from them on another host). A pure
+//! function of sizes, so it can be called wherever the decision is made.
 //!
 //! **Cost models** (seconds):
 //! * assembling `R` and its row copy: `nnz / ASSEMBLY_NNZ_PER_S`;
@@ -27,12 +28,11 @@ pub const ASSEMBLY_NNZ_PER_S: f64 = 4.0e7;
 /// Seconds of interior-point QP per non-zero of `R` (sample job 4.5 s at 7.7e5 non-zeros,
 /// generated 2e3 2.6 s at 4.8e5, generated 2e4 68 s at 7.45e6).
 pub const QP_S_PER_NNZ: f64 = 6.0e-6;
-/// Products of a first-order solve: FISTA at its default tolerance on the generated problems. The
-/// default iteration, projected L-BFGS, takes 979 (2e5) to 5,157 (2e3) there and 2,172 at 2e4
-/// (docs/preconditioning.md), so the first-order times are optimistic by up to 2x at 2e4; the
-/// crossovers that matter (FFT against sparse, per product) do not depend on it, and with 2,000
-/// the sparse first-order and QP models nearly tie at every size, where the QP's superlinear
-/// growth (1.5 GB at 2e4) is not in its linear model.
+/// Products of a first-order solve, a round figure for the generated problems at the default
+/// tolerance (`preston bench --sizes N --solvers first-order --job none` prints the iterations of
+/// each size; projected L-BFGS takes up to twice this at 2e4). The crossovers that matter (FFT
+/// against sparse, per product) do not depend on it; the QP's superlinear growth in memory
+/// (1.5 GB at 2e4) is not in its linear model.
 pub const FIRST_ORDER_PRODUCTS: f64 = 1000.0;
 /// The QP is chosen where it is predicted to take less than this, s: it returns the certified
 /// optimum, where the first-order solver at its default tolerance stops 0.1% to 4% above it on

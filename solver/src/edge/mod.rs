@@ -33,7 +33,7 @@ use std::collections::HashMap;
 #[serde(rename_all = "kebab-case")]
 pub enum EdgeMethod {
     /// No extension: dwell points beyond the map are constrained only by the map points in their
-    /// footprint (the default; the sample job sets `gerchberg-papoulis`).
+    /// footprint (the default, and the sample job's).
     #[default]
     None,
     /// Zero-removal guard band: the extension points' target is the map's lowest height.
