@@ -14,8 +14,8 @@ use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Problem};
-use preston_solver::influence::Stretches;
 use preston_solver::influence::{InfluenceModel, TifFrame};
+use preston_solver::influence::{Stretches, SweptTif};
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
@@ -111,7 +111,7 @@ pub fn simulate(
         // a plan with feed limits).
         let stretches = Stretches::of_path(&setup.path, default_sample_step_mm(&setup.tif))
             .map_err(|e| Error::engine(dwell_file, e))?;
-        let kernel = stretches.dominant_kernel(setup.tif.clone());
+        let kernel = SweptTif::new(setup.tif.clone(), stretches.dominant().0);
         setup.swept = Some((stretches, kernel));
     }
     let problem = setup.problem(observer).map_err(at_fault)?.problem;

@@ -19,16 +19,6 @@
 //! within 0.1% of the peak rate of the exact integral for a Gaussian (`h^2 / 24 |TIF''|`; tested
 //! against the closed form in `erf`).
 //!
-//! A footprint cut where its rate is not zero (a truncated Gaussian,
-//! [`InfluenceFunction::cut_disc_mm`]) jumps to zero on its cut circle, where the midpoint rule is
-//! first-order: a map point whose cut disc just grazes a stretch gets either nothing or a whole
-//! piece's share from the sliver inside, and a plan with little time weight leans on those
-//! entries. For such a footprint the pieces the circle crosses are integrated exactly: each is cut
-//! where the stretch enters or leaves the map point's disc and the part inside integrated by
-//! 4-point Gauss-Legendre ([`swept_rate`]); the pieces wholly inside keep the midpoint rule, those
-//! wholly outside add nothing. A footprint that falls continuously to zero keeps the midpoint rule
-//! throughout.
-//!
 //! The assembled operator takes each column's own stretch ([`assemble_swept`]); the lattice
 //! operators (FFT, phase stencils, spreading) one shift-invariant kernel, the TIF averaged along
 //! the stretch most dwell points share ([`Stretches::dominant`]; on a raster, the interior
@@ -63,92 +53,6 @@ pub enum InfluenceModel {
 /// the TIF, whose samples would otherwise grow without bound before any budget is checked).
 const MAX_PIECES_PER_BLOCK: usize = 256;
 
-/// Gauss-Legendre nodes and weights on `[-1, 1]`, 4 points: exact for cubics, so within
-/// `1e-9` of the peak rate over a crossed piece (at most 1/64 of the support radius) of a Gaussian.
-const GAUSS_LEGENDRE_4: [(f64, f64); 4] = [
-    (-0.861_136_311_594_052_6, 0.347_854_845_137_453_9),
-    (-0.339_981_043_584_856_3, 0.652_145_154_862_546_1),
-    (0.339_981_043_584_856_3, 0.652_145_154_862_546_1),
-    (0.861_136_311_594_052_6, 0.347_854_845_137_453_9),
-];
-
-/// One straight block of a stretch: from `from_mm` to `to_mm` (offsets from the dwell point), cut
-/// into `pieces` equal pieces whose midpoint samples carry `weight` each.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Block {
-    from_mm: [f64; 2],
-    to_mm: [f64; 2],
-    pieces: usize,
-    weight: f64,
-}
-
-/// The rate at offset `(dx_mm, dy_mm)` from the dwell point of `tif` swept along a stretch whose
-/// midpoint samples are `samples` and blocks `blocks` (the samples of each block in order, one
-/// per piece). The midpoint rule, but for a footprint with a cut disc
-/// ([`InfluenceFunction::cut_disc_mm`]): there the pieces the cut circle crosses are integrated
-/// exactly over their part inside it (module documentation). No blocks: the samples alone.
-pub fn swept_rate<T: InfluenceFunction + ?Sized>(
-    tif: &T,
-    samples: &[[f64; 3]],
-    blocks: &[Block],
-    dx_mm: f64,
-    dy_mm: f64,
-) -> f64 {
-    let cut = match tif.cut_disc_mm() {
-        Some(c) if !blocks.is_empty() => c,
-        _ => {
-            return samples
-                .iter()
-                .map(|s| s[2] * tif.rate_nm_per_s(dx_mm - s[0], dy_mm - s[1]))
-                .sum();
-        }
-    };
-    // The sample at offset s reaches the map point when |(dx, dy) - centre - s| <= radius.
-    let (px, py, radius) = (dx_mm - cut.0, dy_mm - cut.1, cut.2);
-    let mut total = 0.0;
-    let mut at = 0;
-    for b in blocks {
-        let own = &samples[at..at + b.pieces];
-        at += b.pieces;
-        let (ux, uy) = (b.to_mm[0] - b.from_mm[0], b.to_mm[1] - b.from_mm[1]);
-        let (fx, fy) = (b.from_mm[0] - px, b.from_mm[1] - py);
-        // |f + t u|^2 = radius^2 at t1 <= t2; the block's part in the disc is [t1, t2] of [0, 1].
-        let a = ux * ux + uy * uy;
-        let half_b = fx * ux + fy * uy;
-        let c = fx * fx + fy * fy - radius * radius;
-        let disc = half_b * half_b - a * c;
-        if !(a > 0.0 && disc > 0.0) {
-            continue;
-        }
-        let root = disc.sqrt();
-        let (t1, t2) = ((-half_b - root) / a, (-half_b + root) / a);
-        let k = b.pieces as f64;
-        for (i, s) in own.iter().enumerate() {
-            let (u0, u1) = (i as f64 / k, (i + 1) as f64 / k);
-            if u1 <= t1 || u0 >= t2 {
-                continue;
-            }
-            if t1 <= u0 && u1 <= t2 {
-                total += s[2] * tif.rate_nm_per_s(dx_mm - s[0], dy_mm - s[1]);
-                continue;
-            }
-            let (c0, c1) = (u0.max(t1), u1.min(t2));
-            let (mid, half) = (0.5 * (c0 + c1), 0.5 * (c1 - c0));
-            let integral: f64 = GAUSS_LEGENDRE_4
-                .iter()
-                .map(|&(x, w)| {
-                    let t = mid + half * x;
-                    let (sx, sy) = (b.from_mm[0] + t * ux, b.from_mm[1] + t * uy);
-                    w * tif.rate_nm_per_s(dx_mm - sx, dy_mm - sy)
-                })
-                .sum();
-            // The piece's share of the stretch, `weight`, over its length `1 / k` of the block.
-            total += b.weight * k * half * integral;
-        }
-    }
-    total
-}
-
 /// The quadrature samples of every dwell point's stretch: offsets from the dwell point, mm, and
 /// weights (fractions of the dwell, summing to 1 per stretch). Each distinct stretch (the same
 /// boundary offsets, bit for bit) is sampled and held once; on a raster nearly every point
@@ -161,14 +65,8 @@ pub struct Stretches {
     kind_offsets: Vec<usize>,
     /// `(dx_mm, dy_mm, weight)` of every sample of the distinct stretches.
     samples: Vec<[f64; 3]>,
-    /// `block_offsets[k]..block_offsets[k + 1]` index the blocks of distinct stretch `k`.
-    block_offsets: Vec<usize>,
-    /// The blocks of the distinct stretches (none for a stretch of length zero).
-    blocks: Vec<Block>,
     /// Largest distance of a sample from its dwell point, mm.
     reach_mm: f64,
-    /// Largest distance of a stretch's end from its dwell point, mm.
-    extent_mm: f64,
     /// The dominant stretch, found once when first asked for.
     dominant: OnceLock<Dominant>,
 }
@@ -177,7 +75,6 @@ pub struct Stretches {
 #[derive(Debug, Clone)]
 struct Dominant {
     samples: Vec<[f64; 3]>,
-    blocks: Vec<Block>,
     count: usize,
     /// The dwell points whose stretch differs, ascending.
     outside: Vec<usize>,
@@ -211,13 +108,12 @@ fn boundaries(x: &[f64], y: &[f64], j: usize) -> ((f64, f64), (f64, f64)) {
 }
 
 /// Appends the midpoint-rule samples of the stretch `a -> 0 -> b` with pieces of at most
-/// `step_mm` to `samples` and its blocks to `blocks` (module documentation), and returns the
-/// samples' largest distance from the dwell point.
+/// `step_mm` to `samples` (module documentation), and returns their largest distance from the
+/// dwell point.
 fn sample_stretch(
     (a, b): ((f64, f64), (f64, f64)),
     step_mm: f64,
     samples: &mut Vec<[f64; 3]>,
-    blocks: &mut Vec<Block>,
 ) -> f64 {
     let la = a.0.hypot(a.1);
     let lb = b.0.hypot(b.1);
@@ -239,12 +135,6 @@ fn sample_stretch(
             .clamp(1.0, MAX_PIECES_PER_BLOCK as f64);
         let k = pieces as usize;
         let w = len / pieces / ds;
-        blocks.push(Block {
-            from_mm: [from.0, from.1],
-            to_mm: [to.0, to.1],
-            pieces: k,
-            weight: w,
-        });
         for i in 0..k {
             let f = (i as f64 + 0.5) / pieces;
             let (sx, sy) = (from.0 + f * (to.0 - from.0), from.1 + f * (to.1 - from.1));
@@ -270,10 +160,7 @@ impl Stretches {
         let mut kind_of = Vec::with_capacity(n);
         let mut kind_offsets = vec![0];
         let mut samples = Vec::new();
-        let mut block_offsets = vec![0];
-        let mut blocks = Vec::new();
         let mut reach = 0.0f64;
-        let mut extent = 0.0f64;
         // Distinct stretches by their boundaries' bits: equal bits, equal samples.
         let mut kinds: HashMap<[u64; 4], u32> = HashMap::new();
         for j in 0..n {
@@ -285,10 +172,8 @@ impl Stretches {
                     let k = u32::try_from(kinds.len()).map_err(|_| {
                         Error::invalid("dwell path", "has more distinct stretches than 2^32")
                     })?;
-                    reach = reach.max(sample_stretch((a, b), step_mm, &mut samples, &mut blocks));
+                    reach = reach.max(sample_stretch((a, b), step_mm, &mut samples));
                     kind_offsets.push(samples.len());
-                    block_offsets.push(blocks.len());
-                    extent = extent.max(a.0.hypot(a.1)).max(b.0.hypot(b.1));
                     kinds.insert(bits, k);
                     k
                 }
@@ -299,10 +184,7 @@ impl Stretches {
             kind_of,
             kind_offsets,
             samples,
-            block_offsets,
-            blocks,
             reach_mm: reach,
-            extent_mm: extent,
             dominant: OnceLock::new(),
         })
     }
@@ -327,54 +209,9 @@ impl Stretches {
         &self.samples[self.kind_offsets[k]..self.kind_offsets[k + 1]]
     }
 
-    /// The blocks of distinct stretch `k`.
-    fn blocks_of_kind(&self, k: usize) -> &[Block] {
-        &self.blocks[self.block_offsets[k]..self.block_offsets[k + 1]]
-    }
-
-    /// The rate at offset `(dx_mm, dy_mm)` from dwell point `j` of `tif` swept along its
-    /// stretch, per second of its dwell ([`swept_rate`]): column `j` of the swept `R`.
-    pub fn rate_nm_per_s<T: InfluenceFunction + ?Sized>(
-        &self,
-        j: usize,
-        tif: &T,
-        dx_mm: f64,
-        dy_mm: f64,
-    ) -> f64 {
-        let k = self.kind_of[j] as usize;
-        swept_rate(tif, self.of_kind(k), self.blocks_of_kind(k), dx_mm, dy_mm)
-    }
-
-    /// `tif` swept along the dominant stretch ([`Stretches::dominant`]): the lattice operators'
-    /// shared kernel, integrated as the columns are ([`swept_rate`]).
-    pub fn dominant_kernel<T: InfluenceFunction>(&self, tif: T) -> SweptTif<T> {
-        let d = self.dominant_stretch();
-        let mut kernel = SweptTif::new(tif, d.samples.clone());
-        kernel.extent_mm = d
-            .blocks
-            .iter()
-            .flat_map(|b| [b.from_mm, b.to_mm])
-            .map(|p| p[0].hypot(p[1]))
-            .fold(kernel.reach_mm, f64::max);
-        kernel.blocks.clone_from(&d.blocks);
-        kernel
-    }
-
     /// Largest distance of a sample from its dwell point, mm.
     pub fn reach_mm(&self) -> f64 {
         self.reach_mm
-    }
-
-    /// Largest distance from a dwell point at which its swept column of `tif` can be non-zero,
-    /// mm: the support radius and the samples' reach, or, for a footprint with a cut disc
-    /// (integrated up to the stretch's ends, [`swept_rate`]), the stretch's own extent.
-    pub fn reach_of<T: InfluenceFunction + ?Sized>(&self, tif: &T) -> f64 {
-        let along = if tif.cut_disc_mm().is_some() {
-            self.extent_mm.max(self.reach_mm)
-        } else {
-            self.reach_mm
-        };
-        tif.support_radius_mm() + along
     }
 
     /// The stretch most dwell points share (the same samples up to order, to 1e-9 mm), and how
@@ -443,14 +280,12 @@ impl Stretches {
                         .collect();
                     Dominant {
                         samples: self.of(j).to_vec(),
-                        blocks: self.blocks_of_kind(self.kind_of[j] as usize).to_vec(),
                         count,
                         outside,
                     }
                 }
                 None => Dominant {
                     samples: vec![[0.0, 0.0, 1.0]],
-                    blocks: Vec::new(),
                     count: 0,
                     outside: Vec::new(),
                 },
@@ -465,13 +300,7 @@ impl Stretches {
 pub struct SweptTif<T: InfluenceFunction> {
     inner: T,
     samples: Vec<[f64; 3]>,
-    /// The stretch's blocks where known ([`Stretches::dominant_kernel`]): a footprint with a
-    /// cut disc is then integrated exactly where the circle crosses a piece ([`swept_rate`]).
-    blocks: Vec<Block>,
     reach_mm: f64,
-    /// Largest distance of the blocks' ends from the dwell point (the samples' reach without
-    /// blocks), mm.
-    extent_mm: f64,
 }
 
 impl<T: InfluenceFunction> SweptTif<T> {
@@ -481,9 +310,7 @@ impl<T: InfluenceFunction> SweptTif<T> {
         Self {
             inner,
             samples,
-            blocks: Vec::new(),
             reach_mm,
-            extent_mm: reach_mm,
         }
     }
 
@@ -496,16 +323,14 @@ impl<T: InfluenceFunction> SweptTif<T> {
 impl<T: InfluenceFunction> InfluenceFunction for SweptTif<T> {
     #[inline]
     fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
-        swept_rate(&self.inner, &self.samples, &self.blocks, dx_mm, dy_mm)
+        self.samples
+            .iter()
+            .map(|s| s[2] * self.inner.rate_nm_per_s(dx_mm - s[0], dy_mm - s[1]))
+            .sum()
     }
 
     fn support_radius_mm(&self) -> f64 {
-        let along = if self.inner.cut_disc_mm().is_some() {
-            self.extent_mm
-        } else {
-            self.reach_mm
-        };
-        self.inner.support_radius_mm() + along
+        self.inner.support_radius_mm() + self.reach_mm
     }
 
     fn nominal_radius_mm(&self) -> f64 {
@@ -514,8 +339,7 @@ impl<T: InfluenceFunction> InfluenceFunction for SweptTif<T> {
 }
 
 /// Assembles the swept `R`: `R[i, j] = sum_k w_jk TIF(x_i - X_j - sx_jk, y_i - Y_j - sy_jk)`
-/// over stretch `j`'s samples ([`Stretches::of_path`]), the pieces a cut circle crosses
-/// integrated exactly ([`Stretches::rate_nm_per_s`]).
+/// over stretch `j`'s samples ([`Stretches::of_path`]).
 pub fn assemble_swept<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -536,8 +360,14 @@ pub fn assemble_swept<T: InfluenceFunction + ?Sized>(
         map_y_mm,
         path.x_mm(),
         path.y_mm(),
-        stretches.reach_of(tif),
-        |j, _i, dx, dy| stretches.rate_nm_per_s(j, tif, dx, dy),
+        tif.support_radius_mm() + stretches.reach_mm(),
+        |j, _i, dx, dy| {
+            stretches
+                .of(j)
+                .iter()
+                .map(|s| s[2] * tif.rate_nm_per_s(dx - s[0], dy - s[1]))
+                .sum()
+        },
         observer,
     )
 }
