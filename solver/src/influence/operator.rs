@@ -260,6 +260,15 @@ impl ColumnSums {
     }
 }
 
+/// A matrix-free operator's column whose norm is below this fraction of the largest column's is
+/// held as empty. Its products carry rounding relative to the largest entries (about 1e-13 for
+/// the FFT), so such a column's share of `R^T y` is rounding, and the Jacobi scaling
+/// (`1 / ||P R_j||`) would blow that rounding up past every real gradient: a hard-cut grid TIF
+/// reaching a map point only through a bilinear weight of 1e-13 at its cut made a column of
+/// norm 1e-26 whose scaled noise passed the start as converged. A column this weak removes
+/// nothing a plan can use.
+pub(crate) const UNRESOLVED_COLUMN_REL: f64 = 1e-10;
+
 /// The column sums of a matrix-free operator over its `m` map points: its non-zeros, empty
 /// columns and the centred column norms of the Jacobi scaling, read the same way by every
 /// matrix-free operator.
@@ -280,24 +289,42 @@ impl ColumnStats {
         self.columns.iter().map(|c| c.nnz).sum()
     }
 
-    /// Columns with no non-zero entry: dwell points with no map point in the tool's reach.
+    /// Columns with no non-zero entry (dwell points with no map point in the tool's reach), or
+    /// whose norm is below [`UNRESOLVED_COLUMN_REL`] of the largest column's: the matrix-free
+    /// products cannot resolve them, and they are held as empty.
     pub(crate) fn empty_columns(&self) -> Vec<usize> {
+        let floor = self.resolved_floor_sq();
         self.columns
             .iter()
             .enumerate()
-            .filter(|(_, c)| c.nnz == 0)
+            .filter(|(_, c)| c.nnz == 0 || c.sum_sq < floor)
             .map(|(j, _)| j)
             .collect()
     }
 
     /// `||R_j||^2 - (1' R_j)^2 / m` for every column (see
-    /// [`LinearOperator::centred_column_norms_sq`]).
+    /// [`LinearOperator::centred_column_norms_sq`]); zero for a column held as empty
+    /// ([`ColumnStats::empty_columns`]).
     pub(crate) fn centred_norms_sq(&self) -> Vec<f64> {
         let m = self.m.max(1) as f64;
+        let floor = self.resolved_floor_sq();
         self.columns
             .iter()
-            .map(|c| (c.sum_sq - c.sum * c.sum / m).max(0.0))
+            .map(|c| {
+                if c.sum_sq < floor {
+                    0.0
+                } else {
+                    (c.sum_sq - c.sum * c.sum / m).max(0.0)
+                }
+            })
             .collect()
+    }
+
+    /// The squared norm below which a column is not resolved by the products
+    /// ([`UNRESOLVED_COLUMN_REL`] of the largest column's norm, squared).
+    fn resolved_floor_sq(&self) -> f64 {
+        let largest = self.columns.iter().map(|c| c.sum_sq).fold(0.0, f64::max);
+        largest * UNRESOLVED_COLUMN_REL * UNRESOLVED_COLUMN_REL
     }
 }
 

@@ -465,8 +465,14 @@ impl<'a> Data<'a> {
         let kkt_scale = {
             let mean = data.sum_z / m as f64;
             let rtpz = |j: usize| data.rtz[j] - mean * data.column_sums[j];
+            // |(R^T P z)_j| s_j = |R_j' P z| / ||P R_j|| <= ||P z|| (Cauchy-Schwarz): a column
+            // whose product rounding breaks the bound counts at the bound.
+            let pz = (0..m)
+                .map(|i| (data.z[i] - mean).powi(2))
+                .sum::<f64>()
+                .sqrt();
             let a: f64 = (0..n)
-                .map(|j| (rtpz(j) * data.s[j]).powi(2))
+                .map(|j| (rtpz(j).abs() * data.s[j]).min(pz).powi(2))
                 .sum::<f64>()
                 .sqrt();
             let b: f64 = (0..n)
