@@ -36,27 +36,15 @@ impl Setup {
     /// whose nominal removal at the measured map points is `removal_nm`: the motion's removal
     /// under each of [`sensitivity::MOTION_SCENARIOS`] on the set-up's part
     /// ([`Setup::contact_removals`]), its residual against the map summarised
-    /// ([`sensitivity::Sensitivity::of_removals`]). On a flat part with one TIF the samples at a
-    /// common offset from the map's lattice are lattice products
-    /// ([`motion_lattice::removals_in_plan_on_lattice`]), the direct sum to rounding.
+    /// ([`sensitivity::Sensitivity::of_removals`]). On a flat part the samples at a common offset
+    /// from the map's lattice are lattice products ([`Setup::contact_removals`]).
     pub fn sensitivity_of(
         &self,
         samples: &crate::simulate::SampledProgram,
         removal_nm: &[f64],
         observer: &dyn Observer,
     ) -> Result<sensitivity::Sensitivity> {
-        let scenarios = &sensitivity::MOTION_SCENARIOS;
-        let motion = match (&self.surface, &self.tif_model) {
-            (None, TifModel::ShiftInvariant) => motion_lattice::removals_in_plan_on_lattice(
-                self.map.x_mm(),
-                self.map.y_mm(),
-                samples,
-                &self.tif,
-                scenarios,
-                observer,
-            )?,
-            _ => self.contact_removals(samples, scenarios, observer)?,
-        };
+        let motion = self.contact_removals(samples, &sensitivity::MOTION_SCENARIOS, observer)?;
         sensitivity::Sensitivity::of_removals(self.map.z_nm(), removal_nm, &motion)
     }
 
