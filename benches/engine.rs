@@ -2,7 +2,8 @@
 //!
 //! `cargo bench --bench engine` (criterion). Assembly throughput is reported in non-zeros per
 //! second ("elements"); `fft_products` times one first-order iteration's products (`R t` and
-//! `R^T y`, and `R^T R t` in one pass) with the matrix-free FFT operator on the generated `preston bench` problems.
+//! `R^T y`, and `R^T R t` in one pass) with the matrix-free FFT operator on the generated `preston bench` problems;
+//! `sample_job_phases` times the shipped sample job (`data/job.toml`) phase by phase.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use preston::io::job::Job;
@@ -92,6 +93,53 @@ fn sample_job(c: &mut Criterion) {
     group.finish();
 }
 
+/// The shipped sample job (`data/job.toml`: the 0.32 mm raster on the map's lattice, the swept
+/// model, correction passes against the program executed at the acceleration limit) phase by
+/// phase, in a group named by its size: reading the inputs and building the operator, the whole
+/// solve (the L-BFGS, the executed runs and correction passes, the sensitivity), one executed run
+/// of the solve's program (the contact motion's removal on the map), and the sensitivity of that
+/// run under the five TIF scenarios.
+fn sample_job_phases(c: &mut Criterion) {
+    use preston::solver::machine::gcode::motion::Kinematics;
+    let job_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/job.toml");
+    let job = Job::load(&job_path).unwrap();
+    let prepared = pipeline::prepare(&job, &job_path, &Silent).unwrap();
+    let (setup, problem) = (&prepared.setup, &prepared.problem);
+    let mut group = c.benchmark_group(format!(
+        "sample_job_phases/{}map_{}dwell",
+        problem.m(),
+        problem.n()
+    ));
+    group.sample_size(10);
+    group.bench_function("prepare", |b| {
+        b.iter(|| pipeline::prepare(&job, &job_path, &Silent).unwrap())
+    });
+    group.bench_function("solve", |b| {
+        b.iter(|| setup.solve(problem, &Silent).unwrap())
+    });
+    let outcome = setup.solve(problem, &Silent).unwrap();
+    let executed = outcome.executed.as_ref().unwrap().as_ref().unwrap();
+    let kinematics = Kinematics::Trapezoidal {
+        a_max_mm_per_s2: executed.a_max_mm_per_s2,
+        corner_angle_deg: executed.settings.corner_angle_deg,
+    };
+    group.bench_function("executed_run", |b| {
+        b.iter(|| {
+            setup
+                .run_program(&executed.program.program, kinematics, None, None, &Silent)
+                .unwrap()
+        })
+    });
+    group.bench_function("sensitivity", |b| {
+        b.iter(|| {
+            setup
+                .sensitivity_of(&executed.run.contact, &executed.run.removal_nm, &Silent)
+                .unwrap()
+        })
+    });
+    group.finish();
+}
+
 fn fft_products(c: &mut Criterion) {
     use preston::solver::influence::fft::FftOperator;
     use preston::solver::influence::operator::LinearOperator;
@@ -123,5 +171,11 @@ fn fft_products(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, assembly, sample_job, fft_products);
+criterion_group!(
+    benches,
+    assembly,
+    sample_job,
+    sample_job_phases,
+    fft_products
+);
 criterion_main!(benches);

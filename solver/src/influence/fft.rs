@@ -741,8 +741,10 @@ fn column_sums(
     (nx, ny): (usize, usize),
     fx: usize,
 ) -> Vec<ColumnSums> {
+    use rayon::prelude::*;
+    // Each dwell point's sums on their own, in parallel (the same sums as in series).
     dwell_ij
-        .iter()
+        .par_iter()
         .map(|&(i, j)| {
             let mut sums = ColumnSums::default();
             for &(dx, dy, v) in taps {

@@ -1,6 +1,7 @@
 //! The removal of a contact motion on the set-up's part: samples `p_k` of the motion carrying
 //! time `tau_k`, `h_i = sum_k f_k(x_i - p_k) tau_k`, summed directly (a motion's samples are used
-//! once). On a flat part `f_k` is the TIF in plan ([`crate::influence::direct`]); on a curved
+//! once). On a flat part `f_k` is the TIF in plan ([`crate::influence::direct`]), the samples that
+//! share an offset from the map's lattice as lattice products ([`super::motion_lattice`]); on a curved
 //! part each sample applies the TIF in its own tangent frame of the design surface, oriented as
 //! the plan's columns are ([`crate::influence::surface::removals_on_surface_with`]), with the
 //! sample's own Hertz TIF where the TIF depends on the curvature. The same under the
@@ -46,7 +47,11 @@ impl Setup {
                     "a curvature-dependent TIF needs a design surface",
                 ));
             }
-            return removals_in_plan(mx, my, samples, &self.tif, scenarios, observer);
+            // Samples at a common offset from the map's lattice as lattice products, the rest
+            // summed directly (the direct sum to rounding).
+            return super::motion_lattice::removals_in_plan_on_lattice(
+                mx, my, samples, &self.tif, scenarios, observer,
+            );
         };
         let mut out = vec![Vec::new(); scenarios.len()];
         // One traversal per distinct offset, the samples moved by it.

@@ -19,6 +19,7 @@
 
 mod choices;
 mod contact;
+mod motion_lattice;
 mod off_lattice;
 pub mod pays;
 pub mod plausible;

@@ -36,7 +36,8 @@ impl Setup {
     /// whose nominal removal at the measured map points is `removal_nm`: the motion's removal
     /// under each of [`sensitivity::MOTION_SCENARIOS`] on the set-up's part
     /// ([`Setup::contact_removals`]), its residual against the map summarised
-    /// ([`sensitivity::Sensitivity::of_removals`]).
+    /// ([`sensitivity::Sensitivity::of_removals`]). On a flat part the samples at a common offset
+    /// from the map's lattice are lattice products ([`Setup::contact_removals`]).
     pub fn sensitivity_of(
         &self,
         samples: &crate::simulate::SampledProgram,
