@@ -3,7 +3,7 @@
 use crate::atomic::commit_all;
 use crate::calibration::{read_calibration, CalibrationRecord};
 use crate::error::{Error, Result};
-use crate::job::{DwellInput, Job, TifInput};
+use crate::job::{DwellSource, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
@@ -208,12 +208,11 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         (None, Some(c)) if !source_given => Tif::Grid(read_tif(&c.tif_file)?),
         (None, _) => load_tif(job, job_path)?,
     };
-    let dwell = match given.dwell {
-        Some(d) => Some(d),
-        None => match job.dwell.resolve(job_path)? {
-            DwellInput::File(f) => Some(read_dwell(&f)?),
-            DwellInput::Raster { .. } => None,
-        },
+    let dwell = match (given.dwell, &job.dwell.source) {
+        (Some(d), _) => Some(d),
+        (None, DwellSource::File(f)) => Some(read_dwell(f)?),
+        (None, DwellSource::Raster { .. }) => None,
+        (None, DwellSource::Unset) => return Err(no_dwell_points(job_path)),
     };
     Ok(Inputs {
         map,
@@ -221,6 +220,16 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         dwell,
         calibration,
     })
+}
+
+/// A job that names no dwell points and was given none.
+fn no_dwell_points(job_path: &Path) -> Error {
+    Error::Job {
+        file: job_path.to_path_buf(),
+        why: "no dwell points: set [dwell] file or raster_pitch_mm (or --dwell / \
+              --raster-pitch-mm)"
+            .into(),
+    }
 }
 
 /// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
@@ -248,7 +257,7 @@ fn file_at_fault(job: &Job, job_path: &Path, input: SetupInput) -> PathBuf {
     match input {
         SetupInput::Job | SetupInput::None => job_path.to_path_buf(),
         SetupInput::Map => or_job(&job.map.file),
-        SetupInput::Dwell => or_job(&job.dwell.file),
+        SetupInput::Dwell => or_job(&job.dwell.source.file().map(Path::to_path_buf)),
         SetupInput::Surface => or_job(&job.surface.file),
         SetupInput::WarmStart => or_job(&job.dwell.warm_start),
     }
@@ -274,15 +283,11 @@ fn prepare_checked(
         calibration,
     } = inputs;
     // Points handed over already read (the Python package's arrays) need no `[dwell]` section.
-    let resolved = match (&dwell, &job.dwell.file, job.dwell.raster_pitch_mm) {
-        (Some(_), None, None) => DwellInput::File(job_path.to_path_buf()),
-        _ => job.dwell.resolve(job_path)?,
-    };
-    let dwell = match (dwell, resolved) {
-        (Some(d), DwellInput::File(f)) => {
+    let dwell = match (dwell, &job.dwell.source) {
+        (Some(d), source) => {
             if d.path.len() < 2 {
                 return Err(Error::Empty {
-                    file: f,
+                    file: source.file().unwrap_or(job_path).to_path_buf(),
                     why: "one dwell point: a path of length zero has no feed; give at least two \
                           points"
                         .into(),
@@ -290,13 +295,17 @@ fn prepare_checked(
             }
             DwellPoints::Given(d.path)
         }
-        (_, DwellInput::Raster { pitch_mm, along }) => DwellPoints::Raster { pitch_mm, along },
-        (None, DwellInput::File(f)) => {
+        (None, &DwellSource::Raster { pitch_mm }) => DwellPoints::Raster {
+            pitch_mm,
+            along: job.dwell.raster_along,
+        },
+        (None, DwellSource::File(f)) => {
             return Err(Error::Job {
                 file: job_path.to_path_buf(),
                 why: format!("the dwell file {} was not read", f.display()),
             })
         }
+        (None, DwellSource::Unset) => return Err(no_dwell_points(job_path)),
     };
     let surface = match &job.surface.file {
         Some(f) => Some(read_surface(f)?),

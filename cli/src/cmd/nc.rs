@@ -1,6 +1,6 @@
 //! `preston nc`: G-code and a point list for CAM from a solved dwell file.
 
-use crate::output::{print_json, OutputArgs};
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::{bail, Context};
 use preston_io::atomic::{commit_all, stage};
 use preston_io::job::Job;

@@ -3,8 +3,8 @@
 
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::tif_source::TifArgs;
-use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::job::{Job, MapSource};
 use preston_io::pipeline::load_tif;

@@ -4,8 +4,8 @@ use super::hertz_args::HertzArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::print_program_check;
 use super::tif_source::TifArgs;
-use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::job::{Job, TifSource};
 use preston_io::machine::program_check_summary;
@@ -58,7 +58,7 @@ pub struct Args {
     pub hertz: HertzArgs,
     /// Dwell points CSV `x_mm,y_mm` in path order. Repeated with --tif (the k-th --dwell goes
     /// with the k-th --tif), several tools in one solve: dwell_tool1.csv, dwell_tool2.csv, ...
-    #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm", action = clap::ArgAction::Append)]
+    #[arg(long, value_name = "D.csv", action = clap::ArgAction::Append)]
     pub dwell: Vec<PathBuf>,
     /// Fastest feed, mm/min. With several tools: once for all, or once per tool in order.
     #[arg(long = "v-max", value_name = "MM_PER_MIN", action = clap::ArgAction::Append)]
@@ -105,6 +105,12 @@ impl Args {
         let mut overrides = self.overrides;
         let tools = self.tif.tif.len().max(self.dwell.len());
         if tools > 1 {
+            // Each tool's points are its file: a raster pitch is refused by the one rule.
+            preston_io::job::DwellSource::of(
+                self.dwell.first().cloned(),
+                overrides.raster_pitch_mm,
+            )
+            .map_err(anyhow::Error::msg)?;
             apply_tools(
                 &mut job,
                 &self.tif.tif,
@@ -296,7 +302,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         RasterAxis::Y => LineAxis::Y,
     };
     let options = pipeline::OutputOptions {
-        figures: Some((axis, job.dwell.raster_pitch_mm)),
+        figures: Some((axis, job.dwell.source.raster_pitch_mm())),
         plots,
         html: html.then(|| {
             preston_io::html::Provenance::of_job(
