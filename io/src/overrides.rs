@@ -77,8 +77,9 @@ pub struct Overrides {
     #[serde(alias = "v_min")]
     pub v_min_mm_per_min: Option<f64>,
     /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
-    /// the distance between consecutive dwell points.
-    #[cfg_attr(feature = "clap", arg(long, value_name = "MM_PER_S2"))]
+    /// the distance between consecutive dwell points (on the command line, the machine's flags
+    /// shared by solve, nc and simulate).
+    #[cfg_attr(feature = "clap", arg(skip))]
     #[serde(alias = "a_max")]
     pub a_max_mm_per_s2: Option<f64>,
     /// How the acceleration limit is imposed (default: the job's, else correction-passes):
@@ -90,8 +91,8 @@ pub struct Overrides {
     #[cfg_attr(feature = "clap", arg(long, value_enum))]
     pub accel_method: Option<AccelMethod>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
-    /// and the machining time (default 60).
-    #[cfg_attr(feature = "clap", arg(long, value_name = "DEG"))]
+    /// and the machining time (default 60; on the command line, the machine's flags).
+    #[cfg_attr(feature = "clap", arg(skip))]
     pub corner_angle_deg: Option<f64>,
     /// How the dwell area beyond the map is modelled (default: the job's [edge], else none).
     #[cfg_attr(feature = "clap", arg(long, value_enum))]
