@@ -14,14 +14,12 @@ use preston_solver::calibrate::{
     expected_reading, map_noise_rms_nm, ContactMotion, Expected, ToolUncertainty,
 };
 use preston_solver::dwell::{Problem, Solution};
-use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
-use preston_solver::machine::nc::{NcProgram, NcSettings};
-use preston_solver::machine::{Flat, PartGeometry};
+use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
 use preston_solver::psd::LineAxis;
-use preston_solver::setup::robust::{self, RobustBasis, RobustSummary};
+use preston_solver::setup::robust;
 use preston_solver::setup::{
     Checked, DwellPoints, Outcome, Setup, SetupData, SetupError, SetupInput,
 };
@@ -529,96 +527,35 @@ fn expected_of(prepared: &Prepared, outcome: &Outcome) -> Result<Option<Expected
 
 /// Runs the solver on prepared inputs ([`Setup::solve`]: the acceleration-limited SCP with
 /// `[machine] a_max_mm_per_s2`, the dwell solver otherwise), builds the report from the outcome
-/// and checks the program of the job's machine for the plan ([`program_check`]).
+/// and asks the engine for the program of the job's machine for the plan
+/// ([`Setup::program_check`]; with a robust plan, the nominal plan beside it,
+/// [`Setup::compare_with_nominal`]).
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let outcome = prepared.setup.solve(&prepared.problem, observer)?;
     let mut report = report_of(&prepared, &outcome);
     if prepared.setup.settings.robust {
-        report.robust = Some(robust_report(&prepared, &outcome, observer)?);
+        let c = prepared
+            .setup
+            .compare_with_nominal(&prepared.problem, &outcome, observer)?;
+        report.robust = Some(RobustReport {
+            planned: c.planned,
+            weighting: prepared.setup.settings.robust_weighting,
+            scenario_weights: prepared
+                .scenario_weights
+                .clone()
+                .unwrap_or_else(|| vec![1.0; robust::SCENARIOS.len()]),
+            nominal_plan_rms_after_nm: c.nominal_plan_rms_after_nm,
+            nominal_plan_sensitivity: c.nominal_plan_sensitivity,
+        });
     }
     let expected = expected_of(&prepared, &outcome)?;
     report.set_expected(expected.as_ref());
-    let program_check = program_check(&prepared.setup, &outcome, &job.nc_settings());
+    let program_check = prepared.setup.program_check(&outcome, &job.nc_settings());
     Ok(Solved {
         prepared,
         outcome,
         report,
         program_check,
-    })
-}
-
-/// The program of `settings` for the outcome's plan, written, read back and checked: the one
-/// the solve executed when that was written with the same settings on a flat part, planned
-/// here otherwise (on the set-up's design surface when there is one).
-pub fn program_check(
-    setup: &Setup,
-    outcome: &Outcome,
-    settings: &NcSettings,
-) -> std::result::Result<ProgramCheck, preston_solver::Error> {
-    if let (Some(Ok(e)), None) = (&outcome.executed, &setup.surface) {
-        if e.settings == *settings {
-            return Ok(e.program.clone());
-        }
-    }
-    let geometry: &dyn PartGeometry = match &setup.surface {
-        Some(s) => s,
-        None => &Flat,
-    };
-    NcProgram::plan(&setup.path, &outcome.solution.dwell_s, geometry, settings)
-        .and_then(|nc| write_and_check(&nc, &[]))
-}
-
-/// The robust plan of `outcome` against the nominal plan of the same set-up (solved here, the
-/// same way but for the nominal TIF alone): both plans' residual RMS in every scenario by the
-/// stacked model, and the nominal plan's executed residual and sensitivity where a program is
-/// executed.
-fn robust_report(
-    prepared: &Prepared,
-    outcome: &Outcome,
-    observer: &dyn Observer,
-) -> Result<RobustReport> {
-    let mut nominal = prepared.setup.clone();
-    nominal.settings.robust = false;
-    let built = nominal
-        .problem(observer)
-        .map_err(|e| Error::Solver(e.source))?;
-    let plan = nominal.solve(&built.problem, observer)?;
-    let z = prepared.setup.map.z_nm();
-    // Each scenario's removal: its block of the robust problem's rows over the block's scale.
-    let per_scenario = |t: &[f64]| -> Result<Vec<f64>> {
-        let mut h = prepared.problem.removal_nm(t)?;
-        let scales = prepared.problem.scenario_scales();
-        let block = (h.len() / scales.len()).max(1);
-        for (part, a) in h.chunks_mut(block).zip(scales) {
-            part.iter_mut().for_each(|v| *v /= a);
-        }
-        Ok(robust::scenario_rms_nm(z, &h))
-    };
-    let executed = |o: &Outcome| match (&o.executed, &o.sensitivity) {
-        (Some(Ok(e)), Some(s)) => Some(robust::executed_scenario_rms_nm(e.after.rms_nm, s)),
-        _ => None,
-    };
-    let planned = match (executed(outcome), executed(&plan)) {
-        (Some(r), Some(n)) => RobustSummary::new(RobustBasis::Executed, r, n),
-        _ => RobustSummary::new(
-            RobustBasis::Planned,
-            per_scenario(&outcome.solution.dwell_s)?,
-            per_scenario(&plan.solution.dwell_s)?,
-        ),
-    };
-    let nominal_plan_rms_after_nm = match &plan.executed {
-        Some(Ok(e)) => e.after.rms_nm,
-        _ => preston_solver::map::HeightStats::of(&plan.residual_nm).rms_nm,
-    };
-    Ok(RobustReport {
-        planned,
-        weighting: prepared.setup.settings.robust_weighting,
-        scenario_weights: prepared
-            .scenario_weights
-            .clone()
-            .unwrap_or_else(|| vec![1.0; robust::SCENARIOS.len()]),
-        nominal_plan_rms_after_nm,
-        nominal_plan_sensitivity: plan.sensitivity,
     })
 }
 
