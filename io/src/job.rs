@@ -55,6 +55,9 @@ use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::edge::EdgeSettings;
 use preston_solver::influence::surface::TifFrame;
+use preston_solver::kinematics::{
+    check_a_max_mm_per_s2, check_corner_angle_deg, DEFAULT_CORNER_ANGLE_DEG,
+};
 use preston_solver::machine::compensation::NormalDisplacement;
 use preston_solver::machine::profile::MachineProfile;
 use preston_solver::path::raster::RasterAxis;
@@ -427,18 +430,10 @@ pub fn check_machine_limits(
         .validate()?;
     }
     if let Some(a) = machine.a_max_mm_per_s2 {
-        AccelLimits {
-            a_max_mm_per_s2: a,
-            ..AccelLimits::default()
-        }
-        .validate()?;
+        check_a_max_mm_per_s2(a)?;
     }
     if let Some(c) = machine.corner_angle_deg {
-        AccelLimits {
-            corner_angle_deg: c,
-            ..AccelLimits::default()
-        }
-        .validate()?;
+        check_corner_angle_deg(c)?;
     }
     Ok(())
 }
@@ -681,7 +676,7 @@ impl Job {
     pub fn corner_angle_deg(&self) -> f64 {
         self.machine
             .corner_angle_deg
-            .unwrap_or(AccelLimits::default().corner_angle_deg)
+            .unwrap_or(DEFAULT_CORNER_ANGLE_DEG)
     }
 
     /// The acceleration limit with default SCP settings, when `[machine] a_max_mm_per_s2` is set;
