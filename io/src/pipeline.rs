@@ -10,9 +10,7 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{ExecutedReport, Report, ResidualFigures, RobustReport};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::calibrate::{
-    expected_reading, map_noise_rms_nm, ContactMotion, Expected, ToolUncertainty,
-};
+use preston_solver::calibrate::{map_noise_rms_nm, ToolUncertainty};
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::map::HeightMap;
@@ -336,9 +334,11 @@ fn prepare_checked(
     )
     .map_err(at_fault)?;
     setup.rate_drift_per_hour = calibration.as_ref().map_or(0.0, |c| c.drift_per_hour);
+    setup.tool_uncertainty = tool_uncertainty(job, calibration.as_ref());
     let built = setup.problem(observer).map_err(at_fault)?;
     warnings.extend(built.warnings);
     let notes = built.notes;
+    let uncertainty = setup.tool_uncertainty;
     Ok(Prepared {
         setup,
         skipped_rows: map_file.input.invalid_points,
@@ -349,7 +349,7 @@ fn prepare_checked(
         warnings,
         notes,
         scenario_weights: built.scenario_weights,
-        uncertainty: tool_uncertainty(job, calibration.as_ref()),
+        uncertainty,
         calibration,
     })
 }
@@ -460,69 +460,15 @@ pub fn tif_wider_than_map(map: &HeightMap, tif: &Tif, map_path: &Path) -> Option
     })
 }
 
-/// Draws for the expected reading.
-pub const EXPECTED_DRAWS: usize = 32;
-/// Seed of the expected reading's draws (a fixed seed: the same plan gives the same figures).
-const EXPECTED_SEED: u64 = 0x005e_ed0f_7001;
-
-/// What the interferometer is expected to read after the plan's run
-/// ([`preston_solver::calibrate::expect`]): the executed program's contact motion where the plan
-/// has one (an acceleration limit), else the plan's own motion (each dwell point's stretch
-/// sampled at its time); on a flat part (`None` on a curved one).
-fn expected_of(prepared: &Prepared, outcome: &Outcome) -> Result<Option<Expected>> {
-    let setup = &prepared.setup;
-    if setup.surface.is_some() {
-        return Ok(None);
-    }
-    let map = &setup.map;
-    let (motion, removal) = match &outcome.executed {
-        Some(Ok(executed)) => {
-            let run = &executed.run;
-            (
-                ContactMotion {
-                    x_mm: run.contact.x_mm.clone(),
-                    y_mm: run.contact.y_mm.clone(),
-                    dwell_s: run.contact.dwell_s.clone(),
-                    time_s: run.contact_at_s.clone(),
-                },
-                run.removal_nm.clone(),
-            )
-        }
-        _ => {
-            let dwell = &outcome.solution.dwell_s;
-            let time_s = preston_solver::iterate::learned::mid_times_s(dwell);
-            (
-                ContactMotion {
-                    x_mm: setup.path.x_mm().to_vec(),
-                    y_mm: setup.path.y_mm().to_vec(),
-                    dwell_s: dwell.clone(),
-                    time_s,
-                },
-                outcome.removal_nm.clone(),
-            )
-        }
-    };
-    if motion.contact_time_s() <= 0.0 {
-        return Ok(None);
-    }
+/// The tool's uncertainty the expected reading draws from: the calibration's, or the job's
+/// with the map's own noise where no calibration is named.
+fn reading_uncertainty(prepared: &Prepared) -> ToolUncertainty {
     let mut uncertainty = prepared.uncertainty;
     if prepared.calibration.is_none() {
+        let map = &prepared.setup.map;
         uncertainty.noise_rms_nm = map_noise_rms_nm(map.x_mm(), map.y_mm(), map.z_nm());
     }
-    let grid = crate::calibration::tif_grid(&setup.tif)?;
-    expected_reading(
-        map.x_mm(),
-        map.y_mm(),
-        map.z_nm(),
-        &removal,
-        &motion,
-        &grid,
-        &uncertainty,
-        EXPECTED_DRAWS,
-        EXPECTED_SEED,
-    )
-    .map(Some)
-    .map_err(Error::Solver)
+    uncertainty
 }
 
 /// Runs the solver on prepared inputs ([`Setup::solve`]: the acceleration-limited SCP with
@@ -532,6 +478,11 @@ fn expected_of(prepared: &Prepared, outcome: &Outcome) -> Result<Option<Expected
 /// [`Setup::compare_with_nominal`]).
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let outcome = prepared.setup.solve(&prepared.problem, observer)?;
+    let paying = prepared
+        .setup
+        .plan_that_pays(outcome, &reading_uncertainty(&prepared), observer)
+        .map_err(Error::Solver)?;
+    let outcome = paying.outcome.clone();
     let mut report = report_of(&prepared, &outcome);
     if prepared.setup.settings.robust {
         let c = prepared
@@ -543,13 +494,12 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
             scenario_weights: prepared
                 .scenario_weights
                 .clone()
-                .unwrap_or_else(|| vec![1.0; robust::SCENARIOS.len()]),
+                .unwrap_or_else(|| vec![1.0; robust::SCENARIO_COUNT]),
             nominal_plan_rms_after_nm: c.nominal_plan_rms_after_nm,
             nominal_plan_sensitivity: c.nominal_plan_sensitivity,
         });
     }
-    let expected = expected_of(&prepared, &outcome)?;
-    report.set_expected(expected.as_ref());
+    report.set_expected(&paying);
     let program_check = prepared.setup.program_check(&outcome, &job.nc_settings());
     Ok(Solved {
         prepared,

@@ -118,10 +118,20 @@ pub struct Report {
     /// How the expected reading was drawn: the uncertainty, the nominal RMS, the draws.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub expected: Option<preston_solver::calibrate::Expected>,
-    /// Whether the run is expected to improve the part: its expected RMS below the measured one
-    /// (both with piston and tilt removed, as the interferometer reads them).
+    /// Whether the run is expected to improve the part by more than its risk: the 95th
+    /// percentile of the expected reading below the RMS measured before the run (both with
+    /// piston and tilt removed, as the interferometer reads them;
+    /// [`preston_solver::setup::pays`]).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub run_pays: Option<bool>,
+    /// What the plan corrects: the whole map (`map`), or the correctable band alone (`band`,
+    /// with its cap's transfer gain, cut-off frequency in 1/mm, fit degrees and the RMS it
+    /// leaves out, nm) where the whole map's plan did not pay and the band's reads lower.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub plan_scope: Option<preston_solver::setup::pays::PlanScope>,
+    /// The expected RMS of the whole map's plan where a band plan replaced it, nm.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub map_plan_expected_rms_nm: Option<f64>,
     /// The largest part of the expected reading (`expected.parts`): what keeps the run from
     /// doing better (`band`, `tool_uncertainty` or `noise`).
     #[serde(skip_serializing_if = "Option::is_none", default)]
@@ -574,6 +584,8 @@ impl Report {
             expected_rms_range_nm: None,
             expected: None,
             run_pays: None,
+            plan_scope: None,
+            map_plan_expected_rms_nm: None,
             expected_floor_cause: None,
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,
@@ -593,14 +605,18 @@ impl Report {
         }
     }
 
-    /// Sets the expected reading after the run and whether the run pays.
-    pub fn set_expected(&mut self, expected: Option<&preston_solver::calibrate::Expected>) {
+    /// Sets the expected reading after the run, whether the run pays, what the plan corrects
+    /// and, where no run pays, the floor's cause.
+    pub fn set_expected(&mut self, paying: &preston_solver::setup::pays::PayingPlan) {
+        let expected = paying.expected.as_ref();
         self.expected_rms_nm = expected.map(|e| e.expected_rms_nm);
         self.expected_pv_nm = expected.map(|e| e.expected_pv_nm);
         self.expected_rms_range_nm = expected.map(|e| e.expected_rms_range_nm);
-        self.run_pays = expected.map(|e| e.expected_rms_nm < e.measured_rms_nm);
+        self.run_pays = paying.pays();
         self.expected_floor_cause = expected.map(|e| e.parts.cause());
         self.expected = expected.cloned();
+        self.plan_scope = expected.map(|_| paying.scope);
+        self.map_plan_expected_rms_nm = paying.map_plan_expected_rms_nm;
     }
 
     /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the

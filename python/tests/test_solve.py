@@ -294,7 +294,7 @@ def test_robust_keyword_is_the_cli_flag(small_job):
     scenario, and its nominal RMS is the result's."""
     r = preston.solve(small_job, robust=True, rho=0.01, v_min=1.0)
     rob = r.report["robust"]
-    assert rob["scenarios"][0] == "nominal" and len(rob["robust_plan_rms_nm"]) == 5
+    assert rob["scenarios"][0] == "nominal" and len(rob["robust_plan_rms_nm"]) == 7
     assert rob["basis"] == "planned"
     # What it minimises: the mean over the scenarios of the squared residual.
     mean_sq = lambda v: sum(x * x for x in v) / len(v)  # noqa: E731

@@ -11,6 +11,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod aperture;
+pub mod band;
 pub mod budget;
 pub mod calibrate;
 pub mod counts;

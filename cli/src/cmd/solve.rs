@@ -17,6 +17,7 @@ use preston_solver::dwell::OperatorKind;
 use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::LineAxis;
+use preston_solver::setup::pays::PlanScope;
 use std::path::{Path, PathBuf};
 
 use super::EXIT_NOT_CONVERGED;
@@ -413,10 +414,29 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
             p.tool_nm,
             p.noise_nm
         );
+        if let (
+            Some(PlanScope::Band {
+                min_gain,
+                cutoff_per_mm,
+                left_out_rms_nm,
+                ..
+            }),
+            Some(whole),
+        ) = (r.plan_scope, r.map_plan_expected_rms_nm)
+        {
+            crate::note!(
+                "  planned for the correctable band only (up to {:.3} /mm, where the tool's transfer is {:.0}% of its rate; {:.3} nm RMS left out): the whole map's plan was expected to read {:.3} nm, above what it would gain",
+                cutoff_per_mm,
+                100.0 * min_gain,
+                left_out_rms_nm,
+                whole
+            );
+        }
         if r.run_pays == Some(false) {
             crate::errln!(
-                "  warning: this run is not expected to improve the part: {:.3} nm expected against {:.3} nm measured; the floor is set by {}; calibrate the tool or stop",
+                "  warning: no run is expected to improve the part by more than its risk: {:.3} nm expected (up to {:.3} nm) against {:.3} nm measured; the floor is set by {}; calibrate the tool or stop",
                 e.expected_rms_nm,
+                hi,
                 e.measured_rms_nm,
                 p.cause().describe()
             );

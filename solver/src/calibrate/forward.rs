@@ -19,6 +19,20 @@ use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 use std::sync::Arc;
 
+/// The program time at the middle of each dwell point's dwell, `Σ_{i<j} t_i + t_j / 2`, s, the
+/// dwell points run in their order.
+pub fn mid_times_s(dwell_s: &[f64]) -> Vec<f64> {
+    let mut start = 0.0;
+    dwell_s
+        .iter()
+        .map(|&t| {
+            let at = start + t / 2.0;
+            start += t;
+            at
+        })
+        .collect()
+}
+
 /// The contact motion of a run: where the tool touched, for how long and when.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct ContactMotion {

@@ -44,7 +44,7 @@ pub use change::{GriddedMap, MeasuredChange};
 pub use expect::{
     expected_reading, map_noise_rms_nm, Expected, FloorCause, ReadingParts, ToolUncertainty,
 };
-pub use forward::{ContactMotion, LatticeRemoval};
+pub use forward::{mid_times_s, ContactMotion, LatticeRemoval};
 pub use freeform::FreeformCorrection;
 pub use tool::{SpotFootprint, ToolFigures, TransformedTif};
 

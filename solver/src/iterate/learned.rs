@@ -10,7 +10,7 @@
 //! compensated to first order by dwelling `t_j / (1 + d (τ_j' - τ_mid') / 3600)`, the times `τ'`
 //! those of the compensated program (a fixed point, a few passes).
 
-use crate::calibrate::{Calibration, ContactMotion};
+use crate::calibrate::{mid_times_s, Calibration, ContactMotion};
 use crate::error::Result;
 use crate::influence::Stretches;
 use crate::path::DwellPath;
@@ -62,20 +62,6 @@ impl LearnedTool {
 /// one with [`RUN_TO_RUN_RATE_SIGMA`] in quadrature.
 pub fn next_run_rate_sigma(rate_factor: f64, rate_factor_sigma: f64) -> f64 {
     (rate_factor_sigma / rate_factor).hypot(RUN_TO_RUN_RATE_SIGMA)
-}
-
-/// The program time at the middle of each dwell point's dwell, `Σ_{i<j} t_i + t_j / 2`, s, the
-/// dwell points run in their order.
-pub fn mid_times_s(dwell_s: &[f64]) -> Vec<f64> {
-    let mut start = 0.0;
-    dwell_s
-        .iter()
-        .map(|&t| {
-            let at = start + t / 2.0;
-            start += t;
-            at
-        })
-        .collect()
 }
 
 /// The contact motion of a planned run (module documentation).

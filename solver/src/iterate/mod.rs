@@ -8,7 +8,7 @@
 //!    by the current form error, seen through the installation error, plus Gaussian noise.
 //! 2. *Register* (ICP, [`crate::registration::register`]): the installation error is extracted
 //!    and the form error of every point is its signed normal deviation (nm).
-//! 3. *Correctable band* ([`band`]): the measured error is split into the smooth part the TIF can
+//! 3. *Correctable band* ([`crate::band`]): the measured error is split into the smooth part the TIF can
 //!    remove and the rest (noise, structure finer than the tool), reported as uncorrectable.
 //! 4. *Learn the tool*: each run's measured removal against its plan gives the tool's actual
 //!    rate factor ([`rate`]); the next run is planned with the precision-weighted mean of them,
@@ -36,12 +36,11 @@
 //! Statistics are those of the registered (measured) form error, which is what the shop sees:
 //! piston and tilt of the true error are indistinguishable from the installation error.
 
-pub mod band;
 pub mod learned;
 pub mod rate;
 pub mod shop;
 
-pub use band::{BandSplit, CorrectableBand};
+pub use crate::band::{self, BandSplit, CorrectableBand};
 pub use learned::LearnedTool;
 pub use rate::{RateEstimate, RateObservation};
 pub use shop::ShopTool;
@@ -1133,7 +1132,7 @@ impl<'a> Shop<'a> {
                 let dose: Vec<f64> = plan
                     .dwell_s
                     .iter()
-                    .zip(learned::mid_times_s(&plan.dwell_s))
+                    .zip(crate::calibrate::mid_times_s(&plan.dwell_s))
                     .map(|(&t, at)| t * tool.drift_factor(at, total / 2.0, total))
                     .collect();
                 self.removal(

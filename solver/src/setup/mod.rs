@@ -20,6 +20,7 @@
 mod choices;
 mod contact;
 mod off_lattice;
+pub mod pays;
 pub mod plausible;
 mod problem;
 mod resolve;
@@ -238,6 +239,9 @@ pub struct Setup {
     /// The tool's rate drift per hour of program time (a calibration's): the executed program's
     /// removal weights each contact sample by it, so the correction passes plan for it.
     pub rate_drift_per_hour: f64,
+    /// How well the tool is known (a spot test's defaults, the job's, or a calibration's): the
+    /// robust plan's scenarios are drawn from it ([`robust::scenarios`]).
+    pub tool_uncertainty: crate::calibrate::ToolUncertainty,
 }
 
 /// How `R` is held for a problem.
@@ -264,7 +268,7 @@ pub struct Built {
     /// Notes: what the set-up chose, for information (the operator `auto` chose, the swept
     /// columns made exact); printed as notes, not warnings.
     pub notes: Vec<String>,
-    /// A robust plan's scenario weights ([`robust::SCENARIOS`] order, summing to their count);
+    /// A robust plan's scenario weights ([`robust::SCENARIO_NAMES`] order, summing to their count);
     /// `None` for a nominal plan.
     pub scenario_weights: Option<Vec<f64>>,
 }
@@ -891,7 +895,7 @@ mod tests {
             let t = [1.0, 0.5, 2.0];
             let (mx, my) = (setup.map.x_mm(), setup.map.y_mm());
             let mut nonzero = 0;
-            for s in &robust::SCENARIOS {
+            for s in &robust::scenarios(&Default::default()) {
                 let p = sensitivity::Perturbation {
                     width_factor: s.width_factor,
                     rate_factor: 1.0,
@@ -1004,7 +1008,7 @@ mod tests {
             built.warnings
         );
         assert_eq!((pa.m(), pa.n()), (pl.m(), pl.n()));
-        assert_eq!(pa.m(), robust::SCENARIOS.len() * lattice.map.len());
+        assert_eq!(pa.m(), robust::SCENARIO_COUNT * lattice.map.len());
         let close = |a: &[f64], b: &[f64], what: &str| {
             let peak = a.iter().fold(0.0f64, |p, v| p.max(v.abs()));
             for (k, (u, v)) in a.iter().zip(b).enumerate() {
@@ -1043,7 +1047,7 @@ mod tests {
         // `0.5 ||P (R t - z)||^2 + rho s sum t` (one piston over every block): equal to the
         // solver's tolerance, the plan through the lattice blocks no worse.
         let z = lattice.map.z_nm();
-        let rho = 0.1 * robust::SCENARIOS.len() as f64;
+        let rho = 0.1 * robust::SCENARIO_COUNT as f64;
         let objective = |t: &[f64]| {
             let h = pa.removal_nm(t).unwrap();
             let r: Vec<f64> = h

@@ -477,7 +477,7 @@ impl Setup {
     }
 
     /// The robust scenarios' matrix-free operators over the problem rows `rows`, the nominal
-    /// first ([`robust::SCENARIOS`]): where the nominal plan takes a lattice operator (FFT,
+    /// first ([`Setup::robust_scenarios`]): where the nominal plan takes a lattice operator (FFT,
     /// stencil, NUFFT or spreading), the same operator with the nominal's parameters and each
     /// scenario's kernel (its TIF, [`PerturbedTif`], swept along the dominant stretch under the
     /// swept model), each with its exact swept columns where stretches differ. `None` to stack
@@ -501,9 +501,9 @@ impl Setup {
             return Ok(None);
         };
         let mut blocks: Vec<Box<dyn InfluenceOperator>> =
-            Vec::with_capacity(robust::SCENARIOS.len());
+            Vec::with_capacity(robust::SCENARIO_COUNT);
         let mut nominal = Some(nominal);
-        for (s, scenario) in robust::SCENARIOS.iter().enumerate() {
+        for (s, scenario) in self.robust_scenarios().iter().enumerate() {
             let tif = PerturbedTif::new(&self.tif, scenario.width_factor, 1.0, scenario.offset_mm);
             // The nominal scenario's notes are the plan's; the others' repeat them.
             let mut scenario_notes = Vec::new();
@@ -630,7 +630,14 @@ impl Setup {
         warnings: &mut Vec<String>,
         observer: &dyn Observer,
     ) -> SetupResult<(Problem, Vec<f64>)> {
-        let scenarios = robust::SCENARIOS.len();
+        let scenarios = robust::SCENARIO_COUNT;
+        let u = &self.tool_uncertainty;
+        let described = format!(
+            "nominal, TIF {:.1}% wider and narrower, tool {:.3} mm off either way in x and {:.3} mm in y: one standard deviation of the tool's uncertainty",
+            100.0 * u.width_sigma,
+            u.offset_x_sigma_mm,
+            u.offset_y_sigma_mm
+        );
         let what = match self.settings.robust_weighting {
             crate::dwell::RobustWeighting::Mean => "mean",
             crate::dwell::RobustWeighting::Minimax => "worst",
@@ -639,30 +646,22 @@ impl Setup {
             Some(blocks) => {
                 warnings.push(format!(
                     "robust: the plan minimises the {what} residual over {scenarios} scenarios \
-                     (nominal, TIF 3% wider and narrower, tool 0.05 mm off in x and y), each \
-                     scenario's {} operator stacked (matrix-free)",
+                     ({described}), each scenario's {} operator stacked (matrix-free)",
                     kind_label(blocks[0].kind())
                 ));
                 RobustStack::Operators(blocks)
             }
             None => {
-                let blocks = robust::SCENARIOS
+                let blocks = self
+                    .robust_scenarios()
                     .iter()
-                    .map(|s| {
-                        let p = Perturbation {
-                            width_factor: s.width_factor,
-                            rate_factor: 1.0,
-                            offset_mm: s.offset_mm,
-                        };
-                        self.assemble_scenario(rows, &p, observer)
-                    })
+                    .map(|s| self.assemble_scenario(rows, &s.perturbation(), observer))
                     .collect::<SetupResult<Vec<_>>>()?;
                 let stacked =
                     crate::influence::stacked::stack_rows(&blocks).at(SetupInput::None)?;
                 warnings.push(format!(
                     "robust: the plan minimises the {what} residual over {scenarios} scenarios \
-                     (nominal, TIF 3% wider and narrower, tool 0.05 mm off in x and y), \
-                     {:.2e} non-zeros in the stacked R",
+                     ({described}), {:.2e} non-zeros in the stacked R",
                     stacked.nnz() as f64
                 ));
                 RobustStack::Matrix(Box::new(stacked))
@@ -707,7 +706,7 @@ impl Setup {
             crate::dwell::RobustWeighting::Mean => vec![1.0; scenarios],
             crate::dwell::RobustWeighting::Minimax => {
                 let time_nm2_per_s = 2.0 * self.rho / self.map.len().max(1) as f64;
-                let rounds = robust::minimax_weights(time_nm2_per_s, |weights, warm| {
+                let rounds = robust::minimax_weights(scenarios, time_nm2_per_s, |weights, warm| {
                     let problem = weighted(weights)?;
                     let warm = warm.or(self.warm_start_s.as_deref());
                     let plan =

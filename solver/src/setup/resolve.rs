@@ -147,6 +147,7 @@ impl Setup {
             swept,
             raster: raster_placement,
             rate_drift_per_hour: 0.0,
+            tool_uncertainty: crate::calibrate::ToolUncertainty::default(),
             map,
             tif,
             tif_model: choices.tif_model,

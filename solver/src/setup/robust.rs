@@ -1,9 +1,16 @@
 //! A plan robust to how well the TIF is known: one dwell vector for every scenario at once.
 //!
-//! The scenarios are those of [`super::sensitivity`] that a plan can answer (a rate error only
-//! scales the removal; the loop corrects it): the nominal TIF `f`, `f` 3% wider and 3% narrower
-//! with its volume kept, and the tool 0.05 mm off along x and along y. With `R_s` the influence
-//! matrix of scenario `s` (same path, same influence model), the robust plan solves
+//! The scenarios are drawn from how well the tool is known ([`ToolUncertainty`]: a spot test's
+//! defaults, the job's `[tif] width_sigma` and `offset_sigma_mm`, or a calibration's standard
+//! deviations), the ones a plan can answer (a rate error only scales the removal; the loop
+//! corrects it): the nominal TIF `f`, `f` one standard deviation wider and narrower with its
+//! volume kept (`1 + σ_w` and `1 / (1 + σ_w)`), and the tool one standard deviation off either
+//! way along x and along y (`±σ_x`, `±σ_y`; both signs, so that the mean over the scenarios is
+//! the nominal tool's to first order and the plan is not pulled towards one side). These seven
+//! points are a symmetric quadrature of the tool's distribution (the sigma points of Julier and
+//! Uhlmann's unscented transform, Proc. IEEE 92, 2004, without the centre's extra weight). With
+//! `R_s` the influence matrix of scenario `s` (same path, same influence model), the robust plan
+//! solves
 //!
 //! `min_t  (1/S) Σ_s ½ ||R_s t + c − z||² + ρ Σ t   (+ λ)`,  `t` within its bounds,
 //!
@@ -31,8 +38,9 @@
 //! best bound or after [`MINIMAX_ROUNDS`] solves. Each solve is to the solver's tolerance, so the
 //! bound is as good as the solves.
 
-use super::sensitivity::{Sensitivity, OFFSET_MM, RELATIVE_CHANGE};
+use super::sensitivity::{Perturbation, Sensitivity};
 use super::{Outcome, Setup};
+use crate::calibrate::ToolUncertainty;
 use crate::dwell::Problem;
 use crate::error::Result;
 use crate::influence::InfluenceMatrix;
@@ -43,7 +51,7 @@ use serde::{Deserialize, Serialize};
 /// One scenario of a robust plan: the TIF's width factor (volume kept) and the tool's offset.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Scenario {
-    /// The name `report.json` gives it (the keys of [`super::sensitivity::Sensitivity`]).
+    /// The name `report.json` gives it ([`SCENARIO_NAMES`]).
     pub name: &'static str,
     /// Width factor of the TIF, its volume kept.
     pub width_factor: f64,
@@ -51,34 +59,81 @@ pub struct Scenario {
     pub offset_mm: (f64, f64),
 }
 
-/// The scenarios of a robust plan, the nominal first.
-pub const SCENARIOS: [Scenario; 5] = [
-    Scenario {
-        name: "nominal",
-        width_factor: 1.0,
-        offset_mm: (0.0, 0.0),
-    },
-    Scenario {
-        name: "tif_wider_3pct",
-        width_factor: 1.0 + RELATIVE_CHANGE,
-        offset_mm: (0.0, 0.0),
-    },
-    Scenario {
-        name: "tif_narrower_3pct",
-        width_factor: 1.0 / (1.0 + RELATIVE_CHANGE),
-        offset_mm: (0.0, 0.0),
-    },
-    Scenario {
-        name: "offset_x_0p05mm",
-        width_factor: 1.0,
-        offset_mm: (OFFSET_MM, 0.0),
-    },
-    Scenario {
-        name: "offset_y_0p05mm",
-        width_factor: 1.0,
-        offset_mm: (0.0, OFFSET_MM),
-    },
+/// Number of scenarios of a robust plan.
+pub const SCENARIO_COUNT: usize = 7;
+
+/// The scenarios' names, the nominal first ([`scenarios`] order).
+pub const SCENARIO_NAMES: [&str; SCENARIO_COUNT] = [
+    "nominal",
+    "tif_wider_1sigma",
+    "tif_narrower_1sigma",
+    "offset_x_plus_1sigma",
+    "offset_x_minus_1sigma",
+    "offset_y_plus_1sigma",
+    "offset_y_minus_1sigma",
 ];
+
+/// The scenarios of a robust plan for a tool known to `u` (module documentation), the nominal
+/// first.
+pub fn scenarios(u: &ToolUncertainty) -> [Scenario; SCENARIO_COUNT] {
+    let wider = 1.0 + u.width_sigma;
+    let (ox, oy) = (u.offset_x_sigma_mm, u.offset_y_sigma_mm);
+    let figures = [
+        (1.0, (0.0, 0.0)),
+        (wider, (0.0, 0.0)),
+        (1.0 / wider, (0.0, 0.0)),
+        (1.0, (ox, 0.0)),
+        (1.0, (-ox, 0.0)),
+        (1.0, (0.0, oy)),
+        (1.0, (0.0, -oy)),
+    ];
+    std::array::from_fn(|s| Scenario {
+        name: SCENARIO_NAMES[s],
+        width_factor: figures[s].0,
+        offset_mm: figures[s].1,
+    })
+}
+
+impl Scenario {
+    /// The scenario as a perturbation of the tool (its rate nominal).
+    pub fn perturbation(&self) -> Perturbation {
+        Perturbation {
+            width_factor: self.width_factor,
+            rate_factor: 1.0,
+            offset_mm: self.offset_mm,
+        }
+    }
+}
+
+impl Setup {
+    /// The scenarios of this set-up's robust plan ([`scenarios`] of its tool's uncertainty).
+    pub fn robust_scenarios(&self) -> [Scenario; SCENARIO_COUNT] {
+        scenarios(&self.tool_uncertainty)
+    }
+
+    /// The executed residual RMS of each robust scenario, nm ([`SCENARIO_NAMES`] order): the
+    /// executed contact motion `executed` integrated with each scenario's TIF on the set-up's
+    /// part ([`super::Setup::contact_removals`]), the nominal the executed run's own.
+    pub fn executed_scenario_rms_nm(
+        &self,
+        executed: &super::Executed,
+        observer: &dyn Observer,
+    ) -> Result<Vec<f64>> {
+        let perturbed: Vec<Perturbation> = self.robust_scenarios()[1..]
+            .iter()
+            .map(Scenario::perturbation)
+            .collect();
+        let removals = self.contact_removals(&executed.run.contact, &perturbed, observer)?;
+        let z = self.map.z_nm();
+        let mut rms = vec![executed.after.rms_nm];
+        rms.extend(
+            removals
+                .iter()
+                .map(|h| HeightStats::of(&super::centred_residual_nm(z, h)).rms_nm),
+        );
+        Ok(rms)
+    }
+}
 
 /// Most solves of the minimax rounds (the first is the mean plan).
 pub const MINIMAX_ROUNDS: usize = 6;
@@ -100,7 +155,7 @@ pub fn weighted_rows(stacked: &InfluenceMatrix, weights: &[f64]) -> Result<Influ
         return Err(crate::error::Error::LengthMismatch {
             what: "scenario weights",
             got: weights.len(),
-            expected: SCENARIOS.len(),
+            expected: SCENARIO_COUNT,
         });
     }
     let block = rows / weights.len();
@@ -160,7 +215,7 @@ fn weighted_mean_square(weights: &[f64], rms_nm: &[f64]) -> f64 {
 #[derive(Debug, Clone, PartialEq)]
 pub struct MinimaxRounds {
     /// The kept weights (those of the round with the smallest worst scenario), summing to the
-    /// scenario count, [`SCENARIOS`] order.
+    /// scenario count, [`SCENARIO_NAMES`] order.
     pub weights: Vec<f64>,
     /// The worst scenario's residual RMS of each round's plan, nm (the first: equal weights).
     pub worst_rms_nm: Vec<f64>,
@@ -170,18 +225,20 @@ pub struct MinimaxRounds {
     pub duality_gap: f64,
 }
 
-/// The minimax rounds of the module documentation. `plan(weights, warm)` solves the weighted
+/// The minimax rounds of the module documentation over `count` scenarios. `plan(weights, warm)`
+/// solves the weighted
 /// problem (from the previous round's dwell `warm` when given) and returns the dwell and each
-/// scenario's residual RMS (unweighted, [`SCENARIOS`] order). `time_nm2_per_s` is the plan's
+/// scenario's residual RMS (unweighted, [`SCENARIO_NAMES`] order). `time_nm2_per_s` is the plan's
 /// time weight in the same mean-square units, `2 ρ / m` (`m` map points), so that the bound holds
 /// for plans that trade residual for dwell time.
 pub fn minimax_weights(
+    count: usize,
     time_nm2_per_s: f64,
     mut plan: impl FnMut(&[f64], Option<&[f64]>) -> Result<(Vec<f64>, Vec<f64>)>,
 ) -> Result<MinimaxRounds> {
     let worst = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     let time = |t: &[f64]| time_nm2_per_s * t.iter().sum::<f64>();
-    let mut weights = vec![1.0; SCENARIOS.len()];
+    let mut weights = vec![1.0; count];
     let (mut dwell_s, mut rms_nm) = plan(&weights, None)?;
     let mut worst_rms_nm = vec![worst(&rms_nm)];
     // The kept plan: its worst RMS, weights and primal value `max rms² + τ Σ t`.
@@ -220,27 +277,12 @@ pub fn minimax_weights(
     })
 }
 
-/// The executed residual RMS of each scenario, nm: the nominal's and the sensitivity's
-/// ([`SCENARIOS`] order).
-pub fn executed_scenario_rms_nm(
-    nominal_rms_nm: f64,
-    s: &super::sensitivity::Sensitivity,
-) -> Vec<f64> {
-    vec![
-        nominal_rms_nm,
-        s.tif_wider_3pct.rms_nm,
-        s.tif_narrower_3pct.rms_nm,
-        s.offset_x_0p05mm.rms_nm,
-        s.offset_y_0p05mm.rms_nm,
-    ]
-}
-
 /// The residual RMS (piston removed) of each scenario, nm: `removal_nm` holds the stacked
 /// removal `[R_1 t; ...; R_S t]` of blocks of `removal_nm.len() / S` rows whose first
 /// `z_nm.len()` rows are the measured map.
 pub fn scenario_rms_nm(z_nm: &[f64], removal_nm: &[f64]) -> Vec<f64> {
-    let block = removal_nm.len() / SCENARIOS.len();
-    (0..SCENARIOS.len())
+    let block = removal_nm.len() / SCENARIO_COUNT;
+    (0..SCENARIO_COUNT)
         .map(|s| {
             let h = &removal_nm[s * block..s * block + z_nm.len().min(block)];
             HeightStats::of(&super::centred_residual_nm(&z_nm[..h.len()], h)).rms_nm
@@ -278,7 +320,7 @@ pub struct RobustSummary {
 }
 
 impl RobustSummary {
-    /// The summary of two plans' per-scenario RMS ([`SCENARIOS`] order) on `basis`.
+    /// The summary of two plans' per-scenario RMS ([`SCENARIO_NAMES`] order) on `basis`.
     pub fn new(
         basis: RobustBasis,
         robust_plan_rms_nm: Vec<f64>,
@@ -287,7 +329,7 @@ impl RobustSummary {
         let worst = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
         Self {
             basis,
-            scenarios: SCENARIOS.iter().map(|s| s.name.to_string()).collect(),
+            scenarios: SCENARIO_NAMES.iter().map(|s| s.to_string()).collect(),
             nominal_cost_nm: robust_plan_rms_nm[0] - nominal_plan_rms_nm[0],
             worst_scenario_saving_nm: worst(&nominal_plan_rms_nm) - worst(&robust_plan_rms_nm),
             robust_plan_rms_nm,
@@ -336,12 +378,12 @@ impl Setup {
             }
             Ok(scenario_rms_nm(z, &h))
         };
-        let executed = |o: &Outcome| match (&o.executed, &o.sensitivity) {
-            (Some(Ok(e)), Some(s)) => Some(executed_scenario_rms_nm(e.after.rms_nm, s)),
+        let executed = |o: &Outcome| match &o.executed {
+            Some(Ok(e)) => Some(self.executed_scenario_rms_nm(e, observer)),
             _ => None,
         };
         let planned = match (executed(outcome), executed(&plan)) {
-            (Some(r), Some(n)) => RobustSummary::new(RobustBasis::Executed, r, n),
+            (Some(r), Some(n)) => RobustSummary::new(RobustBasis::Executed, r?, n?),
             _ => RobustSummary::new(
                 RobustBasis::Planned,
                 per_scenario(&outcome.solution.dwell_s)?,
@@ -392,7 +434,7 @@ mod tests {
             num / den
         };
         let rms = |t: f64| -> Vec<f64> { a.iter().map(|a| (a * t - 1.0).abs()).collect() };
-        let rounds = minimax_weights(0.0, |w, _| {
+        let rounds = minimax_weights(5, 0.0, |w, _| {
             let t = plan(w);
             Ok((vec![t], rms(t)))
         })
@@ -457,7 +499,7 @@ mod tests {
             w = minimax_step(&w, &r, 0.05);
         }
         let reference = worst(&plan(&w).1);
-        let rounds = minimax_weights(0.0, |w, _| Ok(plan(w))).unwrap();
+        let rounds = minimax_weights(5, 0.0, |w, _| Ok(plan(w))).unwrap();
         let kept = worst(&plan(&rounds.weights).1);
         assert!(
             kept <= reference * 1.005,
@@ -477,11 +519,37 @@ mod tests {
     fn the_summary_states_cost_and_saving() {
         let s = RobustSummary::new(
             RobustBasis::Planned,
-            vec![1.3, 2.0, 3.0, 2.5, 1.5],
-            vec![0.1, 11.8, 13.9, 4.0, 3.0],
+            vec![1.3, 2.0, 3.0, 2.5, 1.5, 2.4, 1.6],
+            vec![0.1, 11.8, 13.9, 4.0, 3.0, 3.9, 3.1],
         );
         assert!((s.nominal_cost_nm - 1.2).abs() < 1e-12);
         assert!((s.worst_scenario_saving_nm - 10.9).abs() < 1e-12);
-        assert_eq!(s.scenarios[2], "tif_narrower_3pct");
+        assert_eq!(s.scenarios[2], "tif_narrower_1sigma");
+        assert_eq!(s.scenarios.len(), SCENARIO_COUNT);
+    }
+
+    /// The scenarios are symmetric about the nominal tool: the width factors' logarithms and
+    /// the offsets sum to zero, so the mean scenario is the nominal to first order, and their
+    /// size is the uncertainty's.
+    #[test]
+    fn scenarios_are_the_uncertainty_s_symmetric_sigma_points() {
+        let u = ToolUncertainty {
+            width_sigma: 0.04,
+            offset_x_sigma_mm: 0.12,
+            offset_y_sigma_mm: 0.07,
+            ..ToolUncertainty::default()
+        };
+        let s = scenarios(&u);
+        assert_eq!(s[0].width_factor, 1.0);
+        assert_eq!(s[0].offset_mm, (0.0, 0.0));
+        let log_width: f64 = s.iter().map(|s| s.width_factor.ln()).sum();
+        let (sx, sy) = s.iter().fold((0.0, 0.0), |a, s| {
+            (a.0 + s.offset_mm.0, a.1 + s.offset_mm.1)
+        });
+        assert!(log_width.abs() < 1e-15 && sx.abs() < 1e-15 && sy.abs() < 1e-15);
+        assert!((s[1].width_factor - 1.04).abs() < 1e-15);
+        let largest_x = s.iter().map(|s| s.offset_mm.0.abs()).fold(0.0, f64::max);
+        let largest_y = s.iter().map(|s| s.offset_mm.1.abs()).fold(0.0, f64::max);
+        assert_eq!((largest_x, largest_y), (0.12, 0.07));
     }
 }
