@@ -4,9 +4,10 @@
 //! `cargo bench --bench machine` (criterion).
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use preston::solver::dwell::accel::{self, max_acceleration_mm_per_s2, AccelLimits, AccelMethod};
+use preston::solver::dwell::accel::{self, AccelLimits, AccelMethod};
 use preston::solver::dwell::{self, DwellBounds, FeedLimits, Problem, Settings};
 use preston::solver::influence::InfluenceMatrix;
+use preston::solver::kinematics::lines::max_acceleration_mm_per_s2;
 use preston::solver::machine::gcode::dialect::Dialect;
 use preston::solver::machine::gcode::motion::{execute, Kinematics};
 use preston::solver::machine::gcode::program::Program;

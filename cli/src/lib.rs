@@ -6,9 +6,11 @@
 //! with clap, converts them into library settings and calls the library.
 
 mod cmd;
-mod out;
-mod output;
+/// Printing that survives a closed stdout or stderr (`outln!`, `errln!`).
+mod pipe_safe_print;
 mod progress;
+/// `--quiet` and `--json`: how the summary of `solve`, `simulate`, `nc` is printed.
+mod summary_output;
 
 use clap::{Parser, Subcommand};
 

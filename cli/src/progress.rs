@@ -16,7 +16,7 @@ impl Bars {
     pub fn new() -> Self {
         Self {
             bar: Mutex::new(None),
-            enabled: std::io::stderr().is_terminal() && !crate::output::quiet(),
+            enabled: std::io::stderr().is_terminal() && !crate::summary_output::quiet(),
         }
     }
 

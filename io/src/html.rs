@@ -85,10 +85,11 @@ impl Provenance {
                 path: job_path.to_path_buf(),
             });
         }
+        let dwell_file = job.dwell.source.file().map(Path::to_path_buf);
         let named = [
             ("map", &job.map.file),
             ("tif", &job.tif.file),
-            ("dwell points", &job.dwell.file),
+            ("dwell points", &dwell_file),
             ("warm start", &job.dwell.warm_start),
             ("surface", &job.surface.file),
         ];

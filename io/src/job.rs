@@ -55,6 +55,9 @@ use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::edge::EdgeSettings;
 use preston_solver::influence::surface::TifFrame;
+use preston_solver::kinematics::{
+    check_a_max_mm_per_s2, check_corner_angle_deg, DEFAULT_CORNER_ANGLE_DEG,
+};
 use preston_solver::machine::compensation::NormalDisplacement;
 use preston_solver::machine::profile::MachineProfile;
 use preston_solver::path::raster::RasterAxis;
@@ -75,7 +78,7 @@ pub struct Job {
     pub tif: TifSource,
     /// The dwell points.
     #[serde(default)]
-    pub dwell: DwellSource,
+    pub dwell: DwellSection,
     /// Feed limits (`v_max_mm_per_min` required unless given on the command line).
     #[serde(default)]
     pub machine: MachineSection,
@@ -225,58 +228,117 @@ impl TifSource {
     }
 }
 
-/// The one source of dwell points a job names ([`DwellSource::resolve`]).
-#[derive(Debug, Clone, PartialEq)]
-pub enum DwellInput {
-    /// A dwell file, `x_mm,y_mm` in path order.
+/// Why a dwell file and a raster cannot both be given: the one message every face (the job
+/// file's `file` and `raster_pitch_mm`, the command line's `--dwell` and `--raster-pitch-mm`,
+/// the Python keywords `dwell=`/`dwell_xy=` and `raster_pitch_mm=`, a batch's jobs) gives, from
+/// [`DwellSource::of`]. Short enough to survive the quoting of a parser's message.
+pub const DWELL_FILE_OR_RASTER: &str =
+    "give the dwell points as a file or a raster pitch, not both";
+
+/// Where the dwell points come from: a file or a generated raster, the choice a type (one of
+/// the two, or none given yet: the command line, the Python call or its arrays give them).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum DwellSource {
+    /// None named by the job (given elsewhere, or missing).
+    #[default]
+    Unset,
+    /// CSV file `x_mm,y_mm` in path order.
     File(PathBuf),
-    /// A generated serpentine raster.
+    /// A generated serpentine raster over the map's bounding box extended by the TIF radius.
     Raster {
         /// Pitch, mm.
         pitch_mm: f64,
-        /// Direction of the lines.
-        along: RasterAxis,
     },
 }
 
 impl DwellSource {
-    /// The one source this section names: exactly one of `file` and `raster_pitch_mm`.
-    pub fn resolve(&self, job_path: &Path) -> Result<DwellInput> {
-        match (&self.file, self.raster_pitch_mm) {
-            (Some(f), None) => Ok(DwellInput::File(f.clone())),
-            (None, Some(pitch_mm)) => Ok(DwellInput::Raster {
-                pitch_mm,
-                along: self.raster_along,
-            }),
-            (Some(_), Some(_)) => Err(Error::Job {
-                file: job_path.to_path_buf(),
-                why: "[dwell] gives both `file` and `raster_pitch_mm`; choose one".into(),
-            }),
-            (None, None) => Err(Error::Job {
-                file: job_path.to_path_buf(),
-                why: "no dwell points: set [dwell] file or raster_pitch_mm (or --dwell / \
-                      --raster-pitch-mm)"
-                    .into(),
-            }),
+    /// The one rule "a dwell file or a raster, not both": the source a `file` and a
+    /// `raster_pitch_mm` name (the job file's keys, or a face's flags and keywords), refused
+    /// with [`DWELL_FILE_OR_RASTER`] when both are given.
+    pub fn of(
+        file: Option<PathBuf>,
+        raster_pitch_mm: Option<f64>,
+    ) -> std::result::Result<Self, &'static str> {
+        match (file, raster_pitch_mm) {
+            (Some(f), None) => Ok(Self::File(f)),
+            (None, Some(pitch_mm)) => Ok(Self::Raster { pitch_mm }),
+            (None, None) => Ok(Self::Unset),
+            (Some(_), Some(_)) => Err(DWELL_FILE_OR_RASTER),
+        }
+    }
+
+    /// The dwell file, if the source is one.
+    pub fn file(&self) -> Option<&Path> {
+        match self {
+            Self::File(f) => Some(f),
+            _ => None,
+        }
+    }
+
+    /// The raster's pitch, mm, if the source is a raster.
+    pub fn raster_pitch_mm(&self) -> Option<f64> {
+        match self {
+            Self::Raster { pitch_mm } => Some(*pitch_mm),
+            _ => None,
         }
     }
 }
 
-/// Where the dwell points come from: a file or a generated raster (exactly one).
+/// The `[dwell]` section: the source of the dwell points ([`DwellSource`], written as `file` or
+/// `raster_pitch_mm`), the raster's direction and a warm start.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct DwellSource {
-    /// CSV file `x_mm,y_mm` in path order.
-    pub file: Option<PathBuf>,
-    /// Pitch of a generated serpentine raster over the map's bounding box extended by the TIF
-    /// radius, mm.
-    pub raster_pitch_mm: Option<f64>,
-    /// Direction of the generated raster's lines.
-    #[serde(default)]
+#[serde(try_from = "DwellToml", into = "DwellToml")]
+pub struct DwellSection {
+    /// Where the dwell points come from.
+    pub source: DwellSource,
+    /// Direction of the generated raster's lines (and of the PSD's lines).
     pub raster_along: RasterAxis,
     /// A previous `dwell.csv` (with a `dwell_s` column, same points in the same order) to start
     /// the first-order solver from.
     pub warm_start: Option<PathBuf>,
+}
+
+/// `[dwell]` as written in the job file.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DwellToml {
+    /// CSV file `x_mm,y_mm` in path order.
+    #[serde(default)]
+    file: Option<PathBuf>,
+    /// Pitch of a generated serpentine raster, mm.
+    #[serde(default)]
+    raster_pitch_mm: Option<f64>,
+    /// Direction of the generated raster's lines.
+    #[serde(default)]
+    raster_along: RasterAxis,
+    /// A previous `dwell.csv` to start from.
+    #[serde(default)]
+    warm_start: Option<PathBuf>,
+}
+
+impl TryFrom<DwellToml> for DwellSection {
+    type Error = &'static str;
+    fn try_from(t: DwellToml) -> std::result::Result<Self, Self::Error> {
+        Ok(Self {
+            source: DwellSource::of(t.file, t.raster_pitch_mm)?,
+            raster_along: t.raster_along,
+            warm_start: t.warm_start,
+        })
+    }
+}
+
+impl From<DwellSection> for DwellToml {
+    fn from(d: DwellSection) -> Self {
+        Self {
+            raster_pitch_mm: d.source.raster_pitch_mm(),
+            file: match d.source {
+                DwellSource::File(f) => Some(f),
+                _ => None,
+            },
+            raster_along: d.raster_along,
+            warm_start: d.warm_start,
+        }
+    }
 }
 
 /// Machine limits as written in a job (each may be overridden on the command line).
@@ -368,18 +430,10 @@ pub fn check_machine_limits(
         .validate()?;
     }
     if let Some(a) = machine.a_max_mm_per_s2 {
-        AccelLimits {
-            a_max_mm_per_s2: a,
-            ..AccelLimits::default()
-        }
-        .validate()?;
+        check_a_max_mm_per_s2(a)?;
     }
     if let Some(c) = machine.corner_angle_deg {
-        AccelLimits {
-            corner_angle_deg: c,
-            ..AccelLimits::default()
-        }
-        .validate()?;
+        check_corner_angle_deg(c)?;
     }
     Ok(())
 }
@@ -481,13 +535,15 @@ impl Job {
             &mut self.map.file,
             &mut self.tif.file,
             &mut self.tif.calibration,
-            &mut self.dwell.file,
             &mut self.dwell.warm_start,
             &mut self.surface.file,
         ]
         .into_iter()
         .flatten()
-        {
+        .chain(match &mut self.dwell.source {
+            DwellSource::File(f) => Some(f),
+            _ => None,
+        }) {
             if p.is_relative() {
                 *p = base.join(&*p);
             }
@@ -516,13 +572,13 @@ impl Job {
         let mut files: Vec<PathBuf> = [
             &self.map.file,
             &self.tif.file,
-            &self.dwell.file,
             &self.dwell.warm_start,
             &self.surface.file,
         ]
         .into_iter()
         .flatten()
         .cloned()
+        .chain(self.dwell.source.file().map(Path::to_path_buf))
         .collect();
         for t in &self.tool {
             files.push(t.dwell.clone());
@@ -620,7 +676,7 @@ impl Job {
     pub fn corner_angle_deg(&self) -> f64 {
         self.machine
             .corner_angle_deg
-            .unwrap_or(AccelLimits::default().corner_angle_deg)
+            .unwrap_or(DEFAULT_CORNER_ANGLE_DEG)
     }
 
     /// The acceleration limit with default SCP settings, when `[machine] a_max_mm_per_s2` is set;

@@ -6,11 +6,11 @@
 //! a field here and a key of the job, and nothing per face.
 //!
 //! Each override replaces the job's key; a few replace a whole choice: a TIF file, a Gaussian
-//! model or a Hertzian tool replaces the job's `[tif]`, and a dwell file and a raster pitch
-//! exclude each other.
+//! model or a Hertzian tool replaces the job's `[tif]`, and a dwell file or a raster pitch the
+//! job's dwell source (given both, [`DwellSource::of`] refuses them as the job file does).
 
 use crate::error::{Error, Result};
-use crate::job::{Job, TifSource};
+use crate::job::{DwellSource, Job, TifSource};
 use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, RobustWeighting, SolverChoice};
 use preston_solver::edge::EdgeMethod;
@@ -77,8 +77,9 @@ pub struct Overrides {
     #[serde(alias = "v_min")]
     pub v_min_mm_per_min: Option<f64>,
     /// Acceleration limit along each path line, mm/s^2: |v_{j+1}^2 - v_j^2| <= 2 a s_j with s_j
-    /// the distance between consecutive dwell points.
-    #[cfg_attr(feature = "clap", arg(long, value_name = "MM_PER_S2"))]
+    /// the distance between consecutive dwell points (on the command line, the machine's flags
+    /// shared by solve, nc and simulate).
+    #[cfg_attr(feature = "clap", arg(skip))]
     #[serde(alias = "a_max")]
     pub a_max_mm_per_s2: Option<f64>,
     /// How the acceleration limit is imposed (default: the job's, else correction-passes):
@@ -90,8 +91,8 @@ pub struct Overrides {
     #[cfg_attr(feature = "clap", arg(long, value_enum))]
     pub accel_method: Option<AccelMethod>,
     /// Turn angle (degrees) above which the path splits into lines for the acceleration limit
-    /// and the machining time (default 60).
-    #[cfg_attr(feature = "clap", arg(long, value_name = "DEG"))]
+    /// and the machining time (default 60; on the command line, the machine's flags).
+    #[cfg_attr(feature = "clap", arg(skip))]
     pub corner_angle_deg: Option<f64>,
     /// How the dwell area beyond the map is modelled (default: the job's [edge], else none).
     #[cfg_attr(feature = "clap", arg(long, value_enum))]
@@ -267,20 +268,15 @@ impl Overrides {
         if tifs.iter().filter(|&&t| t).count() > 1 {
             return refuse("give one TIF: a file (tif), a Gaussian model or a Hertzian tool");
         }
-        if self.dwell.is_some() && self.raster_pitch_mm.is_some() {
-            return refuse("give the dwell points as a file (dwell) or a raster pitch, not both");
+        // A dwell source given replaces the job's.
+        match DwellSource::of(self.dwell.clone(), self.raster_pitch_mm) {
+            Ok(DwellSource::Unset) => {}
+            Ok(given) => job.dwell.source = given,
+            Err(why) => return refuse(why),
         }
         self.apply_tif(job);
         if let Some(m) = self.map {
             job.map.file = Some(m);
-        }
-        if let Some(d) = self.dwell {
-            job.dwell.file = Some(d);
-            job.dwell.raster_pitch_mm = None;
-        }
-        if let Some(p) = self.raster_pitch_mm {
-            job.dwell.raster_pitch_mm = Some(p);
-            job.dwell.file = None;
         }
         set(&mut job.dwell.raster_along, self.raster_along);
         if self.warm_start.is_some() {
@@ -410,7 +406,7 @@ mod tests {
     fn a_tif_or_dwell_choice_replaces_the_other_and_two_at_once_are_refused() {
         let mut job = Job::default();
         job.tif.pitch_mm = Some(0.1);
-        job.dwell.raster_pitch_mm = Some(1.0);
+        job.dwell.source = DwellSource::Raster { pitch_mm: 1.0 };
         let o = Overrides {
             tif: Some("t.csv".into()),
             dwell: Some("d.csv".into()),
@@ -419,8 +415,7 @@ mod tests {
         o.apply(&mut job, source()).unwrap();
         assert_eq!(job.tif.file.as_deref(), Some(Path::new("t.csv")));
         assert_eq!(job.tif.pitch_mm, None);
-        assert_eq!(job.dwell.raster_pitch_mm, None);
-        assert_eq!(job.dwell.file.as_deref(), Some(Path::new("d.csv")));
+        assert_eq!(job.dwell.source, DwellSource::File("d.csv".into()));
         let two = Overrides {
             tif: Some("t.csv".into()),
             gaussian: Some(GaussianTif::new(1.0, 10.0, 3.0).unwrap()),
@@ -433,7 +428,7 @@ mod tests {
             ..Overrides::default()
         };
         let e = both.apply(&mut job, source()).unwrap_err().to_string();
-        assert!(e.contains("not both"), "{e}");
+        assert!(e.contains(crate::job::DWELL_FILE_OR_RASTER), "{e}");
     }
 
     #[test]

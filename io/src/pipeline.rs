@@ -3,7 +3,7 @@
 use crate::atomic::commit_all;
 use crate::calibration::{read_calibration, CalibrationRecord};
 use crate::error::{Error, Result};
-use crate::job::{DwellInput, Job, TifInput};
+use crate::job::{DwellSource, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
@@ -12,14 +12,12 @@ use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::calibrate::{map_noise_rms_nm, ToolUncertainty};
 use preston_solver::dwell::{Problem, Solution};
-use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
-use preston_solver::machine::nc::{NcProgram, NcSettings};
-use preston_solver::machine::{Flat, PartGeometry};
+use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::map::HeightMap;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
 use preston_solver::psd::LineAxis;
-use preston_solver::setup::robust::{self, RobustBasis, RobustSummary};
+use preston_solver::setup::robust;
 use preston_solver::setup::{
     Checked, DwellPoints, Outcome, Setup, SetupData, SetupError, SetupInput,
 };
@@ -206,12 +204,11 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         (None, Some(c)) if !source_given => Tif::Grid(read_tif(&c.tif_file)?),
         (None, _) => load_tif(job, job_path)?,
     };
-    let dwell = match given.dwell {
-        Some(d) => Some(d),
-        None => match job.dwell.resolve(job_path)? {
-            DwellInput::File(f) => Some(read_dwell(&f)?),
-            DwellInput::Raster { .. } => None,
-        },
+    let dwell = match (given.dwell, &job.dwell.source) {
+        (Some(d), _) => Some(d),
+        (None, DwellSource::File(f)) => Some(read_dwell(f)?),
+        (None, DwellSource::Raster { .. }) => None,
+        (None, DwellSource::Unset) => return Err(no_dwell_points(job_path)),
     };
     Ok(Inputs {
         map,
@@ -219,6 +216,16 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         dwell,
         calibration,
     })
+}
+
+/// A job that names no dwell points and was given none.
+fn no_dwell_points(job_path: &Path) -> Error {
+    Error::Job {
+        file: job_path.to_path_buf(),
+        why: "no dwell points: set [dwell] file or raster_pitch_mm (or --dwell / \
+              --raster-pitch-mm)"
+            .into(),
+    }
 }
 
 /// Reads the inputs, generates the dwell raster if asked, assembles `R` and builds the problem.
@@ -246,7 +253,7 @@ fn file_at_fault(job: &Job, job_path: &Path, input: SetupInput) -> PathBuf {
     match input {
         SetupInput::Job | SetupInput::None => job_path.to_path_buf(),
         SetupInput::Map => or_job(&job.map.file),
-        SetupInput::Dwell => or_job(&job.dwell.file),
+        SetupInput::Dwell => or_job(&job.dwell.source.file().map(Path::to_path_buf)),
         SetupInput::Surface => or_job(&job.surface.file),
         SetupInput::WarmStart => or_job(&job.dwell.warm_start),
     }
@@ -272,15 +279,11 @@ fn prepare_checked(
         calibration,
     } = inputs;
     // Points handed over already read (the Python package's arrays) need no `[dwell]` section.
-    let resolved = match (&dwell, &job.dwell.file, job.dwell.raster_pitch_mm) {
-        (Some(_), None, None) => DwellInput::File(job_path.to_path_buf()),
-        _ => job.dwell.resolve(job_path)?,
-    };
-    let dwell = match (dwell, resolved) {
-        (Some(d), DwellInput::File(f)) => {
+    let dwell = match (dwell, &job.dwell.source) {
+        (Some(d), source) => {
             if d.path.len() < 2 {
                 return Err(Error::Empty {
-                    file: f,
+                    file: source.file().unwrap_or(job_path).to_path_buf(),
                     why: "one dwell point: a path of length zero has no feed; give at least two \
                           points"
                         .into(),
@@ -288,13 +291,17 @@ fn prepare_checked(
             }
             DwellPoints::Given(d.path)
         }
-        (_, DwellInput::Raster { pitch_mm, along }) => DwellPoints::Raster { pitch_mm, along },
-        (None, DwellInput::File(f)) => {
+        (None, &DwellSource::Raster { pitch_mm }) => DwellPoints::Raster {
+            pitch_mm,
+            along: job.dwell.raster_along,
+        },
+        (None, DwellSource::File(f)) => {
             return Err(Error::Job {
                 file: job_path.to_path_buf(),
                 why: format!("the dwell file {} was not read", f.display()),
             })
         }
+        (None, DwellSource::Unset) => return Err(no_dwell_points(job_path)),
     };
     let surface = match &job.surface.file {
         Some(f) => Some(read_surface(f)?),
@@ -466,7 +473,9 @@ fn reading_uncertainty(prepared: &Prepared) -> ToolUncertainty {
 
 /// Runs the solver on prepared inputs ([`Setup::solve`]: the acceleration-limited SCP with
 /// `[machine] a_max_mm_per_s2`, the dwell solver otherwise), builds the report from the outcome
-/// and checks the program of the job's machine for the plan ([`program_check`]).
+/// and asks the engine for the program of the job's machine for the plan
+/// ([`Setup::program_check`]; with a robust plan, the nominal plan beside it,
+/// [`Setup::compare_with_nominal`]).
 pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<Solved> {
     let outcome = prepared.setup.solve(&prepared.problem, observer)?;
     let paying = prepared
@@ -476,94 +485,27 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
     let outcome = paying.outcome.clone();
     let mut report = report_of(&prepared, &outcome);
     if prepared.setup.settings.robust {
-        report.robust = Some(robust_report(&prepared, &outcome, observer)?);
+        let c = prepared
+            .setup
+            .compare_with_nominal(&prepared.problem, &outcome, observer)?;
+        report.robust = Some(RobustReport {
+            planned: c.planned,
+            weighting: prepared.setup.settings.robust_weighting,
+            scenario_weights: prepared
+                .scenario_weights
+                .clone()
+                .unwrap_or_else(|| vec![1.0; robust::SCENARIO_COUNT]),
+            nominal_plan_rms_after_nm: c.nominal_plan_rms_after_nm,
+            nominal_plan_sensitivity: c.nominal_plan_sensitivity,
+        });
     }
     report.set_expected(&paying);
-    let program_check = program_check(&prepared.setup, &outcome, &job.nc_settings());
+    let program_check = prepared.setup.program_check(&outcome, &job.nc_settings());
     Ok(Solved {
         prepared,
         outcome,
         report,
         program_check,
-    })
-}
-
-/// The program of `settings` for the outcome's plan, written, read back and checked: the one
-/// the solve executed when that was written with the same settings on a flat part, planned
-/// here otherwise (on the set-up's design surface when there is one).
-pub fn program_check(
-    setup: &Setup,
-    outcome: &Outcome,
-    settings: &NcSettings,
-) -> std::result::Result<ProgramCheck, preston_solver::Error> {
-    if let (Some(Ok(e)), None) = (&outcome.executed, &setup.surface) {
-        if e.settings == *settings {
-            return Ok(e.program.clone());
-        }
-    }
-    let geometry: &dyn PartGeometry = match &setup.surface {
-        Some(s) => s,
-        None => &Flat,
-    };
-    NcProgram::plan(&setup.path, &outcome.solution.dwell_s, geometry, settings)
-        .and_then(|nc| write_and_check(&nc, &[]))
-}
-
-/// The robust plan of `outcome` against the nominal plan of the same set-up (solved here, the
-/// same way but for the nominal TIF alone): both plans' residual RMS in every scenario by the
-/// stacked model, and the nominal plan's executed residual and sensitivity where a program is
-/// executed.
-fn robust_report(
-    prepared: &Prepared,
-    outcome: &Outcome,
-    observer: &dyn Observer,
-) -> Result<RobustReport> {
-    let mut nominal = prepared.setup.clone();
-    nominal.settings.robust = false;
-    let built = nominal
-        .problem(observer)
-        .map_err(|e| Error::Solver(e.source))?;
-    let plan = nominal.solve(&built.problem, observer)?;
-    let z = prepared.setup.map.z_nm();
-    // Each scenario's removal: its block of the robust problem's rows over the block's scale.
-    let per_scenario = |t: &[f64]| -> Result<Vec<f64>> {
-        let mut h = prepared.problem.removal_nm(t)?;
-        let scales = prepared.problem.scenario_scales();
-        let block = (h.len() / scales.len()).max(1);
-        for (part, a) in h.chunks_mut(block).zip(scales) {
-            part.iter_mut().for_each(|v| *v /= a);
-        }
-        Ok(robust::scenario_rms_nm(z, &h))
-    };
-    let executed = |o: &Outcome| match &o.executed {
-        Some(Ok(e)) => Some(prepared.setup.executed_scenario_rms_nm(e, observer)),
-        _ => None,
-    };
-    let planned = match (executed(outcome), executed(&plan)) {
-        (Some(r), Some(n)) => RobustSummary::new(
-            RobustBasis::Executed,
-            r.map_err(Error::Solver)?,
-            n.map_err(Error::Solver)?,
-        ),
-        _ => RobustSummary::new(
-            RobustBasis::Planned,
-            per_scenario(&outcome.solution.dwell_s)?,
-            per_scenario(&plan.solution.dwell_s)?,
-        ),
-    };
-    let nominal_plan_rms_after_nm = match &plan.executed {
-        Some(Ok(e)) => e.after.rms_nm,
-        _ => preston_solver::map::HeightStats::of(&plan.residual_nm).rms_nm,
-    };
-    Ok(RobustReport {
-        planned,
-        weighting: prepared.setup.settings.robust_weighting,
-        scenario_weights: prepared
-            .scenario_weights
-            .clone()
-            .unwrap_or_else(|| vec![1.0; robust::SCENARIO_COUNT]),
-        nominal_plan_rms_after_nm,
-        nominal_plan_sensitivity: plan.sensitivity,
     })
 }
 

@@ -383,8 +383,11 @@ def _job_of(
         raise InputError("give map= (a file) or map_xyz= (an array), not both")
     if tif_xyr is not None and ("tif" in given or "gaussian" in given):
         raise InputError("give one of tif=, tif_xyr=, gaussian=")
-    if dwell_xy is not None and ("dwell" in given or "raster_pitch_mm" in given):
-        raise InputError("give one of dwell=, dwell_xy=, raster_pitch_mm=")
+    if dwell_xy is not None and "dwell" in given:
+        raise InputError("give dwell= (a file) or dwell_xy= (an array), not both")
+    if dwell_xy is not None:
+        # The array takes the dwell file's place in the engine's rule "a file or a raster".
+        given["dwell"] = "dwell_xy"
     if given:
         j = json.loads(_preston.apply_overrides(_dumps(j), _dumps(given), os.getcwd(), name))
 

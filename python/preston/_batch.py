@@ -56,11 +56,11 @@ def _set_dotted(d: Dict[str, Any], key: str, value: Any) -> None:
             d[p] = {}
         d = d[p]
     d[parts[-1]] = value
-    # A dwell source replaces the other one, as on the command line.
-    if key == "dwell.raster_pitch_mm":
-        d["file"] = None
-    elif key == "dwell.file":
-        d["raster_pitch_mm"] = None
+
+
+# Grid keys that choose the dwell source: the engine's overrides set them (a source given
+# replaces the job's, as a flag or keyword does), so the rule lives in one place.
+_DWELL_SOURCE_KEYS = {"dwell.file": "dwell", "dwell.raster_pitch_mm": "raster_pitch_mm"}
 
 
 def grid(job: JobSpec, axes: Mapping[str, Sequence[Any]], name: Optional[str] = None) -> List[dict]:
@@ -83,10 +83,24 @@ def grid(job: JobSpec, axes: Mapping[str, Sequence[Any]], name: Optional[str] = 
     for i, values in enumerate(itertools.product(*(list(axes[k]) for k in keys))):
         j = _deepcopy(base)
         for k, v in zip(keys, values):
-            _set_dotted(j, k, v)
+            if k in _DWELL_SOURCE_KEYS:
+                j = _override(j, _DWELL_SOURCE_KEYS[k], v, stem)
+            else:
+                _set_dotted(j, k, v)
         j["name"] = f"{stem}-{i:03d}"
         jobs.append(j)
     return jobs
+
+
+def _override(job: dict, keyword: str, value: Any, name: str) -> dict:
+    """``job`` with one override of :func:`preston.solve` applied by the engine."""
+    import json
+
+    from . import _dumps, _preston
+
+    if keyword == "dwell":
+        value = os.fspath(value)
+    return json.loads(_preston.apply_overrides(_dumps(job), _dumps({keyword: value}), os.getcwd(), name))
 
 
 def _deepcopy(d: Any) -> Any:

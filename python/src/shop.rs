@@ -54,7 +54,7 @@ type TifColumns<'py> = (Array<'py>, Array<'py>, Array<'py>);
 /// `(record_json, tif_x_mm, tif_y_mm, tif_rate_nm_per_s, converged)`, the record being what
 /// `calibration.json` holds.
 #[pyfunction]
-#[pyo3(signature = (before_json, after_json, program, tif_json="{}", tif_xyr=None, tif_file=None, a_max_mm_per_s2=None, corner_angle_deg=60.0, dialect=None, settings_json="{}", out=None, plot_format=None))]
+#[pyo3(signature = (before_json, after_json, program, tif_json="{}", tif_xyr=None, tif_file=None, a_max_mm_per_s2=None, corner_angle_deg=preston_solver::kinematics::DEFAULT_CORNER_ANGLE_DEG, dialect=None, settings_json="{}", out=None, plot_format=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn calibrate<'py>(
     py: Python<'py>,
@@ -126,7 +126,7 @@ type VisitArrays<'py> = (Array<'py>, Array<'py>, Array<'py>, Array<'py>);
 /// and `shop.json` there, all or none. Returns `(record_json, arrays)`, the record being what
 /// `shop.json` holds.
 #[pyfunction]
-#[pyo3(signature = (surface_json, program=None, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=60.0, dialect=None, tool_json="{}", noise_rms_nm=0.3, seed=1, out=None))]
+#[pyo3(signature = (surface_json, program=None, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=preston_solver::kinematics::DEFAULT_CORNER_ANGLE_DEG, dialect=None, tool_json="{}", noise_rms_nm=0.3, seed=1, out=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn shop<'py>(
     py: Python<'py>,

@@ -435,7 +435,7 @@ pub(crate) fn solve(
     Ok(SolveResult {
         solved,
         raster_along: job.dwell.raster_along,
-        raster_pitch_mm: job.dwell.raster_pitch_mm,
+        raster_pitch_mm: job.dwell.source.raster_pitch_mm(),
         job,
         job_path,
     })

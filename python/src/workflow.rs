@@ -321,7 +321,7 @@ pub(crate) fn register<'py>(
 /// surface (JSON) with the tool radius. Returns `(map_x_mm, map_y_mm, z_nm, removal_nm,
 /// residual_nm, report_json, check_json)`, the residual `z - removal` with its mean removed.
 #[pyfunction]
-#[pyo3(signature = (map_json, program, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=60.0, dialect=None, sample_step_mm=None, surface_json=None, tool_radius_mm=0.0, tif_frame="path_tangent", progress=None))]
+#[pyo3(signature = (map_json, program, tif_json="{}", tif_xyr=None, a_max_mm_per_s2=None, corner_angle_deg=preston_solver::kinematics::DEFAULT_CORNER_ANGLE_DEG, dialect=None, sample_step_mm=None, surface_json=None, tool_radius_mm=0.0, tif_frame="path_tangent", progress=None))]
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
 pub(crate) fn simulate_program<'py>(
     py: Python<'py>,

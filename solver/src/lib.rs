@@ -21,6 +21,7 @@ pub mod error;
 pub mod fit;
 pub mod influence;
 pub mod iterate;
+pub mod kinematics;
 mod lstsq;
 pub mod machine;
 pub mod map;

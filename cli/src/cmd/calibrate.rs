@@ -4,7 +4,7 @@
 use super::map_input::MapInputArgs;
 use super::tif_source::TifArgs;
 use super::EXIT_NOT_CONVERGED;
-use crate::output::{print_json, OutputArgs};
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::calibration::{run_calibration, write_calibration, CalibrationInputs};
 use preston_io::job::Job;

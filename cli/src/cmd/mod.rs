@@ -5,6 +5,7 @@ pub mod figure_args;
 pub mod fit;
 pub mod hertz_args;
 pub mod iterate;
+pub mod machine_args;
 pub mod map;
 pub mod map_input;
 pub mod nc;

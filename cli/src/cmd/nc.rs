@@ -1,15 +1,15 @@
 //! `preston nc`: G-code and a point list for CAM from a solved dwell file.
 
-use crate::output::{print_json, OutputArgs};
+use super::machine_args::MachineArgs;
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::{bail, Context};
 use preston_io::atomic::{commit_all, stage};
 use preston_io::job::Job;
 use preston_io::machine::{program_check_summary, read_dwell_times, stage_points_csv};
 use preston_io::surface::read_surface;
-use preston_solver::machine::gcode::dialect::{Dialect, FeedMode};
 use preston_solver::machine::gcode::{write_and_check, ProgramCheck};
 use preston_solver::machine::nc::{NcProgram, NcSettings, ToolAxis};
-use preston_solver::machine::profile::{Coolant, MachineProfile, WorkOffset};
+use preston_solver::machine::profile::{Coolant, MachineProfile};
 use preston_solver::machine::{Flat, PartGeometry};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -48,23 +48,9 @@ pub struct Args {
     /// both.
     #[arg(long, value_name = "PROFILE.toml")]
     pub machine: Option<PathBuf>,
-    /// Machine acceleration, mm/s^2: the program is also executed with this limit and the
-    /// stretch times reported.
-    #[arg(long, value_name = "MM_PER_S2", allow_negative_numbers = true)]
-    pub a_max_mm_per_s2: Option<f64>,
-    /// Turn angle (degrees) above which the machine stops at a corner (default 60).
-    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
-    pub corner_angle_deg: Option<f64>,
-    /// Controller dialect (default: the machine profile's, else iso).
-    #[arg(long, value_enum)]
-    pub dialect: Option<Dialect>,
-    /// `per-minute` (G94, F in mm/min) or `inverse-time` (G93, F = 1 / block minutes) (default:
-    /// the machine profile's, else per-minute).
-    #[arg(long, value_enum)]
-    pub feed_mode: Option<FeedMode>,
-    /// Work offset selected at the start (default: the machine profile's, else g54).
-    #[arg(long, value_enum)]
-    pub work_offset: Option<WorkOffset>,
+    /// The machine's limits and controller (shared with solve and simulate).
+    #[command(flatten)]
+    pub machine_args: MachineArgs,
     /// Clearance above the highest tool-centre point, mm: rapid there, above the run-in start,
     /// plunge, and retract at the end (default: the machine profile's, else 5).
     #[arg(long, value_name = "MM", allow_negative_numbers = true)]
@@ -77,14 +63,6 @@ pub struct Args {
     /// (default: the machine profile's, else 2).
     #[arg(long, value_name = "MS", allow_negative_numbers = true)]
     pub min_block_time_ms: Option<f64>,
-    /// Fastest feed, mm/min (default: job [machine] v_max_mm_per_min): a stretch whose
-    /// tool-centre move needs more is programmed at v_max and reported.
-    #[arg(
-        long = "v-max",
-        value_name = "MM_PER_MIN",
-        allow_negative_numbers = true
-    )]
-    pub v_max_mm_per_min: Option<f64>,
     /// Spindle speed, rpm: `S.. M3` at the start, `M5` at the end.
     #[arg(long, value_name = "RPM", allow_negative_numbers = true)]
     pub spindle_rpm: Option<f64>,
@@ -123,15 +101,6 @@ fn profile_with_flags(args: &Args, job: &Job) -> MachineProfile {
     } else if let Some(b_deg) = args.tool_axis_deg {
         p.tool_axis = ToolAxis::Fixed { b_deg };
     }
-    if let Some(d) = args.dialect {
-        p.dialect = d;
-    }
-    if let Some(f) = args.feed_mode {
-        p.feed_mode = f;
-    }
-    if let Some(w) = args.work_offset {
-        p.work_offset = w;
-    }
     if let Some(c) = args.clearance_mm {
         p.clearance_mm = c;
     }
@@ -159,7 +128,9 @@ fn profile_with_flags(args: &Args, job: &Job) -> MachineProfile {
 /// Runs `preston nc`.
 pub fn run(args: Args) -> anyhow::Result<u8> {
     args.output.apply();
-    let job = Job::load_with_profile(args.job.as_deref(), args.machine.as_deref())?;
+    let mut job = Job::load_with_profile(args.job.as_deref(), args.machine.as_deref())?;
+    args.machine_args.v_max_mm_per_min()?;
+    args.machine_args.apply(&mut job)?;
     let points_out = args
         .points_out
         .clone()
@@ -173,12 +144,10 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     let profile = profile_with_flags(&args, &job);
     profile.validate()?;
     let settings = NcSettings {
-        a_max_mm_per_s2: args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2),
-        corner_angle_deg: args
-            .corner_angle_deg
-            .unwrap_or_else(|| job.corner_angle_deg()),
+        a_max_mm_per_s2: job.machine.a_max_mm_per_s2,
+        corner_angle_deg: job.corner_angle_deg(),
         compensation: job.compensation.clone(),
-        v_max_mm_per_min: args.v_max_mm_per_min.or(job.machine.v_max_mm_per_min),
+        v_max_mm_per_min: job.machine.v_max_mm_per_min,
         ..profile.nc_settings()
     };
     settings.validate()?;

@@ -4,7 +4,7 @@
 
 use super::shop_tool_args::ShopToolArgs;
 use super::tif_source::TifArgs;
-use crate::output::{print_json, OutputArgs};
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::shop::{visit, write_visit, ShopInputs};
 use preston_solver::iterate::shop::Interferometer;

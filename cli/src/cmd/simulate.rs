@@ -1,10 +1,11 @@
 //! `preston simulate`: the removal a dwell plan produces (swept, discrete or continuous motion),
 //! or the removal a G-code program produces as the machine runs it (`--program`).
 
+use super::machine_args::MachineArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::tif_source::TifArgs;
-use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::job::{Job, MapSource};
 use preston_io::pipeline::load_tif;
@@ -69,23 +70,10 @@ pub struct Args {
     /// plan (executed_dwell.csv); without them every feed move and pause is in contact.
     #[arg(long, value_name = "program.nc")]
     pub program: Option<PathBuf>,
-    /// With --program: the controller's path acceleration, mm/s^2 (trapezoidal look-ahead);
-    /// default: every block at its programmed feed.
-    #[arg(
-        long,
-        value_name = "MM_PER_S2",
-        requires = "program",
-        allow_negative_numbers = true
-    )]
-    pub a_max_mm_per_s2: Option<f64>,
-    /// With --program and an acceleration limit: turn angle above which the tool stops,
-    /// degrees (default: the job's, else 60).
-    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
-    pub corner_angle_deg: Option<f64>,
-    /// With --program: its dialect (default: the machine profile's, else the one its header
-    /// names, else iso).
-    #[arg(long, value_enum, requires = "program")]
-    pub dialect: Option<preston_solver::machine::gcode::dialect::Dialect>,
+    /// The machine's limits and controller (shared with solve and nc): --v-max for a plan,
+    /// --a-max-mm-per-s2, --corner-angle-deg and --dialect for --program.
+    #[command(flatten)]
+    pub machine_args: MachineArgs,
     /// With --program: largest arc length of a removal sample, mm (default: TIF support
     /// radius / 64).
     #[arg(
@@ -109,9 +97,6 @@ pub struct Args {
     /// Midpoint-rule samples per dwell point for continuous motion.
     #[arg(long, default_value_t = 8)]
     pub samples_per_point: usize,
-    /// Fastest feed, mm/min: reports bound violations of the program (optional).
-    #[arg(long = "v-max", value_name = "MM_PER_MIN")]
-    pub v_max_mm_per_min: Option<f64>,
     /// Write figures next to the CSVs: error before, removal, residual, the PSDs (1-D along x,
     /// 2-D, azimuthal; with their CSVs) and, for a program, planned against executed dwell.
     #[arg(long)]
@@ -136,11 +121,25 @@ struct Inputs {
 
 impl Inputs {
     fn of(args: &Args) -> anyhow::Result<Self> {
-        let job = if args.job.is_some() || args.machine.is_some() {
+        let mut job = if args.job.is_some() || args.machine.is_some() {
             Job::load_with_profile(args.job.as_deref(), args.machine.as_deref())?
         } else {
             Job::default()
         };
+        let m = &args.machine_args;
+        if args.program.is_none() && (m.a_max_mm_per_s2.is_some() || m.dialect.is_some()) {
+            anyhow::bail!(
+                "--a-max-mm-per-s2 and --dialect are the controller's that runs --program"
+            );
+        }
+        if m.feed_mode.is_some() || m.work_offset.is_some() {
+            anyhow::bail!(
+                "--feed-mode and --work-offset are written by preston nc; simulate --program \
+                 reads them from the program"
+            );
+        }
+        m.v_max_mm_per_min()?;
+        m.apply(&mut job)?;
         // The job's TIF (and with it its model: a Hertz TIF per point from the curvature) unless
         // the flags give one.
         let (tif, tif_model) = match (&args.job, args.tif.given()) {
@@ -185,7 +184,8 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
             samples_per_point: args.samples_per_point,
         }),
     };
-    let limits = args.v_max_mm_per_min.map(|v| FeedLimits {
+    // The flag's feed limit only: a plan's bound violations are reported where one is asked.
+    let limits = args.machine_args.v_max_mm_per_min()?.map(|v| FeedLimits {
         v_max_mm_per_min: v,
         v_min_mm_per_min: 0.0,
     });
@@ -222,20 +222,17 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
 /// `preston simulate --program`: the program as the machine runs it.
 fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<u8> {
     let job = &inputs.job;
-    let kinematics = Kinematics::of_limit(
-        args.a_max_mm_per_s2.or(job.machine.a_max_mm_per_s2),
-        args.corner_angle_deg
-            .unwrap_or_else(|| job.corner_angle_deg()),
-    )?;
+    let kinematics = Kinematics::of_limit(job.machine.a_max_mm_per_s2, job.corner_angle_deg())?;
     let surface_file = args.surface.clone().or_else(|| job.surface.file.clone());
     let surface = surface_file.as_deref().map(read_surface).transpose()?;
     let part = surface
         .as_ref()
         .map(|s| (s, args.tool_radius_mm.unwrap_or(job.nc.tool_radius_mm)));
     let bars = Bars::new();
-    let profile_dialect = (args.job.is_some() || args.machine.is_some()).then_some(job.nc.dialect);
+    // The flag's or the profile's dialect; none given: the one the program's header names.
+    let given = args.job.is_some() || args.machine.is_some() || args.machine_args.dialect.is_some();
     let options = ProgramOptions {
-        dialect: args.dialect.or(profile_dialect),
+        dialect: given.then_some(job.nc.dialect),
         kinematics,
         sample_step_mm: args.sample_step_mm,
         part,

@@ -1,11 +1,12 @@
 //! `preston solve`: dwell times and feeds for a map, a TIF and a dwell path.
 
 use super::hertz_args::HertzArgs;
+use super::machine_args::MachineArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::print_program_check;
 use super::tif_source::TifArgs;
-use crate::output::{print_json, OutputArgs};
 use crate::progress::Bars;
+use crate::summary_output::{print_json, OutputArgs};
 use anyhow::Context;
 use preston_io::job::{Job, TifSource};
 use preston_io::machine::program_check_summary;
@@ -59,11 +60,11 @@ pub struct Args {
     pub hertz: HertzArgs,
     /// Dwell points CSV `x_mm,y_mm` in path order. Repeated with --tif (the k-th --dwell goes
     /// with the k-th --tif), several tools in one solve: dwell_tool1.csv, dwell_tool2.csv, ...
-    #[arg(long, value_name = "D.csv", conflicts_with = "raster_pitch_mm", action = clap::ArgAction::Append)]
+    #[arg(long, value_name = "D.csv", action = clap::ArgAction::Append)]
     pub dwell: Vec<PathBuf>,
-    /// Fastest feed, mm/min. With several tools: once for all, or once per tool in order.
-    #[arg(long = "v-max", value_name = "MM_PER_MIN", action = clap::ArgAction::Append)]
-    pub v_max_mm_per_min: Vec<f64>,
+    /// The machine's limits and controller (shared with nc and simulate).
+    #[command(flatten)]
+    pub machine_args: MachineArgs,
     /// Several tools: weight of each tool's machining time in the rho term (once per tool, in
     /// order; default 1).
     #[arg(long, value_name = "W", action = clap::ArgAction::Append)]
@@ -103,28 +104,30 @@ impl Args {
         if let Some(p) = self.map_pitch.pitch_mm {
             job.map.pitch_mm = Some(p);
         }
+        self.machine_args.apply(&mut job)?;
         let mut overrides = self.overrides;
         let tools = self.tif.tif.len().max(self.dwell.len());
         if tools > 1 {
+            // Each tool's points are its file: a raster pitch is refused by the one rule.
+            preston_io::job::DwellSource::of(
+                self.dwell.first().cloned(),
+                overrides.raster_pitch_mm,
+            )
+            .map_err(anyhow::Error::msg)?;
             apply_tools(
                 &mut job,
                 &self.tif.tif,
                 &self.dwell,
-                &self.v_max_mm_per_min,
+                &self.machine_args.v_max_mm_per_min,
                 &self.time_weight,
             )?;
         } else {
             if !self.time_weight.is_empty() {
                 anyhow::bail!("--time-weight is for several tools (repeated --tif and --dwell)");
             }
-            if self.v_max_mm_per_min.len() > 1 {
-                anyhow::bail!(
-                    "--v-max is repeated only with several tools (repeated --tif and --dwell)"
-                );
-            }
+            self.machine_args.v_max_mm_per_min()?;
             overrides.tif = self.tif.tif.first().cloned();
             overrides.dwell = self.dwell.first().cloned();
-            overrides.v_max_mm_per_min = self.v_max_mm_per_min.first().copied();
         }
         overrides.gaussian = self.tif.gaussian()?;
         overrides.hertz = match self.tif_model {
@@ -297,7 +300,7 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         RasterAxis::Y => LineAxis::Y,
     };
     let options = pipeline::OutputOptions {
-        figures: Some((axis, job.dwell.raster_pitch_mm)),
+        figures: Some((axis, job.dwell.source.raster_pitch_mm())),
         plots,
         html: html.then(|| {
             preston_io::html::Provenance::of_job(

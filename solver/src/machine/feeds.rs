@@ -9,10 +9,11 @@
 //! ramp over `v^2 / (2 a)` takes `v / a` instead of `v / (2 a)`), and a stop-and-go at every
 //! corner (turn > `corner_angle_deg`), `v_j / a`. This is an estimate for reports; the program
 //! as written is executed by [`super::gcode::motion`]. The accelerations reported are those of
-//! the solver's model ([`crate::dwell::accel`]: speed changing uniformly between points).
+//! the solver's model ([`crate::kinematics`]: speed changing uniformly between points).
 
-use crate::dwell::accel::{segment_accelerations_mm_per_s2, turn_angles_deg};
 use crate::error::{Error, Result};
+use crate::kinematics::check_a_max_mm_per_s2;
+use crate::kinematics::lines::{segment_accelerations_mm_per_s2, turn_angles_deg};
 use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
 
@@ -39,7 +40,7 @@ pub struct FeedSchedule {
 
 impl FeedSchedule {
     /// Schedules `dwell_s` (s, all positive where `ds > 0`) on `path`; `a_max_mm_per_s2` adds the
-    /// ramps; `corner_angle_deg` decides corners and lines (see [`crate::dwell::accel`]).
+    /// ramps; `corner_angle_deg` decides corners and lines (see [`crate::kinematics`]).
     pub fn new(
         path: &DwellPath,
         dwell_s: &[f64],
@@ -55,12 +56,7 @@ impl FeedSchedule {
             });
         }
         if let Some(a) = a_max_mm_per_s2 {
-            if !(a.is_finite() && a > 0.0) {
-                return Err(Error::invalid(
-                    "a_max_mm_per_s2",
-                    format!("must be positive and finite, got {a}"),
-                ));
-            }
+            check_a_max_mm_per_s2(a)?;
         }
         let ds = path.ds_mm();
         let mut v = Vec::with_capacity(n);

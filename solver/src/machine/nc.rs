@@ -61,7 +61,7 @@ pub struct NcSettings {
     pub tool_axis: ToolAxis,
     /// Machine acceleration, mm/s^2: adds ramps to the machining time in the header.
     pub a_max_mm_per_s2: Option<f64>,
-    /// Corner angle, degrees, for stops and lines (see [`crate::dwell::accel`]).
+    /// Corner angle, degrees, for stops and lines (see [`crate::kinematics`]).
     pub corner_angle_deg: f64,
     /// Normal-displacement compensation; none when absent.
     pub compensation: Option<NormalDisplacement>,
@@ -110,7 +110,7 @@ impl Default for NcSettings {
             tool_radius_mm: 0.0,
             tool_axis: ToolAxis::Vertical,
             a_max_mm_per_s2: None,
-            corner_angle_deg: 60.0,
+            corner_angle_deg: crate::kinematics::DEFAULT_CORNER_ANGLE_DEG,
             compensation: None,
             dialect: Dialect::Iso,
             feed_mode: FeedMode::PerMinute,
@@ -149,12 +149,7 @@ impl NcSettings {
                 ));
             }
         }
-        if !(0.0..=180.0).contains(&self.corner_angle_deg) {
-            return Err(Error::invalid(
-                "corner_angle_deg",
-                format!("must be in [0, 180], got {}", self.corner_angle_deg),
-            ));
-        }
+        crate::kinematics::check_corner_angle_deg(self.corner_angle_deg)?;
         if let Some(c) = &self.compensation {
             c.validate()?;
         }

@@ -38,8 +38,10 @@
 //! best bound or after [`MINIMAX_ROUNDS`] solves. Each solve is to the solver's tolerance, so the
 //! bound is as good as the solves.
 
-use super::sensitivity::Perturbation;
+use super::sensitivity::{Perturbation, Sensitivity};
+use super::{Outcome, Setup};
 use crate::calibrate::ToolUncertainty;
+use crate::dwell::Problem;
 use crate::error::Result;
 use crate::influence::InfluenceMatrix;
 use crate::map::HeightStats;
@@ -103,7 +105,7 @@ impl Scenario {
     }
 }
 
-impl super::Setup {
+impl Setup {
     /// The scenarios of this set-up's robust plan ([`scenarios`] of its tool's uncertainty).
     pub fn robust_scenarios(&self) -> [Scenario; SCENARIO_COUNT] {
         scenarios(&self.tool_uncertainty)
@@ -333,6 +335,70 @@ impl RobustSummary {
             robust_plan_rms_nm,
             nominal_plan_rms_nm,
         }
+    }
+}
+
+/// A robust plan beside the nominal plan of the same set-up ([`Setup::compare_with_nominal`]):
+/// what `report.json` `robust` reports, computed by the engine so the report only reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NominalComparison {
+    /// Both plans' residual RMS in every scenario, as executed where both programs are, else
+    /// as planned.
+    pub planned: RobustSummary,
+    /// The nominal plan's residual RMS, nm: as executed where the program is executed, else
+    /// its model's.
+    pub nominal_plan_rms_after_nm: f64,
+    /// The nominal plan's executed sensitivity.
+    pub nominal_plan_sensitivity: Option<Sensitivity>,
+}
+
+impl Setup {
+    /// The robust plan `outcome` (solved on `problem`, this set-up's stacked scenarios) against
+    /// the nominal plan of the same set-up, solved here the same way but for the nominal TIF
+    /// alone: both plans' residual RMS in every scenario by the stacked model, and the nominal
+    /// plan's executed residual and sensitivity where a program is executed.
+    pub fn compare_with_nominal(
+        &self,
+        problem: &Problem,
+        outcome: &Outcome,
+        observer: &dyn Observer,
+    ) -> Result<NominalComparison> {
+        let mut nominal = self.clone();
+        nominal.settings.robust = false;
+        let built = nominal.problem(observer)?;
+        let plan = nominal.solve(&built.problem, observer)?;
+        let z = self.map.z_nm();
+        // Each scenario's removal: its block of the robust problem's rows over the block's scale.
+        let per_scenario = |t: &[f64]| -> Result<Vec<f64>> {
+            let mut h = problem.removal_nm(t)?;
+            let scales = problem.scenario_scales();
+            let block = (h.len() / scales.len()).max(1);
+            for (part, a) in h.chunks_mut(block).zip(scales) {
+                part.iter_mut().for_each(|v| *v /= a);
+            }
+            Ok(scenario_rms_nm(z, &h))
+        };
+        let executed = |o: &Outcome| match &o.executed {
+            Some(Ok(e)) => Some(self.executed_scenario_rms_nm(e, observer)),
+            _ => None,
+        };
+        let planned = match (executed(outcome), executed(&plan)) {
+            (Some(r), Some(n)) => RobustSummary::new(RobustBasis::Executed, r?, n?),
+            _ => RobustSummary::new(
+                RobustBasis::Planned,
+                per_scenario(&outcome.solution.dwell_s)?,
+                per_scenario(&plan.solution.dwell_s)?,
+            ),
+        };
+        let nominal_plan_rms_after_nm = match &plan.executed {
+            Some(Ok(e)) => e.after.rms_nm,
+            _ => HeightStats::of(&plan.residual_nm).rms_nm,
+        };
+        Ok(NominalComparison {
+            planned,
+            nominal_plan_rms_after_nm,
+            nominal_plan_sensitivity: plan.sensitivity,
+        })
     }
 }
 

@@ -468,3 +468,22 @@ impl Setup {
         })
     }
 }
+
+impl Setup {
+    /// The program of `settings` for the outcome's plan, written, read back and checked: the one
+    /// the solve executed when that was written with the same settings on a flat part, planned
+    /// here otherwise (on the set-up's design surface when there is one).
+    pub fn program_check(&self, outcome: &Outcome, settings: &NcSettings) -> Result<ProgramCheck> {
+        if let (Some(Ok(e)), None) = (&outcome.executed, &self.surface) {
+            if e.settings == *settings {
+                return Ok(e.program.clone());
+            }
+        }
+        let geometry: &dyn PartGeometry = match &self.surface {
+            Some(s) => s,
+            None => &Flat,
+        };
+        NcProgram::plan(&self.path, &outcome.solution.dwell_s, geometry, settings)
+            .and_then(|nc| write_and_check(&nc, &[]))
+    }
+}

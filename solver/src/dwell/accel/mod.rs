@@ -39,6 +39,11 @@ use super::first_order::Data;
 use super::qp::{self, ExtraRows};
 use super::{DwellBounds, Problem, Settings, Solution, SolverKind, Status};
 use crate::error::{Error, Result};
+use crate::kinematics::lines::{
+    constrained_segments, max_acceleration_mm_per_s2, segment_accelerations_mm_per_s2,
+    segment_lengths_mm,
+};
+use crate::kinematics::{check_a_max_mm_per_s2, check_corner_angle_deg, DEFAULT_CORNER_ANGLE_DEG};
 use crate::observer::{IterationInfo, Observer, Stage};
 use crate::path::DwellPath;
 use serde::{Deserialize, Serialize};
@@ -126,7 +131,7 @@ impl Default for AccelLimits {
     fn default() -> Self {
         Self {
             a_max_mm_per_s2: 1000.0,
-            corner_angle_deg: 60.0,
+            corner_angle_deg: DEFAULT_CORNER_ANGLE_DEG,
             constraint_tolerance: 0.01,
             objective_tolerance: 1e-4,
             max_iterations: 50,
@@ -149,21 +154,8 @@ impl AccelLimits {
 
     /// Checks every field's range.
     pub fn validate(&self) -> Result<()> {
-        if !(self.a_max_mm_per_s2.is_finite() && self.a_max_mm_per_s2 > 0.0) {
-            return Err(Error::invalid(
-                "a_max_mm_per_s2",
-                format!("must be positive and finite, got {}", self.a_max_mm_per_s2),
-            ));
-        }
-        if !(self.corner_angle_deg.is_finite()
-            && self.corner_angle_deg >= 0.0
-            && self.corner_angle_deg <= 180.0)
-        {
-            return Err(Error::invalid(
-                "corner_angle_deg",
-                format!("must be in [0, 180], got {}", self.corner_angle_deg),
-            ));
-        }
+        check_a_max_mm_per_s2(self.a_max_mm_per_s2)?;
+        check_corner_angle_deg(self.corner_angle_deg)?;
         for (name, v) in [
             ("constraint_tolerance", self.constraint_tolerance),
             ("objective_tolerance", self.objective_tolerance),
@@ -242,88 +234,15 @@ pub struct AccelSolution {
     pub reference: Solution,
 }
 
-/// Segment lengths `s_j = |P_{j+1} - P_j|`, mm (n - 1 entries).
-pub fn segment_lengths_mm(path: &DwellPath) -> Vec<f64> {
-    path.x_mm()
-        .windows(2)
-        .zip(path.y_mm().windows(2))
-        .map(|(x, y)| match (x, y) {
-            ([x0, x1], [y0, y1]) => (x1 - x0).hypot(y1 - y0),
-            _ => 0.0,
-        })
-        .collect()
-}
-
-/// Turn angle of the path at each point, degrees: the angle between the incoming and outgoing
-/// segments (0 at the two ends and where a segment has zero length).
-pub fn turn_angles_deg(path: &DwellPath) -> Vec<f64> {
-    let (x, y) = (path.x_mm(), path.y_mm());
-    let n = path.len();
-    let mut out = vec![0.0; n];
-    for j in 1..n.saturating_sub(1) {
-        let (ax, ay) = (x[j] - x[j - 1], y[j] - y[j - 1]);
-        let (bx, by) = (x[j + 1] - x[j], y[j + 1] - y[j]);
-        let (la, lb) = (ax.hypot(ay), bx.hypot(by));
-        if la > 0.0 && lb > 0.0 {
-            let c = ((ax * bx + ay * by) / (la * lb)).clamp(-1.0, 1.0);
-            out[j] = c.acos().to_degrees();
-        }
-    }
-    out
-}
-
-/// For each segment `(j, j+1)`: true when it carries the acceleration constraint, false for a
-/// connecting move (the path turns by more than `corner_angle_deg` at both of its ends).
-pub fn constrained_segments(path: &DwellPath, corner_angle_deg: f64) -> Vec<bool> {
-    let turn = turn_angles_deg(path);
-    turn.windows(2)
-        .map(|w| !(w[0] > corner_angle_deg && w[1] > corner_angle_deg))
-        .collect()
-}
-
-/// Acceleration of each segment under constant acceleration between dwell points,
-/// `a_j = |v_{j+1}^2 - v_j^2| / (2 s_j)` with `v = ds / t`, mm/s^2; `None` for connecting moves,
-/// zero-length segments and dwell times that are not positive.
-pub fn segment_accelerations_mm_per_s2(
-    path: &DwellPath,
-    dwell_s: &[f64],
-    corner_angle_deg: f64,
-) -> Vec<Option<f64>> {
-    let ds = path.ds_mm();
-    let seg = segment_lengths_mm(path);
-    let cons = constrained_segments(path, corner_angle_deg);
-    let v2 = |j: usize| -> Option<f64> {
-        let t = *dwell_s.get(j)?;
-        let d = *ds.get(j)?;
-        (t > 0.0).then(|| (d / t) * (d / t))
-    };
-    (0..seg.len())
-        .map(|j| {
-            if !cons[j] || seg[j] <= 0.0 {
-                return None;
-            }
-            Some((v2(j + 1)? - v2(j)?).abs() / (2.0 * seg[j]))
-        })
-        .collect()
-}
-
-/// Largest segment acceleration (see [`segment_accelerations_mm_per_s2`]), mm/s^2; 0 if none.
-pub fn max_acceleration_mm_per_s2(path: &DwellPath, dwell_s: &[f64], corner_angle_deg: f64) -> f64 {
-    segment_accelerations_mm_per_s2(path, dwell_s, corner_angle_deg)
-        .into_iter()
-        .flatten()
-        .fold(0.0, f64::max)
-}
-
 /// The kinematic data of the constraint: per point `ds`, per segment `2 a_max s` and whether it
 /// is constrained.
-struct Kinematics {
+struct LineCaps {
     ds: Vec<f64>,
     cap: Vec<f64>,
     constrained: Vec<bool>,
 }
 
-impl Kinematics {
+impl LineCaps {
     fn new(path: &DwellPath, limits: &AccelLimits) -> Self {
         let seg = segment_lengths_mm(path);
         Self {
@@ -403,7 +322,7 @@ pub(crate) fn solve_validated(
             expected: n,
         });
     }
-    let kin = Kinematics::new(path, limits);
+    let kin = LineCaps::new(path, limits);
     let bounds = problem.bounds();
     let (lo_u, hi_u) = speed_boxes(&kin, bounds)?;
     let reachable = forward_reachable(&kin, &lo_u, &hi_u, limits)?;
@@ -477,7 +396,7 @@ fn reference_settings(limits: &AccelLimits, settings: &Settings) -> Settings {
 /// boxes along it, the limits and settings.
 struct Limited<'a> {
     problem: &'a Problem,
-    kin: &'a Kinematics,
+    kin: &'a LineCaps,
     reachable: &'a [(f64, f64)],
     limits: &'a AccelLimits,
     settings: &'a Settings,
@@ -701,7 +620,7 @@ struct ScpResult {
 /// Sequential convex programming from the feasible `start` (see the module documentation).
 fn scp(
     problem: &Problem,
-    kin: &Kinematics,
+    kin: &LineCaps,
     start: Vec<f64>,
     limits: &AccelLimits,
     settings: &Settings,
@@ -776,7 +695,7 @@ fn scp(
 }
 
 /// Boxes on `u_j = v_j^2` implied by the dwell bounds: `[(ds/ub)^2, (ds/lb)^2]`, mm^2/s^2.
-fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
+fn speed_boxes(kin: &LineCaps, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<f64>)> {
     let n = kin.ds.len();
     let mut lo = vec![0.0; n];
     let mut hi = vec![0.0; n];
@@ -808,7 +727,7 @@ fn speed_boxes(kin: &Kinematics, bounds: &DwellBounds) -> Result<(Vec<f64>, Vec<
 
 /// Forward reachable intervals of `u_j` along each line; an empty one is an error.
 fn forward_reachable(
-    kin: &Kinematics,
+    kin: &LineCaps,
     lo: &[f64],
     hi: &[f64],
     limits: &AccelLimits,
@@ -855,7 +774,7 @@ fn forward_reachable(
 /// constraint, as [`feasible_start`] does, and the limit holds as reported. An iterate that
 /// meets the limit is returned unchanged.
 fn onto_the_limit(
-    kin: &Kinematics,
+    kin: &LineCaps,
     reach: &[(f64, f64)],
     t: Vec<f64>,
     bounds: &DwellBounds,
@@ -867,7 +786,7 @@ fn onto_the_limit(
 }
 
 fn feasible_start(
-    kin: &Kinematics,
+    kin: &LineCaps,
     reach: &[(f64, f64)],
     target_t: &[f64],
     bounds: &DwellBounds,
@@ -913,7 +832,7 @@ fn feasible_start(
 
 /// The trust-region box and the linearised rows around `t`.
 fn linearise(
-    kin: &Kinematics,
+    kin: &LineCaps,
     t: &[f64],
     bounds: &DwellBounds,
     tau: f64,

@@ -41,7 +41,7 @@
 //! spreading operators and curved parts all serve.
 
 use super::chain::{project_chain, Chain, ChainScratch};
-use super::Kinematics;
+use super::LineCaps;
 use crate::dwell::first_order::{scaled_hessian_norm, Data, Work};
 use crate::dwell::Status;
 use crate::influence::operator::{fill_and_sum, fixed_sum};
@@ -118,7 +118,7 @@ struct Projection {
 }
 
 impl Projection {
-    fn new(kin: &Kinematics) -> Self {
+    fn new(kin: &LineCaps) -> Self {
         let n = kin.ds.len();
         let mut lines = Vec::new();
         let mut start = 0;
@@ -253,7 +253,7 @@ fn speed_and_slope(ds: f64, s: f64, w: f64) -> (f64, f64) {
 /// State of the iteration beyond [`Data`].
 struct Iteration<'a> {
     data: &'a Data<'a>,
-    kin: &'a Kinematics,
+    kin: &'a LineCaps,
     proj: Projection,
 }
 
@@ -363,7 +363,7 @@ pub(crate) fn minimise(
     data: &Data<'_>,
     work: &mut Work,
     kkt_scale: f64,
-    kin: &Kinematics,
+    kin: &LineCaps,
     start: &[f64],
     limits: &SpeedLimits,
     observer: &dyn Observer,
@@ -524,7 +524,7 @@ mod tests {
     fn heavy_points_out_of_each_others_reach_are_projected_onto_the_cap() {
         const CAP: f64 = 2000.0;
         const FAST: f64 = 2500.0;
-        let kin = Kinematics {
+        let kin = LineCaps {
             ds: vec![1.0; 4],
             cap: vec![CAP; 3],
             constrained: vec![true; 3],

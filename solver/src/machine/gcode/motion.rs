@@ -27,50 +27,7 @@ use super::program::{Block, BlockKind, Program};
 use crate::error::{Error, Result};
 use crate::machine::PartGeometry;
 
-/// How the controller moves through the blocks.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Kinematics {
-    /// Constant programmed feed in every block.
-    ProgrammedFeed,
-    /// Acceleration-limited look-ahead (module documentation).
-    Trapezoidal {
-        /// Path acceleration limit, mm/s^2.
-        a_max_mm_per_s2: f64,
-        /// Turn angle above which the tool stops at a junction, degrees.
-        corner_angle_deg: f64,
-    },
-}
-
-impl Kinematics {
-    /// The controller of an optional path acceleration limit `a_max_mm_per_s2` (mm/s^2):
-    /// [`Kinematics::Trapezoidal`] with the corner angle `corner_angle_deg` (degrees) when there
-    /// is one, [`Kinematics::ProgrammedFeed`] when there is none; validated, so that a face
-    /// refuses a bad limit before it reads a map or a program.
-    pub fn of_limit(a_max_mm_per_s2: Option<f64>, corner_angle_deg: f64) -> Result<Self> {
-        let k = match a_max_mm_per_s2 {
-            Some(a_max_mm_per_s2) => Kinematics::Trapezoidal {
-                a_max_mm_per_s2,
-                corner_angle_deg,
-            },
-            None => Kinematics::ProgrammedFeed,
-        };
-        k.validate()?;
-        Ok(k)
-    }
-
-    /// Checks the acceleration limit: positive and finite.
-    pub fn validate(&self) -> Result<()> {
-        match *self {
-            Kinematics::Trapezoidal {
-                a_max_mm_per_s2: a, ..
-            } if !(a.is_finite() && a > 0.0) => Err(Error::invalid(
-                "a_max_mm_per_s2",
-                format!("must be positive and finite, got {a}"),
-            )),
-            _ => Ok(()),
-        }
-    }
-}
+pub use crate::kinematics::Kinematics;
 
 /// One block's executed speed profile: accelerate, cruise, decelerate.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -34,7 +34,7 @@ pub fn quiet() -> bool {
 #[macro_export]
 macro_rules! note {
     ($($t:tt)*) => {
-        if !$crate::output::quiet() {
+        if !$crate::summary_output::quiet() {
             $crate::errln!($($t)*);
         }
     };

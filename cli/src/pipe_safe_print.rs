@@ -49,7 +49,7 @@ pub fn write(stream: Stream, args: std::fmt::Arguments<'_>) {
 #[macro_export]
 macro_rules! outln {
     ($($arg:tt)*) => {
-        $crate::out::write($crate::out::Stream::Out, format_args!("{}\n", format_args!($($arg)*)))
+        $crate::pipe_safe_print::write($crate::pipe_safe_print::Stream::Out, format_args!("{}\n", format_args!($($arg)*)))
     };
 }
 
@@ -57,7 +57,7 @@ macro_rules! outln {
 #[macro_export]
 macro_rules! out {
     ($($arg:tt)*) => {
-        $crate::out::write($crate::out::Stream::Out, format_args!($($arg)*))
+        $crate::pipe_safe_print::write($crate::pipe_safe_print::Stream::Out, format_args!($($arg)*))
     };
 }
 
@@ -65,7 +65,7 @@ macro_rules! out {
 #[macro_export]
 macro_rules! errln {
     ($($arg:tt)*) => {
-        $crate::out::write($crate::out::Stream::Err, format_args!("{}\n", format_args!($($arg)*)))
+        $crate::pipe_safe_print::write($crate::pipe_safe_print::Stream::Err, format_args!("{}\n", format_args!($($arg)*)))
     };
 }
 
@@ -73,6 +73,6 @@ macro_rules! errln {
 #[macro_export]
 macro_rules! err {
     ($($arg:tt)*) => {
-        $crate::out::write($crate::out::Stream::Err, format_args!($($arg)*))
+        $crate::pipe_safe_print::write($crate::pipe_safe_print::Stream::Err, format_args!($($arg)*))
     };
 }
