@@ -959,7 +959,7 @@ fn a_curved_part_takes_the_robust_plan() {
         list(&robust["nominal_plan_rms_nm"]),
     );
     let mean_sq = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64;
-    assert_eq!(rob.len(), 5);
+    assert_eq!(rob.len(), 7);
     assert!(mean_sq(&rob) < mean_sq(&nom), "{rob:?} against {nom:?}");
     assert!(rob[0] >= nom[0] * (1.0 - 1e-3), "{rob:?} against {nom:?}");
     assert!(r["sensitivity"].is_object(), "{r}");

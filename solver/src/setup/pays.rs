@@ -191,7 +191,22 @@ impl Setup {
             let mut banded = self.clone();
             banded.map = self.map.with_heights(split.correctable_nm.clone())?;
             let built = banded.problem(observer).map_err(|e| e.source)?;
-            let outcome = self.solve(&built.problem, observer)?;
+            let mut outcome = self.solve(&built.problem, observer)?;
+            // The solver's piston and objective are the band's; the outcome's figures are the
+            // measured map's (where the problem has no rows beyond it, as for the map's plan).
+            let m = self.map.len();
+            if built.problem.m() == m && m > 0 {
+                let d: Vec<f64> = outcome
+                    .removal_nm
+                    .iter()
+                    .zip(z)
+                    .map(|(h, z)| h - z)
+                    .collect();
+                let piston_nm = d.iter().sum::<f64>() / m as f64;
+                outcome.solution.piston_nm = piston_nm;
+                outcome.solution.objective =
+                    0.5 * d.iter().map(|v| (v - piston_nm).powi(2)).sum::<f64>();
+            }
             let Some(expected) = self.expected_reading(&outcome, uncertainty)? else {
                 continue;
             };
