@@ -72,7 +72,8 @@ def test_a_grid_over_the_dwell_source_replaces_the_jobs_source(small_job, tmp_pa
     jobs = preston.grid(small_job, {"dwell.file": [str(dwell)]})
     assert jobs[0]["dwell"].get("file") == str(dwell)
     assert jobs[0]["dwell"].get("raster_pitch_mm") is None
-    back = preston.grid(jobs[0], {"dwell.raster_pitch_mm": [0.8]})
+    job = {k: v for k, v in jobs[0].items() if k != "name"}  # grid names its jobs for batch
+    back = preston.grid(job, {"dwell.raster_pitch_mm": [0.8]})
     assert back[0]["dwell"].get("raster_pitch_mm") == 0.8
     assert back[0]["dwell"].get("file") is None
 
