@@ -10,9 +10,10 @@
 //! below the RMS measured before the run. A plan of the whole map chases every feature, those
 //! the tool cannot place or size well enough included (structure near the tool's width under a
 //! width or placement uncertainty, noise), and removes as deep as the deepest of them needs.
-//! When it does not pay, or when most of its expected reading is the map's noise that it would
-//! imprint on the part ([`crate::calibrate::ReadingParts::noise_imprint_nm`]), the measured error
-//! is split into the smooth part the tool corrects at transfer gains of at least `g` and the rest ([`crate::band`]), for each `g` of
+//! When it does not pay, or when the map's noise it would imprint on the part
+//! ([`crate::calibrate::ReadingParts::noise_imprint_nm`]) outweighs what it leaves and what the
+//! tool's uncertainty adds, the measured error is split into the smooth part the tool corrects
+//! at transfer gains of at least `g` and the rest ([`crate::band`]), for each `g` of
 //! [`BAND_GAINS`], and the same set-up plans against the band alone (the problem's target the
 //! band, its edge rows extrapolated from it; every figure of the outcome still on the measured
 //! map). The plan kept is the one with the smallest expected reading, the whole map's included.
@@ -157,8 +158,8 @@ impl Setup {
     }
 
     /// The plan of a run that pays (module documentation): `outcome`, this set-up's solve,
-    /// where its run pays; else the plan of the whole map or of one of the bands,
-    /// whichever has the smallest expected reading.
+    /// where its run pays and it does not chase the map's noise; else the plan of the whole map
+    /// or of one of the bands, whichever has the smallest expected reading.
     pub fn plan_that_pays(
         &self,
         outcome: Outcome,
