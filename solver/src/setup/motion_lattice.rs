@@ -16,6 +16,7 @@
 
 use super::sensitivity::Perturbation;
 use crate::error::Result;
+use crate::influence::direct::removals_nm;
 use crate::influence::fft::FftOperator;
 use crate::observer::Observer;
 use crate::simulate::SampledProgram;
@@ -60,7 +61,10 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
     observer: &dyn Observer,
 ) -> Result<Vec<Vec<f64>>> {
     let direct = |s: &SampledProgram| {
-        super::contact::removals_in_plan(map_x_mm, map_y_mm, s, tif, scenarios, observer)
+        let tifs: Vec<_> = scenarios.iter().map(|p| p.of(tif)).collect();
+        removals_nm(
+            map_x_mm, map_y_mm, &s.x_mm, &s.y_mm, &s.dwell_s, &tifs, observer,
+        )
     };
     let n = samples.dwell_s.len();
     let pitch_mm = match FftOperator::lattice_pitch_mm(map_x_mm, map_y_mm) {
@@ -233,7 +237,6 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::influence::direct::removals_nm;
     use crate::observer::Silent;
     use crate::tif::{GaussianTif, GridTif};
 
