@@ -141,7 +141,7 @@ fn sample_job_phases(c: &mut Criterion) {
 }
 
 fn fft_products(c: &mut Criterion) {
-    use preston::solver::influence::fft::FftOperator;
+    use preston::solver::influence::operator::fft::FftOperator;
     use preston::solver::influence::operator::LinearOperator;
     let mut group = c.benchmark_group("fft_products");
     group.sample_size(10);

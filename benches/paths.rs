@@ -5,7 +5,7 @@
 //! shift-invariant case.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use preston::solver::influence::curvature::assemble_curvature_dependent;
+use preston::solver::influence::model::curvature::assemble_curvature_dependent;
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::influence::{assemble_on_surface, TifFrame};
 use preston::solver::map::BoundingBox;

@@ -261,7 +261,7 @@ fn sparse_and_fft_case(
     v_min: f64,
 ) -> (
     InfluenceMatrix,
-    preston::solver::influence::fft::FftOperator,
+    preston::solver::influence::operator::fft::FftOperator,
     Vec<f64>,
     DwellBounds,
 ) {
@@ -272,7 +272,7 @@ fn sparse_and_fft_case(
         v_min_mm_per_min: v_min,
     };
     let bounds = DwellBounds::from_feeds(&path.ds_mm(), &limits).unwrap();
-    let fft = preston::solver::influence::fft::FftOperator::new(
+    let fft = preston::solver::influence::operator::fft::FftOperator::new(
         &x,
         &y,
         path.x_mm(),
@@ -291,7 +291,7 @@ fn sparse_and_fft_case(
 #[test]
 fn the_default_lbfgs_memory_follows_the_operator() {
     use preston::solver::dwell::first_order::minimise;
-    use preston::solver::influence::operator::SparseOperator;
+    use preston::solver::influence::operator::sparse::SparseOperator;
     let (r, fft, z, bounds) = sparse_and_fft_case(0.0);
     let sparse = SparseOperator::new(r.csc());
     let run = |op: &dyn preston::solver::influence::LinearOperator, memory: Option<usize>| {
@@ -650,8 +650,8 @@ const ADJOINT_REL_TOL: f64 = 1e-12;
 
 #[test]
 fn fft_operator_matches_sparse_and_is_adjoint() {
-    use preston::solver::influence::fft::FftOperator;
-    use preston::solver::influence::operator::{LinearOperator, SparseOperator};
+    use preston::solver::influence::operator::fft::FftOperator;
+    use preston::solver::influence::operator::{sparse::SparseOperator, LinearOperator};
     let (x, y, _, path, tif) = case(40, 30, 23);
     let r = InfluenceMatrix::assemble(&x, &y, path.x_mm(), path.y_mm(), &tif, &Silent).unwrap();
     let sparse = SparseOperator::new(r.csc());
@@ -707,7 +707,7 @@ fn fft_operator_matches_sparse_and_is_adjoint() {
 #[test]
 fn first_order_with_the_fft_operator_matches_the_sparse_one() {
     use preston::solver::dwell::first_order::minimise;
-    use preston::solver::influence::operator::SparseOperator;
+    use preston::solver::influence::operator::sparse::SparseOperator;
     let (r, fft, z, bounds) = sparse_and_fft_case(300.0);
     let sparse = SparseOperator::new(r.csc());
     for method in METHODS {
@@ -726,7 +726,7 @@ fn first_order_with_the_fft_operator_matches_the_sparse_one() {
 
 #[test]
 fn matrix_free_problem_solves_like_the_assembled_one() {
-    use preston::solver::influence::fft::FftOperator;
+    use preston::solver::influence::operator::fft::FftOperator;
     let (x, y, z, _, tif) = case(31, 21, 41);
     // A raster reaching the TIF radius past the map: its corner points touch no map point.
     let bbox = preston::solver::map::BoundingBox::of_points(&x, &y)

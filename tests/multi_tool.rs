@@ -3,7 +3,7 @@
 //! first, then the small one on what it left).
 
 use preston::solver::dwell::{self, DwellBounds, Problem, Settings, SolverChoice};
-use preston::solver::influence::stacked::stack_scaled;
+use preston::solver::influence::operator::stacked::stack_scaled;
 use preston::solver::influence::InfluenceMatrix;
 use preston::solver::observer::Silent;
 use preston::solver::tif::GaussianTif;

@@ -5,7 +5,7 @@
 //! that learns the rate alone.
 
 use preston::solver::calibrate::SpotFootprint;
-use preston::solver::influence::surface::TifFrame;
+use preston::solver::influence::model::surface::TifFrame;
 use preston::solver::iterate::{
     run_virtual, Disturbances, FormErrorModel, LoopOutcome, LoopSettings, ShopTool, VirtualPart,
 };

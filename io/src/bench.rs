@@ -16,8 +16,8 @@ use preston_solver::dwell::{
     DwellBounds, FeedLimits, OperatorChoice, OperatorKind, Problem, Settings, SolverChoice,
 };
 use preston_solver::edge::{EdgeMethod, EdgeSettings};
-use preston_solver::influence::fft::FftOperator;
-use preston_solver::influence::surface::TifFrame;
+use preston_solver::influence::model::surface::TifFrame;
+use preston_solver::influence::operator::fft::FftOperator;
 use preston_solver::influence::InfluenceMatrix;
 use preston_solver::map::{BoundingBox, HeightMap, HeightStats};
 use preston_solver::observer::Silent;

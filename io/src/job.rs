@@ -54,7 +54,7 @@ pub use crate::metrology::MapSource;
 use preston_solver::dwell::accel::{AccelLimits, AccelMethod};
 use preston_solver::dwell::{FeedLimits, Settings};
 use preston_solver::edge::EdgeSettings;
-use preston_solver::influence::surface::TifFrame;
+use preston_solver::influence::model::surface::TifFrame;
 use preston_solver::kinematics::{
     check_a_max_mm_per_s2, check_corner_angle_deg, DEFAULT_CORNER_ANGLE_DEG,
 };

@@ -14,7 +14,7 @@ use crate::job::{DwellSource, Job, TifSource};
 use preston_solver::dwell::accel::AccelMethod;
 use preston_solver::dwell::{FirstOrderMethod, OperatorChoice, RobustWeighting, SolverChoice};
 use preston_solver::edge::EdgeMethod;
-use preston_solver::influence::surface::TifFrame;
+use preston_solver::influence::model::surface::TifFrame;
 use preston_solver::influence::InfluenceModel;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::tif::{GaussianTif, HertzParams};

@@ -602,7 +602,7 @@ impl CellIndex {
         let (x0, x1, y0, y1) = extent;
         let n = x.len().max(1) as f64;
         let mean_spacing = ((x1 - x0).max(1e-9) * (y1 - y0).max(1e-9) / n).sqrt();
-        let lattice = preston_solver::influence::fft::FftOperator::lattice_pitch_mm(x, y);
+        let lattice = preston_solver::influence::operator::fft::FftOperator::lattice_pitch_mm(x, y);
         let cells_at = |c: f64| ((x1 - x0) / c + 1.0) * ((y1 - y0) / c + 1.0);
         let cell_mm = match lattice {
             Some(p) if p > 0.0 && cells_at(p) <= 4.0 * n => p,
@@ -1842,7 +1842,8 @@ mod tests {
         let (w, _, px, bpp) = decode(f);
         let (x0, x1) = value_range(x).unwrap();
         let (y0, y1) = value_range(y).unwrap();
-        let cell = preston_solver::influence::fft::FftOperator::lattice_pitch_mm(x, y).unwrap();
+        let cell =
+            preston_solver::influence::operator::fft::FftOperator::lattice_pitch_mm(x, y).unwrap();
         let layout = MapLayout::for_extent(x1 - x0 + cell, y1 - y0 + cell);
         let ((ox, oy), (dw, dh)) = (layout.data_origin_px, layout.data_size_px);
         let (mut under, mut over) = (0, 0);

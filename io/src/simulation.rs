@@ -60,7 +60,7 @@ pub struct Simulated {
 pub enum PlanMotion {
     /// The tool swept along each dwell point's stretch of path at the point's feed, the TIF
     /// averaged along the stretch exactly as the solver's swept influence model (its default)
-    /// does ([`preston_solver::influence::swept`]): the removal the plan itself predicts.
+    /// does ([`preston_solver::influence::model::swept`]): the removal the plan itself predicts.
     Swept,
     /// One of the simulator's own motions: the tool dwelling at the points (the solver's point
     /// influence model), or sweeping the path with a number of midpoint samples per point.

@@ -376,7 +376,7 @@ pub(crate) fn influence_matrix<'py>(
     let prepared = py
         .detach(|| prepare_arrays(&job, &job_path, arrays, &Silent))
         .map_err(to_py)?;
-    let r = prepared.problem.operator().matrix().ok_or_else(|| {
+    let r = prepared.problem.influence().ok_or_else(|| {
         InputError::new_err(
             "this job's R is not assembled (a curvature-dependent or off-lattice operator)",
         )

@@ -2,7 +2,7 @@
 //! which the raster pitch's mid-spatial-frequency ripple shows as a peak.
 //!
 //! The map's points are put on their lattice (pitch `p`, see
-//! [`crate::influence::fft::FftOperator::lattice_pitch_mm`]); every line along the chosen axis is cut
+//! [`crate::influence::operator::fft::FftOperator::lattice_pitch_mm`]); every line along the chosen axis is cut
 //! into its runs of consecutive measured points, and each run into Welch segments of `L` points
 //! (half-overlapping, `L` the largest power of two at most half the longest run, at least 8).
 //! Each segment has its mean removed and a Hann window `w` applied; its one-sided periodogram is
@@ -19,7 +19,7 @@
 //! it over annuli of `|f|` one frequency step wide (the coarser of `dfx`, `dfy`).
 
 use crate::error::{twelve_figures, Error, Result};
-use crate::influence::fft::FftOperator;
+use crate::influence::operator::fft::FftOperator;
 use realfft::RealFftPlanner;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;

@@ -215,7 +215,7 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
 }
 
 /// Removal (nm) at the map points of dwell samples (positions and the time the tool spends at
-/// each), `h(x) = sum_k TIF(x - s_k) tau_k`, summed directly ([`crate::influence::direct`]): no
+/// each), `h(x) = sum_k TIF(x - s_k) tau_k`, summed directly ([`crate::influence::model::direct`]): no
 /// matrix is held, and the result does not depend on the thread count.
 pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
@@ -224,7 +224,7 @@ pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     tif: &T,
     observer: &dyn Observer,
 ) -> Result<Vec<f64>> {
-    crate::influence::direct::removal_nm(
+    crate::influence::model::direct::removal_nm(
         map_x_mm,
         map_y_mm,
         &program.x_mm,

@@ -12,7 +12,7 @@ use preston_io::readers::read_tif;
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
 use preston_solver::dwell::{FeedLimits, Settings};
-use preston_solver::influence::surface::TifFrame;
+use preston_solver::influence::model::surface::TifFrame;
 use preston_solver::iterate::learned::next_run_rate_sigma;
 use preston_solver::iterate::{band::BAND_MIN_GAIN, CorrectableBand, MIN_GAIN_NM};
 use preston_solver::iterate::{

@@ -272,8 +272,8 @@ impl LatticeRemoval {
             gx * gy,
             10.0,
         )?;
-        let nx = crate::influence::lattice::smooth_size(gx as usize);
-        let ny = crate::influence::lattice::smooth_size(gy as usize);
+        let nx = crate::influence::operator::lattice::smooth_size(gx as usize);
+        let ny = crate::influence::operator::lattice::smooth_size(gy as usize);
         let (sx, sy) = (span_x as usize, span_y as usize);
         let mid_time_s = motion.mid_time_s();
         let mut dens = [vec![0.0; nx * ny], vec![0.0; nx * ny]];

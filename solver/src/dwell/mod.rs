@@ -90,7 +90,7 @@ pub enum OperatorChoice {
     /// Never form `R`: dwell points spread by the exponential-of-semicircle kernel onto a fine
     /// lattice, then a deconvolved FFT convolution ([`crate::influence::NufftOperator`]; the
     /// error against the exact `R` measured, within
-    /// [`crate::influence::nufft::DEFAULT_NUFFT_TOLERANCE`] for `auto`). Needs map points on a
+    /// [`crate::influence::operator::nufft::DEFAULT_NUFFT_TOLERANCE`] for `auto`). Needs map points on a
     /// regular lattice (dwell points anywhere) and the first-order solver.
     Nufft,
 }
@@ -227,7 +227,7 @@ impl Problem {
 
     /// The assembled influence matrix `R` (m x n); `None` for a matrix-free problem.
     pub fn influence(&self) -> Option<&InfluenceMatrix> {
-        self.operator.matrix()
+        self.operator.downcast_ref::<InfluenceMatrix>()
     }
 
     /// The assembled `R`, or an error naming `who` for a matrix-free problem (the QP needs `R`).
@@ -248,7 +248,7 @@ impl Problem {
 
     /// Whether `R` is matrix-free (no assembled matrix): only the first-order solver runs.
     pub fn is_matrix_free(&self) -> bool {
-        self.operator.matrix().is_none()
+        self.operator.downcast_ref::<InfluenceMatrix>().is_none()
     }
 
     /// Non-zero entries of `R` (stored, or implicit in a matrix-free operator).
@@ -547,7 +547,7 @@ pub struct Settings {
     /// ([`Preconditioner`]).
     pub preconditioner: Preconditioner,
     /// Largest estimated relative operator error `||R~ - R||_F / ||R||_F` allowed for the
-    /// off-lattice spreading operator ([`crate::influence::spread`]) when `operator = "auto"`
+    /// off-lattice spreading operator ([`crate::influence::operator::spread`]) when `operator = "auto"`
     /// considers it (dwell points off the map lattice).
     pub spread_tolerance: f64,
     /// How the plan models the tool at a dwell point: swept along its stretch of path at
@@ -638,7 +638,7 @@ impl Default for Settings {
             lbfgs_memory: None,
             operator: OperatorChoice::default(),
             preconditioner: Preconditioner::default(),
-            spread_tolerance: crate::influence::spread::DEFAULT_SPREAD_TOLERANCE,
+            spread_tolerance: crate::influence::operator::spread::DEFAULT_SPREAD_TOLERANCE,
             influence: crate::influence::InfluenceModel::default(),
             robust: false,
             robust_weighting: RobustWeighting::Mean,
@@ -1017,7 +1017,7 @@ mod tests {
         );
         let t = dwell(dx.len());
         assert_eq!(
-            crate::influence::direct::removal_nm(&mx, &my, &dx, &dy, &t, &tif, &at_once)
+            crate::influence::model::direct::removal_nm(&mx, &my, &dx, &dy, &t, &tif, &at_once)
                 .unwrap_err(),
             Error::Cancelled
         );

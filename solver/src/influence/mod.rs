@@ -1,59 +1,42 @@
 //! The influence operator `R` (m x n, nm/s): `R[i, j]` is the removal rate at measurement point `i`
 //! while the tool dwells at point `j`, so the removal is `h = R t` for dwell times `t` (s).
 //!
-//! Everything that builds or applies `R` lives here:
-//! - [`matrix`]: the sparse matrix assembled from a shift-invariant TIF on the plane;
-//! - [`surface`]: the same on a curved part, the TIF applied in each dwell point's tangent frame;
-//! - [`curvature`]: one Hertzian TIF per dwell point from the local principal curvatures;
-//! - [`fft`]: the matrix-free operator for map and dwell points on one lattice (FFT convolution);
-//! - `complement`: the FFT operator's normal product through the kernel's autocorrelation on the
-//!   dwell lattice, less the band of cells within reach that the map does not cover once;
-//! - [`spread`]: the matrix-free operator for dwell points off the map lattice (bilinear spreading
-//!   onto an oversampled lattice, then FFT convolution);
-//! - [`nufft`]: the matrix-free operator for dwell points anywhere with a controlled error
-//!   (exponential-of-semicircle spreading onto a fine lattice, deconvolved FFT convolution);
-//! - [`stencil`]: the exact matrix-free operator for dwell points off the map lattice at few
-//!   distinct positions within a cell (one tabulated stencil per position, scattered and
-//!   gathered on the lattice);
-//! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
-//!   programs);
-//! - [`swept`]: the motion-true model, the TIF averaged along each dwell point's stretch of path;
-//! - [`swept_correction`]: the lattice operators' shared swept kernel corrected, column by
-//!   column, at the dwell points whose stretch differs (row ends, the path's ends);
-//! - [`gram`]: the Gram matrix `R^T R` of the assembled matrix, for the solvers' normal products;
-//! - [`stacked`]: several tools' matrices side by side (one solve over all their dwell times);
-//! - [`operator`]: the traits: [`InfluenceOperator`] (`R` as a dwell problem holds it, whichever of
-//!   the above it is) and [`LinearOperator`] (the products `R t`, `R^T y` every solver goes through).
+//! Two concepts, two folders:
+//! - [`model`]: what a column of `R` is, the physics. The point model (the TIF at the offset
+//!   between map and dwell point, [`model::point`]), the motion-true swept model (the TIF averaged
+//!   along each dwell point's stretch of path, [`model::swept`]), the same on a curved part in each
+//!   dwell point's tangent frame ([`model::surface`]) and with one Hertzian TIF per dwell point
+//!   ([`model::curvature`]), and `R t` summed without assembling `R` ([`model::direct`]).
+//! - [`operator`]: how `R` is held and applied, the numerics. The traits every solver goes
+//!   through ([`InfluenceOperator`], [`LinearOperator`]) and their implementations: the assembled
+//!   sparse [`InfluenceMatrix`] with its Gram matrix, the matrix-free FFT operator on one lattice,
+//!   the off-lattice stencil, spreading and non-uniform FFT operators, several tools' operators
+//!   side by side.
+//!
+//! [`swept_correction`] joins the two: a lattice operator's shared swept kernel corrected, column
+//! by column, at the dwell points whose stretch differs (row ends, the path's ends).
+//!
+//! A model uses the operators' types (it assembles an [`InfluenceMatrix`]); no operator uses a
+//! model.
 
-mod complement;
-pub mod curvature;
-pub mod direct;
-pub mod fft;
-pub mod gram;
-pub(crate) mod lattice;
-pub mod matrix;
-pub mod nufft;
+pub mod model;
 pub mod operator;
-pub mod spread;
-pub mod stacked;
-pub mod stencil;
-pub mod surface;
-pub mod swept;
 pub mod swept_correction;
 
-pub use curvature::{
+pub use model::curvature::{
     assemble_curvature_dependent, assemble_curvature_dependent_swept, hertz_tifs_on_surface,
 };
-pub use fft::FftOperator;
-pub use gram::{GramMatrix, GramOperator};
-pub use matrix::{InfluenceMatrix, NNZ_BYTES};
-pub use nufft::NufftOperator;
-pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products, SparseOperator};
-pub use spread::SpreadOperator;
-pub use stacked::StackedRows;
-pub use stencil::StencilOperator;
-pub use surface::{
+pub use model::surface::{
     assemble_on_surface, assemble_on_surface_swept, assemble_on_surface_with, TifFrame,
     SEARCH_RADIUS_FACTOR,
 };
-pub use swept::{assemble_swept, InfluenceModel, Stretches, SweptTif};
+pub use model::swept::{assemble_swept, InfluenceModel, Stretches, SweptTif};
+pub use operator::fft::FftOperator;
+pub use operator::gram::{GramMatrix, GramOperator};
+pub use operator::matrix::{InfluenceMatrix, NNZ_BYTES};
+pub use operator::nufft::NufftOperator;
+pub use operator::sparse::SparseOperator;
+pub use operator::spread::SpreadOperator;
+pub use operator::stacked::StackedRows;
+pub use operator::stencil::StencilOperator;
+pub use operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};

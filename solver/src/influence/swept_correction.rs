@@ -19,10 +19,10 @@
 //! inner operator's: `||R~_j + D_j||² - (1'R~_j + 1'D_j)² / m` with `||R~_j||² = N~_j + s_j² / m`,
 //! `s = R~^T 1`, and `R~_j' D_j = C[j, k]`.
 
-use super::matrix::InfluenceMatrix;
-use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
-use super::swept::Stretches;
 use crate::error::{Error, Result};
+use crate::influence::model::swept::Stretches;
+use crate::influence::operator::matrix::InfluenceMatrix;
+use crate::influence::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
@@ -477,8 +477,8 @@ fn transpose_lists(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::influence::fft::FftOperator;
-    use crate::influence::swept::{assemble_swept, SweptTif};
+    use crate::influence::model::swept::{assemble_swept, SweptTif};
+    use crate::influence::operator::fft::FftOperator;
     use crate::observer::Silent;
     use crate::tif::GaussianTif;
 

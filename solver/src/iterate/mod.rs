@@ -31,7 +31,7 @@
 //!    [`Disturbances::tool`], the shop's true tool [`ShopTool`] in the machine's axes, its drift
 //!    within the run, and a rate walking from run to run); the tool sweeps
 //!    along each stretch of the path it actually follows (the swept model in each point's tangent
-//!    frame, [`crate::influence::surface::assemble_on_surface_swept`]).
+//!    frame, [`crate::influence::model::surface::assemble_on_surface_swept`]).
 //!
 //! Statistics are those of the registered (measured) form error, which is what the shop sees:
 //! piston and tilt of the true error are indistinguishable from the installation error.
@@ -51,7 +51,7 @@ use crate::calibrate::{
 use crate::dwell::{FeedLimits, OperatorChoice, Settings, Status};
 use crate::edge::{EdgeMethod, EdgeSettings};
 use crate::error::{Error, Result};
-use crate::influence::surface::{assemble_on_surface_swept, TifFrame};
+use crate::influence::model::surface::{assemble_on_surface_swept, TifFrame};
 use crate::influence::Stretches;
 use crate::map::{BoundingBox, HeightMap, HeightStats};
 use crate::observer::{Observer, Stage};

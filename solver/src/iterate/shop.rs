@@ -207,7 +207,7 @@ impl ShopTool {
             .zip(&motion.time_s)
             .map(|(d, &t)| d * self.drift_factor(t, mid, span))
             .collect();
-        crate::influence::direct::removal_nm(
+        crate::influence::model::direct::removal_nm(
             x_mm,
             y_mm,
             &motion.x_mm,

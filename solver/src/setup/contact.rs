@@ -1,9 +1,9 @@
 //! The removal of a contact motion on the set-up's part: samples `p_k` of the motion carrying
 //! time `tau_k`, `h_i = sum_k f_k(x_i - p_k) tau_k`, summed directly (a motion's samples are used
-//! once). On a flat part `f_k` is the TIF in plan ([`crate::influence::direct`]), the samples that
+//! once). On a flat part `f_k` is the TIF in plan ([`crate::influence::model::direct`]), the samples that
 //! share an offset from the map's lattice as lattice products ([`super::motion_lattice`]); on a curved
 //! part each sample applies the TIF in its own tangent frame of the design surface, oriented as
-//! the plan's columns are ([`crate::influence::surface::removals_on_surface_with`]), with the
+//! the plan's columns are ([`crate::influence::model::surface::removals_on_surface_with`]), with the
 //! sample's own Hertz TIF where the TIF depends on the curvature. The same under the
 //! [`Perturbation`]s of the sensitivity: a tool offset moves the samples in plan, where the
 //! curved part's frames are then taken.
@@ -11,9 +11,9 @@
 use super::sensitivity::Perturbation;
 use super::{Setup, TifModel};
 use crate::error::Result;
-use crate::influence::curvature::{hertz_tifs_on_surface, largest_support_radius_mm};
-use crate::influence::direct::removals_nm;
-use crate::influence::surface::removals_on_surface_with;
+use crate::influence::model::curvature::{hertz_tifs_on_surface, largest_support_radius_mm};
+use crate::influence::model::direct::removals_nm;
+use crate::influence::model::surface::removals_on_surface_with;
 use crate::influence::Stretches;
 use crate::observer::Observer;
 use crate::path::DwellPath;

@@ -41,8 +41,8 @@ use crate::dwell::{
 use crate::dwell::{policy, SolverKind};
 use crate::edge::{self, EdgeSettings};
 use crate::error::{Error, Result};
-use crate::influence::fft::FftOperator;
-use crate::influence::surface::{assemble_on_surface, assemble_on_surface_swept, TifFrame};
+use crate::influence::model::surface::{assemble_on_surface, assemble_on_surface_swept, TifFrame};
+use crate::influence::operator::fft::FftOperator;
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches, SweptTif};
 use crate::machine::feeds::FeedSchedule;
 use crate::machine::gcode::motion::Kinematics;
@@ -109,7 +109,7 @@ pub fn default_sample_step_mm(tif: &Tif) -> f64 {
 
 /// How the TIF acts on the part: exactly one of the shift-invariant TIF (in the plane, or in each
 /// dwell point's tangent plane of the design surface) or a Hertzian TIF per dwell point from the
-/// surface's local curvatures ([`crate::influence::curvature`]).
+/// surface's local curvatures ([`crate::influence::model::curvature`]).
 #[derive(Debug, Clone, PartialEq)]
 pub enum TifModel {
     /// One TIF for every dwell point.
@@ -229,11 +229,11 @@ pub struct Setup {
     /// The warm start, checked against the dwell points.
     pub warm_start_s: Option<Vec<f64>>,
     /// With the swept influence model (in the plane, or on a curved part in each dwell point's
-    /// tangent frame, [`crate::influence::surface::assemble_on_surface_swept`], with a
+    /// tangent frame, [`crate::influence::model::surface::assemble_on_surface_swept`], with a
     /// curvature-dependent TIF each point's own,
-    /// [`crate::influence::curvature::assemble_curvature_dependent_swept`]): every dwell
+    /// [`crate::influence::model::curvature::assemble_curvature_dependent_swept`]): every dwell
     /// point's stretch sampled for the assembled `R`, and the kernel the lattice operators share
-    /// ([`crate::influence::swept`]).
+    /// ([`crate::influence::model::swept`]).
     pub swept: Option<(Stretches, SweptTif<Tif>)>,
     /// A generated raster's placement on the map's lattice (`None`: given dwell points).
     pub raster: Option<raster::RasterPlacement>,
@@ -843,7 +843,7 @@ mod tests {
             let frame = setup.tif_frame;
             let want = match &setup.swept {
                 Some((stretches, _)) => {
-                    crate::influence::curvature::assemble_curvature_dependent_swept(
+                    crate::influence::model::curvature::assemble_curvature_dependent_swept(
                         &sphere,
                         mx,
                         my,
@@ -854,7 +854,7 @@ mod tests {
                         &Silent,
                     )
                 }
-                None => crate::influence::curvature::assemble_curvature_dependent(
+                None => crate::influence::model::curvature::assemble_curvature_dependent(
                     &sphere,
                     mx,
                     my,

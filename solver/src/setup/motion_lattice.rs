@@ -16,8 +16,8 @@
 
 use super::sensitivity::Perturbation;
 use crate::error::Result;
-use crate::influence::direct::removals_nm;
-use crate::influence::fft::FftOperator;
+use crate::influence::model::direct::removals_nm;
+use crate::influence::operator::fft::FftOperator;
 use crate::observer::Observer;
 use crate::simulate::SampledProgram;
 use crate::tif::InfluenceFunction;

@@ -4,11 +4,11 @@
 use super::off_lattice::OffLatticeOperator;
 use super::sensitivity::{Perturbation, PerturbedTif};
 use super::*;
-use crate::influence::curvature::hertz_tifs_on_surface;
+use crate::influence::model::curvature::hertz_tifs_on_surface;
+use crate::influence::model::surface::{assemble_on_surface_swept_with, assemble_on_surface_with};
+use crate::influence::operator::stacked::ScenarioOperators;
 use crate::influence::operator::InfluenceOperator;
 use crate::influence::operator::OperatorKind;
-use crate::influence::stacked::ScenarioOperators;
-use crate::influence::surface::{assemble_on_surface_swept_with, assemble_on_surface_with};
 use crate::influence::swept_correction::SweptCorrected;
 use crate::influence::{NufftOperator, SpreadOperator, StackedRows, StencilOperator, SweptTif};
 use std::sync::Arc;
@@ -278,7 +278,7 @@ impl Setup {
                 }
             }
             // Each dwell point's own Hertz TIF (unperturbed: exactly the curvature-dependent
-            // assembly of `influence::curvature`).
+            // assembly of `influence::model::curvature`).
             TifModel::CurvatureDependent(params) => {
                 let tifs =
                     hertz_tifs_on_surface(surface, px, py, params).at(SetupInput::Surface)?;
@@ -657,8 +657,8 @@ impl Setup {
                     .iter()
                     .map(|s| self.assemble_scenario(rows, &s.perturbation(), observer))
                     .collect::<SetupResult<Vec<_>>>()?;
-                let stacked =
-                    crate::influence::stacked::stack_rows(&blocks).at(SetupInput::None)?;
+                let stacked = crate::influence::operator::stacked::stack_rows(&blocks)
+                    .at(SetupInput::None)?;
                 warnings.push(format!(
                     "robust: the plan minimises the {what} residual over {scenarios} scenarios \
                      ({described}), {:.2e} non-zeros in the stacked R",

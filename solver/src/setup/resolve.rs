@@ -3,8 +3,8 @@
 
 use super::choices::WARM_START_WITH_ACCEL;
 use super::*;
-use crate::influence::lattice::lattice_index;
-use crate::influence::stencil::lattice_origin;
+use crate::influence::operator::lattice::lattice_index;
+use crate::influence::operator::stencil::lattice_origin;
 use crate::path::raster::RasterPlacement;
 
 /// Values held per dwell point through a solve (path, lengths, dwell, feeds, solver work

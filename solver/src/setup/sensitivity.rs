@@ -249,7 +249,7 @@ mod tests {
         }
         let h = crate::simulate::removal_of_samples(&mx, &my, &contact, &g, &NoObserver).unwrap();
         let tifs: Vec<_> = MOTION_SCENARIOS.iter().map(|p| p.of(&g)).collect();
-        let motion = crate::influence::direct::removals_nm(
+        let motion = crate::influence::model::direct::removals_nm(
             &mx,
             &my,
             &contact.x_mm,

@@ -269,7 +269,7 @@ impl Setup {
     }
 
     /// With an approximate operator (the spreading operator): the removal of `dwell_s` by the
-    /// exact `R` (summed directly, [`crate::influence::direct`]) at the measured map points and
+    /// exact `R` (summed directly, [`crate::influence::model::direct`]) at the measured map points and
     /// the operator's measured error on it. `None` for the exact operators.
     pub(super) fn exact_removal(
         &self,
@@ -280,7 +280,7 @@ impl Setup {
         use crate::influence::operator::OperatorKind;
         let tolerance = match problem.operator_kind() {
             OperatorKind::FftSpread => self.settings.spread_tolerance,
-            OperatorKind::Nufft => crate::influence::nufft::DEFAULT_NUFFT_TOLERANCE,
+            OperatorKind::Nufft => crate::influence::operator::nufft::DEFAULT_NUFFT_TOLERANCE,
             _ => return Ok(None),
         };
         let m = self.map.len();

@@ -6,7 +6,7 @@
 //!
 //! with `w_k` the tool's machining-time weight (`time_weight`, default 1). With `u_k = w_k t_k`
 //! this is the single-tool contract ([`crate::dwell`]) for the stacked operator
-//! `[R_1 / w_1, R_2 / w_2, ...]` ([`crate::influence::stacked`]) and the bounds scaled by `w_k`,
+//! `[R_1 / w_1, R_2 / w_2, ...]` ([`crate::influence::operator::stacked`]) and the bounds scaled by `w_k`,
 //! so the QP and the first-order solver run on it unchanged. Large and small tools in one plan:
 //! the large tool takes the low spatial frequencies cheaply, the small one what it cannot reach.
 //!
@@ -24,7 +24,7 @@ use super::sensitivity::Sensitivity;
 use super::{At, Checked, SetupInput, SetupResult, SetupStep, TifModel};
 use crate::dwell::{self, DwellBounds, FeedLimits, OperatorChoice, Problem, Settings, Solution};
 use crate::error::{Error, Result};
-use crate::influence::stacked::stack_scaled;
+use crate::influence::operator::stacked::stack_scaled;
 use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretches};
 use crate::map::HeightMap;
 use crate::observer::Observer;
@@ -167,7 +167,7 @@ impl ToolsSetup {
 
     /// The stacked problem `[R_1 / w_1, R_2 / w_2, ...]` over the map with bounds `w_k ds / v`,
     /// each `R_k` under the settings' influence model (swept: tool `k`'s TIF averaged along
-    /// each stretch of its own path, [`crate::influence::swept`]).
+    /// each stretch of its own path, [`crate::influence::model::swept`]).
     pub fn problem(&self, observer: &dyn Observer) -> SetupResult<Problem> {
         observer.setup_step(SetupStep::BuildProblem);
         let mut blocks = Vec::with_capacity(self.tools.len());

@@ -1077,7 +1077,7 @@ mod tests {
     #[test]
     fn squared_speed_serves_the_fft_operator_as_the_assembled_r() {
         // A 2-D serpentine raster on the map's 0.5 mm lattice: the FFT operator applies.
-        use crate::influence::fft::FftOperator;
+        use crate::influence::operator::fft::FftOperator;
         let (mut mx, mut my, mut z) = (Vec::new(), Vec::new(), Vec::new());
         for j in 0..25 {
             for i in 0..41 {

@@ -22,7 +22,7 @@
 //! gradient `g = R^T P (R t - z) + rho 1 + lambda D^T D t`. The iterations evaluate it from the
 //! normal equations, `R^T P (R t - z) = R^T R t - R^T z - ((c't - 1'z) / m) c` with `c = R^T 1`
 //! and `R^T z` computed once, so that an operator can form `R^T R t` in one pass (the FFT
-//! operator does, see [`crate::influence::fft`]); the certificate forms the residual itself.
+//! operator does, see [`crate::influence::operator::fft`]); the certificate forms the residual itself.
 //!
 //! **Scaling.** `t = S w` with `S = diag(1 / sqrt(d_j))`, `d_j` the diagonal of the Hessian
 //! `R^T P R + lambda D^T D` (Jacobi preconditioning); the box stays a box. `lambda_hat` is a
@@ -1034,7 +1034,7 @@ fn certificate(
 mod tests {
     use super::lbfgs::{free_gradient, masked_axpy_dot, project_along};
     use super::*;
-    use crate::influence::operator::SparseOperator;
+    use crate::influence::operator::sparse::SparseOperator;
     use crate::observer::Silent;
     use crate::rng::SplitMix64;
     use nalgebra_sparse::{CooMatrix, CscMatrix};

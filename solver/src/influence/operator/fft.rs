@@ -42,9 +42,7 @@ use super::lattice::{
     lattice_index, off_lattice_error, smooth_size, Buffers, Cells, Fill, Spectrum, Transforms,
     LATTICE_WHAT,
 };
-use super::operator::{
-    ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
-};
+use super::{ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use crate::tif::{lattice_reach, InfluenceFunction};
 use realfft::RealFftPlanner;

@@ -8,7 +8,7 @@
 //! order, so the result does not depend on the thread count; it equals the assembled `R t` to
 //! rounding (the terms are the same, the order differs).
 
-use super::matrix::StripIndex;
+use super::point::StripIndex;
 use crate::error::{Error, Result};
 use crate::observer::{Observer, Stage};
 use crate::tif::InfluenceFunction;

@@ -6,8 +6,9 @@
 //! `R[i, j] = tif((P_i - S_j) . t_j, (P_i - S_j) . b_j)`. On the plane `z = 0` with
 //! [`TifFrame::MachineX`] this is bit for bit [`InfluenceMatrix::assemble`].
 
-use super::{InfluenceMatrix, Stretches};
+use super::swept::Stretches;
 use crate::error::{Error, Result};
+use crate::influence::operator::matrix::InfluenceMatrix;
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::surface::Surface;
@@ -497,8 +498,8 @@ mod tests {
         let path = serpentine(4, 8);
         let stretches = Stretches::of_path(&path, 0.05).unwrap();
         let tif = asymmetric_tif();
-        let flat =
-            super::super::assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent).unwrap();
+        let flat = super::super::swept::assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent)
+            .unwrap();
         let plane = Surface::Plane(Plane {});
         let curved = assemble_on_surface_swept(
             &plane,

@@ -28,9 +28,7 @@
 
 use super::fft::FftOperator;
 use super::lattice::off_lattice_error;
-use super::operator::{
-    ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
-};
+use super::{ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use crate::tif::{lattice_reach, InfluenceFunction};
 use rayon::prelude::*;

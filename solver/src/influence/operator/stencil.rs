@@ -33,9 +33,7 @@
 //! assembled contract, entry for entry.
 
 use super::lattice::{lattice_index, off_lattice_error};
-use super::operator::{
-    ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products,
-};
+use super::{ColumnStats, ColumnSums, InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use crate::tif::InfluenceFunction;
 use rayon::prelude::*;

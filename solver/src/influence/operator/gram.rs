@@ -22,7 +22,8 @@
 //! **Products.** `G t` is one dot product per row in a fixed order (outputs distributed over
 //! threads): bit-identical for any thread count. It differs from `R^T (R t)` by rounding only.
 
-use super::operator::{LinearOperator, SparseOperator};
+use super::sparse::SparseOperator;
+use super::LinearOperator;
 use rayon::prelude::*;
 use std::borrow::Cow;
 

@@ -10,7 +10,7 @@
 //! `[a_1 R_1; ...; a_S R_S] t`, `R^T y = Σ a_s R_s^T y_s`, `R^T R t = Σ a_s² R_s^T R_s t`.
 
 use super::matrix::InfluenceMatrix;
-use super::operator::{InfluenceOperator, LinearOperator, OperatorKind, Products};
+use super::{InfluenceOperator, LinearOperator, OperatorKind, Products};
 use crate::error::{Error, Result};
 use nalgebra_sparse::CscMatrix;
 use std::sync::{Arc, Mutex};
@@ -129,7 +129,10 @@ impl StackedRows {
                 expected: shape.0 * shape.1,
             });
         }
-        if blocks.iter().any(|b| b.matrix().is_some()) {
+        if blocks
+            .iter()
+            .any(|b| b.downcast_ref::<InfluenceMatrix>().is_some())
+        {
             return Err(Error::invalid(
                 "robust",
                 "the stacked operator takes matrix-free blocks (stack assembled ones with \
@@ -356,7 +359,7 @@ mod tests {
         let blocks: Vec<Box<dyn InfluenceOperator>> = tifs
             .iter()
             .map(|t| {
-                Box::new(super::super::FftOperator::new(&mx, &my, &dx, &dy, 1.0, t).unwrap())
+                Box::new(super::super::fft::FftOperator::new(&mx, &my, &dx, &dy, 1.0, t).unwrap())
                     as Box<dyn InfluenceOperator>
             })
             .collect();

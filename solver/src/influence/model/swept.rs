@@ -24,8 +24,8 @@
 //! the stretch most dwell points share ([`Stretches::dominant`]; on a raster, the interior
 //! stretch along its lines), [`SweptTif`].
 
-use super::matrix::InfluenceMatrix;
 use crate::error::{Error, Result};
+use crate::influence::operator::matrix::InfluenceMatrix;
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;

@@ -1,21 +1,41 @@
-//! The influence operator `R` (dwell times -> removal) behind two traits:
-//! - [`InfluenceOperator`]: `R` as a dwell problem holds it, whatever its form (the assembled
-//!   [`InfluenceMatrix`], the matrix-free [`super::FftOperator`] on one lattice, the off-lattice
-//!   [`super::StencilOperator`] and [`super::SpreadOperator`]): its kind, shape, non-zeros, empty
-//!   columns, removal `R t`, the assembled matrix where there is one, and the operator ready for
-//!   products;
+//! How `R` is held and applied. Two traits, and their implementations in this folder:
+//! - [`InfluenceOperator`]: `R` as a dwell problem holds it, whatever its form: its kind, shape,
+//!   non-zeros, empty columns, removal `R t`, and the operator ready for products. A caller that
+//!   needs one concrete form (the QP needs the assembled matrix) asks for it by type
+//!   (`<dyn InfluenceOperator>::downcast_ref`);
 //! - [`LinearOperator`]: the products `R t`, `R^T y`, `R^T R t` the first-order solvers take.
+//!
+//! The implementations:
+//! - [`matrix`]: the assembled sparse matrix ([`sparse`]: its products by columns and rows;
+//!   [`gram`]: the Gram matrix `R^T R` for the solvers' normal products);
+//! - [`fft`]: matrix-free for map and dwell points on one lattice (FFT convolution); `complement`:
+//!   its normal product through the kernel's autocorrelation on the dwell lattice, less the band
+//!   of cells within reach that the map does not cover once; [`lattice`]: their lattice plumbing;
+//! - [`spread`]: dwell points off the map lattice, spread bilinearly onto an oversampled lattice,
+//!   then FFT convolution;
+//! - [`nufft`]: dwell points anywhere with a controlled error (exponential-of-semicircle spreading
+//!   onto a fine lattice, deconvolved FFT convolution);
+//! - [`stencil`]: exact and matrix-free for dwell points at few distinct positions within a map
+//!   cell (one tabulated stencil per position);
+//! - [`stacked`]: several tools' operators side by side (one solve over all their dwell times).
 //!
 //! Every product is computed entry by entry in a fixed order (one dot product per output entry,
 //! outputs distributed over threads), so results are bit-identical for any thread count.
 
-use super::gram::GramOperator;
-use super::matrix::InfluenceMatrix;
+mod complement;
+pub mod fft;
+pub mod gram;
+pub(crate) mod lattice;
+pub mod matrix;
+pub mod nufft;
+pub mod sparse;
+pub mod spread;
+pub mod stacked;
+pub mod stencil;
+
 use crate::error::{Error, Result};
-use nalgebra_sparse::{CscMatrix, CsrMatrix};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::borrow::Cow;
 
 /// How `R` is held: assembled, matrix-free on the map's lattice, or spread onto it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -37,8 +57,9 @@ pub enum OperatorKind {
 
 /// The influence operator `R` (m x n, nm/s) as a dwell problem holds it. The assembled matrix,
 /// the FFT operator and the spreading operator implement it; a problem holds one behind an
-/// `Arc<dyn InfluenceOperator>` and asks it, never its concrete type.
-pub trait InfluenceOperator: std::fmt::Debug + Send + Sync {
+/// `Arc<dyn InfluenceOperator>` and asks it; only what needs one form (the QP needs the entries of
+/// the assembled matrix) asks for that type ([`downcast_ref`](#method.downcast_ref)).
+pub trait InfluenceOperator: std::fmt::Debug + Send + Sync + std::any::Any {
     /// How `R` is held.
     fn kind(&self) -> OperatorKind;
 
@@ -52,15 +73,9 @@ pub trait InfluenceOperator: std::fmt::Debug + Send + Sync {
     /// Dwell points whose column of `R` is empty (no measurement point in the tool's reach).
     fn empty_columns(&self) -> Vec<usize>;
 
-    /// The assembled matrix, for what needs its entries (the QP, column selection); `None` for a
-    /// matrix-free operator.
-    fn matrix(&self) -> Option<&InfluenceMatrix> {
-        None
-    }
-
     /// The operator ready for products. `normal_products`: `Some(k)` when the caller takes at
     /// least `k` normal products `R^T R t` and a formed Gram matrix may serve them (the
-    /// assembled matrix forms one where [`super::GramMatrix::worthwhile`] says it pays); `None`
+    /// assembled matrix forms one where [`gram::GramMatrix::worthwhile`] says it pays); `None`
     /// for products through `R` alone. The assembled matrix builds its row copy here, per call,
     /// so a caller that needs no product (the QP) never holds one.
     fn products(&self, normal_products: Option<usize>) -> Products<'_>;
@@ -81,15 +96,22 @@ pub trait InfluenceOperator: std::fmt::Debug + Send + Sync {
     }
 }
 
+impl dyn InfluenceOperator {
+    /// The operator as its concrete type `T`, where it is one (the QP asks for the assembled
+    /// [`matrix::InfluenceMatrix`]); `None` otherwise.
+    pub fn downcast_ref<T: InfluenceOperator>(&self) -> Option<&T> {
+        (self as &dyn std::any::Any).downcast_ref::<T>()
+    }
+}
+
 /// An [`InfluenceOperator`] ready for products ([`InfluenceOperator::products`]): derefs to the
 /// [`LinearOperator`] the solvers use.
 pub enum Products<'a> {
     /// A matrix-free operator, used as it is.
     Direct(&'a dyn LinearOperator),
-    /// The assembled matrix with its row copy.
-    Sparse(SparseOperator<'a>),
-    /// The assembled matrix with its row copy and Gram matrix (normal products through `G`).
-    Gram(GramOperator<'a>),
+    /// An operator built for the products (the assembled matrix with its row copy, and its Gram
+    /// matrix where normal products go through `G`).
+    Built(Box<dyn LinearOperator + 'a>),
 }
 
 impl<'a> std::ops::Deref for Products<'a> {
@@ -98,8 +120,7 @@ impl<'a> std::ops::Deref for Products<'a> {
     fn deref(&self) -> &Self::Target {
         match self {
             Products::Direct(op) => *op,
-            Products::Sparse(op) => op,
-            Products::Gram(op) => op,
+            Products::Built(op) => op.as_ref(),
         }
     }
 }
@@ -137,104 +158,6 @@ pub trait LinearOperator: Sync {
     /// Squared norms of the centred columns, `||R_j||^2 - (1' R_j)^2 / m` (the diagonal of
     /// `R^T P R` with `P = I - 11'/m`), used for the Jacobi scaling.
     fn centred_column_norms_sq(&self) -> Vec<f64>;
-}
-
-/// The sparse influence matrix as an operator: CSC for `R^T y` (one dot product per column) and a
-/// CSR copy for `R t` (one dot product per row). Memory: about twice the matrix.
-#[derive(Debug, Clone)]
-pub struct SparseOperator<'a> {
-    csc: &'a CscMatrix<f64>,
-    csr: Cow<'a, CsrMatrix<f64>>,
-}
-
-impl<'a> SparseOperator<'a> {
-    /// Wraps a CSC matrix and builds its CSR copy.
-    pub fn new(csc: &'a CscMatrix<f64>) -> Self {
-        Self {
-            csc,
-            csr: Cow::Owned(CsrMatrix::from(csc)),
-        }
-    }
-
-    /// Wraps a CSC matrix and its CSR copy `csr` (the same matrix by rows, built once by the
-    /// caller).
-    pub fn with_rows(csc: &'a CscMatrix<f64>, csr: &'a CsrMatrix<f64>) -> Self {
-        Self {
-            csc,
-            csr: Cow::Borrowed(csr),
-        }
-    }
-
-    /// The matrix by columns.
-    pub fn csc(&self) -> &CscMatrix<f64> {
-        self.csc
-    }
-
-    /// The matrix by rows.
-    pub fn csr(&self) -> &CsrMatrix<f64> {
-        &self.csr
-    }
-}
-
-/// Minimum number of output entries handed to one rayon task.
-const MIN_TASK: usize = 512;
-
-impl LinearOperator for SparseOperator<'_> {
-    fn nrows(&self) -> usize {
-        self.csc.nrows()
-    }
-
-    fn ncols(&self) -> usize {
-        self.csc.ncols()
-    }
-
-    fn apply(&self, t: &[f64], out: &mut [f64]) {
-        let offsets = self.csr.row_offsets();
-        let cols = self.csr.col_indices();
-        let vals = self.csr.values();
-        out.par_iter_mut()
-            .enumerate()
-            .with_min_len(MIN_TASK)
-            .for_each(|(i, o)| {
-                let (a, b) = (offsets[i], offsets[i + 1]);
-                *o = cols[a..b]
-                    .iter()
-                    .zip(&vals[a..b])
-                    .map(|(&j, &v)| v * t.get(j).copied().unwrap_or(0.0))
-                    .sum();
-            });
-    }
-
-    fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
-        let offsets = self.csc.col_offsets();
-        let rows = self.csc.row_indices();
-        let vals = self.csc.values();
-        out.par_iter_mut()
-            .enumerate()
-            .with_min_len(MIN_TASK / 4)
-            .for_each(|(j, o)| {
-                let (a, b) = (offsets[j], offsets[j + 1]);
-                *o = rows[a..b]
-                    .iter()
-                    .zip(&vals[a..b])
-                    .map(|(&i, &v)| v * y.get(i).copied().unwrap_or(0.0))
-                    .sum();
-            });
-    }
-
-    fn centred_column_norms_sq(&self) -> Vec<f64> {
-        let m = self.csc.nrows().max(1) as f64;
-        self.csc
-            .col_iter()
-            .map(|c| {
-                let (s, s2) = c
-                    .values()
-                    .iter()
-                    .fold((0.0, 0.0), |(s, s2), &v| (s + v, s2 + v * v));
-                (s2 - s * s / m).max(0.0)
-            })
-            .collect()
-    }
 }
 
 /// One column's sums over the map points, as a matrix-free operator accumulates them entry by

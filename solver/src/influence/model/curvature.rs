@@ -9,8 +9,9 @@
 //! assembly with the one TIF.
 
 use super::surface::{assemble_on_surface_swept_with, assemble_on_surface_with, TifFrame};
-use super::{InfluenceMatrix, Stretches};
+use super::swept::Stretches;
 use crate::error::{Error, Result};
+use crate::influence::operator::matrix::InfluenceMatrix;
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::surface::Surface;
@@ -275,7 +276,7 @@ mod tests {
         let tifs = hertz_tifs_on_surface(&ellipsoid, path.x_mm(), path.y_mm(), &p).unwrap();
         assert!(tifs[2].contact_radius_mm() != tifs[4].contact_radius_mm());
         for j in [0, 2, 5] {
-            let one = crate::influence::surface::assemble_on_surface_swept_with(
+            let one = crate::influence::model::surface::assemble_on_surface_swept_with(
                 &ellipsoid,
                 &mx,
                 &my,
