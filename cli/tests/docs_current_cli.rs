@@ -329,3 +329,28 @@ fn the_undisturbed_loop_docs_commands_quotes_is_current() {
         );
     }
 }
+
+/// Every source path the architecture notes, the README and the docs name (a backticked
+/// `solver/...`, `io/...`, `cli/...` or `python/...`) exists: a moved file is followed in the docs.
+#[test]
+fn every_source_path_the_docs_name_exists() {
+    let r = root();
+    let mut files = vec![r.join("README.md"), r.join("ARCHITECTURE.md")];
+    files_under(&r.join("docs"), &["md"], &mut files);
+    let mut missing = Vec::new();
+    for file in &files {
+        let text = std::fs::read_to_string(file).unwrap();
+        for quoted in text.split('`').skip(1).step_by(2) {
+            let is_path = ["solver/", "io/", "cli/", "python/"]
+                .iter()
+                .any(|p| quoted.starts_with(p))
+                && quoted
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "_/.-".contains(c));
+            if is_path && !r.join(quoted).exists() {
+                missing.push(format!("{}: {quoted}", file.display()));
+            }
+        }
+    }
+    assert!(missing.is_empty(), "paths that do not exist: {missing:#?}");
+}
