@@ -212,12 +212,23 @@ fn the_sample_figures_the_docs_quote_are_current() {
     let readme = one_line(&std::fs::read_to_string(root().join("README.md")).unwrap());
     let report_doc = one_line(&std::fs::read_to_string(root().join("docs/report.md")).unwrap());
     let printed = String::from_utf8_lossy(&o.stderr).to_string();
+    // Figures below 0.1 nm to the decimals the executed removal's integration resolves.
+    let resolution: preston_solver::setup::IntegrationResolution =
+        serde_json::from_value(r["executed"]["integration"].clone())
+            .expect("report.json executed.integration");
+    let fig = |v: f64| {
+        if v < 0.1 {
+            format!("{v:.*}", resolution.decimals())
+        } else {
+            format!("{v:.3}")
+        }
+    };
     let headline = format!(
-        "RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm as the program executes (model {:.3} nm RMS, {:.3} nm PV), piston {:.3} nm",
+        "RMS {:.3} -> {} nm, PV {:.3} -> {} nm as the program executes (model {:.3} nm RMS, {:.3} nm PV), piston {:.3} nm",
         f("rms_before_nm"),
-        f("rms_after_nm"),
+        fig(f("rms_after_nm")),
         f("pv_before_nm"),
-        f("pv_after_nm"),
+        fig(f("pv_after_nm")),
         f("model.rms_nm"),
         f("model.pv_nm"),
         f("piston_nm")

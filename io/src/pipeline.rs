@@ -547,6 +547,7 @@ fn report_of(prepared: &Prepared, outcome: &Outcome) -> Report {
                 max_stretch_error_rel: e.run.check.max_relative_error,
                 stretches_over_5_percent: e.run.check.over_5_percent,
                 correction_passes: e.correction_passes,
+                integration: e.resolution,
             });
             // The plan's prediction is the program as executed; the model's residual is kept.
             report.model = Some(ResidualFigures {

@@ -259,6 +259,10 @@ pub struct ExecutedReport {
     /// "correction-passes"`; 0 otherwise).
     #[serde(default)]
     pub correction_passes: usize,
+    /// The resolution of `rms_after_nm` and `pv_after_nm`: the sample step of the removal
+    /// integral and how far the executed residual moves at half that step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub integration: Option<preston_solver::setup::IntegrationResolution>,
 }
 
 pub use preston_solver::setup::{centred_residual_nm, feeds_mm_per_min};
@@ -679,6 +683,7 @@ mod tests {
             max_stretch_error_rel: 5.742,
             stretches_over_5_percent: 1790,
             correction_passes: 2,
+            integration: None,
         };
         let v = serde_json::to_value(&e).unwrap();
         assert_eq!(v["max_stretch_error_rel"], 5.742);

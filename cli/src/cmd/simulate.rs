@@ -75,7 +75,7 @@ pub struct Args {
     #[command(flatten)]
     pub machine_args: MachineArgs,
     /// With --program: largest arc length of a removal sample, mm (default: TIF support
-    /// radius / 64).
+    /// radius / 64, for a grid TIF at most a quarter of its pitch: the solve's own).
     #[arg(
         long,
         value_name = "MM",

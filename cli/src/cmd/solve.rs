@@ -18,6 +18,7 @@ use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::LineAxis;
 use preston_solver::setup::pays::PlanScope;
+use preston_solver::setup::IntegrationResolution;
 use std::path::{Path, PathBuf};
 
 use super::EXIT_NOT_CONVERGED;
@@ -378,12 +379,14 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
             if r.unreachable_dwell_points > 10 { ", ..." } else { "" }
         );
     }
+    let integration = r.executed.as_ref().and_then(|e| e.integration);
+    let fig = |v: f64| figure_nm(v, integration.as_ref());
     crate::note!(
-        "  RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm{}, piston {:.3} nm",
+        "  RMS {:.3} -> {} nm, PV {:.3} -> {} nm{}, piston {:.3} nm",
         r.rms_before_nm,
-        r.rms_after_nm,
+        fig(r.rms_after_nm),
         r.pv_before_nm,
-        r.pv_after_nm,
+        fig(r.pv_after_nm),
         match &r.model {
             Some(m) => format!(
                 " as the program executes (model {:.3} nm RMS, {:.3} nm PV)",
@@ -393,6 +396,15 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         },
         r.piston_nm
     );
+    if let Some(i) = &integration {
+        crate::note!(
+            "  the executed removal integrated in samples of at most {:.4} mm ({} samples): at half that step the residual moves by {:.4} nm RMS, {:.4} nm PV",
+            i.sample_step_mm,
+            i.samples,
+            i.rms_change_nm,
+            i.pv_change_nm
+        );
+    }
     if let (Some(e), Some([lo, hi])) = (&r.expected, r.expected_rms_range_nm) {
         let u = &e.uncertainty;
         crate::note!(
@@ -409,8 +421,8 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         );
         let p = &e.parts;
         crate::note!(
-            "  of which: {:.3} nm the plan leaves with the nominal tool, {:.3} nm the tool's uncertainty, {:.3} nm the metrology's noise, {:.3} nm the map's noise the plan imprints (in quadrature)",
-            p.residual_nm,
+            "  of which: {} nm the plan leaves with the nominal tool, {:.3} nm the tool's uncertainty, {:.3} nm the metrology's noise, {:.3} nm the map's noise the plan imprints (in quadrature)",
+            fig(p.residual_nm),
             p.tool_nm,
             p.noise_nm,
             p.noise_imprint_nm
@@ -550,5 +562,14 @@ fn print_check(solved: &pipeline::Solved) -> Option<&ProgramCheck> {
             crate::errln!("  warning: no G-code program can deliver this plan as it is: {e}");
             None
         }
+    }
+}
+
+/// A residual figure, nm: below 0.1 nm to the decimals the executed residual's integration
+/// resolves ([`IntegrationResolution::decimals`]), else (or without an executed run) to three.
+fn figure_nm(v: f64, resolution: Option<&IntegrationResolution>) -> String {
+    match resolution {
+        Some(r) if v.abs() < 0.1 => format!("{v:.*}", r.decimals()),
+        _ => format!("{v:.3}"),
     }
 }

@@ -187,6 +187,14 @@ impl Setup {
             }
             None => (solution, removal_all, None),
         };
+        // The executed residual's resolution, once, for the plan returned.
+        let executed = match executed {
+            Some(Ok(mut e)) => {
+                e.resolution = self.integration_resolution(&e, observer)?;
+                Some(Ok(e))
+            }
+            other => other,
+        };
         // The nominal scenario's removal (the first block of a robust plan's rows, over its
         // scale) on the measured map.
         let mut removal_nm = removal_all;
@@ -424,6 +432,36 @@ impl Setup {
         )
     }
 
+    /// The resolution of the executed run `e` ([`IntegrationResolution`]): its program run
+    /// again under the same kinematics with half the default sample step. `None` where that
+    /// many samples are beyond [`crate::machine::gcode::motion::MAX_SAMPLES`].
+    pub(super) fn integration_resolution(
+        &self,
+        e: &Executed,
+        observer: &dyn Observer,
+    ) -> Result<Option<IntegrationResolution>> {
+        let step_mm = default_sample_step_mm(&self.tif);
+        let kinematics = Kinematics::Trapezoidal {
+            a_max_mm_per_s2: e.a_max_mm_per_s2,
+            corner_angle_deg: e.settings.corner_angle_deg,
+        };
+        let part = self
+            .surface
+            .as_ref()
+            .map(|s| (s as &dyn PartGeometry, e.settings.tool_radius_mm));
+        let finer = self.run_on_map(
+            &e.program.program,
+            kinematics,
+            Some(0.5 * step_mm),
+            part,
+            observer,
+        );
+        check_cancelled(observer)?;
+        Ok(finer.ok().map(|f| {
+            IntegrationResolution::of(&e.run.removal_nm, &f.removal_nm, step_mm, e.run.samples)
+        }))
+    }
+
     /// The default program for `dwell_s` (ISO, G94, the feed limit; on a curved part following
     /// the design surface, the tool's tip at the contact point) executed at `a_max` with
     /// look-ahead, and the removal integrated along the executed motion
@@ -465,6 +503,7 @@ impl Setup {
             correction_passes: 0,
             settings,
             program: check,
+            resolution: None,
         })
     }
 }
