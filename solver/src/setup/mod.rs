@@ -1369,7 +1369,7 @@ mod tests {
                     }
                 }
             }
-            crate::influence::direct::removals_nm(
+            crate::influence::model::direct::removals_nm(
                 &mx,
                 &my,
                 &x,
