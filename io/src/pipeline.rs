@@ -7,13 +7,14 @@ use crate::job::{DwellSource, Job, TifInput};
 use crate::machine::read_dwell_times;
 use crate::metrology::{MapInput, MapRead};
 use crate::readers::{read_dwell, read_tif, DwellFile};
-use crate::report::{ExecutedReport, Report, ResidualFigures, RobustReport};
+use crate::report::{centred_residual_nm, ExecutedReport, Report, ResidualFigures, RobustReport};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::calibrate::{map_noise_rms_nm, ToolUncertainty};
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::map::HeightMap;
+use preston_solver::map::HeightStats;
 use preston_solver::observer::Observer;
 use preston_solver::path::DwellPath;
 use preston_solver::psd::LineAxis;
@@ -484,6 +485,9 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         .map_err(Error::Solver)?;
     let outcome = paying.outcome.clone();
     let mut report = report_of(&prepared, &outcome);
+    if let Some(w) = executed_integration_warning(&prepared.setup, &outcome, observer)? {
+        report.warnings.push(w);
+    }
     if prepared.setup.settings.robust {
         let c = prepared
             .setup
@@ -507,6 +511,62 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         report,
         program_check,
     })
+}
+
+/// How much finer the removal of the executed program is integrated to check the figure quoted
+/// for a TIF cut where its rate is not zero.
+const CUT_CHECK_REFINEMENT: f64 = 4.0;
+
+/// For a TIF cut where its rate is not zero ([`InfluenceFunction::cut_disc_mm`]) on a flat
+/// part: the executed program's removal is integrated along the contact motion by the midpoint
+/// rule, first-order where the cut circle crosses a piece, so the executed residual is checked
+/// against the same program integrated at a [`CUT_CHECK_REFINEMENT`] times finer step. A
+/// warning when the two removals differ by more than the residual quoted: the figure is then
+/// known only to that difference, whatever the solver's status says.
+fn executed_integration_warning(
+    setup: &Setup,
+    outcome: &Outcome,
+    observer: &dyn Observer,
+) -> Result<Option<String>> {
+    let Some(Ok(e)) = &outcome.executed else {
+        return Ok(None);
+    };
+    if setup.surface.is_some() || setup.tif.cut_disc_mm().is_none() {
+        return Ok(None);
+    }
+    let step_mm = preston_solver::setup::default_sample_step_mm(&setup.tif);
+    let fine_step_mm = step_mm / CUT_CHECK_REFINEMENT;
+    let kinematics = preston_solver::machine::gcode::motion::Kinematics::Trapezoidal {
+        a_max_mm_per_s2: e.a_max_mm_per_s2,
+        corner_angle_deg: e.settings.corner_angle_deg,
+    };
+    let fine = setup.run_program(
+        &e.program.program,
+        kinematics,
+        Some(fine_step_mm),
+        None,
+        observer,
+    )?;
+    let difference: Vec<f64> = fine
+        .removal_nm
+        .iter()
+        .zip(&e.run.removal_nm)
+        .map(|(a, b)| a - b)
+        .collect();
+    let zero = vec![0.0; difference.len()];
+    let error_nm = HeightStats::of(&centred_residual_nm(&difference, &zero)).rms_nm;
+    let fine_rms_nm =
+        HeightStats::of(&centred_residual_nm(setup.map.z_nm(), &fine.removal_nm)).rms_nm;
+    Ok((error_nm > e.after.rms_nm).then(|| {
+        format!(
+            "the executed residual {:.3} nm RMS is not resolved: the TIF is cut where its rate is \
+             not zero, and the program's removal integrated at a {fine_step_mm:.4} mm step differs \
+             from the {step_mm:.4} mm step's by {error_nm:.3} nm RMS ({fine_rms_nm:.3} nm residual \
+             there); the plan is known only to about {error_nm:.3} nm (a TIF that falls to zero at \
+             its edge, or preston simulate --program --sample-step-mm, settles it)",
+            e.after.rms_nm
+        )
+    }))
 }
 
 /// The report of a solve, from the prepared set-up and the outcome (nothing recomputed).
