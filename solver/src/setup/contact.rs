@@ -12,7 +12,7 @@ use super::sensitivity::Perturbation;
 use super::{Setup, TifModel};
 use crate::error::Result;
 use crate::influence::curvature::{hertz_tifs_on_surface, largest_support_radius_mm};
-use crate::influence::direct::removals_nm;
+use crate::influence::direct::piece_removals_nm;
 use crate::influence::surface::removals_on_surface_with;
 use crate::influence::Stretches;
 use crate::observer::Observer;
@@ -115,7 +115,7 @@ impl Setup {
 
 /// The removals of the motion `samples` with `tif` in plan (a flat part) at the map points
 /// `(map_x_mm, map_y_mm)` under each of `scenarios`: an offset is the TIF's own shift, so one
-/// traversal serves them all ([`removals_nm`]).
+/// traversal serves them all, each sample along the piece it stands for ([`piece_removals_nm`]).
 pub(super) fn removals_in_plan<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -125,13 +125,16 @@ pub(super) fn removals_in_plan<T: InfluenceFunction + ?Sized>(
     observer: &dyn Observer,
 ) -> Result<Vec<Vec<f64>>> {
     let tifs: Vec<_> = scenarios.iter().map(|p| p.of(tif)).collect();
-    removals_nm(
+    let refs: Vec<&dyn InfluenceFunction> =
+        tifs.iter().map(|t| t as &dyn InfluenceFunction).collect();
+    piece_removals_nm(
         map_x_mm,
         map_y_mm,
         &samples.x_mm,
         &samples.y_mm,
+        &samples.half_mm,
         &samples.dwell_s,
-        &tifs,
+        &refs,
         observer,
     )
 }
