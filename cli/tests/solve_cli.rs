@@ -341,3 +341,91 @@ fn the_sample_job_is_read_once_and_its_settings_validated_once() {
         .unwrap();
     assert!(!String::from_utf8_lossy(&quiet.stderr).contains("debug counts"));
 }
+
+/// Relative margin by which the default plan's executed residual may exceed the squared-speed
+/// plan's on the same part.
+const DEFAULT_TO_SQUARED_SPEED: f64 = 0.05;
+
+/// Relative rounding of a limit held in the written dwell file (`t = ds / sqrt(u)` printed).
+const LIMIT_ROUNDING_REL: f64 = 1e-6;
+
+/// Largest `|v_{j+1}^2 - v_j^2| / (2 s_j)` (mm/s^2) over the rows of `dwell.csv`
+/// (`x_mm,y_mm,ds_mm,dwell_s,...`), `v = ds / t`, skipping connecting moves (the path turns by
+/// more than 60 degrees at both ends of the segment).
+fn max_accel_between_feeds(rows: &[Vec<f64>]) -> f64 {
+    const CORNER_DEG: f64 = 60.0;
+    let n = rows.len();
+    let turn = |j: usize| -> f64 {
+        if j == 0 || j + 1 >= n {
+            return 0.0;
+        }
+        let (ax, ay) = (rows[j][0] - rows[j - 1][0], rows[j][1] - rows[j - 1][1]);
+        let (bx, by) = (rows[j + 1][0] - rows[j][0], rows[j + 1][1] - rows[j][1]);
+        let c = (ax * bx + ay * by) / (ax.hypot(ay) * bx.hypot(by));
+        c.clamp(-1.0, 1.0).acos().to_degrees()
+    };
+    (0..n.saturating_sub(1))
+        .filter(|&j| !(turn(j) > CORNER_DEG && turn(j + 1) > CORNER_DEG))
+        .map(|j| {
+            let (v0, v1) = (rows[j][2] / rows[j][3], rows[j + 1][2] / rows[j + 1][3]);
+            let s = (rows[j + 1][0] - rows[j][0]).hypot(rows[j + 1][1] - rows[j][1]);
+            (v1 * v1 - v0 * v0).abs() / (2.0 * s)
+        })
+        .fold(0.0, f64::max)
+}
+
+/// A map on a lattice rotated by 30 degrees at a low acceleration limit (200 mm/s^2, ramps of
+/// 6 mm at the fastest feed, wider than the TIF): the default plan exits 0 (one feed everywhere
+/// meets the limit, so a converged plan exists), the program it writes holds the limit, and it
+/// executes within [`DEFAULT_TO_SQUARED_SPEED`] of the squared-speed plan, each figure the
+/// program as executed at the limit.
+#[test]
+fn the_default_plan_on_a_rotated_grid_at_a_low_limit_executes_as_well_as_the_best() {
+    const A_MAX: f64 = 200.0;
+    let d = tempfile::tempdir().unwrap();
+    let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+    let mut csv = String::from("x_mm,y_mm,z_nm\n");
+    for j in 0..40 {
+        for i in 0..60 {
+            let (u, v) = (0.5 * i as f64, 0.5 * j as f64);
+            let z = 50.0 * (u / 5.0).sin() + 30.0 * (v / 3.0).cos() + 10.0 * ((u + v) / 2.0).sin();
+            csv.push_str(&format!(
+                "{:.6},{:.6},{z:.6}\n",
+                u * c - v * s,
+                u * s + v * c
+            ));
+        }
+    }
+    let map = write_arg(d.path(), "rot.csv", &csv);
+    let run = |extra: &[&str], name: &str| {
+        let out = d.path().join(name);
+        let o = preston_cmd()
+            .args(["solve", "--map", &map, "--gaussian-sigma-mm", "1.5"])
+            .args(["--gaussian-peak-nm-per-s", "10", "--raster-pitch-mm", "0.5"])
+            .args(["--v-max", "3000", "--a-max-mm-per-s2", "200"])
+            .args(extra)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert_eq!(o.status.code(), Some(0), "{name}: {err}");
+        (common::report(&out), out, err)
+    };
+    let (r, out, err) = run(&[], "default");
+    assert_eq!(r["status"], "converged", "{err}");
+    assert_eq!(r["executed"]["a_max_mm_per_s2"].as_f64(), Some(A_MAX));
+    // The programmed feeds, recomputed from the written dwell times, meet the limit: the
+    // controller runs the program as written, without ramps of its own.
+    let (_, rows) = common::csv_rows(&out.join("dwell.csv"));
+    let a = max_accel_between_feeds(&rows);
+    assert!(a <= A_MAX * (1.0 + LIMIT_ROUNDING_REL), "{a} mm/s^2: {err}");
+    let (ss, _, _) = run(&["--accel-method", "squared-speed"], "squared-speed");
+    let default_nm = r["executed"]["rms_after_nm"].as_f64().unwrap();
+    let ss_nm = ss["executed"]["rms_after_nm"].as_f64().unwrap();
+    eprintln!("executed RMS: default {default_nm} nm, squared speed {ss_nm} nm");
+    assert!(
+        default_nm <= ss_nm * (1.0 + DEFAULT_TO_SQUARED_SPEED),
+        "the default executes to {default_nm} nm RMS, the squared-speed plan to {ss_nm} nm: {err}"
+    );
+}

@@ -140,26 +140,14 @@ impl Setup {
     pub fn solve(&self, problem: &Problem, observer: &dyn Observer) -> Result<Outcome> {
         observer.setup_step(SetupStep::Solve);
         let m = self.map.len();
-        let edge_rows = problem.m() > m;
-        let (solution, removal_all, accel) = match &self.accel {
+        let (solution, removal_all, accel, reference) = match &self.accel {
             Some(limits) => {
                 let a =
                     accel::solve_validated(problem, &self.path, limits, &self.settings, observer)?;
-                let mut report = a.report;
                 observer.setup_step(SetupStep::Removal);
                 let removal = problem.removal_nm(&a.solution.dwell_s)?;
-                if edge_rows {
-                    // The SCP's RMS figures are over every row; give them on the measured map.
-                    let a0 = problem.scenario_scales()[0];
-                    let on_map = |h: &[f64]| {
-                        let h: Vec<f64> = h[..m].iter().map(|v| v / a0).collect();
-                        HeightStats::of(&centred_residual_nm(self.map.z_nm(), &h)).rms_nm
-                    };
-                    report.rms_after_nm = on_map(&removal);
-                    report.rms_after_reference_nm =
-                        on_map(&problem.removal_nm(&a.reference.dwell_s)?);
-                }
-                (a.solution, removal, Some(report))
+                let report = self.report_on_map(problem, &a, &removal)?;
+                (a.solution, removal, Some(report), Some(a.reference))
             }
             None => {
                 let s = dwell::solve_validated(
@@ -170,19 +158,27 @@ impl Setup {
                 )?;
                 observer.setup_step(SetupStep::Removal);
                 let removal = problem.removal_nm(&s.dwell_s)?;
-                (s, removal, None)
+                (s, removal, None, None)
             }
         };
-        let (solution, removal_all, executed) = match &self.accel {
-            Some(l) => {
+        let (solution, removal_all, accel, executed) = match (&self.accel, reference) {
+            (Some(l), Some(reference)) => {
                 let first = self.executed_at_limit(&solution.dwell_s, l.a_max_mm_per_s2, observer);
                 if l.method == AccelMethod::CorrectionPasses {
-                    self.correction_passes(problem, l, solution, removal_all, first, observer)?
+                    let (solution, removal_all, executed) =
+                        self.correction_passes(problem, l, solution, removal_all, first, observer)?;
+                    self.better_executed(
+                        problem,
+                        l,
+                        &reference,
+                        (solution, removal_all, accel, executed),
+                        observer,
+                    )?
                 } else {
-                    (solution, removal_all, Some(first))
+                    (solution, removal_all, accel, Some(first))
                 }
             }
-            None => (solution, removal_all, None),
+            _ => (solution, removal_all, accel, None),
         };
         // The executed residual's resolution, once, for the plan returned.
         let executed = match executed {
@@ -311,6 +307,84 @@ impl Setup {
             exact_removal_nm: exact,
             error,
         }))
+    }
+
+    /// The acceleration-limited solve's report `a` with its RMS figures on the measured map
+    /// (the SCP's are over every row, edge rows included); `removal`: `R t` of its dwell times
+    /// over every row.
+    fn report_on_map(
+        &self,
+        problem: &Problem,
+        a: &accel::AccelSolution,
+        removal: &[f64],
+    ) -> Result<AccelReport> {
+        let m = self.map.len();
+        let mut report = a.report.clone();
+        if problem.m() > m {
+            let a0 = problem.scenario_scales()[0];
+            let on_map = |h: &[f64]| {
+                let h: Vec<f64> = h[..m].iter().map(|v| v / a0).collect();
+                HeightStats::of(&centred_residual_nm(self.map.z_nm(), &h)).rms_nm
+            };
+            report.rms_after_nm = on_map(removal);
+            report.rms_after_reference_nm = on_map(&problem.removal_nm(&a.reference.dwell_s)?);
+        }
+        Ok(report)
+    }
+
+    /// Under correction passes, where the feed-limited optimum `reference` breaks the limit:
+    /// the squared-speed plan (the limit in the plan's own feeds), executed at the
+    /// limit, in place of the passes' plan `passes` (dwell solution, removal over every row,
+    /// report, executed run) where it leaves the lower executed residual. At a low limit the
+    /// controller's ramps move much of the time between neighbouring stretches of a plan whose
+    /// feeds break the limit; passes against them may then settle above the plan that meets
+    /// it. The executed residual decides; a tie keeps the passes.
+    #[allow(clippy::type_complexity)]
+    fn better_executed(
+        &self,
+        problem: &Problem,
+        limits: &AccelLimits,
+        reference: &Solution,
+        passes: (
+            Solution,
+            Vec<f64>,
+            Option<AccelReport>,
+            Option<Result<Executed>>,
+        ),
+        observer: &dyn Observer,
+    ) -> Result<(
+        Solution,
+        Vec<f64>,
+        Option<AccelReport>,
+        Option<Result<Executed>>,
+    )> {
+        check_cancelled(observer)?;
+        let Some(a) = accel::squared_speed_candidate(
+            problem,
+            &self.path,
+            limits,
+            &self.settings,
+            observer,
+            reference,
+        )?
+        else {
+            return Ok(passes);
+        };
+        check_cancelled(observer)?;
+        let Ok(e) = self.executed_at_limit(&a.solution.dwell_s, limits.a_max_mm_per_s2, observer)
+        else {
+            return Ok(passes);
+        };
+        let passes_nm = match &passes.3 {
+            Some(Ok(p)) => p.after.rms_nm,
+            _ => f64::INFINITY,
+        };
+        if e.after.rms_nm.total_cmp(&passes_nm).is_ge() {
+            return Ok(passes);
+        }
+        let removal = problem.removal_nm(&a.solution.dwell_s)?;
+        let report = self.report_on_map(problem, &a, &removal)?;
+        Ok((a.solution, removal, Some(report), Some(Ok(e))))
     }
 
     /// Correction passes against the executed program ([`AccelMethod::CorrectionPasses`]):

@@ -379,6 +379,38 @@ pub(crate) fn solve_validated(
     })
 }
 
+/// Gradient steps at most of the squared-speed plan [`squared_speed_candidate`] makes next to
+/// the correction passes: a tenth of the default [`AccelLimits::max_gradient_steps`]. A plan
+/// stopped there still meets the limit (clamped onto the reachable chain) and is judged, like
+/// the passes' plan, by its executed residual.
+pub(crate) const CANDIDATE_GRADIENT_STEPS: usize = 2_000;
+
+/// The squared-speed plan of `problem` (the limit in the plan's own feeds; `limits` but for the
+/// method and at most [`CANDIDATE_GRADIENT_STEPS`] gradient steps), solved as
+/// `--accel-method squared-speed` solves it, from its own feed-limited reference at that
+/// method's tolerance. `None` where `reference`, the feed-limited optimum the correction passes
+/// start from, meets the limit (to round-off): then no ramp departs from it.
+pub(crate) fn squared_speed_candidate(
+    problem: &Problem,
+    path: &DwellPath,
+    limits: &AccelLimits,
+    settings: &Settings,
+    observer: &dyn Observer,
+    reference: &Solution,
+) -> Result<Option<AccelSolution>> {
+    let limits = AccelLimits {
+        method: AccelMethod::SquaredSpeed,
+        max_gradient_steps: limits.max_gradient_steps.min(CANDIDATE_GRADIENT_STEPS),
+        ..limits.clone()
+    };
+    if path.len() == reference.dwell_s.len()
+        && LineCaps::new(path, &limits).violation(&reference.dwell_s) <= REFERENCE_MEETS_LIMIT
+    {
+        return Ok(None);
+    }
+    solve_validated(problem, path, &limits, settings, observer).map(Some)
+}
+
 /// The settings of the feed-limited reference solve. The feed-limited optimum is the start and
 /// the price-of-the-limit reference; for the squared-speed method a first-order reference is
 /// solved to that method's own tolerance.
