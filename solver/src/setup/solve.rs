@@ -332,13 +332,14 @@ impl Setup {
         Ok(report)
     }
 
-    /// Under correction passes, where the feed-limited optimum `reference` breaks the limit:
-    /// the squared-speed plan (the limit in the plan's own feeds), executed at the
-    /// limit, in place of the passes' plan `passes` (dwell solution, removal over every row,
-    /// report, executed run) where it leaves the lower executed residual. At a low limit the
-    /// controller's ramps move much of the time between neighbouring stretches of a plan whose
-    /// feeds break the limit; passes against them may then settle above the plan that meets
-    /// it. The executed residual decides; a tie keeps the passes.
+    /// Under correction passes that did not converge, where the feed-limited optimum
+    /// `reference` breaks the limit: the squared-speed plan (the limit in the plan's own feeds),
+    /// executed at the limit, in place of the passes' plan `passes` (dwell solution, removal over
+    /// every row, report, executed run) where it leaves the lower executed residual. At a low
+    /// limit the controller's ramps move much of the time between neighbouring stretches of a
+    /// plan whose feeds break the limit; passes against them may then not settle, and end above
+    /// the plan that meets it. The executed residual decides; a tie keeps the passes. Passes
+    /// that converged are kept as they are (no second plan is made).
     #[allow(clippy::type_complexity)]
     fn better_executed(
         &self,
@@ -358,6 +359,9 @@ impl Setup {
         Option<AccelReport>,
         Option<Result<Executed>>,
     )> {
+        if passes.0.status.is_converged() {
+            return Ok(passes);
+        }
         check_cancelled(observer)?;
         let Some(a) = accel::squared_speed_candidate(
             problem,
