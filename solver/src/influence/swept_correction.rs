@@ -147,7 +147,8 @@ impl SweptCorrected {
             .iter()
             .map(|&j| (path.x_mm()[j], path.y_mm()[j]))
             .unzip();
-        let radius = stretches.reach_of(tif).max(kernel.support_radius_mm());
+        let radius =
+            (tif.support_radius_mm() + stretches.reach_mm()).max(kernel.support_radius_mm());
         let d = InfluenceMatrix::assemble_with(
             map_x_mm,
             map_y_mm,
@@ -155,7 +156,11 @@ impl SweptCorrected {
             &cy,
             radius,
             |k, _i, dx, dy| {
-                let exact = stretches.rate_nm_per_s(columns[k], tif, dx, dy);
+                let exact: f64 = stretches
+                    .of(columns[k])
+                    .iter()
+                    .map(|s| s[2] * tif.rate_nm_per_s(dx - s[0], dy - s[1]))
+                    .sum();
                 exact - kernel.rate_nm_per_s(dx, dy)
             },
             observer,
@@ -472,7 +477,7 @@ fn transpose_lists(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::influence::model::swept::assemble_swept;
+    use crate::influence::model::swept::{assemble_swept, SweptTif};
     use crate::influence::operator::fft::FftOperator;
     use crate::observer::Silent;
     use crate::tif::GaussianTif;
@@ -522,7 +527,8 @@ mod tests {
         let path = DwellPath::new(dx.clone(), dy.clone()).unwrap();
         let tif = GaussianTif::new(1.0, 5.0, 3.0).unwrap();
         let stretches = Stretches::of_path(&path, 0.05).unwrap();
-        let kernel = stretches.dominant_kernel(tif.clone());
+        let (samples, _) = stretches.dominant();
+        let kernel = SweptTif::new(tif.clone(), samples);
         let fft = FftOperator::new(&mx, &my, &dx, &dy, h, &kernel).unwrap();
         let exact = assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent).unwrap();
         let plain_t: Vec<f64> = (0..dx.len())

@@ -138,7 +138,7 @@ impl Setup {
             (InfluenceModel::Swept, Some(_)) => {
                 let stretches = Stretches::of_path(&path, default_sample_step_mm(&tif))
                     .at(SetupInput::Dwell)?;
-                let kernel = stretches.dominant_kernel(tif.clone());
+                let kernel = SweptTif::new(tif.clone(), stretches.dominant().0);
                 Some((stretches, kernel))
             }
             _ => None,
