@@ -2,6 +2,7 @@
 //! `--quiet` keeps stderr to warnings and errors, `--json` prints the summary as exactly one JSON
 //! object on stdout.
 
+use preston_solver::setup::IntegrationResolution;
 use std::io::Write;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -48,4 +49,22 @@ pub fn print_json(value: &serde_json::Value) -> anyhow::Result<()> {
     out.write_all(b"\n")?;
     out.flush()?;
     Ok(())
+}
+
+/// A residual figure, nm: below 0.1 nm to the decimals the executed residual's integration
+/// resolves ([`IntegrationResolution::decimals`]), else (or without an executed run) to three.
+pub fn figure_nm(v: f64, resolution: Option<&IntegrationResolution>) -> String {
+    match resolution {
+        Some(r) if v.abs() < 0.1 => format!("{v:.*}", r.decimals()),
+        _ => format!("{v:.3}"),
+    }
+}
+
+/// What an integration resolution says, after "the" or "the executed": the sample step and how
+/// far the residual moves at half of it.
+pub fn resolution_phrase(i: &IntegrationResolution) -> String {
+    format!(
+        "removal integrated in samples of at most {:.4} mm ({} samples): at half that step the residual moves by {:.4} nm RMS, {:.4} nm PV",
+        i.sample_step_mm, i.samples, i.rms_change_nm, i.pv_change_nm
+    )
 }

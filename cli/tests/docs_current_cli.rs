@@ -248,8 +248,8 @@ fn the_sample_figures_the_docs_quote_are_current() {
             &readme,
             "README.md",
             format!(
-                "{:.3} nm RMS and {:.2} nm PV from {:.0} nm in {:.1} hours of dwell",
-                f("rms_after_nm"),
+                "{} nm RMS and {:.2} nm PV from {:.0} nm in {:.1} hours of dwell",
+                fig(f("rms_after_nm")),
                 f("pv_after_nm"),
                 f("rms_before_nm"),
                 f("total_dwell_s") / 3600.0

@@ -108,6 +108,189 @@ fn the_residual_files_hold_the_residual_the_report_states() {
         html.contains("the program as executed"),
         "report.html does not say which residual residual.png is"
     );
+    assert_outputs_agree(&out);
+}
+
+/// Relative rounding of a number the page shows (five significant digits).
+const SHOWN_REL: f64 = 5e-5;
+
+/// `(key, value, shown)` of every number on `report.html`: the `data-key` and `data-value` of
+/// each `<span class="num">` and the text it shows.
+fn page_numbers(html: &str) -> Vec<(String, String, String)> {
+    let mut found = Vec::new();
+    let mut rest = html;
+    while let Some(at) = rest.find("<span class=\"num\" data-key=\"") {
+        rest = &rest[at + "<span class=\"num\" data-key=\"".len()..];
+        let key_end = rest.find('"').unwrap();
+        let key = rest[..key_end].to_string();
+        rest = &rest[key_end..];
+        let value_at = rest.find("data-value=\"").unwrap() + "data-value=\"".len();
+        rest = &rest[value_at..];
+        let value_end = rest.find('"').unwrap();
+        let value = rest[..value_end].to_string();
+        let shown_at = rest.find('>').unwrap() + 1;
+        let shown_end = rest.find("</span>").unwrap();
+        let shown = rest[shown_at..shown_end].to_string();
+        rest = &rest[shown_end..];
+        found.push((key, value, shown));
+    }
+    found
+}
+
+/// The value at a dotted key (`executed.rms_after_nm`, `expected_rms_range_nm.0`) of a report.
+fn at_key<'a>(r: &'a serde_json::Value, key: &str) -> Option<&'a serde_json::Value> {
+    r.pointer(&format!("/{}", key.replace('.', "/")))
+}
+
+/// The residual with its least-squares plane removed (what an interferometer reads), nm RMS.
+fn rms_without_plane(x: &[f64], y: &[f64], e: &[f64]) -> f64 {
+    // Normal equations of e ~ a + b x + c y, centred so that they are well conditioned.
+    let n = e.len() as f64;
+    let (mx, my, me) = (
+        x.iter().sum::<f64>() / n,
+        y.iter().sum::<f64>() / n,
+        e.iter().sum::<f64>() / n,
+    );
+    let (mut sxx, mut sxy, mut syy, mut sxe, mut sye) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for ((x, y), e) in x.iter().zip(y).zip(e) {
+        let (dx, dy, de) = (x - mx, y - my, e - me);
+        sxx += dx * dx;
+        sxy += dx * dy;
+        syy += dy * dy;
+        sxe += dx * de;
+        sye += dy * de;
+    }
+    let det = sxx * syy - sxy * sxy;
+    let (b, c) = ((sxe * syy - sye * sxy) / det, (sye * sxx - sxe * sxy) / det);
+    let left: Vec<f64> = x
+        .iter()
+        .zip(y)
+        .zip(e)
+        .map(|((x, y), e)| e - me - b * (x - mx) - c * (y - my))
+        .collect();
+    rms_about_mean(&left)
+}
+
+/// Relative agreement of the expected reading's nominal with the plane-removed residual
+/// recomputed here (the same plane fitted by another formula).
+const PLANE_REL: f64 = 1e-6;
+
+/// Every figure a solve writes for one quantity is the same figure in every file: the residual
+/// files against the headline and the model's figures, the expected reading's nominal against
+/// the residual with its plane removed, the dwell files against the total dwell and feeds, and
+/// every number on the page against `report.json` (and shown to its five significant digits).
+fn assert_outputs_agree(out: &Path) {
+    let r = report(out);
+    let name = out.display();
+    let num = |key: &str| -> f64 {
+        at_key(&r, key)
+            .and_then(serde_json::Value::as_f64)
+            .unwrap_or_else(|| panic!("{name}: report.json has no number {key}"))
+    };
+    // The residual file: the map before, the residual after.
+    let residual = residual_of(&out.join("residual.csv"));
+    let [x, y, z]: [Vec<f64>; 3] =
+        csv_columns(&out.join("residual.csv"), &["x_mm", "y_mm", "z_nm"])
+            .try_into()
+            .unwrap();
+    for (what, value, key) in [
+        ("RMS of z_nm", rms_about_mean(&z), "rms_before_nm"),
+        ("PV of z_nm", pv(&z), "pv_before_nm"),
+        (
+            "RMS of residual_nm",
+            rms_about_mean(&residual),
+            "rms_after_nm",
+        ),
+        ("PV of residual_nm", pv(&residual), "pv_after_nm"),
+    ] {
+        assert!(
+            close(value, num(key)),
+            "{name}: residual.csv {what} {value}, report.json {key} {}",
+            num(key)
+        );
+    }
+    if at_key(&r, "executed.rms_after_nm").is_some() {
+        assert_eq!(num("executed.rms_after_nm"), num("rms_after_nm"), "{name}");
+        assert_eq!(num("executed.pv_after_nm"), num("pv_after_nm"), "{name}");
+    }
+    if at_key(&r, "model.rms_nm").is_some() {
+        let model = residual_of(&out.join("residual_model.csv"));
+        assert!(close(rms_about_mean(&model), num("model.rms_nm")), "{name}");
+        assert!(close(pv(&model), num("model.pv_nm")), "{name}");
+    }
+    // The expected reading's nominal tool (without drift) leaves the headline residual, which
+    // the interferometer reads with its plane removed.
+    if at_key(&r, "expected.nominal_rms_nm").is_some()
+        && num("expected.uncertainty.drift_per_hour") == 0.0
+    {
+        let read = rms_without_plane(&x, &y, &residual);
+        let nominal = num("expected.nominal_rms_nm");
+        assert!(
+            (read - nominal).abs() <= PLANE_REL * nominal.max(read) + RECOMPUTED_ABS_NM,
+            "{name}: residual.csv with its plane removed {read} nm, expected.nominal_rms_nm {nominal}"
+        );
+    }
+    // The dwell files: their dwell adds up to the total, their feeds span the reported range.
+    let files: Vec<_> = match r["tools"].as_array() {
+        Some(tools) => (1..=tools.len())
+            .map(|k| out.join(format!("dwell_tool{k}.csv")))
+            .collect(),
+        None => vec![out.join("dwell.csv")],
+    };
+    let (mut total, mut slowest, mut fastest) = (0.0, f64::INFINITY, 0.0_f64);
+    for (k, file) in files.iter().enumerate() {
+        let [t, v]: [Vec<f64>; 2] = csv_columns(file, &["dwell_s", "feed_mm_per_min"])
+            .try_into()
+            .unwrap();
+        let tool_total: f64 = t.iter().sum();
+        if let Some(tool) = r["tools"].as_array().map(|tools| &tools[k]) {
+            let reported = tool["total_dwell_s"].as_f64().unwrap();
+            assert!(
+                close(tool_total, reported),
+                "{}: {tool_total} s, report.json tools[{k}].total_dwell_s {reported}",
+                file.display()
+            );
+        }
+        total += tool_total;
+        slowest = v.iter().copied().fold(slowest, f64::min);
+        fastest = v.iter().copied().fold(fastest, f64::max);
+    }
+    assert!(
+        close(total, num("total_dwell_s")),
+        "{name}: the dwell files hold {total} s, report.json total_dwell_s {}",
+        num("total_dwell_s")
+    );
+    assert!(
+        close(slowest, num("min_feed_mm_per_min")),
+        "{name}: slowest feed {slowest}"
+    );
+    assert!(
+        close(fastest, num("max_feed_mm_per_min")),
+        "{name}: fastest feed {fastest}"
+    );
+    // The page: each number is report.json's, shown to five significant digits.
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let numbers = page_numbers(&html);
+    assert!(
+        numbers.len() > 10,
+        "{name}: {} numbers on the page",
+        numbers.len()
+    );
+    for (key, value, shown) in numbers {
+        let json = at_key(&r, &key)
+            .and_then(serde_json::Value::as_f64)
+            .unwrap_or_else(|| panic!("{name}: report.html shows {key}, not in report.json"));
+        let value: f64 = value.parse().unwrap();
+        assert_eq!(value, json, "{name}: report.html {key}");
+        let shown: f64 = shown
+            .replace('\u{2212}', "-")
+            .parse()
+            .unwrap_or_else(|_| panic!("{name}: report.html shows {key} as {shown:?}"));
+        assert!(
+            (shown - json).abs() <= SHOWN_REL * json.abs(),
+            "{name}: report.html shows {key} as {shown}, report.json {json}"
+        );
+    }
 }
 
 /// A smooth map on an `n x n` grid at `pitch` mm, heights of tens of nm.
@@ -464,4 +647,97 @@ fn the_qp_never_calls_a_feasible_problem_infeasible() {
             "point {j}: {t} s below the bound {bound} s"
         );
     }
+}
+
+/// A robust plan executed at an acceleration limit: its files and page agree with its report.
+#[test]
+fn a_robust_plans_figures_agree_in_every_file() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write_arg(d.path(), "map.csv", &map_text(17, 1.0));
+    let out = d.path().join("robust");
+    let mut args = vec!["solve", "--map", &map, "--raster-pitch-mm", "1"];
+    args.extend(GAUSSIAN);
+    args.extend([
+        "--v-max",
+        "3000",
+        "--v-min",
+        "1",
+        "--a-max-mm-per-s2",
+        "1000",
+        "--robust",
+        "--report",
+        "--out",
+        s(&out),
+    ]);
+    ok(&preston(&args));
+    assert!(report(&out)["robust"].is_object());
+    assert_outputs_agree(&out);
+}
+
+/// Two tools: the dwell of each tool's file adds up to its own and to the report's total, and
+/// the page agrees with the report.
+#[test]
+fn a_multi_tool_plans_figures_agree_in_every_file() {
+    let d = tempfile::tempdir().unwrap();
+    write(d.path(), "map.csv", &map_text(13, 1.0));
+    write(d.path(), "coarse.csv", &raster_text(12.0, 1.5));
+    write(d.path(), "fine.csv", &raster_text(12.0, 0.75));
+    let job = write(
+        d.path(),
+        "tools.toml",
+        "[map]\nfile = \"map.csv\"\n[machine]\nv_max_mm_per_min = 4000\n\
+         [[tool]]\ndwell = \"coarse.csv\"\ntif = { gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 6.0, truncation_radius_mm = 6.0 } }\n\
+         [[tool]]\ndwell = \"fine.csv\"\ntif = { gaussian = { sigma_mm = 0.8, peak_rate_nm_per_s = 3.0, truncation_radius_mm = 2.4 } }\n",
+    );
+    let out = d.path().join("out");
+    ok(&preston(&[
+        "solve",
+        "--job",
+        s(&job),
+        "--report",
+        "--out",
+        s(&out),
+    ]));
+    assert_eq!(report(&out)["tools"].as_array().map(Vec::len), Some(2));
+    assert_outputs_agree(&out);
+}
+
+/// A clear aperture (a diamond inside the map) executed at an acceleration limit: the files
+/// hold the aperture's points and agree with the report and the page.
+#[test]
+fn an_aperture_plans_figures_agree_in_every_file() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write_arg(d.path(), "map.csv", &map_text(21, 1.0));
+    write(
+        d.path(),
+        "diamond.csv",
+        "x_mm,y_mm\n10,1\n19,10\n10,19\n1,10\n",
+    );
+    let aperture = format!(
+        "--aperture=polygon:{}",
+        d.path().join("diamond.csv").display()
+    );
+    let out = d.path().join("aperture");
+    let mut args = vec!["solve", "--map", &map, &aperture, "--raster-pitch-mm", "1"];
+    args.extend(GAUSSIAN);
+    args.extend([
+        "--v-max",
+        "3000",
+        "--v-min",
+        "1",
+        "--a-max-mm-per-s2",
+        "1000",
+        "--report",
+        "--out",
+        s(&out),
+    ]);
+    ok(&preston(&args));
+    let r = report(&out);
+    let inside = csv_columns(&out.join("residual.csv"), &["x_mm"])[0].len();
+    assert!(
+        inside < 21 * 21 && inside as u64 == r["m"].as_u64().unwrap(),
+        "{inside} residual rows, m = {}",
+        r["m"]
+    );
+    assert_outputs_agree(&out);
 }

@@ -3,7 +3,9 @@
 //! the model's at the programmed feeds, `residual_model`), the dwell and the feed, the TIF, the
 //! path, and the PSDs of error and residual: 1-D along the raster direction (`psd.png`, `psd.csv`), where the raster pitch's ripple shows,
 //! 2-D (`psd_2d.png`, `psd_2d.csv`) and its azimuthal average (`psd_azimuthal.png`,
-//! `psd_azimuthal.csv`), see [`preston_solver::psd`].
+//! `psd_azimuthal.csv`), see [`preston_solver::psd`]. A solve with several tools draws the
+//! same maps of the error, removal and residual, each tool's dwell and feed (`dwell_tool1`,
+//! `feed_tool1`, ...) and the PSDs.
 
 use crate::atomic::{stage, Staged};
 use crate::error::{Error, Result};
@@ -57,6 +59,8 @@ pub fn caption(name: &str) -> &'static str {
         "residual_model" => "Model residual at the programmed feeds, piston removed (nm)",
         "dwell" => "Dwell time per dwell point (s)",
         "feed" => "Feed per dwell point (mm/min)",
+        stem if tool_figure(stem, "dwell") => "Dwell time per dwell point of one tool (s)",
+        stem if tool_figure(stem, "feed") => "Feed per dwell point of one tool (mm/min)",
         "tif" => "Tool influence function (nm/s)",
         "path" => "Dwell path, start marked",
         "psd" => {
@@ -71,6 +75,13 @@ pub fn caption(name: &str) -> &'static str {
         "final_error" => "Measured form error after the last run (nm)",
         _ => "",
     }
+}
+
+/// Whether `stem` is a several-tool figure `{kind}_tool{k}` (`dwell_tool2`).
+pub fn tool_figure(stem: &str, kind: &str) -> bool {
+    stem.strip_prefix(kind)
+        .and_then(|r| r.strip_prefix("_tool"))
+        .is_some_and(|k| !k.is_empty() && k.bytes().all(|b| b.is_ascii_digit()))
 }
 
 /// The stems of every figure a solve writes ([`stage_solve_figures`]), in either format.
@@ -127,62 +138,28 @@ pub fn stage_solve_figures_with(
     let delivered = crate::residual::Delivered::of(z, outcome);
     let residual = &delivered.residual_nm;
     let (px, py) = (setup.path.x_mm(), setup.path.y_mm());
-    let dwell = &outcome.solution.dwell_s;
-    let feeds = &outcome.feeds_mm_per_min;
-    let mut staged = vec![
-        stage_map_plot_with(
-            &style.path(out_dir, "error_before"),
-            "Surface error before",
-            "nm",
-            mx,
-            my,
-            z,
-            style.color_limits,
-        )?,
-        stage_map_plot(
-            &style.path(out_dir, "removal"),
-            if delivered.executed {
-                "Predicted removal, program as executed"
-            } else {
-                "Predicted removal"
-            },
-            "nm",
-            mx,
-            my,
-            delivered.removal_nm,
-        )?,
-        stage_map_plot_scaled(
-            &style.path(out_dir, "residual"),
-            if delivered.executed {
-                "Residual, program as executed (piston removed)"
-            } else {
-                "Residual (piston removed)"
-            },
-            "nm",
-            mx,
-            my,
-            residual,
-            style.color_limits,
-            ColourScale::Diverging,
-        )?,
-        stage_map_plot(
-            &style.path(out_dir, "dwell"),
-            "Dwell time",
-            "s",
-            px,
-            py,
-            dwell,
-        )?,
-        stage_map_plot(
-            &style.path(out_dir, "feed"),
-            "Feed",
-            "mm/min",
-            px,
-            py,
-            feeds,
-        )?,
-        stage_path_plot(&style.path(out_dir, "path"), "Dwell path", px, py)?,
-    ];
+    let mut staged = stage_result_maps(
+        out_dir,
+        (mx, my, z),
+        delivered.removal_nm,
+        residual,
+        delivered.executed,
+        style,
+    )?;
+    staged.extend(stage_dwell_maps(
+        out_dir,
+        "",
+        (px, py),
+        &outcome.solution.dwell_s,
+        &outcome.feeds_mm_per_min,
+        style,
+    )?);
+    staged.push(stage_path_plot(
+        &style.path(out_dir, "path"),
+        "Dwell path",
+        px,
+        py,
+    )?);
     if delivered.executed {
         staged.push(stage_map_plot_scaled(
             &style.path(out_dir, "residual_model"),
@@ -226,6 +203,130 @@ pub fn stage_solve_figures_with(
         raster_pitch_mm,
         style.format,
     )?;
+    staged.extend(psd);
+    Ok((staged, notes))
+}
+
+/// Stages the maps of a result at the map points `(x, y)`: the error `z` before, the `removal`
+/// and the `residual` the report states (titled as the program as executed where `executed`).
+fn stage_result_maps(
+    out_dir: &Path,
+    (x, y, z): (&[f64], &[f64], &[f64]),
+    removal_nm: &[f64],
+    residual_nm: &[f64],
+    executed: bool,
+    style: &FigureStyle,
+) -> Result<Vec<Staged>> {
+    Ok(vec![
+        stage_map_plot_with(
+            &style.path(out_dir, "error_before"),
+            "Surface error before",
+            "nm",
+            x,
+            y,
+            z,
+            style.color_limits,
+        )?,
+        stage_map_plot(
+            &style.path(out_dir, "removal"),
+            if executed {
+                "Predicted removal, program as executed"
+            } else {
+                "Predicted removal"
+            },
+            "nm",
+            x,
+            y,
+            removal_nm,
+        )?,
+        stage_map_plot_scaled(
+            &style.path(out_dir, "residual"),
+            if executed {
+                "Residual, program as executed (piston removed)"
+            } else {
+                "Residual (piston removed)"
+            },
+            "nm",
+            x,
+            y,
+            residual_nm,
+            style.color_limits,
+            ColourScale::Diverging,
+        )?,
+    ])
+}
+
+/// Stages the dwell and feed maps of one tool's dwell points `(x, y)`: `dwell{suffix}` and
+/// `feed{suffix}` (`suffix` empty for a single tool, `_tool2` for the second of several).
+fn stage_dwell_maps(
+    out_dir: &Path,
+    suffix: &str,
+    (x, y): (&[f64], &[f64]),
+    dwell_s: &[f64],
+    feeds_mm_per_min: &[f64],
+    style: &FigureStyle,
+) -> Result<Vec<Staged>> {
+    let tool = suffix.strip_prefix("_tool").map(|k| format!(", tool {k}"));
+    let tool = tool.as_deref().unwrap_or("");
+    Ok(vec![
+        stage_map_plot(
+            &style.path(out_dir, &format!("dwell{suffix}")),
+            &format!("Dwell time{tool}"),
+            "s",
+            x,
+            y,
+            dwell_s,
+        )?,
+        stage_map_plot(
+            &style.path(out_dir, &format!("feed{suffix}")),
+            &format!("Feed{tool}"),
+            "mm/min",
+            x,
+            y,
+            feeds_mm_per_min,
+        )?,
+    ])
+}
+
+/// One tool of a several-tool solve, for its figures: its dwell points, dwell and feeds.
+#[derive(Debug, Clone, Copy)]
+pub struct ToolFigureData<'a> {
+    /// Dwell point x, mm.
+    pub x_mm: &'a [f64],
+    /// Dwell point y, mm.
+    pub y_mm: &'a [f64],
+    /// Dwell per point, s.
+    pub dwell_s: &'a [f64],
+    /// Feed per point, mm/min.
+    pub feeds_mm_per_min: &'a [f64],
+}
+
+/// Stages the figures of a several-tool solve: the error before, the removal and residual of
+/// all tools together, each tool's dwell and feed (`dwell_tool1`, `feed_tool1`, ...) and the
+/// PSDs of error and residual along `axis`. Returns the staged files and notes on figures left
+/// out.
+pub fn stage_tool_figures(
+    out_dir: &Path,
+    map: (&[f64], &[f64], &[f64]),
+    removal_nm: &[f64],
+    residual_nm: &[f64],
+    tools: &[ToolFigureData<'_>],
+    axis: LineAxis,
+    style: &FigureStyle,
+) -> Result<(Vec<Staged>, Vec<String>)> {
+    let mut staged = stage_result_maps(out_dir, map, removal_nm, residual_nm, false, style)?;
+    for (k, t) in tools.iter().enumerate() {
+        staged.extend(stage_dwell_maps(
+            out_dir,
+            &format!("_tool{}", k + 1),
+            (t.x_mm, t.y_mm),
+            t.dwell_s,
+            t.feeds_mm_per_min,
+            style,
+        )?);
+    }
+    let (x, y, z) = map;
+    let (psd, notes) = stage_psd_figures(out_dir, x, y, z, residual_nm, axis, None, style.format)?;
     staged.extend(psd);
     Ok((staged, notes))
 }

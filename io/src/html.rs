@@ -587,7 +587,7 @@ const INTERNAL_KEYS: [(&str, &str); 14] = [
 ];
 
 /// Labels of the executed program's fields.
-const EXECUTED_LABELS: [(&str, &str); 8] = [
+const EXECUTED_LABELS: [(&str, &str); 12] = [
     ("a_max_mm_per_s2", "acceleration limit"),
     ("rms_after_nm", "RMS of the residual as executed"),
     ("pv_after_nm", "PV of the residual as executed"),
@@ -602,6 +602,19 @@ const EXECUTED_LABELS: [(&str, &str); 8] = [
         "stretches more than 5% off their dwell",
     ),
     ("correction_passes", "correction passes kept"),
+    (
+        "integration.sample_step_mm",
+        "removal integrated along the motion in samples of at most",
+    ),
+    ("integration.samples", "removal samples"),
+    (
+        "integration.rms_change_nm",
+        "RMS change of the residual at half that step",
+    ),
+    (
+        "integration.pv_change_nm",
+        "PV change of the residual at half that step",
+    ),
 ];
 
 /// The sensitivity scenarios of `report.json` `sensitivity` in words.
@@ -716,9 +729,17 @@ fn summary_section(out: &mut String, report: &Value, extras: &PageExtras<'_>, wa
             out,
             "Expected result",
             &format!(
-                "{} as the program executes at {} mm/s², piston removed (the plan's model: {})",
+                "{} as the program executes at {} mm/s², piston removed{} (the plan's model: {})",
                 rms_pv("rms_after_nm", "pv_after_nm"),
                 value_span(report, "executed.a_max_mm_per_s2"),
+                if has("executed.integration.rms_change_nm") {
+                    format!(
+                        "; integrated along the motion to within {} nm RMS",
+                        value_span(report, "executed.integration.rms_change_nm")
+                    )
+                } else {
+                    String::new()
+                },
                 rms_pv("model.rms_nm", "model.pv_nm")
             ),
         );
@@ -962,6 +983,39 @@ pub fn loop_page(
 /// Stages `html` for `path` (committed together with the other outputs).
 pub fn stage_html(path: &Path, html: &str) -> Result<Staged> {
     stage(path, |w| w.write_all(html.as_bytes()))
+}
+
+/// Stages the page of a solve for `path`: `report` with `provenance`, the staged `figures`
+/// (PNG or SVG) embedded with their captions and `notes` on figures left out among the
+/// warnings.
+pub fn stage_report_page(
+    path: &Path,
+    report: &crate::report::Report,
+    provenance: &Provenance,
+    figures: &[Staged],
+    notes: &[String],
+) -> Result<Staged> {
+    let mut embedded = Vec::new();
+    for f in figures {
+        let name = f
+            .dest()
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned());
+        if let Some(name) = name.filter(|n| n.ends_with(".png") || n.ends_with(".svg")) {
+            embedded.push(Figure::from_staged(f, crate::figures::caption(&name))?);
+        }
+    }
+    let json = report_json(report, path)?;
+    let page = report_page(
+        "Preston job report",
+        &json,
+        &PageExtras {
+            provenance: Some(provenance),
+            figures: &embedded,
+            notes,
+        },
+    );
+    stage_html(path, &page)
 }
 
 /// `report.json`'s content as JSON.

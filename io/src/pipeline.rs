@@ -640,7 +640,11 @@ pub fn is_solve_output(name: &str) -> bool {
         return !k.is_empty() && k.bytes().all(|b| b.is_ascii_digit());
     }
     match name.rsplit_once('.') {
-        Some((stem, "png" | "svg")) => crate::figures::SOLVE_FIGURES.contains(&stem),
+        Some((stem, "png" | "svg")) => {
+            crate::figures::SOLVE_FIGURES.contains(&stem)
+                || crate::figures::tool_figure(stem, "dwell")
+                || crate::figures::tool_figure(stem, "feed")
+        }
         _ => false,
     }
 }
@@ -703,31 +707,13 @@ pub fn write_solve_outputs(
         )?);
     }
     if let Some(provenance) = &options.html {
-        let html_path = out_dir.join("report.html");
-        let mut embedded = Vec::new();
-        for f in &figures {
-            let name = f
-                .dest()
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned());
-            if let Some(name) = name.filter(|n| n.ends_with(".png") || n.ends_with(".svg")) {
-                embedded.push(crate::html::Figure::from_staged(
-                    f,
-                    crate::figures::caption(&name),
-                )?);
-            }
-        }
-        let json = crate::html::report_json(&solved.report, &html_path)?;
-        let page = crate::html::report_page(
-            "Preston job report",
-            &json,
-            &crate::html::PageExtras {
-                provenance: Some(provenance),
-                figures: &embedded,
-                notes: &notes,
-            },
-        );
-        staged.push(crate::html::stage_html(&html_path, &page)?);
+        staged.push(crate::html::stage_report_page(
+            &out_dir.join("report.html"),
+            &solved.report,
+            provenance,
+            &figures,
+            &notes,
+        )?);
     }
     if options.plots {
         staged.extend(figures);

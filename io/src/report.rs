@@ -175,6 +175,10 @@ pub struct Report {
     /// curved part each contact sample applying the TIF in its tangent frame), against the plan.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub executed: Option<ExecutedReport>,
+    /// `simulate --program`: the resolution of `rms_after_nm` and `pv_after_nm`, the program
+    /// run again with half the sample step (as a solve's `executed.integration`).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub integration: Option<preston_solver::setup::IntegrationResolution>,
     /// With an approximate (spreading) operator: its measured error on the returned dwell and
     /// the residual it predicted; `rms_after_nm` above is the exact `R`'s.
     #[serde(skip_serializing_if = "Option::is_none", default)]
@@ -600,6 +604,7 @@ impl Report {
             max_neighbour_feed_ratio: max_neighbour_feed_ratio(feeds),
             dwell_outside_map_s: None,
             executed: None,
+            integration: None,
             operator_error: None,
             influence: None,
             raster: None,

@@ -394,6 +394,26 @@ pub fn simulate_program(
         observer,
     )
     .map_err(at_fault)?;
+    let part = options.part.map(|(s, r)| (s as &dyn PartGeometry, r));
+    let run = setup
+        .run_program(
+            &program,
+            options.kinematics,
+            options.sample_step_mm,
+            part,
+            observer,
+        )
+        .map_err(|e| Error::engine(program_file, e))?;
+    let integration = setup
+        .program_resolution(
+            &program,
+            options.kinematics,
+            options.sample_step_mm,
+            part,
+            &run,
+            observer,
+        )
+        .map_err(|e| Error::engine(program_file, e))?;
     let ProgramRun {
         executed,
         check,
@@ -401,15 +421,7 @@ pub fn simulate_program(
         samples: n_samples,
         contact,
         ..
-    } = setup
-        .run_program(
-            &program,
-            options.kinematics,
-            options.sample_step_mm,
-            options.part.map(|(s, r)| (s as &dyn PartGeometry, r)),
-            observer,
-        )
-        .map_err(|e| Error::engine(program_file, e))?;
+    } = run;
     let problem = setup.problem(observer).map_err(at_fault)?.problem;
     let build_seconds = start.elapsed().as_secs_f64();
     // The executed motion's removal with the TIF perturbed.
@@ -422,7 +434,7 @@ pub fn simulate_program(
             a_max_mm_per_s2, ..
         } => SolverLabel::SimulateProgramAtLimit { a_max_mm_per_s2 },
     };
-    let sim = assemble(
+    let mut sim = assemble(
         MapRead {
             map: setup.map,
             input,
@@ -446,6 +458,7 @@ pub fn simulate_program(
         build_seconds,
         Instant::now(),
     )?;
+    sim.report.integration = integration;
     Ok(ProgramSimulated {
         sim,
         planned_dwell_s: program

@@ -5,7 +5,9 @@
 
 use crate::atomic::commit_all;
 use crate::error::{Error, Result};
+use crate::figures::{stage_tool_figures, ToolFigureData};
 use crate::job::{Job, TifSource};
+use crate::pipeline::OutputOptions;
 use crate::readers::read_dwell;
 pub use crate::report::ToolReport;
 use crate::report::{centred_residual_nm, feeds_mm_per_min, Report};
@@ -14,6 +16,7 @@ use preston_solver::dwell::{FeedLimits, Solution};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::map::{HeightMap, HeightStats};
 use preston_solver::observer::Observer;
+use preston_solver::psd::LineAxis;
 pub use preston_solver::setup::tools::Tool;
 use preston_solver::setup::tools::{ToolChoices, ToolsOutcome, ToolsSetup};
 use preston_solver::setup::{SetupError, SetupInput};
@@ -224,25 +227,38 @@ pub fn solve_tools(job: &Job, job_path: &Path, observer: &dyn Observer) -> Resul
 }
 
 /// Writes `dwell_tool1.csv`, `dwell_tool2.csv`, ..., `residual.csv` and `report.json` into
-/// `out_dir`, all staged before any is renamed into place. With `replace_earlier`, an earlier
-/// solve's outputs that this one does not write are removed with the commit, except the paths
-/// listed (the run's inputs; [`crate::pipeline::OutputOptions::replace_earlier`]).
+/// `out_dir`, and the figures and `report.html` where `options` asks for them
+/// ([`crate::figures::stage_tool_figures`]), all staged before any is renamed into place. With
+/// `options.replace_earlier`, an earlier solve's outputs that this one does not write are
+/// removed with the commit, except the paths listed (the run's inputs). Returns notes on figures
+/// left out.
 pub fn write_tool_outputs(
     solved: &MultiSolved,
     out_dir: &Path,
-    replace_earlier: Option<&[std::path::PathBuf]>,
-) -> Result<()> {
+    options: &OutputOptions,
+) -> Result<Vec<String>> {
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
     let mut staged = Vec::new();
-    for (k, (tool, t)) in solved.tools.iter().zip(&solved.dwell_s).enumerate() {
-        let feeds = feeds_mm_per_min(&tool.ds_mm, t);
+    let feeds: Vec<Vec<f64>> = solved
+        .tools
+        .iter()
+        .zip(&solved.dwell_s)
+        .map(|(tool, t)| feeds_mm_per_min(&tool.ds_mm, t))
+        .collect();
+    for (k, ((tool, t), feeds)) in solved
+        .tools
+        .iter()
+        .zip(&solved.dwell_s)
+        .zip(&feeds)
+        .enumerate()
+    {
         staged.push(stage_dwell_csv(
             &out_dir.join(format!("dwell_tool{}.csv", k + 1)),
             tool.path.x_mm(),
             tool.path.y_mm(),
             &tool.ds_mm,
             t,
-            &feeds,
+            feeds,
         )?);
     }
     let m = &solved.map;
@@ -255,14 +271,53 @@ pub fn write_tool_outputs(
         &solved.residual_nm,
     )?);
     staged.push(stage_report(&out_dir.join("report.json"), &solved.report)?);
-    match replace_earlier {
-        Some(keep) => crate::atomic::commit_replacing(
-            staged,
+    let (figures, notes) = if options.plots || options.html.is_some() {
+        let tools: Vec<ToolFigureData<'_>> = solved
+            .tools
+            .iter()
+            .zip(&solved.dwell_s)
+            .zip(&feeds)
+            .map(|((tool, t), feeds)| ToolFigureData {
+                x_mm: tool.path.x_mm(),
+                y_mm: tool.path.y_mm(),
+                dwell_s: t,
+                feeds_mm_per_min: feeds,
+            })
+            .collect();
+        stage_tool_figures(
             out_dir,
-            &crate::pipeline::is_solve_output,
-            keep,
-        )
-        .map(|_| ()),
-        None => commit_all(staged),
+            (m.x_mm(), m.y_mm(), m.z_nm()),
+            &solved.removal_nm,
+            &solved.residual_nm,
+            &tools,
+            options.figures.map_or(LineAxis::X, |(axis, _)| axis),
+            &options.style,
+        )?
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    if let Some(provenance) = &options.html {
+        staged.push(crate::html::stage_report_page(
+            &out_dir.join("report.html"),
+            &solved.report,
+            provenance,
+            &figures,
+            &notes,
+        )?);
     }
+    if options.plots {
+        staged.extend(figures);
+    }
+    match &options.replace_earlier {
+        Some(keep) => {
+            crate::atomic::commit_replacing(
+                staged,
+                out_dir,
+                &crate::pipeline::is_solve_output,
+                keep,
+            )?;
+        }
+        None => commit_all(staged)?,
+    }
+    Ok(notes)
 }

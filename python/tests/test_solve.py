@@ -301,3 +301,26 @@ def test_robust_keyword_is_the_cli_flag(small_job):
     assert mean_sq(rob["robust_plan_rms_nm"]) <= mean_sq(rob["nominal_plan_rms_nm"]) * 1.001
     assert abs(r.report["rms_after_nm"] - rob["robust_plan_rms_nm"][0]) <= 1e-9 * r.report["rms_after_nm"]
     assert "robust" not in preston.solve(small_job).report
+
+
+def test_result_arrays_hold_the_figures_the_report_states(small_job):
+    """Without and with an executed program, the result's residual, its grid and its dwell are
+    the ones the report states (RMS and PV of ``residual_nm``, the grid's values, the total
+    dwell), and the model's residual is the report's ``model`` where the program is executed."""
+    for kw in ({}, {"a_max": 50.0}):
+        r = preston.solve(small_job, **kw)
+        rep = r.report
+        e = r.residual_nm
+        rms = float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+        assert abs(rms - rep["rms_after_nm"]) <= 1e-9 * rep["rms_before_nm"], kw
+        assert abs(float(np.ptp(e)) - rep["pv_after_nm"]) <= 1e-9 * rep["pv_before_nm"], kw
+        assert abs(float(r.dwell_s.sum()) - rep["total_dwell_s"]) <= 1e-9 * rep["total_dwell_s"], kw
+        grid = r.residual_grid.values
+        assert np.array_equal(np.sort(grid[~np.isnan(grid)]), np.sort(e)), kw
+        if "model" in rep:
+            m = r.model_residual_nm
+            model_rms = float(np.sqrt(np.mean((m - m.mean()) ** 2)))
+            assert abs(model_rms - rep["model"]["rms_nm"]) <= 1e-9 * rep["rms_before_nm"], kw
+            assert rep["rms_after_nm"] == rep["executed"]["rms_after_nm"], kw
+        else:
+            np.testing.assert_array_equal(r.model_residual_nm, e)

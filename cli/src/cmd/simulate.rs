@@ -5,7 +5,7 @@ use super::machine_args::MachineArgs;
 use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
-use crate::summary_output::{print_json, OutputArgs};
+use crate::summary_output::{figure_nm, print_json, resolution_phrase, OutputArgs};
 use anyhow::Context;
 use preston_io::job::{Job, MapSource};
 use preston_io::pipeline::load_tif;
@@ -247,10 +247,14 @@ fn run_program(args: &Args, inputs: &Inputs, program: &Path) -> anyhow::Result<u
         .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let r = &sim.sim.report;
     let c = &sim.check;
+    let fig = |v: f64| figure_nm(v, r.integration.as_ref());
     crate::note!(
-        "preston simulate ({}): {} map points, {} marked stretches, {} removal samples; RMS {:.3} -> {:.3} nm, PV {:.3} -> {:.3} nm",
-        r.solver, r.m, c.stretches, sim.samples, r.rms_before_nm, r.rms_after_nm, r.pv_before_nm, r.pv_after_nm
+        "preston simulate ({}): {} map points, {} marked stretches, {} removal samples; RMS {:.3} -> {} nm, PV {:.3} -> {} nm",
+        r.solver, r.m, c.stretches, sim.samples, r.rms_before_nm, fig(r.rms_after_nm), r.pv_before_nm, fig(r.pv_after_nm)
     );
+    if let Some(i) = &r.integration {
+        crate::note!("  the {}", resolution_phrase(i));
+    }
     if c.stretches > 0 {
         crate::note!(
             "  executed {:.2} s in the stretches for {:.2} s planned ({:.2} s with the plunge and pauses); worst stretch {:.3}% off (point {}), {} of {} more than 5% off; wrote {}",

@@ -6,7 +6,7 @@ use super::map_input::{print_input_notes, MapInputArgs, PitchArg};
 use super::nc::print_program_check;
 use super::tif_source::TifArgs;
 use crate::progress::Bars;
-use crate::summary_output::{print_json, OutputArgs};
+use crate::summary_output::{figure_nm, print_json, resolution_phrase, OutputArgs};
 use anyhow::Context;
 use preston_io::job::{Job, TifSource};
 use preston_io::machine::program_check_summary;
@@ -18,7 +18,6 @@ use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::path::raster::RasterAxis;
 use preston_solver::psd::LineAxis;
 use preston_solver::setup::pays::PlanScope;
-use preston_solver::setup::IntegrationResolution;
 use std::path::{Path, PathBuf};
 
 use super::EXIT_NOT_CONVERGED;
@@ -76,7 +75,8 @@ pub struct Args {
     /// Also write figures (error_before, removal, residual, dwell, feed, tif, path; PNG or, with
     /// `--plot-format svg`, SVG) and the PSDs of error and residual: along the raster direction
     /// (psd.png, psd.csv), 2-D (psd_2d.png, psd_2d.csv) and azimuthally averaged
-    /// (psd_azimuthal.png, psd_azimuthal.csv).
+    /// (psd_azimuthal.png, psd_azimuthal.csv). With several tools: each tool's dwell and feed
+    /// (dwell_tool1, feed_tool1, ...) in place of dwell, feed, tif and path.
     #[arg(long)]
     pub plots: bool,
     /// Also write report.html: one self-contained page with the inputs and their SHA-256, the
@@ -192,18 +192,31 @@ fn apply_tools(
     Ok(())
 }
 
-/// Runs `preston solve` with several tools (`[[tool]]` or repeated --tif/--dwell).
+/// The figures' line direction: the raster's.
+fn axis_of(along: RasterAxis) -> LineAxis {
+    match along {
+        RasterAxis::X => LineAxis::X,
+        RasterAxis::Y => LineAxis::Y,
+    }
+}
+
+/// Runs `preston solve` with several tools (`[[tool]]` or repeated --tif/--dwell), writing
+/// what `options` asks for.
 fn run_tools(
     job: &Job,
     job_path: &std::path::Path,
     out: &std::path::Path,
+    options: &pipeline::OutputOptions,
     accept_best: bool,
     output: OutputArgs,
 ) -> anyhow::Result<u8> {
     let bars = Bars::new();
     let solved = preston_io::tools::solve_tools(job, job_path, &bars)?;
-    preston_io::tools::write_tool_outputs(&solved, out, Some(&job.input_files()))
+    let notes = preston_io::tools::write_tool_outputs(&solved, out, options)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
+    for note in notes {
+        crate::note!("  note: {note}");
+    }
     let r = &solved.report;
     crate::note!(
         "preston solve: {} map points, {} tools, {} dwell points in all, {} non-zeros (assembled, stacked)",
@@ -283,7 +296,20 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     let style = args.figures.style();
     let (job, job_path, out, accept_best) = args.into_job()?;
     if preston_io::tools::is_multi_tool(&job) {
-        return run_tools(&job, &job_path, &out, accept_best, output);
+        let options = pipeline::OutputOptions {
+            figures: Some((axis_of(job.dwell.raster_along), None)),
+            plots,
+            html: html.then(|| {
+                preston_io::html::Provenance::of_job(
+                    &job,
+                    &job_path,
+                    Some(preston_io::html::Provenance::command_line()),
+                )
+            }),
+            style,
+            replace_earlier: Some(job.input_files()),
+        };
+        return run_tools(&job, &job_path, &out, &options, accept_best, output);
     }
     let bars = Bars::new();
     let prepared = pipeline::prepare(&job, &job_path, &bars)?;
@@ -296,12 +322,11 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     }
     let early_warnings = prepared.warnings.len();
     let solved = pipeline::solve(prepared, &job, &bars)?;
-    let axis = match job.dwell.raster_along {
-        RasterAxis::X => LineAxis::X,
-        RasterAxis::Y => LineAxis::Y,
-    };
     let options = pipeline::OutputOptions {
-        figures: Some((axis, job.dwell.source.raster_pitch_mm())),
+        figures: Some((
+            axis_of(job.dwell.raster_along),
+            job.dwell.source.raster_pitch_mm(),
+        )),
         plots,
         html: html.then(|| {
             preston_io::html::Provenance::of_job(
@@ -397,13 +422,7 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
         r.piston_nm
     );
     if let Some(i) = &integration {
-        crate::note!(
-            "  the executed removal integrated in samples of at most {:.4} mm ({} samples): at half that step the residual moves by {:.4} nm RMS, {:.4} nm PV",
-            i.sample_step_mm,
-            i.samples,
-            i.rms_change_nm,
-            i.pv_change_nm
-        );
+        crate::note!("  the executed {}", resolution_phrase(i));
     }
     if let (Some(e), Some([lo, hi])) = (&r.expected, r.expected_rms_range_nm) {
         let u = &e.uncertainty;
@@ -562,14 +581,5 @@ fn print_check(solved: &pipeline::Solved) -> Option<&ProgramCheck> {
             crate::errln!("  warning: no G-code program can deliver this plan as it is: {e}");
             None
         }
-    }
-}
-
-/// A residual figure, nm: below 0.1 nm to the decimals the executed residual's integration
-/// resolves ([`IntegrationResolution::decimals`]), else (or without an executed run) to three.
-fn figure_nm(v: f64, resolution: Option<&IntegrationResolution>) -> String {
-    match resolution {
-        Some(r) if v.abs() < 0.1 => format!("{v:.*}", r.decimals()),
-        _ => format!("{v:.3}"),
     }
 }

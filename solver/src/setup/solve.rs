@@ -518,7 +518,6 @@ impl Setup {
         e: &Executed,
         observer: &dyn Observer,
     ) -> Result<Option<IntegrationResolution>> {
-        let step_mm = default_sample_step_mm(&self.tif);
         let kinematics = Kinematics::Trapezoidal {
             a_max_mm_per_s2: e.a_max_mm_per_s2,
             corner_angle_deg: e.settings.corner_angle_deg,
@@ -527,16 +526,28 @@ impl Setup {
             .surface
             .as_ref()
             .map(|s| (s as &dyn PartGeometry, e.settings.tool_radius_mm));
-        let finer = self.run_on_map(
-            &e.program.program,
-            kinematics,
-            Some(0.5 * step_mm),
-            part,
-            observer,
-        );
+        self.program_resolution(&e.program.program, kinematics, None, part, &e.run, observer)
+    }
+
+    /// The resolution of `run`, the run of `program` under `kinematics` with removal samples of
+    /// at most `step_mm` (default [`default_sample_step_mm`]) on `part`
+    /// ([`Setup::run_program`]): the same program run again with half the step
+    /// ([`IntegrationResolution`]). `None` where that many samples are beyond
+    /// [`crate::machine::gcode::motion::MAX_SAMPLES`].
+    pub fn program_resolution(
+        &self,
+        program: &Program,
+        kinematics: Kinematics,
+        step_mm: Option<f64>,
+        part: Option<(&dyn PartGeometry, f64)>,
+        run: &ProgramRun,
+        observer: &dyn Observer,
+    ) -> Result<Option<IntegrationResolution>> {
+        let step_mm = step_mm.unwrap_or_else(|| default_sample_step_mm(&self.tif));
+        let finer = self.run_on_map(program, kinematics, Some(0.5 * step_mm), part, observer);
         check_cancelled(observer)?;
         Ok(finer.ok().map(|f| {
-            IntegrationResolution::of(&e.run.removal_nm, &f.removal_nm, step_mm, e.run.samples)
+            IntegrationResolution::of(&run.removal_nm, &f.removal_nm, step_mm, run.samples)
         }))
     }
 
