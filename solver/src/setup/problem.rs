@@ -567,7 +567,7 @@ impl Setup {
     ) -> Option<SweptTif<PerturbedTif<'a, Tif>>> {
         self.swept
             .as_ref()
-            .map(|(stretches, _)| SweptTif::new(tif.clone(), stretches.dominant().0))
+            .map(|(stretches, _)| stretches.dominant_kernel(tif.clone()))
     }
 
     /// The lattice operator `build` over `rows` and the dwell points, map on the lattice of

@@ -110,10 +110,17 @@ pub fn run_on_map(
             *d *= (1.0 + drift_per_hour * (t - mid) / 3600.0).max(0.0);
         }
     }
+    // On a curved part the samples are contact points, their pieces the tool centre's: points.
+    let half_mm = if part.is_some() {
+        Vec::new()
+    } else {
+        samples.half_mm
+    };
     let sampled = crate::simulate::SampledProgram {
         x_mm: samples.x_mm,
         y_mm: samples.y_mm,
         dwell_s,
+        half_mm,
     };
     let removal_nm = removal(&sampled)?;
     Ok(ProgramRun {
