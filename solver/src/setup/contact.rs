@@ -4,7 +4,9 @@
 //! share an offset from the map's lattice as lattice products ([`super::motion_lattice`]); on a curved
 //! part each sample applies the TIF in its own tangent frame of the design surface, oriented as
 //! the plan's columns are ([`crate::influence::model::surface::removals_on_surface_with`]), with the
-//! sample's own Hertz TIF where the TIF depends on the curvature. The same under the
+//! sample's own Hertz TIF where the TIF depends on the curvature. Either way a sample that stands
+//! for a piece of motion is integrated along it by the one rule of every piece
+//! ([`crate::influence::model::piece::piece_rate`]), on a curved part in its tangent frame. The same under the
 //! [`Perturbation`]s of the sensitivity: a tool offset moves the samples in plan, where the
 //! curved part's frames are then taken.
 
@@ -13,6 +15,7 @@ use super::{Setup, TifModel};
 use crate::error::Result;
 use crate::influence::model::curvature::{hertz_tifs_on_surface, largest_support_radius_mm};
 use crate::influence::model::direct::piece_removals_nm;
+use crate::influence::model::piece::piece_rate;
 use crate::influence::model::surface::removals_on_surface_with;
 use crate::influence::Stretches;
 use crate::observer::Observer;
@@ -83,17 +86,22 @@ impl Setup {
                     Some(h) => at(s).width_factor * largest_support_radius_mm(h),
                 })
                 .collect();
+            // Each sample along the piece it stands for, in its tangent frame, by the flat
+            // part's rule.
             let removals = removals_on_surface_with(
                 surface,
                 mx,
                 my,
                 &x,
                 &y,
+                &samples.half_mm,
                 &samples.dwell_s,
                 &radii,
-                |s, k, u, w| match &hertz {
-                    None => at(s).of(&self.tif).rate_nm_per_s(u, w),
-                    Some(h) => h.get(k).map_or(0.0, |t| at(s).of(t).rate_nm_per_s(u, w)),
+                |s, k, half, u, w| match &hertz {
+                    None => piece_rate(&at(s).of(&self.tif), half, u, w),
+                    Some(h) => h
+                        .get(k)
+                        .map_or(0.0, |t| piece_rate(&at(s).of(t), half, u, w)),
                 },
                 self.tif_frame,
                 observer,

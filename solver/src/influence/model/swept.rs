@@ -67,7 +67,7 @@ const MAX_PIECES_PER_BLOCK: usize = 256;
 /// The rate at offset `(dx_mm, dy_mm)` from the dwell point of `tif` swept along a stretch whose
 /// midpoint samples are `samples` (`(dx_mm, dy_mm, weight)`) and their pieces' halves `halves`
 /// (from each sample to its piece's end): the sum of the pieces' rates by [`piece_rate`], or of
-/// the rates at the samples when `halves` is empty.
+/// the rates at the samples when `halves` is empty ([`swept_sum`]).
 pub fn swept_rate<T: InfluenceFunction + ?Sized>(
     tif: &T,
     samples: &[[f64; 3]],
@@ -75,16 +75,35 @@ pub fn swept_rate<T: InfluenceFunction + ?Sized>(
     dx_mm: f64,
     dy_mm: f64,
 ) -> f64 {
+    swept_sum(samples, halves, dx_mm, dy_mm, |half, u, w| {
+        piece_rate(tif, half, u, w)
+    })
+}
+
+/// `sum_k w_k piece(h_k, dx - sx_k, dy - sy_k)` over the samples `(sx_k, sy_k, w_k)` of a
+/// stretch and their pieces' halves `h_k` (zero, points, when `halves` is empty): the one sum of
+/// a swept column, in plan ([`swept_rate`]) and in a curved part's tangent frame
+/// ([`super::surface::assemble_on_surface_swept_with`]), so that a plane sums exactly as the
+/// flat part. `piece(h, u, w)` is the rate at offset `(u, w)` of the TIF along the piece of half
+/// `h` ([`piece_rate`]).
+#[inline]
+pub fn swept_sum<F: Fn([f64; 2], f64, f64) -> f64>(
+    samples: &[[f64; 3]],
+    halves: &[[f64; 2]],
+    dx_mm: f64,
+    dy_mm: f64,
+    piece: F,
+) -> f64 {
     if halves.is_empty() {
         return samples
             .iter()
-            .map(|s| s[2] * tif.rate_nm_per_s(dx_mm - s[0], dy_mm - s[1]))
+            .map(|s| s[2] * piece([0.0, 0.0], dx_mm - s[0], dy_mm - s[1]))
             .sum();
     }
     samples
         .iter()
         .zip(halves)
-        .map(|(s, &h)| s[2] * piece_rate(tif, h, dx_mm - s[0], dy_mm - s[1]))
+        .map(|(s, &h)| s[2] * piece(h, dx_mm - s[0], dy_mm - s[1]))
         .sum()
 }
 

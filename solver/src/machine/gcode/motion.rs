@@ -215,6 +215,9 @@ pub struct MotionSamples {
     /// Half of the sample's piece in plan, from its start to its end over 2, mm: the straight
     /// chord of the piece the sample stands for.
     pub half_mm: Vec<[f64; 2]>,
+    /// The tool centre at the start and at the end of the sample's piece, mm (on a curved part
+    /// the piece's contact chord is taken between their contact points).
+    pub ends_mm: Vec<[[f64; 3]; 2]>,
 }
 
 /// Largest number of removal samples (each is a TIF column of the simulation).
@@ -258,6 +261,7 @@ pub fn sample_contact(
         time_s: Vec::with_capacity(count),
         at_s: Vec::with_capacity(count),
         half_mm: Vec::with_capacity(count),
+        ends_mm: Vec::with_capacity(count),
     };
     let mut block_start_s = 0.0;
     for (b, p) in program.blocks.iter().zip(&executed.profiles) {
@@ -287,6 +291,7 @@ pub fn sample_contact(
             let end = b.point_at((i + 1) as f64 / pieces as f64);
             out.half_mm
                 .push([0.5 * (end[0] - start[0]), 0.5 * (end[1] - start[1])]);
+            out.ends_mm.push([start, end]);
             start = end;
             t_prev = t1;
         }
