@@ -9,8 +9,15 @@
 //! either nothing or a whole piece's share from the sliver inside. For such a footprint a piece
 //! the circle crosses is cut where the motion enters or leaves the map point's disc and the part
 //! inside integrated by 4-point Gauss-Legendre; a piece wholly inside keeps the midpoint rule,
-//! one wholly outside adds nothing ([`piece_rate`]).
+//! one wholly outside adds nothing, and so does one whose line only touches the circle, to the
+//! rounding by which the circle is closed ([`piece_rate`]).
+//!
+//! The rule is written once: flat parts (a plan's columns, the lattice kernels, the sampled and
+//! executed motions) call it in plan, curved parts in each dwell point's or sample's tangent
+//! frame, with the piece lifted into that frame ([`super::surface`]); on the plane `z = 0` both
+//! are the same arithmetic.
 
+use crate::tif::gaussian::ON_CIRCLE_REL;
 use crate::tif::InfluenceFunction;
 
 /// Gauss-Legendre nodes and weights on `[-1, 1]`, 4 points: exact for cubics, so within
@@ -21,6 +28,22 @@ const GAUSS_LEGENDRE_4: [(f64, f64); 4] = [
     (0.339_981_043_584_856_3, 0.652_145_154_862_546_1),
     (0.861_136_311_594_052_6, 0.347_854_845_137_453_9),
 ];
+
+/// Whether a motion's line at distance `d` from the centre of a cut circle of radius `r_mm` (the
+/// support, closed up to rounding by [`ON_CIRCLE_REL`]) only touches the disc, given
+/// `disc_over_a = r^2 - d^2` scaled by `a > 0`: `d >= r (1 - 2 ON_CIRCLE_REL)`, within rounding
+/// of the circle itself. Such a line crosses the closed disc over a chord of at most
+/// `2 r sqrt(8 ON_CIRCLE_REL)` (0.034 mm at a 6 mm cut) that rounding, not the motion, decides:
+/// lattices and rasters put whole families of motions exactly tangent to the circle (a
+/// generated raster's last row lies `r_trunc` past the map's edge), and counting the chord
+/// would give their dwell points columns of a few 1e-4 of the peak rate where the point model
+/// has none, which leaves the plan's problem without a useful condition number. The touch is
+/// taken as the tangent point: nothing.
+#[inline]
+fn touches_only(disc: f64, a: f64, r_mm: f64) -> bool {
+    let inner = r_mm * (1.0 - 2.0 * ON_CIRCLE_REL);
+    !(disc > a * (r_mm * r_mm - inner * inner))
+}
 
 /// The rate at offset `(dx_mm, dy_mm)` from a piece's midpoint of `tif` swept uniformly along the
 /// piece from `-half_mm` to `+half_mm` about its midpoint, per second of the piece's time (module
@@ -44,8 +67,11 @@ pub fn piece_rate<T: InfluenceFunction + ?Sized>(
     let (fx, fy) = (dx_mm - cut.0, dy_mm - cut.1);
     let half_b = -(fx * ux + fy * uy);
     let c = fx * fx + fy * fy - cut.2 * cut.2;
+    // `disc / a` is `r^2 - d^2` for the distance `d` of the motion's line from the centre. A
+    // line that comes no nearer than the circle less its rounding only touches the disc
+    // ([`touches_only`]).
     let disc = half_b * half_b - a * c;
-    if !(disc > 0.0) {
+    if touches_only(disc, a, cut.2) {
         return 0.0;
     }
     let root = disc.sqrt();
