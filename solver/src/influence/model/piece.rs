@@ -183,4 +183,44 @@ mod tests {
             assert_eq!(got, piece_rate(&tif, [-half[0], -half[1]], dx, dy));
         }
     }
+
+    /// A motion along a line tangent to the cut circle (a raster row `r_trunc` from a map
+    /// point) removes nothing there, as the point model does; a line one part in 1e3 inside the
+    /// circle crosses it over the chord `2 sqrt(r^2 - d^2)`, and its pieces' rates average to
+    /// the integral over the chord spread over the motion (a fine sum's accuracy).
+    #[test]
+    fn a_tangent_motion_removes_nothing_and_a_near_one_its_chord() {
+        let r = 1.0;
+        let tif = GaussianTif::new(0.4, 10.0, r).unwrap();
+        let half = [0.05, 0.0];
+        // Pieces tiling x in [-0.3, 0.3] at y = d from the map point.
+        let pieces: Vec<f64> = (0..6).map(|k| -0.25 + 0.1 * k as f64).collect();
+        for &x in &pieces {
+            assert_eq!(piece_rate(&tif, half, x, r), 0.0, "tangent piece at {x}");
+            assert_eq!(piece_rate(&tif, half, x, -r), 0.0, "tangent piece at {x}");
+        }
+        let d = r * (1.0 - 1e-3);
+        // The chord inside the (closed) cut circle, integrated by a fine midpoint sum.
+        let half_chord = (tif.support_radius_mm().powi(2) - d * d).sqrt();
+        let on_chord: f64 = (0..FINE)
+            .map(|k| {
+                let x = -half_chord + 2.0 * half_chord * (k as f64 + 0.5) / FINE as f64;
+                tif.rate_nm_per_s(x, d)
+            })
+            .sum::<f64>()
+            * (2.0 * half_chord / FINE as f64);
+        // The mean over the pieces (each a sixth of the motion's 0.6 mm) against the chord's
+        // integral over the motion's length.
+        let mean: f64 = pieces
+            .iter()
+            .map(|&x| piece_rate(&tif, half, x, d))
+            .sum::<f64>()
+            / pieces.len() as f64;
+        let want = on_chord / 0.6;
+        assert!(want > 0.0);
+        assert!(
+            (mean - want).abs() <= FINE_REL_TOL * tif.peak_rate_nm_per_s,
+            "{mean} against {want}"
+        );
+    }
 }

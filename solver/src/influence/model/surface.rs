@@ -368,10 +368,7 @@ where
         .zip(&axes)
         .map(|(&h, &tb)| in_tangent_plane(h, tb))
         .collect();
-    let longest = halves
-        .iter()
-        .map(|h| h[0].hypot(h[1]))
-        .fold(0.0, f64::max);
+    let longest = halves.iter().map(|h| h[0].hypot(h[1])).fold(0.0, f64::max);
     let r2: Vec<f64> = radii_mm.iter().map(|r| (r + longest).powi(2)).collect();
     let sums = super::direct::sum_near(
         map_x_mm,
@@ -543,22 +540,37 @@ mod tests {
         let (mx, my) = grid(40, 0.3);
         let path = serpentine(4, 8);
         let stretches = Stretches::of_path(&path, 0.05).unwrap();
-        let tif = asymmetric_tif();
-        let flat = super::super::swept::assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent)
-            .unwrap();
         let plane = Surface::Plane(Plane {});
-        let curved = assemble_on_surface_swept(
-            &plane,
-            &mx,
-            &my,
-            &path,
-            &stretches,
-            &tif,
-            TifFrame::MachineX,
-            &Silent,
-        )
-        .unwrap();
-        assert_eq!(flat, curved);
+        let on_plane = |tif: &dyn InfluenceFunction| {
+            let flat =
+                super::super::swept::assemble_swept(&mx, &my, &path, &stretches, tif, &Silent)
+                    .unwrap();
+            let curved = assemble_on_surface_swept(
+                &plane,
+                &mx,
+                &my,
+                &path,
+                &stretches,
+                tif,
+                TifFrame::MachineX,
+                &Silent,
+            )
+            .unwrap();
+            assert_eq!(flat, curved);
+        };
+        on_plane(&asymmetric_tif());
+        // A Gaussian cut within the map, its pieces the circle crosses integrated along them: the
+        // same rule in the tangent frame.
+        let cut = GaussianTif::new(0.8, 3.0, 1.3).unwrap();
+        let crossed = (0..path.len()).any(|j| {
+            mx.iter().zip(&my).any(|(&x, &y)| {
+                let (dx, dy) = (x - path.x_mm()[j], y - path.y_mm()[j]);
+                let midpoints = super::super::swept::swept_rate(&cut, stretches.of(j), &[], dx, dy);
+                stretches.rate_nm_per_s(j, &cut, dx, dy) != midpoints
+            })
+        });
+        assert!(crossed, "no piece crosses the cut");
+        on_plane(&cut);
     }
 
     /// On a sphere of radius 500 mm each swept column is, to within the frame's turn over half a
@@ -717,5 +729,40 @@ mod tests {
         let want =
             super::super::direct::removal_nm(&mx, &my, &sx, &sy, &t, &grid_tif, &Silent).unwrap();
         assert_close(&got[0], &want, "plane");
+        // Samples standing for pieces of the motion (half the way to the next sample), a cut
+        // Gaussian integrated along them: on the plane, the plan's piece sums.
+        let halves: Vec<[f64; 2]> = (0..sx.len())
+            .map(|k| {
+                let j = (k + 1).min(sx.len() - 1);
+                let i = j - 1;
+                [0.5 * (sx[j] - sx[i]), 0.5 * (sy[j] - sy[i])]
+            })
+            .collect();
+        let got = removals_on_surface_with(
+            &plane,
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &halves,
+            &t,
+            &[gauss.support_radius_mm()],
+            |_, _, h, u, w| piece_rate(&gauss, h, u, w),
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let want = super::super::direct::piece_removals_nm(
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &halves,
+            &t,
+            &[&gauss],
+            &Silent,
+        )
+        .unwrap();
+        assert_close(&got[0], &want[0], "plane, pieces");
     }
 }
