@@ -484,6 +484,9 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         .map_err(Error::Solver)?;
     let outcome = paying.outcome.clone();
     let mut report = report_of(&prepared, &outcome);
+    if let Some(w) = executed_integration_warning(&outcome) {
+        report.warnings.push(w);
+    }
     if prepared.setup.settings.robust {
         let c = prepared
             .setup
@@ -506,6 +509,26 @@ pub fn solve(prepared: Prepared, job: &Job, observer: &dyn Observer) -> Result<S
         outcome,
         report,
         program_check,
+    })
+}
+
+/// A warning where the executed residual is not resolved by its own integration: the program's
+/// removal integrated at half the step ([`preston_solver::setup::IntegrationResolution`], computed
+/// once by the engine) moves the residual by more than the residual quoted, so the figure is
+/// known only to that change, whatever the solver's status says (a TIF cut where its rate is not
+/// zero, or a grid TIF sampled near its own pitch).
+fn executed_integration_warning(outcome: &Outcome) -> Option<String> {
+    let Some(Ok(e)) = &outcome.executed else {
+        return None;
+    };
+    let r = e.resolution.as_ref()?;
+    (r.rms_change_nm > e.after.rms_nm).then(|| {
+        format!(
+            "the executed residual {:.3} nm RMS is not resolved: the program's removal \
+             integrated at half the {:.4} mm step moves it by {:.3} nm RMS; the plan is known only \
+             to about that (preston simulate --program --sample-step-mm settles it)",
+            e.after.rms_nm, r.sample_step_mm, r.rms_change_nm
+        )
     })
 }
 

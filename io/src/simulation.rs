@@ -14,8 +14,8 @@ use crate::report::{centred_residual_nm, feeds_mm_per_min, Report, SolverLabel};
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
 use preston_solver::dwell::accel::AccelLimits;
 use preston_solver::dwell::{FeedLimits, Problem};
+use preston_solver::influence::Stretches;
 use preston_solver::influence::{InfluenceModel, TifFrame};
-use preston_solver::influence::{Stretches, SweptTif};
 use preston_solver::iterate::{IterationRecord, LoopOutcome};
 use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
@@ -111,7 +111,7 @@ pub fn simulate(
         // a plan with feed limits).
         let stretches = Stretches::of_path(&setup.path, default_sample_step_mm(&setup.tif))
             .map_err(|e| Error::engine(dwell_file, e))?;
-        let kernel = SweptTif::new(setup.tif.clone(), stretches.dominant().0);
+        let kernel = stretches.dominant_kernel(setup.tif.clone());
         setup.swept = Some((stretches, kernel));
     }
     let problem = setup.problem(observer).map_err(at_fault)?.problem;
@@ -170,20 +170,23 @@ pub fn simulate(
 }
 
 /// The motion of dwell times `dwell_s` on `path` under the swept model: each dwell point's
-/// stretch samples carrying its dwell in proportion to their weights.
+/// stretch samples, each the piece it stands for, carrying its dwell in proportion to their
+/// weights.
 fn swept_samples(path: &DwellPath, stretches: &Stretches, dwell_s: &[f64]) -> SampledProgram {
-    let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut x, mut y, mut t, mut h) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for (j, &tj) in dwell_s.iter().enumerate() {
-        for &[dx, dy, w] in stretches.of(j) {
+        for (&[dx, dy, w], &half) in stretches.of(j).iter().zip(stretches.pieces_of(j)) {
             x.push(path.x_mm()[j] + dx);
             y.push(path.y_mm()[j] + dy);
             t.push(tj * w);
+            h.push(half);
         }
     }
     SampledProgram {
         x_mm: x,
         y_mm: y,
         dwell_s: t,
+        half_mm: h,
     }
 }
 

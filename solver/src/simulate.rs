@@ -44,6 +44,10 @@ pub struct SampledProgram {
     pub y_mm: Vec<f64>,
     /// Dwell carried by every sample, s.
     pub dwell_s: Vec<f64>,
+    /// Half of every sample's piece of motion, from the sample to the piece's end, mm, the tool
+    /// at constant feed along it ([`crate::influence::piece_rate`]); empty: the samples are
+    /// points.
+    pub half_mm: Vec<[f64; 2]>,
 }
 
 /// The point at signed arc-length offset `s` (mm) from dwell point `j` along the polyline; beyond
@@ -137,6 +141,7 @@ pub fn sample_program(path: &DwellPath, dwell_s: &[f64], motion: Motion) -> Resu
             x_mm: x.to_vec(),
             y_mm: y.to_vec(),
             dwell_s: dwell_s.to_vec(),
+            half_mm: Vec::new(),
         }),
         Motion::Continuous { samples_per_point } => {
             if samples_per_point == 0 {
@@ -163,6 +168,7 @@ pub fn sample_program(path: &DwellPath, dwell_s: &[f64], motion: Motion) -> Resu
                 x_mm: Vec::with_capacity(total),
                 y_mm: Vec::with_capacity(total),
                 dwell_s: Vec::with_capacity(total),
+                half_mm: Vec::new(),
             };
             for (j, &t) in dwell_s.iter().enumerate() {
                 // The stretch runs from the midpoint of the segment before to the midpoint of
@@ -216,7 +222,8 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
 
 /// Removal (nm) at the map points of dwell samples (positions and the time the tool spends at
 /// each), `h(x) = sum_k TIF(x - s_k) tau_k`, summed directly ([`crate::influence::model::direct`]): no
-/// matrix is held, and the result does not depend on the thread count.
+/// matrix is held, and the result does not depend on the thread count. Samples that stand for
+/// pieces of motion are integrated along them ([`crate::influence::model::piece_rate`]).
 pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -224,6 +231,19 @@ pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     tif: &T,
     observer: &dyn Observer,
 ) -> Result<Vec<f64>> {
+    if !program.half_mm.is_empty() {
+        let mut h = crate::influence::model::direct::piece_removals_nm(
+            map_x_mm,
+            map_y_mm,
+            &program.x_mm,
+            &program.y_mm,
+            &program.half_mm,
+            &program.dwell_s,
+            &[tif],
+            observer,
+        )?;
+        return Ok(h.pop().unwrap_or_default());
+    }
     crate::influence::model::direct::removal_nm(
         map_x_mm,
         map_y_mm,

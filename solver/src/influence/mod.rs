@@ -26,6 +26,7 @@ pub mod swept_correction;
 pub use model::curvature::{
     assemble_curvature_dependent, assemble_curvature_dependent_swept, hertz_tifs_on_surface,
 };
+pub use model::piece::{piece_rate, PieceTif};
 pub use model::surface::{
     assemble_on_surface, assemble_on_surface_swept, assemble_on_surface_with, TifFrame,
     SEARCH_RADIUS_FACTOR,

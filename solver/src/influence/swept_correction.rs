@@ -147,8 +147,7 @@ impl SweptCorrected {
             .iter()
             .map(|&j| (path.x_mm()[j], path.y_mm()[j]))
             .unzip();
-        let radius =
-            (tif.support_radius_mm() + stretches.reach_mm()).max(kernel.support_radius_mm());
+        let radius = stretches.reach_of(tif).max(kernel.support_radius_mm());
         let d = InfluenceMatrix::assemble_with(
             map_x_mm,
             map_y_mm,
@@ -156,11 +155,7 @@ impl SweptCorrected {
             &cy,
             radius,
             |k, _i, dx, dy| {
-                let exact: f64 = stretches
-                    .of(columns[k])
-                    .iter()
-                    .map(|s| s[2] * tif.rate_nm_per_s(dx - s[0], dy - s[1]))
-                    .sum();
+                let exact = stretches.rate_nm_per_s(columns[k], tif, dx, dy);
                 exact - kernel.rate_nm_per_s(dx, dy)
             },
             observer,
@@ -477,7 +472,7 @@ fn transpose_lists(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::influence::model::swept::{assemble_swept, SweptTif};
+    use crate::influence::model::swept::assemble_swept;
     use crate::influence::operator::fft::FftOperator;
     use crate::observer::Silent;
     use crate::tif::GaussianTif;
@@ -527,8 +522,7 @@ mod tests {
         let path = DwellPath::new(dx.clone(), dy.clone()).unwrap();
         let tif = GaussianTif::new(1.0, 5.0, 3.0).unwrap();
         let stretches = Stretches::of_path(&path, 0.05).unwrap();
-        let (samples, _) = stretches.dominant();
-        let kernel = SweptTif::new(tif.clone(), samples);
+        let kernel = stretches.dominant_kernel(tif.clone());
         let fft = FftOperator::new(&mx, &my, &dx, &dy, h, &kernel).unwrap();
         let exact = assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent).unwrap();
         let plain_t: Vec<f64> = (0..dx.len())

@@ -4,7 +4,9 @@
 //! share an offset from the map's lattice as lattice products ([`super::motion_lattice`]); on a curved
 //! part each sample applies the TIF in its own tangent frame of the design surface, oriented as
 //! the plan's columns are ([`crate::influence::model::surface::removals_on_surface_with`]), with the
-//! sample's own Hertz TIF where the TIF depends on the curvature. The same under the
+//! sample's own Hertz TIF where the TIF depends on the curvature. Either way a sample that stands
+//! for a piece of motion is integrated along it by the one rule of every piece
+//! ([`crate::influence::model::piece::piece_rate`]), on a curved part in its tangent frame. The same under the
 //! [`Perturbation`]s of the sensitivity: a tool offset moves the samples in plan, where the
 //! curved part's frames are then taken.
 
@@ -12,7 +14,8 @@ use super::sensitivity::Perturbation;
 use super::{Setup, TifModel};
 use crate::error::Result;
 use crate::influence::model::curvature::{hertz_tifs_on_surface, largest_support_radius_mm};
-use crate::influence::model::direct::removals_nm;
+use crate::influence::model::direct::piece_removals_nm;
+use crate::influence::model::piece::piece_rate;
 use crate::influence::model::surface::removals_on_surface_with;
 use crate::influence::Stretches;
 use crate::observer::Observer;
@@ -83,17 +86,22 @@ impl Setup {
                     Some(h) => at(s).width_factor * largest_support_radius_mm(h),
                 })
                 .collect();
+            // Each sample along the piece it stands for, in its tangent frame, by the flat
+            // part's rule.
             let removals = removals_on_surface_with(
                 surface,
                 mx,
                 my,
                 &x,
                 &y,
+                &samples.half_mm,
                 &samples.dwell_s,
                 &radii,
-                |s, k, u, w| match &hertz {
-                    None => at(s).of(&self.tif).rate_nm_per_s(u, w),
-                    Some(h) => h.get(k).map_or(0.0, |t| at(s).of(t).rate_nm_per_s(u, w)),
+                |s, k, half, u, w| match &hertz {
+                    None => piece_rate(&at(s).of(&self.tif), half, u, w),
+                    Some(h) => h
+                        .get(k)
+                        .map_or(0.0, |t| piece_rate(&at(s).of(t), half, u, w)),
                 },
                 self.tif_frame,
                 observer,
@@ -115,7 +123,7 @@ impl Setup {
 
 /// The removals of the motion `samples` with `tif` in plan (a flat part) at the map points
 /// `(map_x_mm, map_y_mm)` under each of `scenarios`: an offset is the TIF's own shift, so one
-/// traversal serves them all ([`removals_nm`]).
+/// traversal serves them all, each sample along the piece it stands for ([`piece_removals_nm`]).
 pub(super) fn removals_in_plan<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -125,20 +133,42 @@ pub(super) fn removals_in_plan<T: InfluenceFunction + ?Sized>(
     observer: &dyn Observer,
 ) -> Result<Vec<Vec<f64>>> {
     let tifs: Vec<_> = scenarios.iter().map(|p| p.of(tif)).collect();
-    removals_nm(
+    let refs: Vec<&dyn InfluenceFunction> =
+        tifs.iter().map(|t| t as &dyn InfluenceFunction).collect();
+    piece_removals_nm(
         map_x_mm,
         map_y_mm,
         &samples.x_mm,
         &samples.y_mm,
+        &samples.half_mm,
         &samples.dwell_s,
-        &tifs,
+        &refs,
         observer,
     )
 }
 
+/// Appends dwell point `j`'s stretch on `path` carrying `dwell_s` to `motion`: its samples, each
+/// the piece it stands for ([`Stretches::pieces_of`]), carrying the dwell in proportion to their
+/// weights.
+pub(super) fn push_stretch(
+    motion: &mut SampledProgram,
+    path: &DwellPath,
+    stretches: &Stretches,
+    j: usize,
+    dwell_s: f64,
+) {
+    for (&[dx, dy, w], &half) in stretches.of(j).iter().zip(stretches.pieces_of(j)) {
+        motion.x_mm.push(path.x_mm()[j] + dx);
+        motion.y_mm.push(path.y_mm()[j] + dy);
+        motion.dwell_s.push(dwell_s * w);
+        motion.half_mm.push(half);
+    }
+}
+
 /// The motion of dwell times `dwell_s` on `path` at their programmed feeds: each dwell point's
-/// stretch samples carrying its dwell in proportion to their weights (swept model, `stretches`),
-/// or the dwell points themselves (point model).
+/// stretch samples, each the piece it stands for, carrying its dwell in proportion to their
+/// weights (swept model, `stretches`, [`push_stretch`]), or the dwell points themselves (point
+/// model).
 pub(super) fn path_motion(
     path: &DwellPath,
     stretches: Option<&Stretches>,
@@ -146,24 +176,22 @@ pub(super) fn path_motion(
 ) -> SampledProgram {
     match stretches {
         Some(stretches) => {
-            let (mut x, mut y, mut t) = (Vec::new(), Vec::new(), Vec::new());
+            let mut motion = SampledProgram {
+                x_mm: Vec::new(),
+                y_mm: Vec::new(),
+                dwell_s: Vec::new(),
+                half_mm: Vec::new(),
+            };
             for (j, &tj) in dwell_s.iter().enumerate() {
-                for &[dx, dy, w] in stretches.of(j) {
-                    x.push(path.x_mm()[j] + dx);
-                    y.push(path.y_mm()[j] + dy);
-                    t.push(tj * w);
-                }
+                push_stretch(&mut motion, path, stretches, j, tj);
             }
-            SampledProgram {
-                x_mm: x,
-                y_mm: y,
-                dwell_s: t,
-            }
+            motion
         }
         None => SampledProgram {
             x_mm: path.x_mm().to_vec(),
             y_mm: path.y_mm().to_vec(),
             dwell_s: dwell_s.to_vec(),
+            half_mm: Vec::new(),
         },
     }
 }

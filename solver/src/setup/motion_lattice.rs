@@ -5,27 +5,31 @@
 //! into the same pieces): a sample at `p_k = q_k + delta` (`q_k` a lattice point) removes
 //! `f(x_i - q_k - delta) tau_k` at map point `x_i`, so the samples that share an offset `delta`
 //! are one lattice convolution of their times with the kernel `K[d] = f(d h - delta)`, and every
-//! scenario of the sensitivity is the same product with its own perturbed kernel. Samples are
+//! scenario of the sensitivity is the same product with its own perturbed kernel. A sample that
+//! stands for a piece of motion of a footprint cut where its rate is not zero is integrated
+//! along its piece ([`PieceTif`]): the kernel is then the footprint swept along the piece, and
+//! the samples share one only when their pieces agree too (up to direction). Samples are
 //! grouped by their offset from the lattice through the map's lowest x and y (the
-//! [`FftOperator`]'s) to within [`CLASS_TOL_MM`]; a group whose direct sum costs more than its
+//! [`FftOperator`]'s), and their piece, to within [`CLASS_TOL_MM`]; a group whose direct sum costs more than its
 //! lattice products ([`lattice_pays`]) is served by one operator for all groups (the union of
 //! their cells), each group and scenario one kernel transform and one convolution; the other
-//! samples are summed directly ([`removals_nm`]). The result is the direct sum of
-//! [`super::contact::removals_in_plan`] to rounding and to the grouping's tolerance: each sample
-//! of a group is taken at the group's offset, at most [`CLASS_TOL_MM`] from its own.
+//! samples are summed directly ([`piece_removals_nm`]). The result is the direct sum to rounding
+//! and to the grouping's tolerance: each sample of a group is taken at the group's offset and
+//! piece, at most [`CLASS_TOL_MM`] from its own.
 
 use super::sensitivity::Perturbation;
 use crate::error::Result;
-use crate::influence::model::direct::removals_nm;
+use crate::influence::model::direct::piece_removals_nm;
+use crate::influence::model::piece::{piece_reach_mm, PieceTif};
 use crate::influence::operator::fft::FftOperator;
 use crate::observer::Observer;
 use crate::simulate::SampledProgram;
 use crate::tif::InfluenceFunction;
 use std::collections::HashMap;
 
-/// Samples whose offsets from the lattice agree to this, mm, share one kernel: the largest move
-/// of a sample to its group's offset (a removal error of at most this times the TIF's steepest
-/// slope per second of the sample's time).
+/// Samples whose offsets from the lattice (and pieces' halves) agree to this, mm, share one
+/// kernel: the largest move of a sample to its group's offset (a removal error of at most this
+/// times the TIF's steepest slope per second of the sample's time).
 pub const CLASS_TOL_MM: f64 = 1e-9;
 
 /// Work of one lattice product per cell and `log2` of the cells, in the units of one direct
@@ -43,6 +47,8 @@ pub(super) fn lattice_pays(samples: usize, pairs_per_sample: f64, cells: f64) ->
 /// each lattice cell (cell indices relative to the lattice origin).
 struct Group {
     offset_mm: (f64, f64),
+    /// Half of the group's piece, mm (zero: points, or a footprint without a cut disc).
+    half_mm: [f64; 2],
     samples: usize,
     cells: Vec<(i64, i64)>,
     time_s: Vec<f64>,
@@ -51,7 +57,7 @@ struct Group {
 
 /// The removals of the motion `samples` with `tif` in plan under each of `scenarios` at the map
 /// points `(map_x_mm, map_y_mm)`, nm, in the scenarios' order (module documentation). The
-/// direct sum of [`removals_nm`] wherever the map is not on a lattice or no group pays.
+/// direct sum of [`piece_removals_nm`] wherever the map is not on a lattice or no group pays.
 pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -62,8 +68,10 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
 ) -> Result<Vec<Vec<f64>>> {
     let direct = |s: &SampledProgram| {
         let tifs: Vec<_> = scenarios.iter().map(|p| p.of(tif)).collect();
-        removals_nm(
-            map_x_mm, map_y_mm, &s.x_mm, &s.y_mm, &s.dwell_s, &tifs, observer,
+        let refs: Vec<&dyn InfluenceFunction> =
+            tifs.iter().map(|t| t as &dyn InfluenceFunction).collect();
+        piece_removals_nm(
+            map_x_mm, map_y_mm, &s.x_mm, &s.y_mm, &s.half_mm, &s.dwell_s, &refs, observer,
         )
     };
     let n = samples.dwell_s.len();
@@ -71,15 +79,31 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
         Some(p) if p > 0.0 && !scenarios.is_empty() && n > 0 => p,
         _ => return direct(samples),
     };
-    if samples.x_mm.len() != n || samples.y_mm.len() != n {
+    if samples.x_mm.len() != n
+        || samples.y_mm.len() != n
+        || !(samples.half_mm.is_empty() || samples.half_mm.len() == n)
+    {
         return direct(samples);
     }
+    // The pieces matter only for a footprint with a cut disc; a piece and its reverse are one.
+    let pieces = !samples.half_mm.is_empty() && tif.cut_disc_mm().is_some();
+    let half_of = |k: usize| -> [f64; 2] {
+        if !pieces {
+            return [0.0, 0.0];
+        }
+        let h = samples.half_mm[k];
+        if h[0] < 0.0 || (h[0] == 0.0 && h[1] < 0.0) {
+            [-h[0], -h[1]]
+        } else {
+            h
+        }
+    };
     let x0 = map_x_mm.iter().copied().fold(f64::INFINITY, f64::min);
     let y0 = map_y_mm.iter().copied().fold(f64::INFINITY, f64::min);
     // Groups in the order of their first sample; each sample's group, or none (off any usable
     // lattice cell: a non-finite position or one beyond the lattice's index range).
     let mut groups: Vec<Group> = Vec::new();
-    let mut group_of: HashMap<(i64, i64), usize> = HashMap::new();
+    let mut group_of: HashMap<[i64; 4], usize> = HashMap::new();
     let mut sample_group: Vec<Option<(usize, (i64, i64))>> = Vec::with_capacity(n);
     let cell_and_offset = |v: f64, origin: f64| -> Option<(i64, f64)> {
         let u = ((v - origin) / pitch_mm).round();
@@ -93,13 +117,12 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
             sample_group.push(None);
             continue;
         };
-        let key = (
-            (ox / CLASS_TOL_MM).round() as i64,
-            (oy / CLASS_TOL_MM).round() as i64,
-        );
+        let half_mm = half_of(k);
+        let key = [ox, oy, half_mm[0], half_mm[1]].map(|v| (v / CLASS_TOL_MM).round() as i64);
         let g = *group_of.entry(key).or_insert_with(|| {
             groups.push(Group {
                 offset_mm: (ox, oy),
+                half_mm,
                 samples: 0,
                 cells: Vec::new(),
                 time_s: Vec::new(),
@@ -112,10 +135,15 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
     }
     // The lattice the products would take: the map's and the samples' cells padded by the
     // widest kernel's reach.
+    let longest_half = groups
+        .iter()
+        .map(|g| piece_reach_mm(tif, g.half_mm))
+        .fold(0.0, f64::max);
     let widest_mm = scenarios
         .iter()
         .map(|p| p.of(tif).support_radius_mm())
         .fold(0.0, f64::max)
+        + longest_half
         + pitch_mm;
     let reach = (widest_mm / pitch_mm).ceil();
     let span = |v: &mut dyn Iterator<Item = f64>| {
@@ -139,6 +167,7 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
         x_mm: Vec::new(),
         y_mm: Vec::new(),
         dwell_s: Vec::new(),
+        half_mm: Vec::new(),
     };
     for (k, sg) in sample_group.iter().enumerate() {
         match *sg {
@@ -155,6 +184,9 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
                 rest.x_mm.push(samples.x_mm[k]);
                 rest.y_mm.push(samples.y_mm[k]);
                 rest.dwell_s.push(samples.dwell_s[k]);
+                if let Some(&h) = samples.half_mm.get(k) {
+                    rest.half_mm.push(h);
+                }
             }
         }
     }
@@ -186,25 +218,27 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
             })
             .collect()
     };
-    let all: Vec<Perturbation> = groups
+    let all: Vec<PieceTif<_>> = groups
         .iter()
         .zip(&on_lattice)
         .filter(|&(_, &l)| l)
-        .flat_map(|(g, _)| kernels(g))
+        .flat_map(|(g, _)| {
+            kernels(g)
+                .into_iter()
+                .map(|p| PieceTif::new(p.of(tif), g.half_mm))
+        })
         .collect();
-    let Some(widest) = all.iter().max_by(|a, b| {
-        a.of(tif)
-            .support_radius_mm()
-            .total_cmp(&b.of(tif).support_radius_mm())
-    }) else {
+    let Some(widest) = all
+        .iter()
+        .max_by(|a, b| a.support_radius_mm().total_cmp(&b.support_radius_mm()))
+    else {
         return direct(samples);
     };
-    let operator =
-        match FftOperator::for_products(map_x_mm, map_y_mm, &ux, &uy, pitch_mm, &widest.of(tif)) {
-            Ok(op) => op,
-            // A map off the lattice after all, or a lattice beyond the memory budget.
-            Err(_) => return direct(samples),
-        };
+    let operator = match FftOperator::for_products(map_x_mm, map_y_mm, &ux, &uy, pitch_mm, widest) {
+        Ok(op) => op,
+        // A map off the lattice after all, or a lattice beyond the memory budget.
+        Err(_) => return direct(samples),
+    };
     let m = map_x_mm.len();
     let mut out = vec![vec![0.0; m]; scenarios.len()];
     for (group, _) in groups.iter().zip(&on_lattice).filter(|&(_, &l)| l) {
@@ -214,7 +248,10 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
                 t[u] = time;
             }
         }
-        let perturbed: Vec<_> = kernels(group).iter().map(|p| p.of(tif)).collect();
+        let perturbed: Vec<_> = kernels(group)
+            .iter()
+            .map(|p| PieceTif::new(p.of(tif), group.half_mm))
+            .collect();
         let refs: Vec<&dyn InfluenceFunction> = perturbed
             .iter()
             .map(|k| k as &dyn InfluenceFunction)
@@ -237,6 +274,7 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::influence::model::direct::removals_nm;
     use crate::observer::Silent;
     use crate::tif::{GaussianTif, GridTif};
 
@@ -259,6 +297,7 @@ mod tests {
             x_mm: Vec::new(),
             y_mm: Vec::new(),
             dwell_s: Vec::new(),
+            half_mm: Vec::new(),
         };
         let mut push = |x: f64, y: f64, t: f64| {
             s.x_mm.push(x);
@@ -341,6 +380,38 @@ mod tests {
         let scen = scenarios();
         let tifs: Vec<_> = scen.iter().map(|q| q.of(&tif)).collect();
         let want = removals_nm(&mx, &my, &s.x_mm, &s.y_mm, &s.dwell_s, &tifs, &Silent).unwrap();
+        let got = removals_in_plan_on_lattice(&mx, &my, &s, &tif, &scen, &Silent).unwrap();
+        assert_close(&got, &want);
+    }
+
+    /// A cut Gaussian along pieces of motion (every seventh run the other way): the lattice
+    /// products of the pieces are the direct sums of the pieces integrated along them.
+    #[test]
+    fn gaussian_pieces_lattice_products_are_the_direct_piece_sums() {
+        let pitch = 0.25;
+        let (mx, my, mut s) = raster_motion(pitch);
+        s.half_mm = (0..s.dwell_s.len())
+            .map(|k| {
+                let h = if k % 7 == 0 {
+                    -pitch / 6.0
+                } else {
+                    pitch / 6.0
+                };
+                [h, 0.0]
+            })
+            .collect();
+        let tif = GaussianTif::new(0.7, 20.0, 2.1).unwrap();
+        let scen = scenarios();
+        let tifs: Vec<_> = scen.iter().map(|q| q.of(&tif)).collect();
+        let refs: Vec<&dyn InfluenceFunction> =
+            tifs.iter().map(|t| t as &dyn InfluenceFunction).collect();
+        let want = piece_removals_nm(
+            &mx, &my, &s.x_mm, &s.y_mm, &s.half_mm, &s.dwell_s, &refs, &Silent,
+        )
+        .unwrap();
+        let points = removals_nm(&mx, &my, &s.x_mm, &s.y_mm, &s.dwell_s, &tifs, &Silent).unwrap();
+        // The pieces differ from their midpoints at the cut.
+        assert!(want[0].iter().zip(&points[0]).any(|(a, b)| a != b));
         let got = removals_in_plan_on_lattice(&mx, &my, &s, &tif, &scen, &Silent).unwrap();
         assert_close(&got, &want);
     }

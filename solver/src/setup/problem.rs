@@ -5,6 +5,7 @@ use super::off_lattice::OffLatticeOperator;
 use super::sensitivity::{Perturbation, PerturbedTif};
 use super::*;
 use crate::influence::model::curvature::hertz_tifs_on_surface;
+use crate::influence::model::piece::piece_rate;
 use crate::influence::model::surface::{assemble_on_surface_swept_with, assemble_on_surface_with};
 use crate::influence::operator::stacked::ScenarioOperators;
 use crate::influence::operator::InfluenceOperator;
@@ -286,16 +287,24 @@ impl Setup {
                     .iter()
                     .map(|t| at_tool.of(t).support_radius_mm())
                     .fold(0.0, f64::max);
-                let kernel = |j: usize, u: f64, w: f64| {
+                let piece = |j: usize, half: [f64; 2], u: f64, w: f64| {
                     tifs.get(j)
-                        .map_or(0.0, |t| at_tool.of(t).rate_nm_per_s(u, w))
+                        .map_or(0.0, |t| piece_rate(&at_tool.of(t), half, u, w))
                 };
                 match stretches {
                     Some(st) => assemble_on_surface_swept_with(
-                        surface, mx, my, path, st, radius, kernel, frame, observer,
+                        surface, mx, my, path, st, radius, piece, frame, observer,
                     ),
                     None => assemble_on_surface_with(
-                        surface, mx, my, px, py, radius, kernel, frame, observer,
+                        surface,
+                        mx,
+                        my,
+                        px,
+                        py,
+                        radius,
+                        |j, u, w| piece(j, [0.0, 0.0], u, w),
+                        frame,
+                        observer,
                     ),
                 }
             }
@@ -567,7 +576,7 @@ impl Setup {
     ) -> Option<SweptTif<PerturbedTif<'a, Tif>>> {
         self.swept
             .as_ref()
-            .map(|(stretches, _)| SweptTif::new(tif.clone(), stretches.dominant().0))
+            .map(|(stretches, _)| stretches.dominant_kernel(tif.clone()))
     }
 
     /// The lattice operator `build` over `rows` and the dwell points, map on the lattice of

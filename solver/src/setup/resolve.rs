@@ -138,7 +138,7 @@ impl Setup {
             (InfluenceModel::Swept, Some(_)) => {
                 let stretches = Stretches::of_path(&path, default_sample_step_mm(&tif))
                     .at(SetupInput::Dwell)?;
-                let kernel = SweptTif::new(tif.clone(), stretches.dominant().0);
+                let kernel = stretches.dominant_kernel(tif.clone());
                 Some((stretches, kernel))
             }
             _ => None,

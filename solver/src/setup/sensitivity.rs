@@ -106,6 +106,13 @@ impl<T: InfluenceFunction + ?Sized> InfluenceFunction for PerturbedTif<'_, T> {
     fn nominal_radius_mm(&self) -> f64 {
         self.width_factor * self.tif.nominal_radius_mm()
     }
+
+    fn cut_disc_mm(&self) -> Option<(f64, f64, f64)> {
+        let w = self.width_factor;
+        self.tif
+            .cut_disc_mm()
+            .map(|(x, y, r)| (w * x + self.offset_mm.0, w * y + self.offset_mm.1, w * r))
+    }
 }
 
 /// One scenario of how the tool acts: its TIF `width_factor` times wider (volume kept), its rate
@@ -239,6 +246,7 @@ mod tests {
             x_mm: (0..41).map(|k| -4.0 + 0.2 * k as f64).collect(),
             y_mm: vec![0.0; 41],
             dwell_s: vec![1.0; 41],
+            half_mm: Vec::new(),
         };
         let (mut mx, mut my) = (Vec::new(), Vec::new());
         for i in 0..21 {

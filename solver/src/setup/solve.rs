@@ -84,14 +84,11 @@ impl Setup {
             x_mm: Vec::new(),
             y_mm: Vec::new(),
             dwell_s: Vec::new(),
+            half_mm: Vec::new(),
         };
         if let Some((stretches, _)) = &self.swept {
             for &j in &own {
-                for &[dx, dy, w] in stretches.of(j) {
-                    samples.x_mm.push(self.path.x_mm()[j] + dx);
-                    samples.y_mm.push(self.path.y_mm()[j] + dy);
-                    samples.dwell_s.push(dwell_s[j] * w);
-                }
+                super::contact::push_stretch(&mut samples, &self.path, stretches, j, dwell_s[j]);
                 shared[j] = 0.0;
             }
         }

@@ -89,6 +89,12 @@ impl InfluenceFunction for GaussianTif {
         self.truncation_radius_mm * (1.0 + ON_CIRCLE_REL)
     }
 
+    /// The closed truncation disc: the rate jumps from `peak exp(-r_trunc^2 / 2 sigma^2)` to
+    /// zero on its circle.
+    fn cut_disc_mm(&self) -> Option<(f64, f64, f64)> {
+        Some((0.0, 0.0, self.support_radius_mm()))
+    }
+
     /// The truncation radius itself: generated rasters reach exactly `r_trunc` past the map.
     fn nominal_radius_mm(&self) -> f64 {
         self.truncation_radius_mm

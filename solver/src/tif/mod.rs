@@ -41,6 +41,14 @@ pub trait InfluenceFunction: Send + Sync {
     fn nominal_radius_mm(&self) -> f64 {
         self.support_radius_mm()
     }
+
+    /// Where the footprint is cut: the disc outside which the rate is zero, when the rate jumps
+    /// to zero on its circle (a truncated Gaussian), `(centre_x_mm, centre_y_mm, radius_mm)`.
+    /// `None` for a footprint that falls continuously to zero (the default): integrals of it
+    /// along a path need no care at its edge.
+    fn cut_disc_mm(&self) -> Option<(f64, f64, f64)> {
+        None
+    }
 }
 
 /// The TIF models a job can name.
@@ -84,6 +92,13 @@ impl InfluenceFunction for Tif {
         }
     }
 
+    fn cut_disc_mm(&self) -> Option<(f64, f64, f64)> {
+        match self {
+            Tif::Grid(g) => g.cut_disc_mm(),
+            Tif::Gaussian(g) => g.cut_disc_mm(),
+        }
+    }
+
     fn nominal_radius_mm(&self) -> f64 {
         match self {
             Tif::Grid(g) => g.nominal_radius_mm(),
@@ -114,6 +129,10 @@ impl<T: InfluenceFunction + ?Sized> InfluenceFunction for ScaledTif<'_, T> {
 
     fn support_radius_mm(&self) -> f64 {
         self.inner.support_radius_mm()
+    }
+
+    fn cut_disc_mm(&self) -> Option<(f64, f64, f64)> {
+        self.inner.cut_disc_mm()
     }
 
     fn nominal_radius_mm(&self) -> f64 {

@@ -8,6 +8,7 @@
 //! count. With a constant curvature (plane, sphere) every column equals the shift-invariant
 //! assembly with the one TIF.
 
+use super::piece::piece_rate;
 use super::surface::{assemble_on_surface_swept_with, assemble_on_surface_with, TifFrame};
 use super::swept::Stretches;
 use crate::error::{Error, Result};
@@ -102,7 +103,7 @@ pub fn assemble_curvature_dependent_swept(
         path,
         stretches,
         radius,
-        |j, u, w| tifs.get(j).map_or(0.0, |t| t.rate_nm_per_s(u, w)),
+        |j, half, u, w| tifs.get(j).map_or(0.0, |t| piece_rate(t, half, u, w)),
         frame,
         observer,
     )
@@ -283,9 +284,9 @@ mod tests {
                 &path,
                 &stretches,
                 tifs[j].support_radius_mm(),
-                |k, u, w| {
+                |k, half, u, w| {
                     if k == j {
-                        tifs[j].rate_nm_per_s(u, w)
+                        piece_rate(&tifs[j], half, u, w)
                     } else {
                         0.0
                     }

@@ -8,6 +8,7 @@
 //! order, so the result does not depend on the thread count; it equals the assembled `R t` to
 //! rounding (the terms are the same, the order differs).
 
+use super::piece::piece_rate;
 use super::point::StripIndex;
 use crate::error::{Error, Result};
 use crate::observer::{Observer, Stage};
@@ -127,6 +128,74 @@ pub fn removals_nm<T: InfluenceFunction>(
             for ((sum, tif), r2) in sums.iter_mut().zip(tifs).zip(&r2) {
                 if d2 <= *r2 {
                     *sum += tif.rate_nm_per_s(dx, dy) * dwell_s[j];
+                }
+            }
+        },
+    );
+    crate::observer::check_cancelled(observer)?;
+    Ok(sums)
+}
+
+/// `h_k`, nm, for each TIF `tifs[k]` of dwell samples that stand for pieces of motion, `half_mm`
+/// from each sample to its piece's end, the tool at constant feed along each: every pair summed
+/// by [`piece_rate`] (a footprint cut where its rate is not zero integrated exactly where its
+/// cut circle crosses a piece). No pieces (`half_mm` empty: points), or a footprint without a
+/// cut disc: the same terms as [`removals_nm`].
+#[allow(clippy::too_many_arguments)]
+pub fn piece_removals_nm<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    half_mm: &[[f64; 2]],
+    dwell_s: &[f64],
+    tifs: &[&T],
+    observer: &dyn Observer,
+) -> Result<Vec<Vec<f64>>> {
+    let (m, n, k) = (map_x_mm.len(), dwell_x_mm.len(), tifs.len());
+    check_lengths(m, n, map_y_mm, dwell_y_mm, dwell_s)?;
+    if !half_mm.is_empty() && half_mm.len() != n {
+        return Err(Error::LengthMismatch {
+            what: "dwell half_mm",
+            got: half_mm.len(),
+            expected: n,
+        });
+    }
+    // A cut footprint reaches a map point from a piece whose midpoint is up to the piece's
+    // half farther than its support radius.
+    let longest_mm = half_mm.iter().map(|h| h[0].hypot(h[1])).fold(0.0, f64::max);
+    let r2: Vec<f64> = tifs
+        .iter()
+        .map(|t| {
+            let along = if t.cut_disc_mm().is_some() {
+                longest_mm
+            } else {
+                0.0
+            };
+            (t.support_radius_mm() + along).powi(2)
+        })
+        .collect();
+    let radius = r2.iter().copied().fold(0.0, f64::max).sqrt();
+    if !(radius.is_finite() && radius > 0.0) || r2.iter().any(|r| !(*r > 0.0)) {
+        return Err(Error::invalid(
+            "TIF support radius",
+            format!("must be positive and finite, got {radius} mm"),
+        ));
+    }
+    let sums = sum_near(
+        map_x_mm,
+        map_y_mm,
+        dwell_x_mm,
+        dwell_y_mm,
+        k,
+        radius,
+        observer,
+        |_, j, dx, dy, sums| {
+            let d2 = dx * dx + dy * dy;
+            for ((sum, tif), r2) in sums.iter_mut().zip(tifs).zip(&r2) {
+                if d2 <= *r2 {
+                    let half = half_mm.get(j).copied().unwrap_or([0.0, 0.0]);
+                    *sum += piece_rate(*tif, half, dx, dy) * dwell_s[j];
                 }
             }
         },

@@ -9,10 +9,13 @@
 //!   frame;
 //! - [`curvature`]: one Hertzian TIF per dwell point from the local principal curvatures;
 //! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
-//!   programs).
+//!   programs);
+//! - [`piece`]: the one rule every swept column and sampled motion integrates a straight piece of
+//!   motion by (its midpoint, and exactly where a truncated TIF's cut circle crosses it).
 
 pub mod curvature;
 pub mod direct;
+pub mod piece;
 pub mod point;
 pub mod surface;
 pub mod swept;

@@ -6,7 +6,8 @@
 //! `R[i, j] = tif((P_i - S_j) . t_j, (P_i - S_j) . b_j)`. On the plane `z = 0` with
 //! [`TifFrame::MachineX`] this is bit for bit [`InfluenceMatrix::assemble`].
 
-use super::swept::Stretches;
+use super::piece::piece_rate;
+use super::swept::{swept_sum, Stretches};
 use crate::error::{Error, Result};
 use crate::influence::operator::matrix::InfluenceMatrix;
 use crate::observer::Observer;
@@ -193,12 +194,15 @@ where
 }
 
 /// The swept model on a curved part: column `j` is the TIF averaged along dwell point `j`'s
-/// stretch ([`Stretches`]), each sample placed in `j`'s tangent plane (its plan offset lifted onto
-/// the plane along z) and the TIF applied in `j`'s frame, `R[i, j] = Σ_s w_s tif(u_ij - u_s,
-/// v_ij - v_s)` with `(u_ij, v_ij)` as in [`assemble_on_surface`] and `(u_s, v_s)` the sample's
-/// tangent-plane coordinates. Over a stretch (half a segment either side) the frame turns by
-/// `ds / rho` for curvature radius `rho`, which this neglects. On a plane with
-/// [`TifFrame::MachineX`] it is [`super::assemble_swept`] bit for bit.
+/// stretch ([`Stretches`]), each sample and the piece it stands for ([`Stretches::pieces_of`])
+/// placed in `j`'s tangent plane (their plan offsets lifted onto the plane along z) and the TIF
+/// applied in `j`'s frame, `R[i, j] = Σ_s w_s piece(h_s; u_ij - u_s, v_ij - v_s)` with
+/// `(u_ij, v_ij)` as in [`assemble_on_surface`], `(u_s, v_s)` the sample's and `h_s` its piece's
+/// half in tangent-plane coordinates, and `piece` the flat part's rule ([`piece_rate`]: a TIF
+/// cut where its rate is not zero integrated exactly where the cut circle crosses a piece).
+/// Over a stretch (half a segment either side) the frame turns by `ds / rho` for curvature
+/// radius `rho`, which this neglects. On a plane with [`TifFrame::MachineX`] it is
+/// [`super::assemble_swept`] bit for bit (the same sum, [`swept_sum`]).
 #[allow(clippy::too_many_arguments)]
 pub fn assemble_on_surface_swept<T: InfluenceFunction + ?Sized>(
     surface: &Surface,
@@ -217,15 +221,32 @@ pub fn assemble_on_surface_swept<T: InfluenceFunction + ?Sized>(
         path,
         stretches,
         tif.support_radius_mm(),
-        |_j, u, w| tif.rate_nm_per_s(u, w),
+        |_j, half, u, w| piece_rate(tif, half, u, w),
         frame,
         observer,
     )
 }
 
-/// As [`assemble_on_surface_swept`] with a per-dwell-point kernel `rate(j, u_mm, w_mm)` (nm/s)
-/// of the tangent-plane offset, zero beyond `support_radius_mm` (the largest over all `j`):
-/// `R[i, j] = sum_s w_s rate(j, u_ij - u_s, v_ij - v_s)`.
+/// A plan offset `d` lifted along z onto the plane through the origin normal to `t x b`, in the
+/// plane's coordinates `(d . t, d . b)`: a stretch's samples and pieces in a dwell point's
+/// tangent frame.
+#[inline]
+fn in_tangent_plane(d: [f64; 2], (t, b): ([f64; 3], [f64; 3])) -> [f64; 2] {
+    let normal = cross(t, b);
+    let dz = if normal[2] != 0.0 {
+        -(normal[0] * d[0] + normal[1] * d[1]) / normal[2]
+    } else {
+        0.0
+    };
+    let d = [d[0], d[1], dz];
+    [dot(d, t), dot(d, b)]
+}
+
+/// As [`assemble_on_surface_swept`] with a per-dwell-point kernel `piece(j, h, u_mm, w_mm)`
+/// (nm/s): column `j`'s TIF at the tangent-plane offset `(u, w)` from the midpoint of a piece of
+/// half `h` (tangent-plane coordinates, mm), swept along it ([`piece_rate`] of that TIF), zero
+/// beyond `support_radius_mm` (the largest over all `j`) plus the piece's half:
+/// `R[i, j] = sum_s w_s piece(j, h_s, u_ij - u_s, v_ij - v_s)`.
 #[allow(clippy::too_many_arguments)]
 pub fn assemble_on_surface_swept_with<K>(
     surface: &Surface,
@@ -234,12 +255,12 @@ pub fn assemble_on_surface_swept_with<K>(
     path: &DwellPath,
     stretches: &Stretches,
     support_radius_mm: f64,
-    kernel: K,
+    piece: K,
     frame: TifFrame,
     observer: &dyn Observer,
 ) -> Result<InfluenceMatrix>
 where
-    K: Fn(usize, f64, f64) -> f64 + Sync,
+    K: Fn(usize, [f64; 2], f64, f64) -> f64 + Sync,
 {
     if stretches.len() != path.len() {
         return Err(Error::LengthMismatch {
@@ -251,21 +272,22 @@ where
     let (_, axes) = dwell_frames(surface, path.x_mm(), path.y_mm(), frame)?;
     let mut offsets = Vec::with_capacity(path.len() + 1);
     let mut local: Vec<[f64; 3]> = Vec::new();
+    let mut halves: Vec<[f64; 2]> = Vec::new();
     offsets.push(0);
-    for (j, &(t, b)) in axes.iter().enumerate() {
-        let normal = cross(t, b);
-        for s in stretches.of(j) {
-            let dz = if normal[2] != 0.0 {
-                -(normal[0] * s[0] + normal[1] * s[1]) / normal[2]
-            } else {
-                0.0
-            };
-            let d = [s[0], s[1], dz];
-            local.push([dot(d, t), dot(d, b), s[2]]);
+    for (j, &tb) in axes.iter().enumerate() {
+        for (s, &h) in stretches.of(j).iter().zip(stretches.pieces_of(j)) {
+            let [u, w] = in_tangent_plane([s[0], s[1]], tb);
+            local.push([u, w, s[2]]);
+            halves.push(in_tangent_plane(h, tb));
         }
         offsets.push(local.len());
     }
-    let reach = local.iter().map(|l| l[0].hypot(l[1])).fold(0.0, f64::max);
+    // The pieces' ends: a piece whose TIF is cut is integrated up to them.
+    let reach = local
+        .iter()
+        .zip(&halves)
+        .map(|(l, h)| l[0].hypot(l[1]) + h[0].hypot(h[1]))
+        .fold(0.0, f64::max);
     assemble_on_surface_with(
         surface,
         map_x_mm,
@@ -274,10 +296,10 @@ where
         path.y_mm(),
         support_radius_mm + reach,
         |j, u, w| {
-            local[offsets[j]..offsets[j + 1]]
-                .iter()
-                .map(|l| l[2] * kernel(j, u - l[0], w - l[1]))
-                .sum()
+            let (from, to) = (offsets[j], offsets[j + 1]);
+            swept_sum(&local[from..to], &halves[from..to], u, w, |h, a, b| {
+                piece(j, h, a, b)
+            })
         },
         frame,
         observer,
@@ -286,11 +308,17 @@ where
 
 /// The removal of dwell times `dwell_s` at points on a curved part without assembling `R` (a
 /// program's contact motion: tens of thousands of samples used once), for `radii_mm.len()`
-/// kernels in one traversal: `h_s,i = sum_k t_k kernel(s, k, u_ik, w_ik)` over the points `k`
-/// with `u_ik^2 + w_ik^2 <= radii_mm[s]^2`, `(u_ik, w_ik)` the offset of map point `i` in point
-/// `k`'s tangent frame as in [`assemble_on_surface`] (each sample its own frame, oriented by
-/// `frame`: along the motion for [`TifFrame::PathTangent`]). On a plane with
-/// [`TifFrame::MachineX`] it is [`super::direct::removals_nm`] to rounding.
+/// kernels in one traversal: `h_s,i = sum_k t_k piece(s, k, h_k, u_ik, w_ik)` over the points
+/// `k` with `u_ik^2 + w_ik^2 <= (radii_mm[s] + |h|_max)^2`, `(u_ik, w_ik)` the offset of map
+/// point `i` in point `k`'s tangent frame as in [`assemble_on_surface`] (each sample its own
+/// frame, oriented by `frame`: along the motion for [`TifFrame::PathTangent`]) and `h_k` the
+/// half of the piece of motion sample `k` stands for, `half_mm[k]` in plan lifted into that
+/// frame as a swept column's pieces are ([`assemble_on_surface_swept_with`]; zero, points, when
+/// `half_mm` is empty). `piece(s, k, h, u, w)` is kernel `s`'s TIF for sample `k` at `(u, w)`
+/// along the piece of half `h` ([`piece_rate`]), `radii_mm[s]` its support radius (a TIF cut
+/// where its rate is not zero reaches the piece's half farther; the rate is zero beyond the
+/// support, so the longest half is added to every radius). On a plane with
+/// [`TifFrame::MachineX`] it is [`super::direct::piece_removals_nm`] to rounding.
 #[allow(clippy::too_many_arguments)]
 pub fn removals_on_surface_with<K>(
     surface: &Surface,
@@ -298,14 +326,15 @@ pub fn removals_on_surface_with<K>(
     map_y_mm: &[f64],
     dwell_x_mm: &[f64],
     dwell_y_mm: &[f64],
+    half_mm: &[[f64; 2]],
     dwell_s: &[f64],
     radii_mm: &[f64],
-    kernel: K,
+    piece: K,
     frame: TifFrame,
     observer: &dyn Observer,
 ) -> Result<Vec<Vec<f64>>>
 where
-    K: Fn(usize, usize, f64, f64) -> f64 + Sync,
+    K: Fn(usize, usize, [f64; 2], f64, f64) -> f64 + Sync,
 {
     super::direct::check_lengths(
         map_x_mm.len(),
@@ -314,6 +343,13 @@ where
         dwell_y_mm,
         dwell_s,
     )?;
+    if !half_mm.is_empty() && half_mm.len() != dwell_x_mm.len() {
+        return Err(Error::LengthMismatch {
+            what: "dwell half_mm",
+            got: half_mm.len(),
+            expected: dwell_x_mm.len(),
+        });
+    }
     let radius = radii_mm.iter().copied().fold(0.0, f64::max);
     if !(radius.is_finite() && radius > 0.0) || radii_mm.iter().any(|r| !(*r > 0.0)) {
         return Err(Error::invalid(
@@ -327,14 +363,20 @@ where
         .map(|(&x, &y)| surface.sag_mm(x, y))
         .collect::<Result<_>>()?;
     let (origin, axes) = dwell_frames(surface, dwell_x_mm, dwell_y_mm, frame)?;
-    let r2: Vec<f64> = radii_mm.iter().map(|r| r * r).collect();
+    let halves: Vec<[f64; 2]> = half_mm
+        .iter()
+        .zip(&axes)
+        .map(|(&h, &tb)| in_tangent_plane(h, tb))
+        .collect();
+    let longest = halves.iter().map(|h| h[0].hypot(h[1])).fold(0.0, f64::max);
+    let r2: Vec<f64> = radii_mm.iter().map(|r| (r + longest).powi(2)).collect();
     let sums = super::direct::sum_near(
         map_x_mm,
         map_y_mm,
         dwell_x_mm,
         dwell_y_mm,
         radii_mm.len(),
-        radius * SEARCH_RADIUS_FACTOR,
+        (radius + longest) * SEARCH_RADIUS_FACTOR,
         observer,
         |i, k, dx, dy, sums| {
             let (t, b) = axes[k];
@@ -342,9 +384,10 @@ where
             let u = dx * t[0] + dy * t[1] + dz * t[2];
             let w = dx * b[0] + dy * b[1] + dz * b[2];
             let d2 = u * u + w * w;
+            let half = halves.get(k).copied().unwrap_or([0.0, 0.0]);
             for (s, (sum, r2)) in sums.iter_mut().zip(&r2).enumerate() {
                 if d2 <= *r2 {
-                    *sum += kernel(s, k, u, w) * dwell_s[k];
+                    *sum += piece(s, k, half, u, w) * dwell_s[k];
                 }
             }
         },
@@ -497,22 +540,37 @@ mod tests {
         let (mx, my) = grid(40, 0.3);
         let path = serpentine(4, 8);
         let stretches = Stretches::of_path(&path, 0.05).unwrap();
-        let tif = asymmetric_tif();
-        let flat = super::super::swept::assemble_swept(&mx, &my, &path, &stretches, &tif, &Silent)
-            .unwrap();
         let plane = Surface::Plane(Plane {});
-        let curved = assemble_on_surface_swept(
-            &plane,
-            &mx,
-            &my,
-            &path,
-            &stretches,
-            &tif,
-            TifFrame::MachineX,
-            &Silent,
-        )
-        .unwrap();
-        assert_eq!(flat, curved);
+        let on_plane = |tif: &dyn InfluenceFunction| {
+            let flat =
+                super::super::swept::assemble_swept(&mx, &my, &path, &stretches, tif, &Silent)
+                    .unwrap();
+            let curved = assemble_on_surface_swept(
+                &plane,
+                &mx,
+                &my,
+                &path,
+                &stretches,
+                tif,
+                TifFrame::MachineX,
+                &Silent,
+            )
+            .unwrap();
+            assert_eq!(flat, curved);
+        };
+        on_plane(&asymmetric_tif());
+        // A Gaussian cut within the map, its pieces the circle crosses integrated along them: the
+        // same rule in the tangent frame.
+        let cut = GaussianTif::new(0.8, 3.0, 1.3).unwrap();
+        let crossed = (0..path.len()).any(|j| {
+            mx.iter().zip(&my).any(|(&x, &y)| {
+                let (dx, dy) = (x - path.x_mm()[j], y - path.y_mm()[j]);
+                let midpoints = super::super::swept::swept_rate(&cut, stretches.of(j), &[], dx, dy);
+                stretches.rate_nm_per_s(j, &cut, dx, dy) != midpoints
+            })
+        });
+        assert!(crossed, "no piece crosses the cut");
+        on_plane(&cut);
     }
 
     /// On a sphere of radius 500 mm each swept column is, to within the frame's turn over half a
@@ -636,9 +694,10 @@ mod tests {
                     &my,
                     &sx,
                     &sy,
+                    &[],
                     &t,
                     &[grid_tif.support_radius_mm(), gauss.support_radius_mm()],
-                    |s, _, u, w| match s {
+                    |s, _, _, u, w| match s {
                         0 => grid_tif.rate_nm_per_s(u, w),
                         _ => gauss.rate_nm_per_s(u, w),
                     },
@@ -659,9 +718,10 @@ mod tests {
             &my,
             &sx,
             &sy,
+            &[],
             &t,
             &[grid_tif.support_radius_mm()],
-            |_, _, u, w| grid_tif.rate_nm_per_s(u, w),
+            |_, _, _, u, w| grid_tif.rate_nm_per_s(u, w),
             TifFrame::MachineX,
             &Silent,
         )
@@ -669,5 +729,40 @@ mod tests {
         let want =
             super::super::direct::removal_nm(&mx, &my, &sx, &sy, &t, &grid_tif, &Silent).unwrap();
         assert_close(&got[0], &want, "plane");
+        // Samples standing for pieces of the motion (half the way to the next sample), a cut
+        // Gaussian integrated along them: on the plane, the plan's piece sums.
+        let halves: Vec<[f64; 2]> = (0..sx.len())
+            .map(|k| {
+                let j = (k + 1).min(sx.len() - 1);
+                let i = j - 1;
+                [0.5 * (sx[j] - sx[i]), 0.5 * (sy[j] - sy[i])]
+            })
+            .collect();
+        let got = removals_on_surface_with(
+            &plane,
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &halves,
+            &t,
+            &[gauss.support_radius_mm()],
+            |_, _, h, u, w| piece_rate(&gauss, h, u, w),
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let want = super::super::direct::piece_removals_nm(
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &halves,
+            &t,
+            &[&gauss],
+            &Silent,
+        )
+        .unwrap();
+        assert_close(&got[0], &want[0], "plane, pieces");
     }
 }

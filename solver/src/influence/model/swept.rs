@@ -19,11 +19,22 @@
 //! within 0.1% of the peak rate of the exact integral for a Gaussian (`h^2 / 24 |TIF''|`; tested
 //! against the closed form in `erf`).
 //!
+//! A footprint cut where its rate is not zero (a truncated Gaussian,
+//! [`InfluenceFunction::cut_disc_mm`]) jumps to zero on its cut circle, where the midpoint rule is
+//! first-order: a map point whose cut disc just grazes a stretch gets either nothing or a whole
+//! piece's share from the sliver inside, and a plan with little time weight leans on those
+//! entries. Each sample is therefore its piece ([`Stretches::pieces_of`]) and integrated by the
+//! rule of every sampled motion, [`piece_rate`]: for such a footprint the pieces the circle
+//! crosses are integrated exactly over their part inside it; the others, and every piece of a
+//! footprint that falls continuously to zero, keep the midpoint rule. The executed program's
+//! contact motion is integrated by the same rule, piece for piece.
+//!
 //! The assembled operator takes each column's own stretch ([`assemble_swept`]); the lattice
 //! operators (FFT, phase stencils, spreading) one shift-invariant kernel, the TIF averaged along
 //! the stretch most dwell points share ([`Stretches::dominant`]; on a raster, the interior
 //! stretch along its lines), [`SweptTif`].
 
+use super::piece::piece_rate;
 use crate::error::{Error, Result};
 use crate::influence::operator::matrix::InfluenceMatrix;
 use crate::observer::Observer;
@@ -53,6 +64,49 @@ pub enum InfluenceModel {
 /// the TIF, whose samples would otherwise grow without bound before any budget is checked).
 const MAX_PIECES_PER_BLOCK: usize = 256;
 
+/// The rate at offset `(dx_mm, dy_mm)` from the dwell point of `tif` swept along a stretch whose
+/// midpoint samples are `samples` (`(dx_mm, dy_mm, weight)`) and their pieces' halves `halves`
+/// (from each sample to its piece's end): the sum of the pieces' rates by [`piece_rate`], or of
+/// the rates at the samples when `halves` is empty ([`swept_sum`]).
+pub fn swept_rate<T: InfluenceFunction + ?Sized>(
+    tif: &T,
+    samples: &[[f64; 3]],
+    halves: &[[f64; 2]],
+    dx_mm: f64,
+    dy_mm: f64,
+) -> f64 {
+    swept_sum(samples, halves, dx_mm, dy_mm, |half, u, w| {
+        piece_rate(tif, half, u, w)
+    })
+}
+
+/// `sum_k w_k piece(h_k, dx - sx_k, dy - sy_k)` over the samples `(sx_k, sy_k, w_k)` of a
+/// stretch and their pieces' halves `h_k` (zero, points, when `halves` is empty): the one sum of
+/// a swept column, in plan ([`swept_rate`]) and in a curved part's tangent frame
+/// ([`super::surface::assemble_on_surface_swept_with`]), so that a plane sums exactly as the
+/// flat part. `piece(h, u, w)` is the rate at offset `(u, w)` of the TIF along the piece of half
+/// `h` ([`piece_rate`]).
+#[inline]
+pub fn swept_sum<F: Fn([f64; 2], f64, f64) -> f64>(
+    samples: &[[f64; 3]],
+    halves: &[[f64; 2]],
+    dx_mm: f64,
+    dy_mm: f64,
+    piece: F,
+) -> f64 {
+    if halves.is_empty() {
+        return samples
+            .iter()
+            .map(|s| s[2] * piece([0.0, 0.0], dx_mm - s[0], dy_mm - s[1]))
+            .sum();
+    }
+    samples
+        .iter()
+        .zip(halves)
+        .map(|(s, &h)| s[2] * piece(h, dx_mm - s[0], dy_mm - s[1]))
+        .sum()
+}
+
 /// The quadrature samples of every dwell point's stretch: offsets from the dwell point, mm, and
 /// weights (fractions of the dwell, summing to 1 per stretch). Each distinct stretch (the same
 /// boundary offsets, bit for bit) is sampled and held once; on a raster nearly every point
@@ -65,8 +119,13 @@ pub struct Stretches {
     kind_offsets: Vec<usize>,
     /// `(dx_mm, dy_mm, weight)` of every sample of the distinct stretches.
     samples: Vec<[f64; 3]>,
+    /// Half of every sample's piece, from the sample to the piece's end, mm (zero for a
+    /// stretch of length zero), beside `samples`.
+    halves: Vec<[f64; 2]>,
     /// Largest distance of a sample from its dwell point, mm.
     reach_mm: f64,
+    /// Largest distance of a piece's end from its dwell point, mm.
+    extent_mm: f64,
     /// The dominant stretch, found once when first asked for.
     dominant: OnceLock<Dominant>,
 }
@@ -75,6 +134,7 @@ pub struct Stretches {
 #[derive(Debug, Clone)]
 struct Dominant {
     samples: Vec<[f64; 3]>,
+    halves: Vec<[f64; 2]>,
     count: usize,
     /// The dwell points whose stretch differs, ascending.
     outside: Vec<usize>,
@@ -108,20 +168,22 @@ fn boundaries(x: &[f64], y: &[f64], j: usize) -> ((f64, f64), (f64, f64)) {
 }
 
 /// Appends the midpoint-rule samples of the stretch `a -> 0 -> b` with pieces of at most
-/// `step_mm` to `samples` (module documentation), and returns their largest distance from the
-/// dwell point.
+/// `step_mm` to `samples` and their pieces' halves to `halves` (module documentation), and
+/// returns the samples' and the pieces' ends' largest distance from the dwell point.
 fn sample_stretch(
     (a, b): ((f64, f64), (f64, f64)),
     step_mm: f64,
     samples: &mut Vec<[f64; 3]>,
-) -> f64 {
+    halves: &mut Vec<[f64; 2]>,
+) -> (f64, f64) {
     let la = a.0.hypot(a.1);
     let lb = b.0.hypot(b.1);
     let ds = la + lb;
     let mut reach = 0.0f64;
     if ds <= 0.0 {
         samples.push([0.0, 0.0, 1.0]);
-        return reach;
+        halves.push([0.0, 0.0]);
+        return (reach, reach);
     }
     // Block a -> p (from the boundary to the point), then p -> b.
     for (from, to, len) in [(a, (0.0, 0.0), la), ((0.0, 0.0), b, lb)] {
@@ -135,14 +197,20 @@ fn sample_stretch(
             .clamp(1.0, MAX_PIECES_PER_BLOCK as f64);
         let k = pieces as usize;
         let w = len / pieces / ds;
+        let half = [
+            0.5 * (to.0 - from.0) / pieces,
+            0.5 * (to.1 - from.1) / pieces,
+        ];
         for i in 0..k {
             let f = (i as f64 + 0.5) / pieces;
             let (sx, sy) = (from.0 + f * (to.0 - from.0), from.1 + f * (to.1 - from.1));
             reach = reach.max(sx.hypot(sy));
             samples.push([sx, sy, w]);
+            halves.push(half);
         }
     }
-    reach
+    // The pieces' ends: the stretch's own ends and the dwell point.
+    (reach, reach.max(la).max(lb))
 }
 
 impl Stretches {
@@ -160,7 +228,9 @@ impl Stretches {
         let mut kind_of = Vec::with_capacity(n);
         let mut kind_offsets = vec![0];
         let mut samples = Vec::new();
+        let mut halves = Vec::new();
         let mut reach = 0.0f64;
+        let mut extent = 0.0f64;
         // Distinct stretches by their boundaries' bits: equal bits, equal samples.
         let mut kinds: HashMap<[u64; 4], u32> = HashMap::new();
         for j in 0..n {
@@ -172,7 +242,9 @@ impl Stretches {
                     let k = u32::try_from(kinds.len()).map_err(|_| {
                         Error::invalid("dwell path", "has more distinct stretches than 2^32")
                     })?;
-                    reach = reach.max(sample_stretch((a, b), step_mm, &mut samples));
+                    let (r, e) = sample_stretch((a, b), step_mm, &mut samples, &mut halves);
+                    reach = reach.max(r);
+                    extent = extent.max(e);
                     kind_offsets.push(samples.len());
                     kinds.insert(bits, k);
                     k
@@ -184,7 +256,9 @@ impl Stretches {
             kind_of,
             kind_offsets,
             samples,
+            halves,
             reach_mm: reach,
+            extent_mm: extent,
             dominant: OnceLock::new(),
         })
     }
@@ -209,9 +283,52 @@ impl Stretches {
         &self.samples[self.kind_offsets[k]..self.kind_offsets[k + 1]]
     }
 
+    /// Half of the piece of every sample of stretch `j` ([`Stretches::of`]), from the sample to
+    /// the piece's end, mm: the motion the sample stands for ([`piece_rate`]).
+    pub fn pieces_of(&self, j: usize) -> &[[f64; 2]] {
+        self.halves_of_kind(self.kind_of[j] as usize)
+    }
+
+    /// The pieces' halves of distinct stretch `k`.
+    fn halves_of_kind(&self, k: usize) -> &[[f64; 2]] {
+        &self.halves[self.kind_offsets[k]..self.kind_offsets[k + 1]]
+    }
+
+    /// The rate at offset `(dx_mm, dy_mm)` from dwell point `j` of `tif` swept along its
+    /// stretch, per second of its dwell ([`swept_rate`]): column `j` of the swept `R`.
+    pub fn rate_nm_per_s<T: InfluenceFunction + ?Sized>(
+        &self,
+        j: usize,
+        tif: &T,
+        dx_mm: f64,
+        dy_mm: f64,
+    ) -> f64 {
+        let k = self.kind_of[j] as usize;
+        swept_rate(tif, self.of_kind(k), self.halves_of_kind(k), dx_mm, dy_mm)
+    }
+
+    /// `tif` swept along the dominant stretch ([`Stretches::dominant`]): the lattice operators'
+    /// shared kernel, integrated as the columns are ([`swept_rate`]).
+    pub fn dominant_kernel<T: InfluenceFunction>(&self, tif: T) -> SweptTif<T> {
+        let d = self.dominant_stretch();
+        SweptTif::with_pieces(tif, d.samples.clone(), d.halves.clone())
+    }
+
     /// Largest distance of a sample from its dwell point, mm.
     pub fn reach_mm(&self) -> f64 {
         self.reach_mm
+    }
+
+    /// Largest distance from a dwell point at which its swept column of `tif` can be non-zero,
+    /// mm: the support radius and the samples' reach, or, for a footprint with a cut disc
+    /// (integrated up to the pieces' ends, [`piece_rate`]), the pieces' ends' reach.
+    pub fn reach_of<T: InfluenceFunction + ?Sized>(&self, tif: &T) -> f64 {
+        let along = if tif.cut_disc_mm().is_some() {
+            self.extent_mm.max(self.reach_mm)
+        } else {
+            self.reach_mm
+        };
+        tif.support_radius_mm() + along
     }
 
     /// The stretch most dwell points share (the same samples up to order, to 1e-9 mm), and how
@@ -280,12 +397,14 @@ impl Stretches {
                         .collect();
                     Dominant {
                         samples: self.of(j).to_vec(),
+                        halves: self.pieces_of(j).to_vec(),
                         count,
                         outside,
                     }
                 }
                 None => Dominant {
                     samples: vec![[0.0, 0.0, 1.0]],
+                    halves: vec![[0.0, 0.0]],
                     count: 0,
                     outside: Vec::new(),
                 },
@@ -300,7 +419,14 @@ impl Stretches {
 pub struct SweptTif<T: InfluenceFunction> {
     inner: T,
     samples: Vec<[f64; 3]>,
+    /// The samples' pieces' halves where known ([`Stretches::dominant_kernel`]): a footprint
+    /// with a cut disc is then integrated exactly where the circle crosses a piece
+    /// ([`piece_rate`]); none, the samples are points.
+    halves: Vec<[f64; 2]>,
     reach_mm: f64,
+    /// Largest distance of the pieces' ends from the dwell point (the samples' reach without
+    /// pieces), mm.
+    extent_mm: f64,
 }
 
 impl<T: InfluenceFunction> SweptTif<T> {
@@ -310,8 +436,24 @@ impl<T: InfluenceFunction> SweptTif<T> {
         Self {
             inner,
             samples,
+            halves: Vec::new(),
             reach_mm,
+            extent_mm: reach_mm,
         }
+    }
+
+    /// `inner` swept along the pieces of `samples` (`(dx_mm, dy_mm, weight)`), `halves` from
+    /// each sample to its piece's end ([`swept_rate`]).
+    pub fn with_pieces(inner: T, samples: Vec<[f64; 3]>, halves: Vec<[f64; 2]>) -> Self {
+        let mut t = Self::new(inner, samples);
+        t.extent_mm = t
+            .samples
+            .iter()
+            .zip(&halves)
+            .map(|(s, h)| s[0].hypot(s[1]) + h[0].hypot(h[1]))
+            .fold(t.reach_mm, f64::max);
+        t.halves = halves;
+        t
     }
 
     /// The TIF swept along.
@@ -323,14 +465,16 @@ impl<T: InfluenceFunction> SweptTif<T> {
 impl<T: InfluenceFunction> InfluenceFunction for SweptTif<T> {
     #[inline]
     fn rate_nm_per_s(&self, dx_mm: f64, dy_mm: f64) -> f64 {
-        self.samples
-            .iter()
-            .map(|s| s[2] * self.inner.rate_nm_per_s(dx_mm - s[0], dy_mm - s[1]))
-            .sum()
+        swept_rate(&self.inner, &self.samples, &self.halves, dx_mm, dy_mm)
     }
 
     fn support_radius_mm(&self) -> f64 {
-        self.inner.support_radius_mm() + self.reach_mm
+        let along = if self.inner.cut_disc_mm().is_some() {
+            self.extent_mm
+        } else {
+            self.reach_mm
+        };
+        self.inner.support_radius_mm() + along
     }
 
     fn nominal_radius_mm(&self) -> f64 {
@@ -339,7 +483,8 @@ impl<T: InfluenceFunction> InfluenceFunction for SweptTif<T> {
 }
 
 /// Assembles the swept `R`: `R[i, j] = sum_k w_jk TIF(x_i - X_j - sx_jk, y_i - Y_j - sy_jk)`
-/// over stretch `j`'s samples ([`Stretches::of_path`]).
+/// over stretch `j`'s samples ([`Stretches::of_path`]), the pieces a cut circle crosses
+/// integrated exactly ([`Stretches::rate_nm_per_s`]).
 pub fn assemble_swept<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
@@ -360,14 +505,8 @@ pub fn assemble_swept<T: InfluenceFunction + ?Sized>(
         map_y_mm,
         path.x_mm(),
         path.y_mm(),
-        tif.support_radius_mm() + stretches.reach_mm(),
-        |j, _i, dx, dy| {
-            stretches
-                .of(j)
-                .iter()
-                .map(|s| s[2] * tif.rate_nm_per_s(dx - s[0], dy - s[1]))
-                .sum()
-        },
+        stretches.reach_of(tif),
+        |j, _i, dx, dy| stretches.rate_nm_per_s(j, tif, dx, dy),
         observer,
     )
 }

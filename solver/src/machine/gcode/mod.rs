@@ -71,6 +71,7 @@ pub struct ProgramRun {
 /// Executes `program` under `kinematics`, samples the contact motion with pieces of at most
 /// `step_mm` ([`motion::sample_contact`]), maps tool centres back to contact points on `part`
 /// (a surface and the tool-centre offset along its normal; none: X, Y are the contact points),
+/// each piece the chord between the contact points of its ends,
 /// and integrates the removal of the contact motion with `removal` (the TIF summed along the
 /// samples at the map points: [`crate::simulate::removal_of_samples`] on a flat part). With a
 /// drift of the removal rate, each sample's time is weighted by
@@ -88,9 +89,19 @@ pub fn run_on_map(
     let check = check_stretches(program, &executed);
     let mut samples = motion::sample_contact(program, &executed, step_mm)?;
     if let Some((geometry, offset_mm)) = part {
+        // A piece's end is the next piece's start along a block: its contact point is found once.
+        let mut last_end: Option<([f64; 3], (f64, f64))> = None;
         for k in 0..samples.time_s.len() {
             let tool = [samples.x_mm[k], samples.y_mm[k], samples.z_mm[k]];
             (samples.x_mm[k], samples.y_mm[k]) = motion::contact_xy(geometry, offset_mm, tool)?;
+            let [start, end] = samples.ends_mm[k];
+            let from = match last_end {
+                Some((at, c)) if at == start => c,
+                _ => motion::contact_xy(geometry, offset_mm, start)?,
+            };
+            let to = motion::contact_xy(geometry, offset_mm, end)?;
+            last_end = Some((end, to));
+            samples.half_mm[k] = [0.5 * (to.0 - from.0), 0.5 * (to.1 - from.1)];
         }
     }
     let mut dwell_s = samples.time_s;
@@ -114,6 +125,7 @@ pub fn run_on_map(
         x_mm: samples.x_mm,
         y_mm: samples.y_mm,
         dwell_s,
+        half_mm: samples.half_mm,
     };
     let removal_nm = removal(&sampled)?;
     Ok(ProgramRun {

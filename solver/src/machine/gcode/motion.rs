@@ -212,6 +212,12 @@ pub struct MotionSamples {
     /// Program time at the middle of the sample, s from the program's start (every block's
     /// executed time counted, in contact or not).
     pub at_s: Vec<f64>,
+    /// Half of the sample's piece in plan, from its start to its end over 2, mm: the straight
+    /// chord of the piece the sample stands for.
+    pub half_mm: Vec<[f64; 2]>,
+    /// The tool centre at the start and at the end of the sample's piece, mm (on a curved part
+    /// the piece's contact chord is taken between their contact points).
+    pub ends_mm: Vec<[[f64; 3]; 2]>,
 }
 
 /// Largest number of removal samples (each is a TIF column of the simulation).
@@ -254,6 +260,8 @@ pub fn sample_contact(
         z_mm: Vec::with_capacity(count),
         time_s: Vec::with_capacity(count),
         at_s: Vec::with_capacity(count),
+        half_mm: Vec::with_capacity(count),
+        ends_mm: Vec::with_capacity(count),
     };
     let mut block_start_s = 0.0;
     for (b, p) in program.blocks.iter().zip(&executed.profiles) {
@@ -265,6 +273,7 @@ pub fn sample_contact(
         let pieces = (p.length_mm / step_mm).ceil().max(1.0) as usize;
         let l = p.length_mm;
         let mut t_prev = 0.0;
+        let mut start = b.point_at(0.0);
         for i in 0..pieces {
             let s1 = l * (i + 1) as f64 / pieces as f64;
             let t1 = if i + 1 == pieces {
@@ -279,6 +288,11 @@ pub fn sample_contact(
             out.z_mm.push(q[2]);
             out.time_s.push(t1 - t_prev);
             out.at_s.push(start_s + 0.5 * (t1 + t_prev));
+            let end = b.point_at((i + 1) as f64 / pieces as f64);
+            out.half_mm
+                .push([0.5 * (end[0] - start[0]), 0.5 * (end[1] - start[1])]);
+            out.ends_mm.push([start, end]);
+            start = end;
             t_prev = t1;
         }
     }
