@@ -624,7 +624,15 @@ impl NufftOperator {
                 node_y.push(layout.y0 + (j0 + r as i64) as f64 * fine);
             }
         }
-        let inner = FftOperator::new(map_x_mm, map_y_mm, &node_x, &node_y, fine, &layout.kernel)?;
+        // The fine lattice's operator over every node: this operator keeps the column sums
+        // over the dwell points itself and asks only products of it.
+        let inner = FftOperator::for_nodes(
+            (map_x_mm, map_y_mm),
+            (&node_x, &node_y),
+            fine,
+            &layout.kernel,
+            true,
+        )?;
         let first: Vec<(u32, u32)> = layout
             .first
             .iter()
