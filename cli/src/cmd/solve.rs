@@ -295,33 +295,6 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
     let html = args.report;
     let style = args.figures.style();
     let (job, job_path, out, accept_best) = args.into_job()?;
-    if preston_io::tools::is_multi_tool(&job) {
-        let options = pipeline::OutputOptions {
-            figures: Some((axis_of(job.dwell.raster_along), None)),
-            plots,
-            html: html.then(|| {
-                preston_io::html::Provenance::of_job(
-                    &job,
-                    &job_path,
-                    Some(preston_io::html::Provenance::command_line()),
-                )
-            }),
-            style,
-            replace_earlier: Some(job.input_files()),
-        };
-        return run_tools(&job, &job_path, &out, &options, accept_best, output);
-    }
-    let bars = Bars::new();
-    let prepared = pipeline::prepare(&job, &job_path, &bars)?;
-    // The inputs' warnings come before a solve that may run for minutes.
-    for w in &prepared.warnings {
-        crate::errln!("  warning: {w}");
-    }
-    for n in &prepared.notes {
-        crate::note!("  note: {n}");
-    }
-    let early_warnings = prepared.warnings.len();
-    let solved = pipeline::solve(prepared, &job, &bars)?;
     let options = pipeline::OutputOptions {
         figures: Some((
             axis_of(job.dwell.raster_along),
@@ -340,6 +313,20 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         // go with the commit (never the run's own inputs).
         replace_earlier: Some(job.input_files()),
     };
+    if preston_io::tools::is_multi_tool(&job) {
+        return run_tools(&job, &job_path, &out, &options, accept_best, output);
+    }
+    let bars = Bars::new();
+    let prepared = pipeline::prepare(&job, &job_path, &bars)?;
+    // The inputs' warnings come before a solve that may run for minutes.
+    for w in &prepared.warnings {
+        crate::errln!("  warning: {w}");
+    }
+    for n in &prepared.notes {
+        crate::note!("  note: {n}");
+    }
+    let early_warnings = prepared.warnings.len();
+    let solved = pipeline::solve(prepared, &job, &bars)?;
     let notes = pipeline::write_solve_outputs(&solved, &out, &options)
         .with_context(|| format!("writing outputs to {}", out.display()))?;
     for note in notes {
