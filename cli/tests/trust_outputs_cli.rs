@@ -548,21 +548,27 @@ fn raster_text(side: f64, pitch: f64) -> String {
     t
 }
 
+/// A job of two tools (a coarse Gaussian on a 1.5 mm raster, a fine one on 0.75 mm) on a
+/// 13 x 13 map at 1 mm, written into `dir`; returns the job file.
+fn two_tool_job(dir: &Path) -> std::path::PathBuf {
+    write(dir, "map.csv", &map_text(13, 1.0));
+    write(dir, "coarse.csv", &raster_text(12.0, 1.5));
+    write(dir, "fine.csv", &raster_text(12.0, 0.75));
+    write(
+        dir,
+        "tools.toml",
+        "[map]\nfile = \"map.csv\"\n[machine]\nv_max_mm_per_min = 4000\n\
+         [[tool]]\ndwell = \"coarse.csv\"\ntif = { gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 6.0, truncation_radius_mm = 6.0 } }\n\
+         [[tool]]\ndwell = \"fine.csv\"\ntif = { gaussian = { sigma_mm = 0.8, peak_rate_nm_per_s = 3.0, truncation_radius_mm = 2.4 } }\n",
+    )
+}
+
 /// Several tools: the report's largest acceleration is the largest any tool's written feeds
 /// ask for, and each tool's own is given.
 #[test]
 fn a_multi_tool_report_gives_the_largest_acceleration_of_its_tools() {
     let d = tempfile::tempdir().unwrap();
-    write(d.path(), "map.csv", &map_text(13, 1.0));
-    write(d.path(), "coarse.csv", &raster_text(12.0, 1.5));
-    write(d.path(), "fine.csv", &raster_text(12.0, 0.75));
-    let job = write(
-        d.path(),
-        "tools.toml",
-        "[map]\nfile = \"map.csv\"\n[machine]\nv_max_mm_per_min = 4000\n\
-         [[tool]]\ndwell = \"coarse.csv\"\ntif = { gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 6.0, truncation_radius_mm = 6.0 } }\n\
-         [[tool]]\ndwell = \"fine.csv\"\ntif = { gaussian = { sigma_mm = 0.8, peak_rate_nm_per_s = 3.0, truncation_radius_mm = 2.4 } }\n",
-    );
+    let job = two_tool_job(d.path());
     let out = d.path().join("out");
     ok(&preston(&["solve", "--job", s(&job), "--out", s(&out)]));
     let r = report(&out);
@@ -649,6 +655,16 @@ fn the_qp_never_calls_a_feasible_problem_infeasible() {
     }
 }
 
+/// Feeds from 1 to 3000 mm/min, the program executed at 1000 mm/s², as flags.
+const EXECUTED_AT_LIMIT: [&str; 6] = [
+    "--v-max",
+    "3000",
+    "--v-min",
+    "1",
+    "--a-max-mm-per-s2",
+    "1000",
+];
+
 /// A robust plan executed at an acceleration limit: its files and page agree with its report.
 #[test]
 fn a_robust_plans_figures_agree_in_every_file() {
@@ -657,18 +673,8 @@ fn a_robust_plans_figures_agree_in_every_file() {
     let out = d.path().join("robust");
     let mut args = vec!["solve", "--map", &map, "--raster-pitch-mm", "1"];
     args.extend(GAUSSIAN);
-    args.extend([
-        "--v-max",
-        "3000",
-        "--v-min",
-        "1",
-        "--a-max-mm-per-s2",
-        "1000",
-        "--robust",
-        "--report",
-        "--out",
-        s(&out),
-    ]);
+    args.extend(EXECUTED_AT_LIMIT);
+    args.extend(["--robust", "--report", "--out", s(&out)]);
     ok(&preston(&args));
     assert!(report(&out)["robust"].is_object());
     assert_outputs_agree(&out);
@@ -679,16 +685,7 @@ fn a_robust_plans_figures_agree_in_every_file() {
 #[test]
 fn a_multi_tool_plans_figures_agree_in_every_file() {
     let d = tempfile::tempdir().unwrap();
-    write(d.path(), "map.csv", &map_text(13, 1.0));
-    write(d.path(), "coarse.csv", &raster_text(12.0, 1.5));
-    write(d.path(), "fine.csv", &raster_text(12.0, 0.75));
-    let job = write(
-        d.path(),
-        "tools.toml",
-        "[map]\nfile = \"map.csv\"\n[machine]\nv_max_mm_per_min = 4000\n\
-         [[tool]]\ndwell = \"coarse.csv\"\ntif = { gaussian = { sigma_mm = 2.0, peak_rate_nm_per_s = 6.0, truncation_radius_mm = 6.0 } }\n\
-         [[tool]]\ndwell = \"fine.csv\"\ntif = { gaussian = { sigma_mm = 0.8, peak_rate_nm_per_s = 3.0, truncation_radius_mm = 2.4 } }\n",
-    );
+    let job = two_tool_job(d.path());
     let out = d.path().join("out");
     ok(&preston(&[
         "solve",
@@ -720,17 +717,8 @@ fn an_aperture_plans_figures_agree_in_every_file() {
     let out = d.path().join("aperture");
     let mut args = vec!["solve", "--map", &map, &aperture, "--raster-pitch-mm", "1"];
     args.extend(GAUSSIAN);
-    args.extend([
-        "--v-max",
-        "3000",
-        "--v-min",
-        "1",
-        "--a-max-mm-per-s2",
-        "1000",
-        "--report",
-        "--out",
-        s(&out),
-    ]);
+    args.extend(EXECUTED_AT_LIMIT);
+    args.extend(["--report", "--out", s(&out)]);
     ok(&preston(&args));
     let r = report(&out);
     let inside = csv_columns(&out.join("residual.csv"), &["x_mm"])[0].len();

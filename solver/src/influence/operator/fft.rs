@@ -180,22 +180,15 @@ impl FftOperator {
     /// product the solve takes) are not computed, since the NUFFT operator keeps its own over
     /// the real dwell points, and this operator's [`InfluenceOperator::nnz`],
     /// [`InfluenceOperator::empty_columns`] and [`LinearOperator::centred_column_norms_sq`] are
-    /// then zero, empty and zero. `normal_products`: whether `R^T R t` will be asked of it (its
-    /// route then chosen by the cost model as in [`FftOperator::new`]; otherwise the direct
-    /// route, without the complement's set-up).
+    /// then zero, empty and zero. The normal product's route is chosen by the cost model as in
+    /// [`FftOperator::new`].
     pub(crate) fn for_nodes<T: InfluenceFunction + ?Sized>(
         map_mm: (&[f64], &[f64]),
         nodes_mm: (&[f64], &[f64]),
         pitch_mm: f64,
         tif: &T,
-        normal_products: bool,
     ) -> Result<Self> {
-        let route = if normal_products {
-            NormalRoute::Cheaper
-        } else {
-            NormalRoute::Direct
-        };
-        Self::build(map_mm, nodes_mm, pitch_mm, tif, route, false)
+        Self::build(map_mm, nodes_mm, pitch_mm, tif, NormalRoute::Cheaper, false)
     }
 
     /// As [`FftOperator::new`], with `R^T R t` through the direct route (`complement = false`)

@@ -631,7 +631,6 @@ impl NufftOperator {
             (&node_x, &node_y),
             fine,
             &layout.kernel,
-            true,
         )?;
         let first: Vec<(u32, u32)> = layout
             .first
