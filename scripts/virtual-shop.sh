@@ -5,8 +5,10 @@
 #   scripts/virtual-shop.sh OUT [RUNS] [extra `preston shop` tool flags...]
 #
 # Default tool: rate 1.08, width 1.05, offset (0.15, -0.12) mm, linear skew 0.1, drift 3% per
-# run; the rate wanders by -1% per run. Prints one line per run: measured RMS before, the plan's
-# expected RMS and range, the measured RMS after, the dwell.
+# run; the rate wanders by -1% per run. Another shop: RATE= (the first run's rate factor),
+# TOOL_FLAGS= (the `preston shop --tool-*` flags in place of the default tool's) and SEED= (the
+# first measurement's noise). Prints one line per run: measured RMS before, the plan's expected
+# RMS and range, the measured RMS after, the dwell.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:?output folder}
@@ -15,10 +17,10 @@ shift $(( $# > 1 ? 2 : 1 ))
 P=${PRESTON:-target/release/preston}
 TIF=data/tif_fluid_jet_10mm.csv
 JOB=data/job.toml
-RATE=1.08
-TOOL=(--tool-width-factor 1.05 --tool-offset-mm 0.15,-0.12 --tool-skew 0.1 --tool-skew-angle-deg 30 --tool-drift-per-run 0.03 "$@")
+RATE=${RATE:-1.08}
+TOOL=(${TOOL_FLAGS:---tool-width-factor 1.05 --tool-offset-mm 0.15,-0.12 --tool-skew 0.1 --tool-skew-angle-deg 30 --tool-drift-per-run 0.03} "$@")
 mkdir -p "$OUT"
-"$P" shop --quiet --surface data/mirror_error_118x8mm.csv --tif "$TIF" --seed 100 --out "$OUT/v0"
+"$P" shop --quiet --surface data/mirror_error_118x8mm.csv --tif "$TIF" --seed ${SEED:-100} --out "$OUT/v0"
 surface="$OUT/v0/surface_after.csv"
 measured="$OUT/v0/measured.csv"
 calibration=()

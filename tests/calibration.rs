@@ -222,6 +222,9 @@ fn the_true_tool_is_recovered_from_one_run() {
     };
     let c = calibrate(&change, &motion, &spot(), &settings).expect("calibration");
     assert!(c.status.is_converged(), "{:?}", c.status);
+    // No shift between the maps: none is kept.
+    let test = c.map_shift.expect("a shift tried");
+    assert!(!test.kept, "{test:?}");
     let f = c.figures;
     check_rate_and_width(&c, &truth);
     check_offset(&c, &truth);
@@ -257,6 +260,9 @@ fn a_shift_between_the_measurements_is_not_a_tool_offset() {
     let c =
         calibrate(&change, &motion, &spot(), &CalibrationSettings::default()).expect("calibration");
     check_rate_and_width(&c, &truth);
+    // The shift is kept: it lowers the fit's RMS far more than the 5% that keeps one.
+    let test = c.map_shift.expect("a shift tried");
+    assert!(test.kept, "{test:?}");
     // The after map's points are part points x + frame: the before map is read at x + frame.
     assert!(
         (c.nuisance.map_shift_x_mm - frame.0).abs() < 0.02,

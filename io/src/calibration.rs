@@ -12,7 +12,7 @@ use crate::simulation::read_program;
 use crate::writers::{stage_columns_csv, stage_json};
 use preston_solver::calibrate::{
     calibrate, Calibration, CalibrationSettings, ContactMotion, Correlation, FreeformCorrection,
-    HeldFigure, MeasuredChange, Nuisance, SpotFootprint, ToolFigures,
+    HeldFigure, MapShiftTest, MeasuredChange, Nuisance, SpotFootprint, ToolFigures,
 };
 use preston_solver::machine::gcode::dialect::Dialect;
 use preston_solver::machine::gcode::motion::{execute, sample_contact, Kinematics};
@@ -111,6 +111,7 @@ pub fn run_calibration(inputs: &CalibrationInputs) -> Result<Calibrated> {
             after: after_file,
             program: inputs.program.clone(),
             source_tif: inputs.tif_file.clone(),
+            source_tif_sha256: inputs.tif_file.as_deref().map(file_sha256).transpose()?,
         },
         program_time_s,
     );
@@ -120,12 +121,19 @@ pub fn run_calibration(inputs: &CalibrationInputs) -> Result<Calibrated> {
     })
 }
 
+/// SHA-256 of a file's bytes, hex.
+pub fn file_sha256(path: &Path) -> Result<String> {
+    let bytes = crate::limits::read_regular(path, 1 << 30, "TIF")?;
+    Ok(crate::digest::sha256_hex(&bytes))
+}
+
 /// The files a calibration was made from.
 struct Files {
     before: PathBuf,
     after: PathBuf,
     program: PathBuf,
     source_tif: Option<PathBuf>,
+    source_tif_sha256: Option<String>,
 }
 
 /// `calibration.json`: each figure with its standard deviation (`<key>_sigma`), how well the
@@ -187,6 +195,9 @@ pub struct CalibrationRecord {
     pub tif_sha256: String,
     /// The spot test it was calibrated from.
     pub source_tif_file: Option<PathBuf>,
+    /// SHA-256 of the spot test's file: a solve whose TIF is this file plans with the calibrated
+    /// TIF in its place.
+    pub source_tif_sha256: Option<String>,
     /// The map before the run.
     pub before_file: PathBuf,
     /// The map after it.
@@ -213,6 +224,8 @@ pub struct CalibrationRecord {
     pub correlation: Correlation,
     /// The free-form correction of the footprint.
     pub freeform: Option<FreeformCorrection>,
+    /// Whether a shift between the measurements was kept, with the fit's RMS with and without.
+    pub map_shift: Option<MapShiftTest>,
 }
 
 impl Default for CalibrationRecord {
@@ -245,6 +258,7 @@ impl Default for CalibrationRecord {
             tif_file: PathBuf::from(CALIBRATED_TIF),
             tif_sha256: String::new(),
             source_tif_file: None,
+            source_tif_sha256: None,
             before_file: PathBuf::new(),
             after_file: PathBuf::new(),
             program_file: PathBuf::new(),
@@ -258,6 +272,7 @@ impl Default for CalibrationRecord {
             nuisance: Nuisance::default(),
             correlation: Correlation::default(),
             freeform: None,
+            map_shift: None,
         }
     }
 }
@@ -293,6 +308,7 @@ impl CalibrationRecord {
             tif_file: PathBuf::from(CALIBRATED_TIF),
             tif_sha256: String::new(),
             source_tif_file: files.source_tif,
+            source_tif_sha256: files.source_tif_sha256,
             before_file: files.before,
             after_file: files.after,
             program_file: files.program,
@@ -306,6 +322,7 @@ impl CalibrationRecord {
             nuisance: c.nuisance,
             correlation: c.correlation.clone(),
             freeform: c.freeform.clone(),
+            map_shift: c.map_shift,
         }
     }
 }

@@ -10,7 +10,7 @@ use crate::readers::{read_dwell, read_tif, DwellFile};
 use crate::report::{ExecutedReport, Report, ResidualFigures, RobustReport};
 use crate::surface::read_surface;
 use crate::writers::{stage_dwell_csv, stage_report, stage_residual_csv};
-use preston_solver::calibrate::{map_noise_rms_nm, ToolUncertainty};
+use preston_solver::calibrate::{map_noise_rms_nm, ToolUncertainty, DRIFT_SIGMA_PER_RUN};
 use preston_solver::dwell::{Problem, Solution};
 use preston_solver::machine::gcode::ProgramCheck;
 use preston_solver::map::HeightMap;
@@ -201,7 +201,9 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         job.tif.file.is_some() || job.tif.gaussian.is_some() || job.tif.hertz.is_some();
     let tif = match (given.tif, &calibration) {
         (Some(t), _) => t,
-        (None, Some(c)) if !source_given => Tif::Grid(read_tif(&c.tif_file)?),
+        (None, Some(c)) if !source_given || is_spot_test_of(c, job.tif.file.as_deref()) => {
+            Tif::Grid(read_tif(&c.tif_file)?)
+        }
         (None, _) => load_tif(job, job_path)?,
     };
     let dwell = match (given.dwell, &job.dwell.source) {
@@ -216,6 +218,16 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
         dwell,
         calibration,
     })
+}
+
+/// Whether the TIF file `tif_file` is the spot test `c` was calibrated from (its SHA-256 the one
+/// `calibration.json` records): the calibration refines that TIF, so the calibrated TIF takes its
+/// place. Any other TIF is planned with as given ([`calibrated_tif_warning`]).
+pub fn is_spot_test_of(c: &CalibrationRecord, tif_file: Option<&Path>) -> bool {
+    match (tif_file, &c.source_tif_sha256) {
+        (Some(f), Some(sha)) => crate::calibration::file_sha256(f).is_ok_and(|s| &s == sha),
+        _ => false,
+    }
 }
 
 /// A job that names no dwell points and was given none.
@@ -428,6 +440,8 @@ fn tool_uncertainty(job: &Job, calibration: Option<&CalibrationRecord>) -> ToolU
             // The plan's executed run already carries the calibrated drift.
             drift_per_hour: 0.0,
             drift_sigma_per_hour: c.drift_per_hour_sigma,
+            // A calibration measures the drift of its run, not the next run's scatter about it.
+            drift_sigma_per_run: DRIFT_SIGMA_PER_RUN,
             noise_rms_nm: c.noise_rms_nm,
         },
         None => {

@@ -59,6 +59,7 @@ def calibrate(
     model: str = "full",
     fit_power: bool = False,
     lattice_pitch_mm: Optional[float] = None,
+    map_shift_sigma_mm: Optional[float] = None,
     map_options: Optional[Mapping[str, Any]] = None,
     out: Optional[PathLike] = None,
     plots: bool = False,
@@ -78,7 +79,10 @@ def calibrate(
     where the data support it), ``"shape"`` (no free-form correction) or ``"basic"`` (rate,
     width, offset and drift). ``fit_power`` fits a power term besides the piston and tilt each
     measurement drops; ``lattice_pitch_mm`` the convolution lattice's pitch (default: the TIF's
-    second-moment radius / 10).
+    second-moment radius / 10). ``map_shift_sigma_mm``: the standard deviation of a shift between
+    the two measurements (default half a pixel of the map before; ``0``: the maps are in one
+    frame and no shift is tried); a shift is kept only where it lowers the fit's RMS by 5% or
+    more (``result["map_shift"]`` says whether it was, with the fit's RMS with and without).
 
     Returns the calibration record as a dict: the keys of ``calibration.json``
     (``rate_factor``, ``width_factor``, ``offset_x_mm``, ``offset_y_mm``, ``drift_per_hour``,
@@ -98,8 +102,11 @@ def calibrate(
         "fit_shape": model != "basic",
         "freeform": model == "full",
         "fit_power": bool(fit_power),
+        "fit_map_shift": map_shift_sigma_mm != 0,
         "lattice_pitch_mm": lattice_pitch_mm,
     }
+    if map_shift_sigma_mm:
+        settings["prior"] = {"map_shift_sigma_mm": float(map_shift_sigma_mm)}
     record, (tx, ty, tr), converged = _preston.calibrate(
         _map_source(before, map_options, "before"),
         _map_source(after, map_options, "after"),

@@ -146,6 +146,31 @@ def test_calibrate_without_out_writes_nothing(run, tmp_path):
     assert abs(r["rate_factor"] / run["visit"]["tool_figures"]["rate_factor"] - 1.0) < RATE_TOL
 
 
+def test_calibrate_map_shift_sigma_is_the_cli_flag(run, preston_bin, tmp_path):
+    """``map_shift_sigma_mm=0`` tries no shift (``map_shift`` null), as ``--map-shift-sigma-mm 0``
+    does; by default a shift is tried and, the shop having made none, not kept."""
+    assert run["record"]["map_shift"]["kept"] is False
+    r = preston.calibrate(before=run["before"], after=run["after"], program=run["program"],
+                          gaussian=GAUSSIAN, a_max_mm_per_s2=1000.0, model="basic",
+                          map_shift_sigma_mm=0)
+    assert r["map_shift"] is None
+    out = tmp_path / "cli"
+    p = subprocess.run(
+        [str(preston_bin), "calibrate", "--quiet", "--before", str(run["before"]), "--after",
+         str(run["after"]), "--program", str(run["program"]), *GAUSSIAN_FLAGS,
+         "--a-max-mm-per-s2", "1000", "--model", "basic", "--map-shift-sigma-mm", "0",
+         "--out", str(out)],
+        capture_output=True, text=True,
+    )
+    assert p.returncode == 0, p.stderr
+    cli = json.loads((out / "calibration.json").read_text())
+    assert cli["map_shift"] is None
+    assert r["rate_factor"] == pytest.approx(cli["rate_factor"], rel=SAME_REL, abs=0.0)
+    with pytest.raises(preston.InputError, match="map_shift_sigma_mm"):
+        preston.calibrate(before=run["before"], after=run["after"], program=run["program"],
+                          gaussian=GAUSSIAN, a_max_mm_per_s2=1000.0, map_shift_sigma_mm=-1.0)
+
+
 def test_solve_with_the_calibration_states_the_expected_reading(run):
     c = run["dir"] / "calibration"
     r = preston.solve(map=run["after"], tif=c / "tif.csv", calibration=c / "calibration.json", **PLAN)

@@ -7,7 +7,7 @@ use super::tif_source::TifArgs;
 use crate::progress::Bars;
 use anyhow::{bail, Context};
 use preston_io::calibration::read_calibration;
-use preston_io::pipeline::calibrated_tif_warning;
+use preston_io::pipeline::{calibrated_tif_warning, is_spot_test_of};
 use preston_io::readers::read_tif;
 use preston_io::simulation::write_loop;
 use preston_io::surface::read_surface;
@@ -194,7 +194,12 @@ pub fn run(args: Args) -> anyhow::Result<u8> {
         .map(read_calibration)
         .transpose()?;
     let tif = match &calibration {
-        Some(c) if !args.tif.given() => Tif::Grid(read_tif(&c.tif_file)?),
+        Some(c)
+            if !args.tif.given()
+                || is_spot_test_of(c, args.tif.tif.first().map(|p| p.as_path())) =>
+        {
+            Tif::Grid(read_tif(&c.tif_file)?)
+        }
         _ => args.tif.load()?,
     };
     if let Some(w) = calibration

@@ -44,13 +44,16 @@ pub struct ToolUncertainty {
     pub drift_per_hour: f64,
     /// Its standard deviation, per hour.
     pub drift_sigma_per_hour: f64,
+    /// Standard deviation of the rate's change over the run, relative (from its first contact
+    /// to its last), beside `drift_sigma_per_hour`: the run-to-run scatter of the drift.
+    pub drift_sigma_per_run: f64,
     /// Noise of one measurement, nm RMS.
     pub noise_rms_nm: f64,
 }
 
 impl Default for ToolUncertainty {
     /// A spot test's: the rate to 7% (a spot test on another day), the width to 5%, the
-    /// centroid to 0.2 mm, no drift known.
+    /// centroid to 0.2 mm, the rate's change over the run to [`super::DRIFT_SIGMA_PER_RUN`].
     fn default() -> Self {
         Self {
             rate_sigma: 0.07,
@@ -59,6 +62,7 @@ impl Default for ToolUncertainty {
             offset_y_sigma_mm: 0.2,
             drift_per_hour: 0.0,
             drift_sigma_per_hour: 0.0,
+            drift_sigma_per_run: super::DRIFT_SIGMA_PER_RUN,
             noise_rms_nm: 0.0,
         }
     }
@@ -73,6 +77,7 @@ impl ToolUncertainty {
             ("offset_x_sigma_mm", self.offset_x_sigma_mm),
             ("offset_y_sigma_mm", self.offset_y_sigma_mm),
             ("drift_sigma_per_hour", self.drift_sigma_per_hour),
+            ("drift_sigma_per_run", self.drift_sigma_per_run),
             ("noise_rms_nm", self.noise_rms_nm),
         ] {
             if !(v.is_finite() && v >= 0.0) {
@@ -279,6 +284,15 @@ pub fn expected_reading(
         .max(0.0)
         .sqrt();
     let noise_rms_nm = u.noise_rms_nm.hypot(noise_imprint_nm);
+    // The drift's standard deviation per hour of this run: the known one and the run's own
+    // scatter over its span.
+    let span_s = motion.span_s();
+    let drift_sigma_per_hour = if span_s > 0.0 {
+        u.drift_sigma_per_hour
+            .hypot(u.drift_sigma_per_run * 3600.0 / span_s)
+    } else {
+        u.drift_sigma_per_hour
+    };
     let mut rng = SplitMix64::new(seed);
     let mut rms = Vec::with_capacity(draws);
     let mut pv = Vec::with_capacity(draws);
@@ -290,7 +304,7 @@ pub fn expected_reading(
             offset_y_mm: u.offset_y_sigma_mm * rng.normal(),
             ..ToolFigures::NOMINAL
         };
-        let drift = u.drift_per_hour + u.drift_sigma_per_hour * rng.normal();
+        let drift = u.drift_per_hour + drift_sigma_per_hour * rng.normal();
         let rate = figures.rate_factor;
         let parts = lattice.removal_parts(&spot.transformed(&ToolFigures {
             rate_factor: 1.0,
@@ -377,6 +391,7 @@ mod tests {
             width_sigma: 0.0,
             offset_x_sigma_mm: 0.0,
             offset_y_sigma_mm: 0.0,
+            drift_sigma_per_run: 0.0,
             noise_rms_nm,
             ..ToolUncertainty::default()
         }

@@ -826,6 +826,7 @@ pub(super) fn run(
         contact_time_s: motion.contact_time_s(),
         mid_time_s: motion.mid_time_s(),
         freeform,
+        map_shift: None,
         tif,
         x_mm: change.x_mm.clone(),
         y_mm: change.y_mm.clone(),

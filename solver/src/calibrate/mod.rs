@@ -14,7 +14,9 @@
 //! rate's drift `δ` per hour of program time, the nuisance piston and tilt (and power) that each
 //! interferometer measurement drops, a shift `s` between the two measurements (it moves the whole
 //! map, also where nothing was removed; a tool offset moves only the removal, so the two separate
-//! where the map has structure) and the noise `e`.
+//! where the map has structure) and the noise `e`. Where the run removed most of the structure,
+//! a shift takes up what the tool's model misses instead: the run is fitted with and without `s`,
+//! and `s` is kept only where it lowers the fit's RMS by [`MAP_SHIFT_MIN_GAIN`] ([`MapShiftTest`]).
 //!
 //! The fit is a maximum a posteriori estimate by variable-projection Levenberg-Marquardt
 //! ([`fit`]): the linear figures (rate, rate times drift, nuisance) are solved for at every step,
@@ -76,6 +78,16 @@ pub struct CalibrationSettings {
     pub prior: Prior,
 }
 
+/// How much the rate's change over a run is known before it: one standard deviation, relative,
+/// from the run's first contact to its last. The spot test's uncertainty of the drift (the
+/// calibration's prior), and the scatter of the next run's drift about a calibrated one (a
+/// calibration measures the drift of the run that was, not of the next).
+pub const DRIFT_SIGMA_PER_RUN: f64 = 0.05;
+
+/// A shift between the two measurements is kept only where it lowers the fit's RMS by at least
+/// this fraction ([`MapShiftTest`]).
+pub const MAP_SHIFT_MIN_GAIN: f64 = 0.05;
+
 /// Posterior standard deviation, as a fraction of the prior's, above which a figure counts as
 /// not determined by the run.
 pub const UNDETERMINED_FRACTION: f64 = 0.7;
@@ -110,7 +122,7 @@ impl Default for Prior {
             width_sigma: 0.05,
             offset_sigma_mm: 0.2,
             shape_sigma: 0.1,
-            drift_sigma_per_run: 0.05,
+            drift_sigma_per_run: DRIFT_SIGMA_PER_RUN,
             map_shift_sigma_mm: None,
         }
     }
@@ -183,6 +195,22 @@ pub struct HeldFigure {
     pub reason: String,
 }
 
+/// Whether the data support a shift between the two measurements: the calibration fitted with and
+/// without one. Where the run removed most of the map's structure, a shift of the after map and
+/// an offset or a change of shape of the tool change the data nearly alike, and a shift fitted
+/// there takes up what the tool's model misses (placing the tool wrongly for the next run); a
+/// shift is therefore kept only where it lowers the fit's RMS by at least [`MAP_SHIFT_MIN_GAIN`],
+/// as a part put back visibly off does. Otherwise the maps are taken to be in one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MapShiftTest {
+    /// Whether the fit with the shift is the calibration.
+    pub kept: bool,
+    /// RMS of the fit's residual with the shift, nm (`None`: that fit failed).
+    pub fit_rms_with_nm: Option<f64>,
+    /// RMS of the fit's residual without it, nm (`None`: that fit failed).
+    pub fit_rms_without_nm: Option<f64>,
+}
+
 /// The nuisance terms of the measured change: what each interferometer measurement drops.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Nuisance {
@@ -246,6 +274,8 @@ pub struct Calibration {
     pub mid_time_s: f64,
     /// The free-form correction of the footprint, when offered.
     pub freeform: Option<FreeformCorrection>,
+    /// The test of a shift between the measurements, when the settings fit one.
+    pub map_shift: Option<MapShiftTest>,
     /// The calibrated footprint at the run's mean rate: the figures applied to the spot test,
     /// plus the free-form correction where applied.
     pub tif: GridTif,
@@ -270,5 +300,45 @@ pub fn calibrate(
 ) -> Result<Calibration> {
     settings.validate()?;
     motion.validate()?;
-    fit::run(change, motion, spot, settings)
+    if !settings.fit_map_shift {
+        return fit::run(change, motion, spot, settings);
+    }
+    let fixed = CalibrationSettings {
+        fit_map_shift: false,
+        ..settings.clone()
+    };
+    let (without, with) = (
+        fit::run(change, motion, spot, &fixed),
+        fit::run(change, motion, spot, settings),
+    );
+    let (mut c, test) = match (without, with) {
+        (Ok(without), Ok(with)) => {
+            let test = MapShiftTest {
+                kept: with.fit_rms_nm <= (1.0 - MAP_SHIFT_MIN_GAIN) * without.fit_rms_nm,
+                fit_rms_with_nm: Some(with.fit_rms_nm),
+                fit_rms_without_nm: Some(without.fit_rms_nm),
+            };
+            (if test.kept { with } else { without }, test)
+        }
+        // A shift large enough that the change without it does not look like the removal.
+        (Err(_), Ok(with)) => {
+            let test = MapShiftTest {
+                kept: true,
+                fit_rms_with_nm: Some(with.fit_rms_nm),
+                fit_rms_without_nm: None,
+            };
+            (with, test)
+        }
+        (Ok(without), Err(_)) => {
+            let test = MapShiftTest {
+                kept: false,
+                fit_rms_with_nm: None,
+                fit_rms_without_nm: Some(without.fit_rms_nm),
+            };
+            (without, test)
+        }
+        (Err(e), Err(_)) => return Err(e),
+    };
+    c.map_shift = Some(test);
+    Ok(c)
 }
