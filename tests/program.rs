@@ -668,8 +668,8 @@ fn arcs_keep_the_stretch_contract() {
 /// (the arcs depart from the chords by their sagitta only).
 #[test]
 fn arcs_program_removes_what_the_straight_one_does() {
-    use preston::solver::machine::gcode::run_on_map;
     use preston::solver::observer::Silent;
+    use preston::solver::simulate::program::run_on_map;
     use preston::solver::tif::gaussian::GaussianTif;
     let path = circle_path(15.0, 181, 2.0 * std::f64::consts::PI * 0.99);
     let dwell: Vec<f64> = (0..path.len())
@@ -700,7 +700,9 @@ fn arcs_program_removes_what_the_straight_one_does() {
             None,
             0.0,
             &|samples| {
-                preston::solver::simulate::removal_of_samples(&mx, &my, samples, &tif, &Silent)
+                preston::solver::simulate::direct::removal_of_samples(
+                    &mx, &my, samples, &tif, &Silent,
+                )
             },
         )
         .unwrap();

@@ -1,5 +1,9 @@
 //! Simulation and loop outputs: `preston simulate` (the removal a dwell program produces, in the
 //! solver's file formats) and the files of `preston iterate` (convergence table, last run, plots).
+//!
+//! This module only reads the inputs and writes the outputs; the simulation itself (a plan's or
+//! an executed program's motion and the removal it leaves) is the solver's
+//! (`preston_solver::simulate`).
 
 use crate::atomic::{commit_all, stage, Staged};
 use crate::error::{Error, Result};
@@ -21,7 +25,6 @@ use preston_solver::machine::feeds::FeedSchedule;
 use preston_solver::machine::gcode::dialect::Dialect;
 use preston_solver::machine::gcode::motion::{Kinematics, StretchCheck};
 use preston_solver::machine::gcode::program::{Program, MAX_PROGRAM_BYTES};
-use preston_solver::machine::gcode::ProgramRun;
 use preston_solver::machine::machinability::dwell_outside_map_s;
 use preston_solver::machine::PartGeometry;
 use preston_solver::map::HeightMap;
@@ -31,6 +34,7 @@ use preston_solver::setup::sensitivity::Sensitivity;
 use preston_solver::setup::{
     Choices, DwellPoints, Setup, SetupData, SetupError, SetupInput, TifModel,
 };
+use preston_solver::simulate::program::ProgramRun;
 use preston_solver::simulate::{removal_nm, sample_program, Motion, SampledProgram};
 use preston_solver::surface::Surface;
 use preston_solver::tif::Tif;

@@ -929,7 +929,7 @@ fn lattice_error(
         .zip(&motion.time_s)
         .map(|(d, t)| d * (1.0 + parameters.drift_per_hour * (t - mid) / 3600.0))
         .collect();
-    let direct = crate::influence::model::direct::removal_nm(
+    let direct = crate::simulate::direct::removal_nm(
         &x,
         &y,
         &motion.x_mm,

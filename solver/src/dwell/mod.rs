@@ -1017,7 +1017,7 @@ mod tests {
         );
         let t = dwell(dx.len());
         assert_eq!(
-            crate::influence::model::direct::removal_nm(&mx, &my, &dx, &dy, &t, &tif, &at_once)
+            crate::simulate::direct::removal_nm(&mx, &my, &dx, &dy, &t, &tif, &at_once)
                 .unwrap_err(),
             Error::Cancelled
         );

@@ -6,7 +6,8 @@
 //!   between map and dwell point, [`model::point`]), the motion-true swept model (the TIF averaged
 //!   along each dwell point's stretch of path, [`model::swept`]), the same on a curved part in each
 //!   dwell point's tangent frame ([`model::surface`]) and with one Hertzian TIF per dwell point
-//!   ([`model::curvature`]), and `R t` summed without assembling `R` ([`model::direct`]).
+//!   ([`model::curvature`]). `R t` summed without assembling `R`, the removal of a motion, is the
+//!   simulation's ([`crate::simulate::direct`]).
 //! - [`operator`]: how `R` is held and applied, the numerics. The traits every solver goes
 //!   through ([`InfluenceOperator`], [`LinearOperator`]) and their implementations: the assembled
 //!   sparse [`InfluenceMatrix`] with its Gram matrix, the matrix-free FFT operator on one lattice,

@@ -207,7 +207,7 @@ impl ShopTool {
             .zip(&motion.time_s)
             .map(|(d, &t)| d * self.drift_factor(t, mid, span))
             .collect();
-        crate::influence::model::direct::removal_nm(
+        crate::simulate::direct::removal_nm(
             x_mm,
             y_mm,
             &motion.x_mm,

@@ -18,8 +18,6 @@
 //! the feed schedule are computed once, in [`Setup::solve`], and handed on in the [`Outcome`].
 
 mod choices;
-mod contact;
-mod motion_lattice;
 mod off_lattice;
 pub mod pays;
 pub mod plausible;
@@ -47,13 +45,14 @@ use crate::influence::{assemble_swept, InfluenceMatrix, InfluenceModel, Stretche
 use crate::machine::feeds::FeedSchedule;
 use crate::machine::gcode::motion::Kinematics;
 use crate::machine::gcode::program::Program;
-use crate::machine::gcode::{run_on_map, write_and_check, ProgramCheck, ProgramRun};
+use crate::machine::gcode::{write_and_check, ProgramCheck};
 use crate::machine::nc::{NcProgram, NcSettings};
 use crate::machine::{Flat, PartGeometry};
 use crate::map::{HeightMap, HeightStats};
 use crate::observer::Observer;
 use crate::path::raster::{self, RasterAxis};
 use crate::path::DwellPath;
+use crate::simulate::program::{run_on_map, ProgramRun};
 use crate::surface::Surface;
 use crate::tif::{HertzParams, InfluenceFunction, Tif};
 
@@ -972,7 +971,7 @@ mod tests {
             let (mx, my) = (setup.map.x_mm(), setup.map.y_mm());
             let mut nonzero = 0;
             for s in &robust::scenarios(&Default::default()) {
-                let p = sensitivity::Perturbation {
+                let p = crate::tif::Perturbation {
                     width_factor: s.width_factor,
                     rate_factor: 1.0,
                     offset_mm: s.offset_mm,
@@ -1369,7 +1368,7 @@ mod tests {
                     }
                 }
             }
-            crate::influence::model::direct::removals_nm(
+            crate::simulate::direct::removals_nm(
                 &mx,
                 &my,
                 &x,

@@ -2,7 +2,6 @@
 //! operators, or the robust plan's stacked scenarios) and the [`Problem`] built on them.
 
 use super::off_lattice::OffLatticeOperator;
-use super::sensitivity::{Perturbation, PerturbedTif};
 use super::*;
 use crate::influence::model::curvature::hertz_tifs_on_surface;
 use crate::influence::model::piece::piece_rate;
@@ -12,6 +11,7 @@ use crate::influence::operator::InfluenceOperator;
 use crate::influence::operator::OperatorKind;
 use crate::influence::swept_correction::SweptCorrected;
 use crate::influence::{NufftOperator, SpreadOperator, StackedRows, StencilOperator, SweptTif};
+use crate::tif::{Perturbation, PerturbedTif};
 use std::sync::Arc;
 
 /// Under `operator = "auto"`, the largest share of dwell points whose swept columns a lattice

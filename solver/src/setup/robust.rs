@@ -38,7 +38,7 @@
 //! best bound or after [`MINIMAX_ROUNDS`] solves. Each solve is to the solver's tolerance, so the
 //! bound is as good as the solves.
 
-use super::sensitivity::{Perturbation, Sensitivity};
+use super::sensitivity::Sensitivity;
 use super::{Outcome, Setup};
 use crate::calibrate::ToolUncertainty;
 use crate::dwell::Problem;
@@ -46,6 +46,7 @@ use crate::error::Result;
 use crate::influence::InfluenceMatrix;
 use crate::map::HeightStats;
 use crate::observer::Observer;
+use crate::tif::Perturbation;
 use serde::{Deserialize, Serialize};
 
 /// One scenario of a robust plan: the TIF's width factor (volume kept) and the tool's offset.
@@ -113,7 +114,7 @@ impl Setup {
 
     /// The executed residual RMS of each robust scenario, nm ([`SCENARIO_NAMES`] order): the
     /// executed contact motion `executed` integrated with each scenario's TIF on the set-up's
-    /// part ([`super::Setup::contact_removals`]), the nominal the executed run's own.
+    /// part ([`crate::simulate::contact::contact_removals`]), the nominal the executed run's own.
     pub fn executed_scenario_rms_nm(
         &self,
         executed: &super::Executed,

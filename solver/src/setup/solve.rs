@@ -5,6 +5,10 @@
 use super::*;
 use crate::dwell::first_order::FIT_RMS_SETTLED_NM;
 use crate::observer::check_cancelled;
+use crate::simulate::contact::{contact_removal, contact_removals, ContactPart};
+use crate::simulate::plan::{path_motion, push_stretch};
+use crate::simulate::SampledProgram;
+use crate::tif::Perturbation;
 
 /// Most correction passes against the executed program.
 pub const MAX_CORRECTION_PASSES: usize = 4;
@@ -35,12 +39,12 @@ impl Setup {
     /// The sensitivity of the motion `samples` (positions and the time the tool spends at each)
     /// whose nominal removal at the measured map points is `removal_nm`: the motion's removal
     /// under each of [`sensitivity::MOTION_SCENARIOS`] on the set-up's part
-    /// ([`Setup::contact_removals`]), its residual against the map summarised
+    /// ([`crate::simulate::contact::contact_removals`]), its residual against the map summarised
     /// ([`sensitivity::Sensitivity::of_removals`]). On a flat part the samples at a common offset
-    /// from the map's lattice are lattice products ([`Setup::contact_removals`]).
+    /// from the map's lattice are lattice products ([`crate::simulate::contact::contact_removals`]).
     pub fn sensitivity_of(
         &self,
-        samples: &crate::simulate::SampledProgram,
+        samples: &SampledProgram,
         removal_nm: &[f64],
         observer: &dyn Observer,
     ) -> Result<sensitivity::Sensitivity> {
@@ -80,7 +84,7 @@ impl Setup {
             .map(|(stretches, _)| stretches.outside_dominant())
             .unwrap_or_default();
         let mut shared = dwell_s.to_vec();
-        let mut samples = crate::simulate::SampledProgram {
+        let mut samples = SampledProgram {
             x_mm: Vec::new(),
             y_mm: Vec::new(),
             dwell_s: Vec::new(),
@@ -88,7 +92,7 @@ impl Setup {
         };
         if let Some((stretches, _)) = &self.swept {
             for &j in &own {
-                super::contact::push_stretch(&mut samples, &self.path, stretches, j, dwell_s[j]);
+                push_stretch(&mut samples, &self.path, stretches, j, dwell_s[j]);
                 shared[j] = 0.0;
             }
         }
@@ -270,7 +274,7 @@ impl Setup {
     }
 
     /// With an approximate operator (the spreading operator): the removal of `dwell_s` by the
-    /// exact `R` (summed directly, [`crate::influence::model::direct`]) at the measured map points and
+    /// exact `R` (summed directly, [`crate::simulate::direct`]) at the measured map points and
     /// the operator's measured error on it. `None` for the exact operators.
     pub(super) fn exact_removal(
         &self,
@@ -610,5 +614,52 @@ impl Setup {
         };
         NcProgram::plan(&self.path, &outcome.solution.dwell_s, geometry, settings)
             .and_then(|nc| write_and_check(&nc, &[]))
+    }
+}
+
+impl Setup {
+    /// The set-up's part as a contact motion acts on it: the measured map, the design surface,
+    /// the TIF (each sample's own Hertz TIF where it depends on the curvature) and its frame.
+    fn contact_part(&self) -> ContactPart<'_> {
+        ContactPart {
+            map_x_mm: self.map.x_mm(),
+            map_y_mm: self.map.y_mm(),
+            surface: self.surface.as_ref(),
+            tif: &self.tif,
+            hertz: match &self.tif_model {
+                TifModel::ShiftInvariant => None,
+                TifModel::CurvatureDependent(params) => Some(params),
+            },
+            frame: self.tif_frame,
+        }
+    }
+
+    /// The removal of the motion `samples` at the measured map points, nm
+    /// ([`crate::simulate::contact::contact_removal`]).
+    pub(super) fn contact_removal(
+        &self,
+        samples: &SampledProgram,
+        observer: &dyn Observer,
+    ) -> Result<Vec<f64>> {
+        contact_removal(&self.contact_part(), samples, observer)
+    }
+
+    /// The removals of the motion `samples` at the measured map points under each of
+    /// `scenarios`, nm, in their order ([`crate::simulate::contact::contact_removals`]: on a
+    /// flat part as lattice products where that pays, on a curved part in each sample's
+    /// tangent frame).
+    pub(super) fn contact_removals(
+        &self,
+        samples: &SampledProgram,
+        scenarios: &[Perturbation],
+        observer: &dyn Observer,
+    ) -> Result<Vec<Vec<f64>>> {
+        contact_removals(&self.contact_part(), samples, scenarios, observer)
+    }
+
+    /// The motion of the plan `dwell_s` at its programmed feeds ([`path_motion`] of the
+    /// set-up's path, with its stretches under the swept model).
+    pub(super) fn plan_motion(&self, dwell_s: &[f64]) -> SampledProgram {
+        path_motion(&self.path, self.swept.as_ref().map(|s| &s.0), dwell_s)
     }
 }

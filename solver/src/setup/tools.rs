@@ -273,9 +273,10 @@ impl ToolsSetup {
                 )?),
                 InfluenceModel::Point => None,
             };
-            let samples = super::contact::path_motion(&tool.path, stretches.as_ref(), t);
-            let h =
-                super::contact::removals_in_plan(mx, my, &samples, &tool.tif, scenarios, observer)?;
+            let samples = crate::simulate::plan::path_motion(&tool.path, stretches.as_ref(), t);
+            let h = crate::simulate::direct::removals_in_plan(
+                mx, my, &samples, &tool.tif, scenarios, observer,
+            )?;
             for (sum, h) in motion.iter_mut().zip(h) {
                 sum.iter_mut().zip(h).for_each(|(s, v)| *s += v);
             }

@@ -9,6 +9,7 @@ pub mod gaussian;
 pub mod grid;
 pub mod hertz;
 pub mod model;
+pub mod perturbed;
 pub mod spot;
 
 pub use bonnet::{BonnetParams, BonnetTif};
@@ -16,6 +17,7 @@ pub use gaussian::GaussianTif;
 pub use grid::GridTif;
 pub use hertz::{HertzParams, HertzTif};
 pub use model::{GridAdjustment, HertzPart, ProcessModel, SampledTif, TifModelKind, TifSummary};
+pub use perturbed::{Perturbation, PerturbedTif};
 pub use spot::SpotSummary;
 
 use serde::{Deserialize, Serialize};

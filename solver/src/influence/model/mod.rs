@@ -8,13 +8,14 @@
 //! - [`surface`]: either model on a curved part, the TIF applied in each dwell point's tangent
 //!   frame;
 //! - [`curvature`]: one Hertzian TIF per dwell point from the local principal curvatures;
-//! - [`direct`]: `R t` summed without assembling `R` (one product with many columns: sampled
-//!   programs);
 //! - [`piece`]: the one rule every swept column and sampled motion integrates a straight piece of
 //!   motion by (its midpoint, and exactly where a truncated TIF's cut circle crosses it).
+//!
+//! `R t` summed without assembling `R` (one product with many columns: a sampled motion) is the
+//! simulation's ([`crate::simulate::direct`]); the traversal of the pairs within a radius it
+//! shares with the curved part's direct sum is [`point`]'s.
 
 pub mod curvature;
-pub mod direct;
 pub mod piece;
 pub mod point;
 pub mod surface;

@@ -363,6 +363,84 @@ impl StripIndex {
     }
 }
 
+/// Map points summed by one rayon task in the direct sums ([`sum_near`]).
+pub(crate) const POINTS_PER_TASK: usize = 256;
+
+/// The map's y, the dwell points' y and the dwell times against the `m` map and `n` dwell x.
+pub(crate) fn check_lengths(
+    m: usize,
+    n: usize,
+    map_y_mm: &[f64],
+    dwell_y_mm: &[f64],
+    dwell_s: &[f64],
+) -> Result<()> {
+    for (what, got, expected) in [
+        ("map y_mm", map_y_mm.len(), m),
+        ("dwell y_mm", dwell_y_mm.len(), n),
+        ("dwell_s", dwell_s.len(), n),
+    ] {
+        if got != expected {
+            return Err(Error::LengthMismatch {
+                what,
+                got,
+                expected,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The traversal of the pairs the direct sums share (the removal of a motion summed without
+/// assembling `R`, [`crate::simulate::direct`], and on a curved part
+/// [`super::surface::removals_on_surface_with`]): for every map point `i`, each dwell point
+/// `j` within `search_radius_mm` of it in plan, in the strip index's fixed order, calls
+/// `add(i, j, x_i - X_j, y_i - Y_j, sums)` with map point `i`'s `kernels` sums. Each map point is
+/// summed by one task, so the sums do not depend on the thread count. Returns the sums kernel by
+/// kernel. Lengths are the caller's to check. Once `observer` asks for a stop the remaining map
+/// points are skipped: the caller then returns [`Error::Cancelled`], not the sums.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn sum_near<F>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    dwell_x_mm: &[f64],
+    dwell_y_mm: &[f64],
+    kernels: usize,
+    search_radius_mm: f64,
+    observer: &dyn Observer,
+    add: F,
+) -> Vec<Vec<f64>>
+where
+    F: Fn(usize, usize, f64, f64, &mut [f64]) + Sync,
+{
+    let (m, n, k) = (map_x_mm.len(), dwell_x_mm.len(), kernels);
+    if k == 0 {
+        return Vec::new();
+    }
+    observer.start(Stage::Assembly, n as u64);
+    let index = StripIndex::new(dwell_x_mm, dwell_y_mm, search_radius_mm);
+    // Point-major: the k sums of map point i at i * k.
+    let mut h = vec![0.0; m * k];
+    h.par_chunks_mut(POINTS_PER_TASK * k)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            if observer.cancelled() {
+                return;
+            }
+            for (p, sums) in chunk.chunks_mut(k).enumerate() {
+                let i = c * POINTS_PER_TASK + p;
+                let (px, py) = (map_x_mm[i], map_y_mm[i]);
+                index.for_each_near(px, py, search_radius_mm, |j, cx, cy| {
+                    add(i, j, px - cx, py - cy, sums);
+                });
+            }
+        });
+    observer.advance(Stage::Assembly, n as u64);
+    observer.finish(Stage::Assembly);
+    (0..k)
+        .map(|t| h.iter().skip(t).step_by(k).copied().collect())
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

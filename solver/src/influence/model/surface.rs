@@ -318,7 +318,7 @@ where
 /// along the piece of half `h` ([`piece_rate`]), `radii_mm[s]` its support radius (a TIF cut
 /// where its rate is not zero reaches the piece's half farther; the rate is zero beyond the
 /// support, so the longest half is added to every radius). On a plane with
-/// [`TifFrame::MachineX`] it is [`super::direct::piece_removals_nm`] to rounding.
+/// [`TifFrame::MachineX`] it is [`crate::simulate::direct::piece_removals_nm`] to rounding.
 #[allow(clippy::too_many_arguments)]
 pub fn removals_on_surface_with<K>(
     surface: &Surface,
@@ -336,7 +336,7 @@ pub fn removals_on_surface_with<K>(
 where
     K: Fn(usize, usize, [f64; 2], f64, f64) -> f64 + Sync,
 {
-    super::direct::check_lengths(
+    super::point::check_lengths(
         map_x_mm.len(),
         dwell_x_mm.len(),
         map_y_mm,
@@ -370,7 +370,7 @@ where
         .collect();
     let longest = halves.iter().map(|h| h[0].hypot(h[1])).fold(0.0, f64::max);
     let r2: Vec<f64> = radii_mm.iter().map(|r| (r + longest).powi(2)).collect();
-    let sums = super::direct::sum_near(
+    let sums = super::point::sum_near(
         map_x_mm,
         map_y_mm,
         dwell_x_mm,
@@ -657,7 +657,8 @@ mod tests {
     /// The direct tangent-frame sum of a motion is the assembled tangent-frame `R t` of its
     /// samples on a sphere and on an ellipsoid (each sample its own frame, the path frame from
     /// its neighbours), for an asymmetric grid TIF in both frames; several kernels in one pass
-    /// are each their own sum; on a plane with the machine-x frame it is the plan's direct sum.
+    /// are each their own sum (on a plane with the machine-x frame it is the plan's direct sum:
+    /// [`crate::simulate::direct`]'s tests).
     #[test]
     fn direct_sum_on_a_surface_is_the_assembled_product() {
         let (mx, my) = grid(36, 0.3);
@@ -711,58 +712,5 @@ mod tests {
                 assert_close(&got[1], &r.removal_nm(&t).unwrap(), "Gaussian");
             }
         }
-        let plane = Surface::Plane(Plane {});
-        let got = removals_on_surface_with(
-            &plane,
-            &mx,
-            &my,
-            &sx,
-            &sy,
-            &[],
-            &t,
-            &[grid_tif.support_radius_mm()],
-            |_, _, _, u, w| grid_tif.rate_nm_per_s(u, w),
-            TifFrame::MachineX,
-            &Silent,
-        )
-        .unwrap();
-        let want =
-            super::super::direct::removal_nm(&mx, &my, &sx, &sy, &t, &grid_tif, &Silent).unwrap();
-        assert_close(&got[0], &want, "plane");
-        // Samples standing for pieces of the motion (half the way to the next sample), a cut
-        // Gaussian integrated along them: on the plane, the plan's piece sums.
-        let halves: Vec<[f64; 2]> = (0..sx.len())
-            .map(|k| {
-                let j = (k + 1).min(sx.len() - 1);
-                let i = j - 1;
-                [0.5 * (sx[j] - sx[i]), 0.5 * (sy[j] - sy[i])]
-            })
-            .collect();
-        let got = removals_on_surface_with(
-            &plane,
-            &mx,
-            &my,
-            &sx,
-            &sy,
-            &halves,
-            &t,
-            &[gauss.support_radius_mm()],
-            |_, _, h, u, w| piece_rate(&gauss, h, u, w),
-            TifFrame::MachineX,
-            &Silent,
-        )
-        .unwrap();
-        let want = super::super::direct::piece_removals_nm(
-            &mx,
-            &my,
-            &sx,
-            &sy,
-            &halves,
-            &t,
-            &[&gauss],
-            &Silent,
-        )
-        .unwrap();
-        assert_close(&got[0], &want[0], "plane, pieces");
     }
 }

@@ -1,6 +1,6 @@
-//! Simulation of a polishing run: the removal a dwell program produces on the part.
+//! The motion of a dwell plan as samples, and the removal it produces in plan.
 //!
-//! Two models of the tool's motion:
+//! Two models of the tool's motion through the plan, as `preston simulate` runs it:
 //! - [`Motion::Discrete`]: the tool stands still at each dwell point `j` for `t_j` (the solver's
 //!   model): `h = R t`.
 //! - [`Motion::Continuous`]: the tool sweeps along the path at constant speed within the stretch of
@@ -14,9 +14,15 @@
 //!   `s = -s_{j-1}/2 + (i + 1/2) ds_j / k`. The midpoint rule converges as `O(1/k^2)` for a smooth
 //!   TIF; on a raster whose pitch is well below the TIF width, `k = 8` is within a fraction of a
 //!   per cent of the converged removal (tested, and reported by `preston simulate`).
+//!
+//! The set-up's own model of the plan at its programmed feeds ([`path_motion`]): under the swept
+//! influence model each dwell point's stretch samples, each the piece of motion it stands for
+//! ([`Stretches::pieces_of`]); under the point model the dwell points themselves.
 
+use super::direct::removal_of_samples;
+use super::SampledProgram;
 use crate::error::{Error, Result};
-use crate::influence::InfluenceMatrix;
+use crate::influence::{InfluenceMatrix, Stretches};
 use crate::observer::Observer;
 use crate::path::DwellPath;
 use crate::tif::InfluenceFunction;
@@ -33,21 +39,6 @@ pub enum Motion {
         /// Midpoint-rule samples per dwell point (>= 1).
         samples_per_point: usize,
     },
-}
-
-/// Positions (mm) and dwell (s) of the samples that model the motion, in path order.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SampledProgram {
-    /// x of every sample, mm.
-    pub x_mm: Vec<f64>,
-    /// y of every sample, mm.
-    pub y_mm: Vec<f64>,
-    /// Dwell carried by every sample, s.
-    pub dwell_s: Vec<f64>,
-    /// Half of every sample's piece of motion, from the sample to the piece's end, mm, the tool
-    /// at constant feed along it ([`crate::influence::piece_rate`]); empty: the samples are
-    /// points.
-    pub half_mm: Vec<[f64; 2]>,
 }
 
 /// The point at signed arc-length offset `s` (mm) from dwell point `j` along the polyline; beyond
@@ -220,39 +211,53 @@ pub fn removal_nm<T: InfluenceFunction + ?Sized>(
     removal_of_samples(map_x_mm, map_y_mm, &program, tif, observer)
 }
 
-/// Removal (nm) at the map points of dwell samples (positions and the time the tool spends at
-/// each), `h(x) = sum_k TIF(x - s_k) tau_k`, summed directly ([`crate::influence::model::direct`]): no
-/// matrix is held, and the result does not depend on the thread count. Samples that stand for
-/// pieces of motion are integrated along them ([`crate::influence::model::piece_rate`]).
-pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
-    map_x_mm: &[f64],
-    map_y_mm: &[f64],
-    program: &SampledProgram,
-    tif: &T,
-    observer: &dyn Observer,
-) -> Result<Vec<f64>> {
-    if !program.half_mm.is_empty() {
-        let mut h = crate::influence::model::direct::piece_removals_nm(
-            map_x_mm,
-            map_y_mm,
-            &program.x_mm,
-            &program.y_mm,
-            &program.half_mm,
-            &program.dwell_s,
-            &[tif],
-            observer,
-        )?;
-        return Ok(h.pop().unwrap_or_default());
+/// Appends dwell point `j`'s stretch on `path` carrying `dwell_s` to `motion`: its samples, each
+/// the piece it stands for ([`Stretches::pieces_of`]), carrying the dwell in proportion to their
+/// weights.
+pub fn push_stretch(
+    motion: &mut SampledProgram,
+    path: &DwellPath,
+    stretches: &Stretches,
+    j: usize,
+    dwell_s: f64,
+) {
+    for (&[dx, dy, w], &half) in stretches.of(j).iter().zip(stretches.pieces_of(j)) {
+        motion.x_mm.push(path.x_mm()[j] + dx);
+        motion.y_mm.push(path.y_mm()[j] + dy);
+        motion.dwell_s.push(dwell_s * w);
+        motion.half_mm.push(half);
     }
-    crate::influence::model::direct::removal_nm(
-        map_x_mm,
-        map_y_mm,
-        &program.x_mm,
-        &program.y_mm,
-        &program.dwell_s,
-        tif,
-        observer,
-    )
+}
+
+/// The motion of dwell times `dwell_s` on `path` at their programmed feeds: each dwell point's
+/// stretch samples, each the piece it stands for, carrying its dwell in proportion to their
+/// weights (swept model, `stretches`, [`push_stretch`]), or the dwell points themselves (point
+/// model).
+pub fn path_motion(
+    path: &DwellPath,
+    stretches: Option<&Stretches>,
+    dwell_s: &[f64],
+) -> SampledProgram {
+    match stretches {
+        Some(stretches) => {
+            let mut motion = SampledProgram {
+                x_mm: Vec::new(),
+                y_mm: Vec::new(),
+                dwell_s: Vec::new(),
+                half_mm: Vec::new(),
+            };
+            for (j, &tj) in dwell_s.iter().enumerate() {
+                push_stretch(&mut motion, path, stretches, j, tj);
+            }
+            motion
+        }
+        None => SampledProgram {
+            x_mm: path.x_mm().to_vec(),
+            y_mm: path.y_mm().to_vec(),
+            dwell_s: dwell_s.to_vec(),
+            half_mm: Vec::new(),
+        },
+    }
 }
 
 #[cfg(test)]

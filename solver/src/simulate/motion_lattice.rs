@@ -17,14 +17,13 @@
 //! and to the grouping's tolerance: each sample of a group is taken at the group's offset and
 //! piece, at most [`CLASS_TOL_MM`] from its own.
 
-use super::sensitivity::Perturbation;
+use super::direct::piece_removals_nm;
+use super::SampledProgram;
 use crate::error::Result;
-use crate::influence::model::direct::piece_removals_nm;
 use crate::influence::model::piece::{piece_reach_mm, PieceTif};
 use crate::influence::operator::fft::FftOperator;
 use crate::observer::Observer;
-use crate::simulate::SampledProgram;
-use crate::tif::InfluenceFunction;
+use crate::tif::{InfluenceFunction, Perturbation};
 use std::collections::HashMap;
 
 /// Samples whose offsets from the lattice (and pieces' halves) agree to this, mm, share one
@@ -39,7 +38,7 @@ const LATTICE_WORK_PER_CELL_LOG2: f64 = 3.0;
 
 /// Whether a group of `samples` samples is cheaper on the lattice of `cells` cells than summed
 /// directly at about `pairs_per_sample` map points each (the same scenarios either way).
-pub(super) fn lattice_pays(samples: usize, pairs_per_sample: f64, cells: f64) -> bool {
+pub fn lattice_pays(samples: usize, pairs_per_sample: f64, cells: f64) -> bool {
     samples as f64 * pairs_per_sample > LATTICE_WORK_PER_CELL_LOG2 * cells * cells.max(2.0).log2()
 }
 
@@ -58,7 +57,7 @@ struct Group {
 /// The removals of the motion `samples` with `tif` in plan under each of `scenarios` at the map
 /// points `(map_x_mm, map_y_mm)`, nm, in the scenarios' order (module documentation). The
 /// direct sum of [`piece_removals_nm`] wherever the map is not on a lattice or no group pays.
-pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
+pub fn removals_in_plan_on_lattice<T: InfluenceFunction>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
     samples: &SampledProgram,
@@ -274,8 +273,8 @@ pub(super) fn removals_in_plan_on_lattice<T: InfluenceFunction>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::influence::model::direct::removals_nm;
     use crate::observer::Silent;
+    use crate::simulate::direct::removals_nm;
     use crate::tif::{GaussianTif, GridTif};
 
     /// The lattice products against the direct sum: rounding (the transforms') and the
@@ -341,10 +340,29 @@ mod tests {
         }
     }
 
+    /// The nominal tool and the sensitivity's scenarios: TIF 3% wider, narrower, the tool
+    /// 0.05 mm off in x, in y.
     fn scenarios() -> Vec<Perturbation> {
-        let mut s = vec![Perturbation::NONE];
-        s.extend(super::super::sensitivity::MOTION_SCENARIOS);
-        s
+        let p = Perturbation::NONE;
+        vec![
+            p,
+            Perturbation {
+                width_factor: 1.0 + 0.03,
+                ..p
+            },
+            Perturbation {
+                width_factor: 1.0 / (1.0 + 0.03),
+                ..p
+            },
+            Perturbation {
+                offset_mm: (0.05, 0.0),
+                ..p
+            },
+            Perturbation {
+                offset_mm: (0.0, 0.05),
+                ..p
+            },
+        ]
     }
 
     /// A measured (bilinear) grid TIF: the lattice products are the direct sums of the

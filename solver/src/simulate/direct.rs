@@ -1,46 +1,21 @@
-//! The removal `h = R t` summed directly, without assembling `R`: for one product with many
-//! columns, such as a program sampled along its path (tens of thousands of samples), where the
-//! assembled matrix would be held for a single use.
+//! The removal of a motion in plan summed directly, without assembling `R`: `h = R t` for one
+//! product with many columns, such as a program sampled along its path (tens of thousands of
+//! samples), where the assembled matrix would be held for a single use.
 //!
 //! `h_i = sum_j TIF(x_i - X_j, y_i - Y_j) t_j` over the dwell points `j` within the TIF's support
-//! radius of map point `i` (the pairs [`super::InfluenceMatrix::assemble`] keeps), found with a
-//! strip index over the dwell points. Each map point is summed by one task in the index's fixed
+//! radius of map point `i` (the pairs [`crate::influence::InfluenceMatrix::assemble`] keeps),
+//! found with a strip index over the dwell points ([`crate::influence::model::point`]); a sample
+//! that stands for a piece of motion is integrated along it ([`piece_rate`]). Each map point is summed by one task in the index's fixed
 //! order, so the result does not depend on the thread count; it equals the assembled `R t` to
 //! rounding (the terms are the same, the order differs).
 
-use super::piece::piece_rate;
-use super::point::StripIndex;
+use super::SampledProgram;
 use crate::error::{Error, Result};
+use crate::influence::model::piece::piece_rate;
+use crate::influence::model::point::{check_lengths, sum_near, StripIndex, POINTS_PER_TASK};
 use crate::observer::{Observer, Stage};
-use crate::tif::InfluenceFunction;
+use crate::tif::{InfluenceFunction, Perturbation};
 use rayon::prelude::*;
-
-/// Map points summed by one rayon task.
-const POINTS_PER_TASK: usize = 256;
-
-/// The map's y, the dwell points' y and the dwell times against the `m` map and `n` dwell x.
-pub(super) fn check_lengths(
-    m: usize,
-    n: usize,
-    map_y_mm: &[f64],
-    dwell_y_mm: &[f64],
-    dwell_s: &[f64],
-) -> Result<()> {
-    for (what, got, expected) in [
-        ("map y_mm", map_y_mm.len(), m),
-        ("dwell y_mm", dwell_y_mm.len(), n),
-        ("dwell_s", dwell_s.len(), n),
-    ] {
-        if got != expected {
-            return Err(Error::LengthMismatch {
-                what,
-                got,
-                expected,
-            });
-        }
-    }
-    Ok(())
-}
 
 /// `h = R t`, nm, at the map points `(map_x_mm, map_y_mm)` of dwell times `dwell_s` (s) at
 /// `(dwell_x_mm, dwell_y_mm)` with `tif`, without assembling `R` (module documentation).
@@ -204,61 +179,76 @@ pub fn piece_removals_nm<T: InfluenceFunction + ?Sized>(
     Ok(sums)
 }
 
-/// The traversal of the pairs the direct sums share: for every map point `i`, each dwell point
-/// `j` within `search_radius_mm` of it in plan, in the strip index's fixed order, calls
-/// `add(i, j, x_i - X_j, y_i - Y_j, sums)` with map point `i`'s `kernels` sums. Each map point is
-/// summed by one task, so the sums do not depend on the thread count. Returns the sums kernel by
-/// kernel. Lengths are the caller's to check. Once `observer` asks for a stop the remaining map
-/// points are skipped: the caller then returns [`Error::Cancelled`], not the sums.
-#[allow(clippy::too_many_arguments)]
-pub(super) fn sum_near<F>(
+/// Removal (nm) at the map points of dwell samples (positions and the time the tool spends at
+/// each), `h(x) = sum_k TIF(x - s_k) tau_k`, summed directly (module documentation): no
+/// matrix is held, and the result does not depend on the thread count. Samples that stand for
+/// pieces of motion are integrated along them ([`piece_rate`]).
+pub fn removal_of_samples<T: InfluenceFunction + ?Sized>(
     map_x_mm: &[f64],
     map_y_mm: &[f64],
-    dwell_x_mm: &[f64],
-    dwell_y_mm: &[f64],
-    kernels: usize,
-    search_radius_mm: f64,
+    program: &SampledProgram,
+    tif: &T,
     observer: &dyn Observer,
-    add: F,
-) -> Vec<Vec<f64>>
-where
-    F: Fn(usize, usize, f64, f64, &mut [f64]) + Sync,
-{
-    let (m, n, k) = (map_x_mm.len(), dwell_x_mm.len(), kernels);
-    if k == 0 {
-        return Vec::new();
+) -> Result<Vec<f64>> {
+    if !program.half_mm.is_empty() {
+        let mut h = piece_removals_nm(
+            map_x_mm,
+            map_y_mm,
+            &program.x_mm,
+            &program.y_mm,
+            &program.half_mm,
+            &program.dwell_s,
+            &[tif],
+            observer,
+        )?;
+        return Ok(h.pop().unwrap_or_default());
     }
-    observer.start(Stage::Assembly, n as u64);
-    let index = StripIndex::new(dwell_x_mm, dwell_y_mm, search_radius_mm);
-    // Point-major: the k sums of map point i at i * k.
-    let mut h = vec![0.0; m * k];
-    h.par_chunks_mut(POINTS_PER_TASK * k)
-        .enumerate()
-        .for_each(|(c, chunk)| {
-            if observer.cancelled() {
-                return;
-            }
-            for (p, sums) in chunk.chunks_mut(k).enumerate() {
-                let i = c * POINTS_PER_TASK + p;
-                let (px, py) = (map_x_mm[i], map_y_mm[i]);
-                index.for_each_near(px, py, search_radius_mm, |j, cx, cy| {
-                    add(i, j, px - cx, py - cy, sums);
-                });
-            }
-        });
-    observer.advance(Stage::Assembly, n as u64);
-    observer.finish(Stage::Assembly);
-    (0..k)
-        .map(|t| h.iter().skip(t).step_by(k).copied().collect())
-        .collect()
+    removal_nm(
+        map_x_mm,
+        map_y_mm,
+        &program.x_mm,
+        &program.y_mm,
+        &program.dwell_s,
+        tif,
+        observer,
+    )
+}
+
+/// The removals of the motion `samples` with `tif` in plan (a flat part) at the map points
+/// `(map_x_mm, map_y_mm)` under each of `scenarios`: an offset is the TIF's own shift, so one
+/// traversal serves them all, each sample along the piece it stands for ([`piece_removals_nm`]).
+pub fn removals_in_plan<T: InfluenceFunction + ?Sized>(
+    map_x_mm: &[f64],
+    map_y_mm: &[f64],
+    samples: &SampledProgram,
+    tif: &T,
+    scenarios: &[Perturbation],
+    observer: &dyn Observer,
+) -> Result<Vec<Vec<f64>>> {
+    let tifs: Vec<_> = scenarios.iter().map(|p| p.of(tif)).collect();
+    let refs: Vec<&dyn InfluenceFunction> =
+        tifs.iter().map(|t| t as &dyn InfluenceFunction).collect();
+    piece_removals_nm(
+        map_x_mm,
+        map_y_mm,
+        &samples.x_mm,
+        &samples.y_mm,
+        &samples.half_mm,
+        &samples.dwell_s,
+        &refs,
+        observer,
+    )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::influence::model::piece::piece_rate;
+    use crate::influence::model::surface::{removals_on_surface_with, TifFrame};
     use crate::influence::InfluenceMatrix;
     use crate::observer::Silent;
-    use crate::tif::GaussianTif;
+    use crate::surface::{Plane, Surface};
+    use crate::tif::{GaussianTif, GridTif};
 
     /// Direct sum against the assembled `R t`: the same terms in another order.
     const DIRECT_VS_ASSEMBLED_RTOL: f64 = 1e-13;
@@ -360,5 +350,84 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The curved part's direct sum ([`removals_on_surface_with`]) on a plane with the machine-x
+    /// frame is the plan's direct sum, for points and for pieces of motion: the same terms in
+    /// another order.
+    #[test]
+    fn direct_sum_on_a_plane_is_the_plan_direct_sum() {
+        /// The same terms in another order.
+        const ON_PLANE_RTOL: f64 = 1e-12;
+        let assert_close = |got: &[f64], want: &[f64], what: &str| {
+            let scale = want.iter().fold(0.0_f64, |a, &b| a.max(b.abs()));
+            assert!(scale > 0.0, "{what}: nothing removed");
+            for (i, (a, b)) in got.iter().zip(want).enumerate() {
+                assert!(
+                    (a - b).abs() <= ON_PLANE_RTOL * scale,
+                    "{what}, point {i}: tangent-frame sum {a} against plan sum {b}"
+                );
+            }
+        };
+        let (mx, my): (Vec<f64>, Vec<f64>) = (0..36 * 36)
+            .map(|k| ((k % 36) as f64 * 0.3 - 0.37, (k / 36) as f64 * 0.3 + 0.11))
+            .unzip();
+        // A curved motion crossing the map: samples 0.07 mm apart.
+        let (sx, sy): (Vec<f64>, Vec<f64>) = (0..160)
+            .map(|k| {
+                let a = k as f64 * 0.07;
+                (0.5 + a, 3.0 + 2.0 * (0.4 * a).sin())
+            })
+            .unzip();
+        let t: Vec<f64> = (0..sx.len())
+            .map(|k| 0.2 + 0.1 * (k as f64 * 0.37).cos().abs())
+            .collect();
+        let rates: Vec<f64> = (0..35)
+            .map(|k| 1.0 + (k as f64 * 0.77).sin().abs() * k as f64)
+            .collect();
+        let grid_tif = GridTif::new(-1.9, -1.3, 0.6, 0.5, 7, 5, rates).unwrap();
+        let gauss = GaussianTif::new(0.9, 4.0, 2.7).unwrap();
+        let plane = Surface::Plane(Plane {});
+        let got = removals_on_surface_with(
+            &plane,
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &[],
+            &t,
+            &[grid_tif.support_radius_mm()],
+            |_, _, _, u, w| grid_tif.rate_nm_per_s(u, w),
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let want = removal_nm(&mx, &my, &sx, &sy, &t, &grid_tif, &Silent).unwrap();
+        assert_close(&got[0], &want, "plane");
+        // Samples standing for pieces of the motion (half the way to the next sample), a cut
+        // Gaussian integrated along them: on the plane, the plan's piece sums.
+        let halves: Vec<[f64; 2]> = (0..sx.len())
+            .map(|k| {
+                let j = (k + 1).min(sx.len() - 1);
+                let i = j - 1;
+                [0.5 * (sx[j] - sx[i]), 0.5 * (sy[j] - sy[i])]
+            })
+            .collect();
+        let got = removals_on_surface_with(
+            &plane,
+            &mx,
+            &my,
+            &sx,
+            &sy,
+            &halves,
+            &t,
+            &[gauss.support_radius_mm()],
+            |_, _, h, u, w| piece_rate(&gauss, h, u, w),
+            TifFrame::MachineX,
+            &Silent,
+        )
+        .unwrap();
+        let want = piece_removals_nm(&mx, &my, &sx, &sy, &halves, &t, &[&gauss], &Silent).unwrap();
+        assert_close(&got[0], &want[0], "plane, pieces");
     }
 }
