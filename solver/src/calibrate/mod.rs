@@ -307,9 +307,10 @@ pub fn calibrate(
         fit_map_shift: false,
         ..settings.clone()
     };
-    let (without, with) = (
-        fit::run(change, motion, spot, &fixed),
-        fit::run(change, motion, spot, settings),
+    // The two fits are independent: each gives the same figures on any thread count.
+    let (without, with) = rayon::join(
+        || fit::run(change, motion, spot, &fixed),
+        || fit::run(change, motion, spot, settings),
     );
     let (mut c, test) = match (without, with) {
         (Ok(without), Ok(with)) => {
