@@ -139,6 +139,29 @@ fn bom_and_crlf_give_the_same_answer() {
     }
 }
 
+/// Preston's own raster covers the map plus the TIF's radius, so the corners of its margin lie
+/// beyond the footprint of every map point: they are counted in report.json and said as a note,
+/// not warned about as a dwell file's stray points are.
+#[test]
+fn a_generated_raster_s_margin_corners_are_a_note_not_a_warning() {
+    let d = tempfile::tempdir().unwrap();
+    let map = write_arg(d.path(), "map.csv", &smooth_map("\n"));
+    let out = d.path().join("out");
+    let mut args = vec!["--map", map.as_str(), "--raster-pitch-mm", "1"];
+    args.extend(GAUSSIAN);
+    let o = solve(&args, &out);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let r = report(&out);
+    let n = r["unreachable_dwell_points"].as_u64().unwrap();
+    assert!(n > 0, "{r}");
+    assert!(
+        stderr.contains(&format!("note: {n} points of the raster's margin")),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("have no map point"), "{stderr}");
+}
+
 #[test]
 fn unreachable_dwell_points_are_reported_at_their_lower_bound() {
     let d = tempfile::tempdir().unwrap();

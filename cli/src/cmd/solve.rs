@@ -377,7 +377,15 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
     for w in r.warnings.iter().skip(early_warnings) {
         crate::errln!("  warning: {w}");
     }
-    if r.unreachable_dwell_points > 0 {
+    if r.unreachable_dwell_points > 0 && r.raster.is_some() {
+        // Preston's own raster covers the map widened by the TIF's radius: its points at the
+        // margin's corners reach past the footprint's non-zero part. Nothing is wrong with the
+        // inputs.
+        crate::note!(
+            "  note: {} points of the raster's margin (the map widened by the TIF's radius) reach no map point with the TIF's non-zero part; they pass at the fastest feed (listed in report.json)",
+            r.unreachable_dwell_points
+        );
+    } else if r.unreachable_dwell_points > 0 {
         let shown: Vec<String> = r
             .unreachable_dwell_indices
             .iter()
