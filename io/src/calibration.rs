@@ -111,7 +111,11 @@ pub fn run_calibration(inputs: &CalibrationInputs) -> Result<Calibrated> {
             after: after_file,
             program: inputs.program.clone(),
             source_tif: inputs.tif_file.clone(),
-            source_tif_sha256: inputs.tif_file.as_deref().map(file_sha256).transpose()?,
+            source_tif_sha256: inputs
+                .tif_file
+                .as_deref()
+                .map(|f| file_sha256(f, "TIF"))
+                .transpose()?,
         },
         program_time_s,
     );
@@ -121,9 +125,9 @@ pub fn run_calibration(inputs: &CalibrationInputs) -> Result<Calibrated> {
     })
 }
 
-/// SHA-256 of a file's bytes, hex.
-pub fn file_sha256(path: &Path) -> Result<String> {
-    let bytes = crate::limits::read_regular(path, 1 << 30, "TIF")?;
+/// SHA-256 of a file's bytes, hex; `what` names the file in an error.
+pub fn file_sha256(path: &Path, what: &str) -> Result<String> {
+    let bytes = crate::limits::read_regular(path, 1 << 30, what)?;
     Ok(crate::digest::sha256_hex(&bytes))
 }
 

@@ -225,7 +225,7 @@ fn read_checked(job: &Job, job_path: &Path, given: Given) -> Result<Inputs> {
 /// place. Any other TIF is planned with as given ([`calibrated_tif_warning`]).
 pub fn is_spot_test_of(c: &CalibrationRecord, tif_file: Option<&Path>) -> bool {
     match (tif_file, &c.source_tif_sha256) {
-        (Some(f), Some(sha)) => crate::calibration::file_sha256(f).is_ok_and(|s| &s == sha),
+        (Some(f), Some(sha)) => crate::calibration::file_sha256(f, "TIF").is_ok_and(|s| &s == sha),
         _ => false,
     }
 }
@@ -379,15 +379,15 @@ const CALIBRATED_RATE_TOL_NM_PER_S: f64 = 1e-8;
 /// again or the grid `preston.calibrate` returns all count as the calibrated TIF.
 pub fn calibrated_tif_warning(c: &CalibrationRecord, tif: &Tif) -> Option<String> {
     let file = c.tif_file.display();
-    let bytes = match crate::limits::read_regular(&c.tif_file, 1 << 30, "calibrated TIF") {
-        Ok(b) => b,
+    let sha256 = match crate::calibration::file_sha256(&c.tif_file, "calibrated TIF") {
+        Ok(h) => h,
         Err(e) => {
             return Some(format!(
                 "the calibrated TIF cannot be read to compare ({e})"
             ))
         }
     };
-    if !c.tif_sha256.is_empty() && crate::digest::sha256_hex(&bytes) != c.tif_sha256 {
+    if !c.tif_sha256.is_empty() && sha256 != c.tif_sha256 {
         return Some(format!(
             "the calibrated TIF {file} has changed since the calibration: its SHA-256 is not the one calibration.json records"
         ));
@@ -743,13 +743,28 @@ pub fn write_solve_outputs(
             &o.residual_nm,
         )?);
     }
+    commit_solve_outputs(staged, figures, &solved.report, &notes, out_dir, options)?;
+    Ok(notes)
+}
+
+/// Commits a solve's staged files, all or none: with `options.html` the report page (the
+/// figures embedded), with `options.plots` the figures, replacing an earlier solve's outputs
+/// where `options.replace_earlier` says so. One tool's outputs and several tools' share it.
+pub(crate) fn commit_solve_outputs(
+    mut staged: Vec<crate::atomic::Staged>,
+    figures: Vec<crate::atomic::Staged>,
+    report: &Report,
+    notes: &[String],
+    out_dir: &Path,
+    options: &OutputOptions,
+) -> Result<()> {
     if let Some(provenance) = &options.html {
         staged.push(crate::html::stage_report_page(
             &out_dir.join("report.html"),
-            &solved.report,
+            report,
             provenance,
             &figures,
-            &notes,
+            notes,
         )?);
     }
     if options.plots {
@@ -758,8 +773,8 @@ pub fn write_solve_outputs(
     match &options.replace_earlier {
         Some(keep) => {
             crate::atomic::commit_replacing(staged, out_dir, &is_solve_output, keep)?;
+            Ok(())
         }
-        None => commit_all(staged)?,
+        None => commit_all(staged),
     }
-    Ok(notes)
 }

@@ -3,7 +3,6 @@
 //! ([`preston_solver::setup::tools`]: the stacked problem and its solve), and builds the report
 //! and writes the outputs.
 
-use crate::atomic::commit_all;
 use crate::error::{Error, Result};
 use crate::figures::{stage_tool_figures, ToolFigureData};
 use crate::job::{Job, TifSource};
@@ -296,28 +295,13 @@ pub fn write_tool_outputs(
     } else {
         (Vec::new(), Vec::new())
     };
-    if let Some(provenance) = &options.html {
-        staged.push(crate::html::stage_report_page(
-            &out_dir.join("report.html"),
-            &solved.report,
-            provenance,
-            &figures,
-            &notes,
-        )?);
-    }
-    if options.plots {
-        staged.extend(figures);
-    }
-    match &options.replace_earlier {
-        Some(keep) => {
-            crate::atomic::commit_replacing(
-                staged,
-                out_dir,
-                &crate::pipeline::is_solve_output,
-                keep,
-            )?;
-        }
-        None => commit_all(staged)?,
-    }
+    crate::pipeline::commit_solve_outputs(
+        staged,
+        figures,
+        &solved.report,
+        &notes,
+        out_dir,
+        options,
+    )?;
     Ok(notes)
 }

@@ -312,33 +312,19 @@ pub fn calibrate(
         || fit::run(change, motion, spot, &fixed),
         || fit::run(change, motion, spot, settings),
     );
-    let (mut c, test) = match (without, with) {
-        (Ok(without), Ok(with)) => {
-            let test = MapShiftTest {
-                kept: with.fit_rms_nm <= (1.0 - MAP_SHIFT_MIN_GAIN) * without.fit_rms_nm,
-                fit_rms_with_nm: Some(with.fit_rms_nm),
-                fit_rms_without_nm: Some(without.fit_rms_nm),
-            };
-            (if test.kept { with } else { without }, test)
-        }
+    let rms = |fit: &Result<Calibration>| fit.as_ref().ok().map(|c| c.fit_rms_nm);
+    let (rms_with, rms_without) = (rms(&with), rms(&without));
+    let kept = match (rms_with, rms_without) {
+        (Some(w), Some(wo)) => w <= (1.0 - MAP_SHIFT_MIN_GAIN) * wo,
         // A shift large enough that the change without it does not look like the removal.
-        (Err(_), Ok(with)) => {
-            let test = MapShiftTest {
-                kept: true,
-                fit_rms_with_nm: Some(with.fit_rms_nm),
-                fit_rms_without_nm: None,
-            };
-            (with, test)
-        }
-        (Ok(without), Err(_)) => {
-            let test = MapShiftTest {
-                kept: false,
-                fit_rms_with_nm: None,
-                fit_rms_without_nm: Some(without.fit_rms_nm),
-            };
-            (without, test)
-        }
-        (Err(e), Err(_)) => return Err(e),
+        (Some(_), None) => true,
+        _ => false,
+    };
+    let mut c = if kept { with? } else { without? };
+    let test = MapShiftTest {
+        kept,
+        fit_rms_with_nm: rms_with,
+        fit_rms_without_nm: rms_without,
     };
     c.map_shift = Some(test);
     Ok(c)
