@@ -36,6 +36,9 @@ const FIGURES_TOL: f64 = 1e-3;
 const TIF_VOLUME_TOL: f64 = 0.01;
 const TIF_RADIUS_TOL: f64 = 0.01;
 const TIF_CENTROID_TOL_MM: f64 = 0.02;
+/// The next run's reading within this of what its plan expected (relative): one draw of the
+/// interferometer's noise against the expectation over draws.
+const EXPECTED_READING_TOL: f64 = 0.1;
 
 /// The map: 30 x 16 mm at 0.5 mm.
 const PITCH_MM: f64 = 0.5;
@@ -328,6 +331,40 @@ fn calibrate_learns_the_shop_tool_and_solve_plans_with_it() {
         r["run_pays"].as_bool(),
         Some(expected < num(&r, "rms_before_nm")),
         "{r}"
+    );
+
+    // The shop runs the next plan with the same tool and reads the part: the reading is what the
+    // plan expected. The plan corrects the map to below its noise, so it follows part of the
+    // noise and leaves that on the part; the reading is neither the noise alone nor the noise
+    // counted twice.
+    let program2 = run.root.join("prog2.nc");
+    ok(&preston_cmd()
+        .args(["nc", "--quiet", "--dwell", s(&next.join("dwell.csv"))])
+        .args(["--v-max", "3000", "--a-max-mm-per-s2", "1000"])
+        .args(["--out", s(&program2)])
+        .output()
+        .unwrap());
+    let shop2 = run.root.join("shop2");
+    ok(&preston_cmd()
+        .args(["shop", "--quiet", "--surface"])
+        .arg(run.root.join("shop").join("surface_after.csv"))
+        .args(["--program", s(&program2)])
+        .args(gaussian_args())
+        .args(["--a-max-mm-per-s2", "1000"])
+        .args(["--tool-rate-factor", &TRUE_RATE.to_string()])
+        .args(["--tool-width-factor", &TRUE_WIDTH.to_string()])
+        .arg(format!(
+            "--tool-offset-mm={},{}",
+            TRUE_OFFSET_MM.0, TRUE_OFFSET_MM.1
+        ))
+        .args(["--noise-rms-nm", &NOISE_RMS_NM.to_string(), "--seed", "5"])
+        .args(["--out", s(&shop2)])
+        .output()
+        .unwrap());
+    let read = num(&read_json(&shop2.join("shop.json")), "measured_rms_nm");
+    assert!(
+        (read - expected).abs() <= EXPECTED_READING_TOL * read,
+        "the shop read {read} nm, the plan expected {expected} nm"
     );
 
     // The TIF given is the calibrated one: no warning that it is not. A copy with one rate

@@ -5,13 +5,19 @@
 //! For draws `θ_k` of the tool (rate, width and centroid offset from their standard deviations,
 //! the drift about its estimate), the run leaves `e_k = z - h(θ_k) + n_k`, `h(θ)` the removal of
 //! the executed contact motion with the footprint under `θ` and `n_k` white noise; each `e_k`
-//! less its least-squares plane is what the interferometer reads. `n_k` carries the next
-//! measurement's noise `σ` and the noise of the map planned on that the plan removes as if it
-//! were form: the part is `z - n`, so a plan that follows the map's noise `n` leaves `-n` on the
-//! part. A plan that leaves `r` (RMS, nominal tool) on a map with noise `σ` has removed at least
-//! `σ_i = sqrt(max(σ² - r², 0))` of it (all of `r` noise at most), so `n_k` has the RMS
-//! `sqrt(σ² + σ_i²)`: about `√2 σ` for a plan that corrects the map to well below its noise, `σ`
-//! for a plan that leaves the noise alone (a band plan). The
+//! less its least-squares plane is what the interferometer reads. The map planned on is the part
+//! plus the measurement's noise, `z = p + n` (RMS `σ`): the part after the run is `z - h - n`,
+//! and its reading adds the next measurement's noise. Let `w` be the white noise left in the
+//! plan's nominal residual `r = z - h`: `σ` times the share of the map's own white noise that
+//! remains in `r`, both seen by the same estimate from second differences ([`map_noise_rms_nm`]),
+//! and at most `|r|`.
+//! A deconvolution follows the map's noise below the tool's cut-off and leaves the finer noise
+//! alone, so the plan has followed `σ_i = sqrt(σ² - w²)` of it, which it leaves on the part with
+//! the opposite sign (the noise's imprint), while the `w` left in `r` is on the map only. The
+//! reading's mean square is then `|r|² - w² + σ_i² + σ²`, at least `σ²`: `n_k` has the RMS
+//! `sqrt(σ² + σ_i² - w²) = √2 σ_i`, about `√2 σ` for a plan that corrects the map to well below
+//! its noise and none for a plan that leaves the noise alone (a band plan: the map's noise left
+//! in `r` stands in for the next reading's). The
 //! expected RMS is `sqrt(mean_k rms(e_k)²)`, the 90% range the 5th to 95th percentile of
 //! `rms(e_k)`, the expected PV the median of `pv(e_k)`. The removals are the plan's exact one plus
 //! the change the lattice convolution of [`super::forward`] gives for `θ_k` against the nominal
@@ -124,7 +130,8 @@ pub struct Expected {
 /// `expected² = residual² + tool² + noise² + noise_imprint²`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ReadingParts {
-    /// What the plan leaves with the nominal tool ([`Expected::nominal_rms_nm`]): structure
+    /// What the plan leaves on the part with the nominal tool: [`Expected::nominal_rms_nm`] less
+    /// the map's noise left in it, `sqrt(max(r² - w², 0))` (module documentation): structure
     /// outside the band the tool can correct, and what the plan chose not to remove.
     pub residual_nm: f64,
     /// What the tool's uncertainty adds: `sqrt(expected² - residual² - noise² -
@@ -133,8 +140,8 @@ pub struct ReadingParts {
     /// The measurement's noise.
     pub noise_nm: f64,
     /// The noise of the map planned on that the plan removes as if it were form and leaves on
-    /// the part with the opposite sign: `sqrt(max(noise² - residual², 0))` (module
-    /// documentation).
+    /// the part with the opposite sign: `sqrt(σ² - w²)`, `w` the white noise left in the plan's
+    /// residual (module documentation).
     pub noise_imprint_nm: f64,
 }
 
@@ -278,12 +285,26 @@ pub fn expected_reading(
     let nominal: Vec<f64> = (0..m)
         .map(|i| removal_nm[i] + u.drift_per_hour * nominal_parts[1][i])
         .collect();
-    let nominal_rms_nm = HeightStats::of(&reading(&nominal, None)?).rms_nm;
+    let residual = reading(&nominal, None)?;
+    let nominal_rms_nm = HeightStats::of(&residual).rms_nm;
     let measured_rms_nm = HeightStats::of(&reading(&vec![0.0; m], None)?).rms_nm;
-    let noise_imprint_nm = (u.noise_rms_nm.powi(2) - nominal_rms_nm.powi(2))
+    // The share of the map's white noise the plan leaves, the same estimate on both sides.
+    let map_white_nm = map_noise_rms_nm(x_mm, y_mm, z_nm);
+    let left_share = if map_white_nm > 0.0 {
+        (map_noise_rms_nm(x_mm, y_mm, &residual) / map_white_nm).min(1.0)
+    } else {
+        1.0
+    };
+    // No more noise left in the residual than the residual holds: the part is never read
+    // below the next measurement's noise.
+    let left_noise_nm = (u.noise_rms_nm * left_share).min(nominal_rms_nm);
+    let noise_imprint_nm = (u.noise_rms_nm.powi(2) - left_noise_nm.powi(2))
         .max(0.0)
         .sqrt();
-    let noise_rms_nm = u.noise_rms_nm.hypot(noise_imprint_nm);
+    let residual_nm = (nominal_rms_nm.powi(2) - left_noise_nm.powi(2))
+        .max(0.0)
+        .sqrt();
+    let noise_rms_nm = std::f64::consts::SQRT_2 * noise_imprint_nm;
     // The drift's standard deviation per hour of this run: the known one and the run's own
     // scatter over its span.
     let span_s = motion.span_s();
@@ -328,7 +349,7 @@ pub fn expected_reading(
     Ok(Expected {
         parts: ReadingParts::of(
             mean_square.sqrt(),
-            nominal_rms_nm,
+            residual_nm,
             u.noise_rms_nm,
             noise_imprint_nm,
         ),
@@ -397,10 +418,10 @@ mod tests {
         }
     }
 
-    /// With the tool known exactly, a plan that removes the map's noise (`h = z`) leaves the
-    /// noise on the part with the opposite sign, and the next reading adds its own: `√2 σ`. A
-    /// plan that removes nothing leaves the map as it is, read once more: `√2 σ` as well, all of
-    /// it the map's own residual and the reading's noise, none imprinted.
+    /// With the tool known exactly, on a map that is the measurement's noise alone (the part is
+    /// flat): a plan that removes the map's noise (`h = z`) leaves the noise on the part with the
+    /// opposite sign, and the next reading adds its own: `√2 σ`. A plan that removes nothing
+    /// leaves the flat part as it is, and the next reading reads its noise: `σ`, none imprinted.
     #[test]
     fn a_plan_that_follows_the_noise_imprints_it() {
         let sigma = 0.3;
@@ -425,8 +446,9 @@ mod tests {
         assert!((idle.nominal_rms_nm - map_rms).abs() < 1e-12, "{idle:?}");
         assert_eq!(idle.parts.noise_imprint_nm, 0.0, "{idle:?}");
         assert!(
-            (idle.expected_rms_nm - root2).abs() <= DRAW_TOL * root2,
+            (idle.expected_rms_nm - map_rms).abs() <= DRAW_TOL * map_rms,
             "{idle:?}"
         );
+        assert_eq!(idle.parts.cause(), FloorCause::Noise);
     }
 }

@@ -3,7 +3,7 @@
 
 use super::forward::LatticeRemoval;
 use super::freeform;
-use super::tool::footprint_moments;
+use super::tool::{footprint_moments, SkewForm};
 use super::{
     Calibration, CalibrationSettings, ContactMotion, Correlation, HeldFigure, MeasuredChange,
     Nuisance, SpotFootprint, ToolFigures, UNDETERMINED_FRACTION,
@@ -28,6 +28,7 @@ const NONLINEAR: [&str; 9] = [
     "map_shift_y_mm",
 ];
 const WIDTH: usize = 0;
+const SKEW_X: usize = 5;
 const SHIFT_X: usize = 7;
 const SHIFT_Y: usize = 8;
 /// A Levenberg-Marquardt step that moves every free figure by less than this fraction of its
@@ -66,6 +67,8 @@ struct Model<'a> {
     /// prior rows.
     sd: f64,
     free: Vec<usize>,
+    /// The skew's form.
+    skew_form: SkewForm,
     /// A removal held fixed beside the parametric one (the free-form correction's), nm.
     extra_nm: Option<Vec<f64>>,
 }
@@ -143,7 +146,7 @@ impl Model<'_> {
         let mut figures = Self::figures(nl);
         figures.offset_x_mm -= nl[SHIFT_X];
         figures.offset_y_mm -= nl[SHIFT_Y];
-        let tif = self.spot.transformed(&figures);
+        let tif = self.spot.transformed_as(&figures, self.skew_form);
         let (mut change, weight) = self.change.weighted_change_nm((nl[SHIFT_X], nl[SHIFT_Y]));
         if let Some(extra) = &self.extra_nm {
             for (c, e) in change.iter_mut().zip(extra) {
@@ -568,6 +571,7 @@ pub(super) fn run(
         drift_prior: prior.drift_sigma_per_run * 3600.0 / motion.span_s().max(f64::MIN_POSITIVE),
         sd: (2.0f64).sqrt() * noise0.max(f64::MIN_POSITIVE),
         free,
+        skew_form: SkewForm::Linear,
         extra_nm: None,
     };
     let mut nl: [f64; 9] = std::array::from_fn(nominal);
@@ -620,7 +624,7 @@ pub(super) fn run(
             *noise1,
         )?;
         let applied = correction.applied;
-        let before = figure_vector(&moments, &nl, eval1, model.fit_drift);
+        let before = figure_vector(&moments, &nl, eval1, model.fit_drift, SkewForm::Linear);
         if applied {
             model.extra_nm = Some(correction.removal_nm().to_vec());
             let second = parametric(
@@ -629,7 +633,7 @@ pub(super) fn run(
                 settings.max_iterations,
                 &mut iterations,
             )?;
-            let after = figure_vector(&moments, &nl, &second.1, model.fit_drift);
+            let after = figure_vector(&moments, &nl, &second.1, model.fit_drift, SkewForm::Linear);
             for k in 0..systematic.len() {
                 systematic[k] = (after[k] - before[k]).abs();
             }
@@ -642,6 +646,36 @@ pub(super) fn run(
     } else {
         first
     };
+    // The skew's shape is the model's choice: the figures fitted again with the skew less its
+    // first-order shift (exact only on a Gaussian footprint), and how far the reported figures
+    // move between the two, is the uncertainty that choice leaves.
+    if model.free.contains(&SKEW_X) {
+        let primary = figure_vector(&moments, &nl, &eval, model.fit_drift, SkewForm::Linear);
+        let sd = model.sd;
+        model.skew_form = SkewForm::ShiftFree;
+        let mut other_nl = nl;
+        let mut other_iterations = 0;
+        let other = parametric(
+            &mut model,
+            &mut other_nl,
+            settings.max_iterations,
+            &mut other_iterations,
+        );
+        model.skew_form = SkewForm::Linear;
+        model.sd = sd;
+        let (_, other_eval, _, _) = other?;
+        let other = figure_vector(
+            &moments,
+            &other_nl,
+            &other_eval,
+            model.fit_drift,
+            SkewForm::ShiftFree,
+        );
+        // Rate, width, offsets, ellipticities and drift mean the same in both forms.
+        for k in [0, 1, 2, 3, 4, 5, 8] {
+            systematic[k] = systematic[k].hypot(other[k] - primary[k]);
+        }
+    }
     let cov = covariance(&model, &nl, &eval)?;
     let alpha = eval.coef[0];
     if !(alpha.is_finite() && alpha > 0.0) {
@@ -855,10 +889,17 @@ impl<'a> Moments<'a> {
         }
     }
 
-    /// `(width ratio, offset x, offset y)` of the footprint under `nl`.
+    /// `(width ratio, offset x, offset y)` of the footprint under `nl`, its skew linear.
     fn of(&self, nl: &[f64; 9]) -> [f64; 3] {
-        let (_, c, r) =
-            footprint_moments(&self.spot.transformed(&Model::figures(nl)), self.pitch_mm);
+        self.of_as(nl, SkewForm::Linear)
+    }
+
+    /// The same with the skew of the form `skew_form`.
+    fn of_as(&self, nl: &[f64; 9], skew_form: SkewForm) -> [f64; 3] {
+        let (_, c, r) = footprint_moments(
+            &self.spot.transformed_as(&Model::figures(nl), skew_form),
+            self.pitch_mm,
+        );
         let ((c0x, c0y), r0) = self.nominal;
         [r / r0, c.0 - c0x, c.1 - c0y]
     }
@@ -866,10 +907,16 @@ impl<'a> Moments<'a> {
 
 /// The reported figures in the order of [`ToolFigures::NAMES`] (rate and drift from the linear
 /// coefficients, width and offset the footprint's moments), and a slot spare.
-fn figure_vector(moments: &Moments, nl: &[f64; 9], eval: &Eval, fit_drift: bool) -> [f64; 10] {
+fn figure_vector(
+    moments: &Moments,
+    nl: &[f64; 9],
+    eval: &Eval,
+    fit_drift: bool,
+    skew_form: SkewForm,
+) -> [f64; 10] {
     let alpha = eval.coef[0];
     let drift = if fit_drift { eval.coef[1] / alpha } else { 0.0 };
-    let [w, ox, oy] = moments.of(nl);
+    let [w, ox, oy] = moments.of_as(nl, skew_form);
     [alpha, w, ox, oy, nl[3], nl[4], nl[5], nl[6], drift, 0.0]
 }
 

@@ -3,27 +3,26 @@
 //! With `c` the spot test's centroid, `rho` its second-moment radius and `θ` the figures,
 //!
 //! ```text
-//! f_θ(d) = r / w² · f(u) · max(0, 1 + k_x φ_x(v) + k_y φ_y(v)),
+//! f_θ(d) = r / w² · f(u) · max(0, 1 + k · v),
 //! u = c + exp(-E) (d - c - o) / w,      v = (u - c) / rho,      E = [[e, e45], [e45, -e]],
 //! ```
 //!
 //! - `r` the rate factor: the ratio of the TIF's volume (the Jacobian of `d -> u` is `1 / w²`,
-//!   `det exp(E) = 1`, and `φ` is orthogonal to a constant);
+//!   `det exp(E) = 1`, and `v` has zero mean under `f`);
 //! - `w` the width factor: the footprint scaled about its centroid, its volume kept; with `E = 0`
 //!   the ratio of the second-moment radii (to first order in `E` otherwise);
 //! - `o` the offset of the centroid from where the tool is programmed, mm;
 //! - `e`, `e45` the ellipticity (log of the axis ratio's square root) along x/y and along the
 //!   diagonals: an area-keeping stretch;
 //! - `k_x`, `k_y` the skew: a linear change of the rate across the footprint (a tilted jet, a
-//!   pressure gradient under a pad), the lowest-order asymmetry, less the shift it makes:
-//!   `f (1 + k·u / rho) + (Σ k)·∇f / rho` (`u` from the centroid, `Σ` the footprint's
-//!   second-moment matrix per unit volume). The second term moves the centroid back
-//!   (`∫ u ∂f = -V`), so a skew keeps volume and centroid, and for a Gaussian footprint
-//!   (`∇f = -Σ⁻¹ u f`) it vanishes: a tilted Gaussian is a shifted one, and its shift is the
-//!   offset's. The figures a calibration reports are the fitted footprint's moments
-//!   ([`footprint_moments`]).
-//!
-//! In the formula above the skew term reads `max(0, f_skewed)` with `f_skewed` this sum.
+//!   pressure gradient under a pad), the lowest-order asymmetry. Measured from the centroid
+//!   (`∫ (u - c) f = 0`) it keeps the volume exactly and moves the centroid by `Σ k / rho`
+//!   (`Σ` the spot test's second-moment matrix per unit volume,
+//!   [`SpotFootprint::second_moments_mm2`]); on a Gaussian footprint that is all it does to first
+//!   order (a tilted Gaussian is a shifted one), so there the skew and the offset are told apart
+//!   only by the footprint's higher moments and the priors. A calibration therefore reports the
+//!   fitted footprint's moments ([`footprint_moments`]): its centroid, whatever mix of offset and
+//!   skew puts it there.
 //!
 //! The rate's drift over a run is not part of the footprint: it weights each contact sample by
 //! `1 + δ (t - t_mid) / 3600` ([`super::forward`]).
@@ -246,8 +245,18 @@ impl SpotFootprint {
         self.radius_mm
     }
 
-    /// The footprint under `figures` (its drift aside).
+    /// Second moments per unit volume about the centroid, `[Σxx, Σxy, Σyy]`, mm².
+    pub fn second_moments_mm2(&self) -> [f64; 3] {
+        self.second_mm2
+    }
+
+    /// The footprint under `figures` (its drift aside), its skew linear.
     pub fn transformed(&self, figures: &ToolFigures) -> TransformedTif<'_> {
+        self.transformed_as(figures, SkewForm::Linear)
+    }
+
+    /// The footprint under `figures` with the skew of the form `skew_form`.
+    pub fn transformed_as(&self, figures: &ToolFigures, skew_form: SkewForm) -> TransformedTif<'_> {
         let (e, e45) = (figures.ellipticity, figures.ellipticity_45);
         let lambda = e.hypot(e45);
         // exp(-E) = cosh(λ) I - sinh(λ)/λ E for symmetric traceless E with eigenvalues ±λ.
@@ -267,6 +276,7 @@ impl SpotFootprint {
             scale: figures.rate_factor / (w * w),
             offset_mm: (figures.offset_x_mm, figures.offset_y_mm),
             skew: (figures.skew_x, figures.skew_y),
+            skew_form,
             reach_mm: w
                 * (ch + sh * lambda)
                 * (self.grid.support_radius_mm() + self.centroid_mm.0.hypot(self.centroid_mm.1))
@@ -301,6 +311,18 @@ pub fn footprint_moments(f: &dyn InfluenceFunction, pitch_mm: f64) -> (f64, (f64
     )
 }
 
+/// How the skew changes the footprint.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SkewForm {
+    /// A linear change of the rate across the footprint, `f (1 + k·v)` (module documentation).
+    #[default]
+    Linear,
+    /// The same less its first-order shift, `f (1 + k·v) + (Σ k)·∇f / rho`: it keeps the
+    /// centroid, exactly so only on a Gaussian footprint. The calibration fits it beside the
+    /// linear form to measure how far the figures depend on the skew's shape.
+    ShiftFree,
+}
+
 /// The spot test's footprint under a set of figures ([`SpotFootprint::transformed`]).
 #[derive(Debug, Clone, Copy)]
 pub struct TransformedTif<'a> {
@@ -309,6 +331,7 @@ pub struct TransformedTif<'a> {
     scale: f64,
     offset_mm: (f64, f64),
     skew: (f64, f64),
+    skew_form: SkewForm,
     reach_mm: f64,
 }
 
@@ -320,23 +343,24 @@ impl InfluenceFunction for TransformedTif<'_> {
         let (ux, uy) = (a[0][0] * qx + a[0][1] * qy, a[1][0] * qx + a[1][1] * qy);
         let grid = &self.spot.grid;
         let f = grid.rate_nm_per_s(cx + ux, cy + uy);
-        if self.skew == (0.0, 0.0) {
-            return self.scale * f;
-        }
-        // f (1 + k·u / rho) + (Σ k)·∇f / rho: the gradient's shift part taken out, so the skew
-        // keeps the centroid and is no shift for a Gaussian (module documentation).
-        let (hx, hy) = grid.pitch_mm();
-        let gx = (grid.rate_nm_per_s(cx + ux + hx, cy + uy)
-            - grid.rate_nm_per_s(cx + ux - hx, cy + uy))
-            / (2.0 * hx);
-        let gy = (grid.rate_nm_per_s(cx + ux, cy + uy + hy)
-            - grid.rate_nm_per_s(cx + ux, cy + uy - hy))
-            / (2.0 * hy);
-        let [sxx, sxy, syy] = self.spot.second_mm2;
         let (kx, ky) = self.skew;
         let r = self.spot.radius_mm;
-        let skewed = f * (1.0 + (kx * ux + ky * uy) / r)
-            + ((sxx * kx + sxy * ky) * gx + (sxy * kx + syy * ky) * gy) / r;
+        let skewed = f * (1.0 + (kx * ux + ky * uy) / r);
+        let skewed = match self.skew_form {
+            SkewForm::Linear => skewed,
+            SkewForm::ShiftFree if (kx, ky) == (0.0, 0.0) => skewed,
+            SkewForm::ShiftFree => {
+                let (hx, hy) = grid.pitch_mm();
+                let gx = (grid.rate_nm_per_s(cx + ux + hx, cy + uy)
+                    - grid.rate_nm_per_s(cx + ux - hx, cy + uy))
+                    / (2.0 * hx);
+                let gy = (grid.rate_nm_per_s(cx + ux, cy + uy + hy)
+                    - grid.rate_nm_per_s(cx + ux, cy + uy - hy))
+                    / (2.0 * hy);
+                let [sxx, sxy, syy] = self.spot.second_mm2;
+                skewed + ((sxx * kx + sxy * ky) * gx + (sxy * kx + syy * ky) * gy) / r
+            }
+        };
         self.scale * skewed.max(0.0)
     }
 
@@ -405,19 +429,51 @@ mod tests {
     }
 
     #[test]
-    fn skew_keeps_volume_and_centroid_and_ellipticity_keeps_the_area() {
+    fn skew_keeps_volume_and_moves_the_centroid_by_its_closed_form() {
         let sigma = 1.2;
         let spot = SpotFootprint::new(gaussian_grid(sigma, 0.04)).expect("spot");
         let nominal = moments(&spot.transformed(&ToolFigures::NOMINAL), 8.0, 0.04);
+        let (kx, ky) = (0.08, -0.05);
         let skewed = ToolFigures {
-            skew_x: 0.05,
+            skew_x: kx,
+            skew_y: ky,
             ..ToolFigures::NOMINAL
         };
         let m = moments(&spot.transformed(&skewed), 8.0, 0.04);
         assert!((m[0] / nominal[0] - 1.0).abs() < MOMENT_REL_TOL);
-        // On a Gaussian the skew's gradient is its shift, which is taken out: nothing moves.
+        // ∫ u f (1 + k·u / rho) = Σ k / rho per unit volume; Σ = sigma² I on a Gaussian.
+        let rho = spot.radius_mm();
+        let [sxx, sxy, syy] = spot.second_moments_mm2();
+        assert!((sxx / (sigma * sigma) - 1.0).abs() < MOMENT_REL_TOL && sxy.abs() < 1e-9);
+        let expected = ((sxx * kx + sxy * ky) / rho, (sxy * kx + syy * ky) / rho);
+        assert!((m[1] / m[0] - expected.0).abs() < MOMENT_REL_TOL * expected.0.abs());
+        assert!((m[2] / m[0] - expected.1).abs() < MOMENT_REL_TOL * expected.1.abs());
+        // A tilted Gaussian is the shifted one (to first order in k): the offset that moves the
+        // centroid as far reproduces it up to the second order of the shift over sigma.
+        let shifted = ToolFigures {
+            offset_x_mm: expected.0,
+            offset_y_mm: expected.1,
+            ..ToolFigures::NOMINAL
+        };
+        let (a, b) = (spot.transformed(&skewed), spot.transformed(&shifted));
+        let peak = b.rate_nm_per_s(expected.0, expected.1);
+        let shift_over_sigma2 = (expected.0.powi(2) + expected.1.powi(2)) / (sigma * sigma);
+        for (x, y) in [(0.0, 0.0), (1.0, 0.5), (-1.5, 1.0), (2.0, -2.0)] {
+            let diff = (a.rate_nm_per_s(x, y) - b.rate_nm_per_s(x, y)).abs();
+            assert!(
+                diff < 4.0 * shift_over_sigma2 * peak,
+                "{diff} at ({x}, {y})"
+            );
+        }
+        // The shift-free form takes that shift out: on a Gaussian it moves nothing.
+        let m = moments(
+            &spot.transformed_as(&skewed, SkewForm::ShiftFree),
+            8.0,
+            0.04,
+        );
+        assert!((m[0] / nominal[0] - 1.0).abs() < MOMENT_REL_TOL);
         assert!((m[1] / m[0]).abs() < 1e-3 * sigma, "{}", m[1] / m[0]);
-        assert!((m[2] / m[0]).abs() < 1e-3 * sigma);
+        assert!((m[2] / m[0]).abs() < 1e-3 * sigma, "{}", m[2] / m[0]);
         let stretched = ToolFigures {
             ellipticity: 0.1,
             ..ToolFigures::NOMINAL

@@ -4,14 +4,15 @@
 //! The true tool is the spot test `f` changed as a real tool differs from it:
 //!
 //! ```text
-//! f_true(d, t) = r (1 + δ_run (t - t_mid) / T) / w² · f(u) · max(0, 1 + k (u - c)·e / rho),
+//! f_true(d, t) = r (1 + δ_run (t - t_mid) / T) / w² · f(u) · max(0, 1 + k (d - c - o)·e / (w rho)),
 //! u = c + exp(-E) (d - c - o) / w,
 //! ```
 //!
 //! a rate `r`, a width `w` (volume kept), an offset `o`, an ellipticity `E`, a *linear* skew `k`
-//! across the footprint along direction `e` (a shape [`crate::calibrate`]'s parametric model does
-//! not contain: it also moves the centroid), and a drift of the rate by `δ_run` over the run's
-//! span `T` about its middle `t_mid`. The interferometer adds white noise and drops piston and
+//! across the footprint along direction `e` (it also moves the centroid; taken in the part's axes,
+//! `(d - c - o) / w = exp(E) (u - c)`, so with an ellipticity it is [`crate::calibrate`]'s skew
+//! turned and scaled by `exp(E)`), and a drift of the rate by `δ_run` over the run's span `T` about
+//! its middle `t_mid`. The interferometer adds white noise and drops piston and
 //! tilt (a least-squares plane), as a phase-shifting interferometer's software does.
 
 use crate::calibrate::{ContactMotion, SpotFootprint, ToolFigures, TransformedTif};
