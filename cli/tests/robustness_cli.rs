@@ -273,13 +273,26 @@ const TIMING_KEYS: [&str; 2] = ["build_seconds", "solve_seconds"];
 
 #[test]
 fn results_do_not_depend_on_the_thread_count() {
+    assert_independent_of_the_thread_count("job_point_1mm.toml");
+}
+
+/// The sample job (the executed program, its correction passes, the resolution and the
+/// sensitivity run side by side): the same outputs on one thread and on two.
+#[test]
+fn the_sample_does_not_depend_on_the_thread_count() {
+    assert_independent_of_the_thread_count("job.toml");
+}
+
+/// `preston solve --job data/JOB` writes the same `dwell.csv`, `residual.csv` and report (but
+/// for its timings) on one thread and on two.
+fn assert_independent_of_the_thread_count(job: &str) {
     let d = tempfile::tempdir().unwrap();
     let mut outs: Vec<PathBuf> = Vec::new();
     for threads in ["1", "2"] {
         let out = d.path().join(format!("t{threads}"));
         let o = preston_cmd()
             .env("RAYON_NUM_THREADS", threads)
-            .args(["solve", "--job", &data_arg("job_point_1mm.toml"), "--out"])
+            .args(["solve", "--job", &data_arg(job), "--out"])
             .arg(&out)
             .output()
             .unwrap();

@@ -184,10 +184,18 @@ impl Setup {
             }
             _ => (solution, removal_all, accel, None),
         };
-        // The executed residual's resolution, once, for the plan returned.
+        // The executed residual's resolution, once, for the plan returned, and beside it the
+        // executed motion's sensitivity (independent work on the same run; its error, if any,
+        // is returned where the sensitivity is taken below).
+        let mut executed_sensitivity = None;
         let executed = match executed {
             Some(Ok(mut e)) => {
-                e.resolution = self.integration_resolution(&e, observer)?;
+                let (resolution, sensitivity) = rayon::join(
+                    || self.integration_resolution(&e, observer),
+                    || self.sensitivity_of(&e.run.contact, &e.run.removal_nm, observer),
+                );
+                e.resolution = resolution?;
+                executed_sensitivity = Some(sensitivity);
                 Some(Ok(e))
             }
             other => other,
@@ -242,12 +250,13 @@ impl Setup {
         check_cancelled(observer)?;
         // The sensitivity of the executed motion, or of the plan's own where no program is
         // executed.
-        let sensitivity = match &executed {
-            Some(Ok(e)) => {
+        let sensitivity = match (&executed, executed_sensitivity) {
+            (Some(Ok(_)), Some(sensitivity)) => Some(sensitivity?),
+            (Some(Ok(e)), None) => {
                 Some(self.sensitivity_of(&e.run.contact, &e.run.removal_nm, observer)?)
             }
-            Some(Err(_)) => None,
-            None => {
+            (Some(Err(_)), _) => None,
+            (None, _) => {
                 Some(self.plan_sensitivity(problem, &solution.dwell_s, &removal_nm, observer)?)
             }
         };

@@ -24,7 +24,6 @@ use crate::influence::model::piece::{piece_reach_mm, PieceTif};
 use crate::influence::operator::fft::FftOperator;
 use crate::observer::Observer;
 use crate::tif::{InfluenceFunction, Perturbation};
-use std::collections::HashMap;
 
 /// Samples whose offsets from the lattice (and pieces' halves) agree to this, mm, share one
 /// kernel: the largest move of a sample to its group's offset (a removal error of at most this
@@ -42,6 +41,12 @@ pub fn lattice_pays(samples: usize, pairs_per_sample: f64, cells: f64) -> bool {
     samples as f64 * pairs_per_sample > LATTICE_WORK_PER_CELL_LOG2 * cells * cells.max(2.0).log2()
 }
 
+/// A map keyed by lattice indices, hashed by rustc's multiply-rotate `FxHasher` (hundreds of
+/// thousands of look-ups per motion, where SipHash's resistance to chosen keys buys nothing). The
+/// maps serve look-ups only: groups and cells are kept in the order of their first sample, so the
+/// hash changes no result.
+type IndexMap<K, V> = rustc_hash::FxHashMap<K, V>;
+
 /// One group of samples at one offset from the lattice: the offset, mm, and the time summed in
 /// each lattice cell (cell indices relative to the lattice origin).
 struct Group {
@@ -51,7 +56,7 @@ struct Group {
     samples: usize,
     cells: Vec<(i64, i64)>,
     time_s: Vec<f64>,
-    cell_of: HashMap<(i64, i64), usize>,
+    cell_of: IndexMap<(i64, i64), usize>,
 }
 
 /// The removals of the motion `samples` with `tif` in plan under each of `scenarios` at the map
@@ -102,7 +107,7 @@ pub fn removals_in_plan_on_lattice<T: InfluenceFunction>(
     // Groups in the order of their first sample; each sample's group, or none (off any usable
     // lattice cell: a non-finite position or one beyond the lattice's index range).
     let mut groups: Vec<Group> = Vec::new();
-    let mut group_of: HashMap<[i64; 4], usize> = HashMap::new();
+    let mut group_of: IndexMap<[i64; 4], usize> = IndexMap::default();
     let mut sample_group: Vec<Option<(usize, (i64, i64))>> = Vec::with_capacity(n);
     let cell_and_offset = |v: f64, origin: f64| -> Option<(i64, f64)> {
         let u = ((v - origin) / pitch_mm).round();
@@ -125,7 +130,7 @@ pub fn removals_in_plan_on_lattice<T: InfluenceFunction>(
                 samples: 0,
                 cells: Vec::new(),
                 time_s: Vec::new(),
-                cell_of: HashMap::new(),
+                cell_of: IndexMap::default(),
             });
             groups.len() - 1
         });
@@ -191,7 +196,7 @@ pub fn removals_in_plan_on_lattice<T: InfluenceFunction>(
     }
     // One operator over the union of the lattice groups' cells.
     let mut union: Vec<(i64, i64)> = Vec::new();
-    let mut union_of: HashMap<(i64, i64), usize> = HashMap::new();
+    let mut union_of: IndexMap<(i64, i64), usize> = IndexMap::default();
     for (g, group) in groups.iter().enumerate() {
         if on_lattice[g] {
             for &cell in &group.cells {

@@ -282,19 +282,11 @@ impl Pairs {
             Some((c, i)) => {
                 let s_last = &self.s[i];
                 project_along(data, x, p, q, partials, |j| {
-                    if free[j] {
-                        -(d[j] + c * s_last[j])
-                    } else {
-                        -step * q[j]
-                    }
+                    select(free[j], -(d[j] + c * s_last[j]), -step * q[j])
                 })
             }
             None => project_along(data, x, p, q, partials, |j| {
-                if free[j] {
-                    -d[j]
-                } else {
-                    -step * q[j]
-                }
+                select(free[j], -d[j], -step * q[j])
             }),
         };
         if !(qp < 0.0) {
@@ -330,7 +322,7 @@ pub(super) fn free_gradient(
             for (k, (d, fr)) in d_chunk.iter_mut().zip(free_chunk).enumerate() {
                 let j = c * CHUNK + k;
                 *fr = !binds(q[j], x[j], lo[j], hi[j], step);
-                *d = if *fr { q[j] } else { 0.0 };
+                *d = masked(q[j], *fr);
                 if let Some(w) = w {
                     acc += w[j] * *d;
                 }
@@ -363,15 +355,17 @@ pub(super) fn masked_axpy_dot(
             let base = c * CHUNK;
             let end = base + chunk.len();
             let (v, mask) = (&v[base..end], &mask[base..end]);
+            // The masked term without a branch: `a v` where the mask is set, `+0.0` elsewhere
+            // (its bits and-ed with all ones or with zero), the same bits as the select.
             match scale {
                 None => {
                     for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
-                        *d += if m { a * v } else { 0.0 };
+                        *d += masked(a * v, m);
                     }
                 }
                 Some(g) => {
                     for ((d, v), &m) in chunk.iter_mut().zip(v).zip(mask) {
-                        *d = (*d + if m { a * v } else { 0.0 }) * g;
+                        *d = (*d + masked(a * v, m)) * g;
                     }
                 }
             }
@@ -379,6 +373,20 @@ pub(super) fn masked_axpy_dot(
         })
         .collect_into_vec(partials);
     partials.iter().sum()
+}
+
+/// `v` where `keep`, `+0.0` elsewhere, without a branch (so that the loops around it vectorise):
+/// the bits of `v` and-ed with all ones or with zero.
+#[inline(always)]
+pub(super) fn masked(v: f64, keep: bool) -> f64 {
+    f64::from_bits(v.to_bits() & u64::from(keep).wrapping_neg())
+}
+
+/// `a` where `first`, else `b`, without a branch: the bits of the one chosen.
+#[inline(always)]
+pub(super) fn select(first: bool, a: f64, b: f64) -> f64 {
+    let m = u64::from(first).wrapping_neg();
+    f64::from_bits((a.to_bits() & m) | (b.to_bits() & !m))
 }
 
 /// `p *= tau`, `hp *= tau`, `x += p`, `q += hp`; returns `||hp||^2` after the scaling (one pass,

@@ -920,8 +920,10 @@ fn scale(d: &mut [f64], a: f64) {
 
 /// Whether a projected gradient step of length `step` from `x` along the scaled gradient `g`
 /// puts the variable on its bound `lo` or `hi` (the binding set of Bertsekas 1982).
+/// Every comparison is evaluated (no short circuit), so that the test compiles without branches.
+#[inline(always)]
 fn binds(g: f64, x: f64, lo: f64, hi: f64, step: f64) -> bool {
-    (g > 0.0 && x - lo <= step * g) || (g < 0.0 && hi - x <= -step * g)
+    ((g > 0.0) & (x - lo <= step * g)) | ((g < 0.0) & (hi - x <= -step * g))
 }
 
 /// The largest eigenvalue of the scaled Hessian: `cache`'s value when it holds one, else
@@ -1032,7 +1034,7 @@ fn certificate(
 
 #[cfg(test)]
 mod tests {
-    use super::lbfgs::{free_gradient, masked_axpy_dot, project_along};
+    use super::lbfgs::{free_gradient, masked, masked_axpy_dot, project_along, select};
     use super::*;
     use crate::influence::operator::sparse::SparseOperator;
     use crate::observer::Silent;
@@ -1375,5 +1377,35 @@ mod tests {
             &mut work.partials,
         );
         assert_eq!(fused_dot.to_bits(), apart_dot.to_bits());
+    }
+
+    /// The branch-free mask and choice give the bits of the branches they replace, signed zeros,
+    /// infinities and NaN included.
+    #[test]
+    fn the_branch_free_mask_and_choice_are_the_branches_bit_for_bit() {
+        let values = [
+            0.0,
+            -0.0,
+            1.5,
+            -2.25e-300,
+            f64::MIN_POSITIVE / 4.0,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
+        for &v in &values {
+            for keep in [false, true] {
+                let want = if keep { v } else { 0.0 };
+                assert_eq!(masked(v, keep).to_bits(), want.to_bits(), "{v} {keep}");
+                for &w in &values {
+                    let want = if keep { v } else { w };
+                    assert_eq!(
+                        select(keep, v, w).to_bits(),
+                        want.to_bits(),
+                        "{v} {w} {keep}"
+                    );
+                }
+            }
+        }
     }
 }

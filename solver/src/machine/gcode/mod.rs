@@ -33,17 +33,29 @@ pub struct ProgramCheck {
 pub fn write_and_check(nc: &NcProgram, notes: &[String]) -> Result<ProgramCheck> {
     let written = write_program(nc, notes)?;
     let program = Program::parse(&written.text, nc.settings.dialect)?;
-    let programmed = check_stretches(&program, &execute(&program, Kinematics::ProgrammedFeed)?);
-    let accelerated = match nc.settings.a_max_mm_per_s2 {
-        Some(a) => {
-            let k = Kinematics::Trapezoidal {
-                a_max_mm_per_s2: a,
-                corner_angle_deg: nc.settings.corner_angle_deg,
-            };
-            Some(check_stretches(&program, &execute(&program, k)?))
-        }
-        None => None,
-    };
+    // The program at its programmed feeds and under the acceleration limit: independent runs,
+    // side by side.
+    let (programmed, accelerated) = rayon::join(
+        || -> Result<StretchCheck> {
+            Ok(check_stretches(
+                &program,
+                &execute(&program, Kinematics::ProgrammedFeed)?,
+            ))
+        },
+        || -> Result<Option<StretchCheck>> {
+            match nc.settings.a_max_mm_per_s2 {
+                Some(a) => {
+                    let k = Kinematics::Trapezoidal {
+                        a_max_mm_per_s2: a,
+                        corner_angle_deg: nc.settings.corner_angle_deg,
+                    };
+                    Ok(Some(check_stretches(&program, &execute(&program, k)?)))
+                }
+                None => Ok(None),
+            }
+        },
+    );
+    let (programmed, accelerated) = (programmed?, accelerated?);
     Ok(ProgramCheck {
         written,
         program,

@@ -53,6 +53,7 @@ use super::program::{arc_length_mm, ArcMove};
 use crate::error::{Error, Result};
 use crate::machine::fixed;
 use crate::machine::nc::{NcProgram, NcSettings};
+use rayon::prelude::*;
 
 /// Smallest number of decimals of `F`.
 pub const MIN_FEED_DECIMALS: usize = 3;
@@ -398,14 +399,16 @@ impl<'a> Writer<'a> {
         if n == 0 || program.boundaries.len() != n + 1 {
             return Err(Error::invalid("program", "no dwell points to write"));
         }
+        // Each pose on its own (formatting and reading back its words), in parallel; the
+        // collected order is the points' own.
         let bnd: Vec<Pose> = program
             .boundaries
-            .iter()
+            .par_iter()
             .map(|b| Pose::new(b.tool_mm, b.b_deg, dec))
             .collect();
         let at: Vec<Pose> = program
             .points
-            .iter()
+            .par_iter()
             .map(|p| Pose::new(p.tool_mm, p.b_deg, dec))
             .collect();
         Ok(Self {
