@@ -35,7 +35,10 @@ use crate::influence::operator::fft::FftOperator;
 use crate::influence::operator::lattice::lattice_index;
 use crate::influence::operator::nufft::{EsKernel, DEFAULT_NUFFT_TOLERANCE, UPSAMPLING};
 use crate::influence::operator::spread::MAX_OVERSAMPLING;
-use crate::influence::{NufftOperator, SpreadOperator, StencilOperator};
+use crate::influence::{
+    ColumnShape, ExpansionOperator, InfluenceMatrix, NufftOperator, SpreadOperator, StencilOperator,
+};
+use crate::observer::Observer;
 use crate::map::{BoundingBox, HeightMap};
 use crate::tif::InfluenceFunction;
 
@@ -538,6 +541,111 @@ impl Setup {
                 Ok(None)
             }
         }
+    }
+}
+
+/// What [`Setup::expansion_plan`] found: the expansion operator, or the exact `R` it assembled
+/// (to solve on where the operator is not predicted faster).
+pub(super) enum ExpansionPlan {
+    /// The expansion operator, taken.
+    Taken(ExpansionOperator),
+    /// The assembled `R`, taken.
+    Assembled(InfluenceMatrix),
+}
+
+/// Spreading products per expansion product (the TIF and its three direction terms).
+pub const EXPANSION_TERMS: f64 = 4.0;
+
+impl Setup {
+    /// The direction-expansion operator ([`ExpansionOperator`]) over the problem rows `rows`
+    /// where no other matrix-free operator serves (a spiral or a random path under the swept
+    /// model, a TIF cut at a radius): `None` when it does not apply (assemble `R` as usual).
+    /// Under `auto` it is taken only where predicted cheaper per normal product than the
+    /// assembled `R` (four spreading products on the map lattice and two passes over the
+    /// correction, against two passes over `R`, [`Setup::sparse_normal_ns`]); its error is
+    /// within `spread_tolerance` by construction (summed over every entry). The build assembles
+    /// `R`, which is returned to solve on where the operator is declined.
+    pub(super) fn expansion_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Option<ExpansionPlan>> {
+        let forced = self.settings.operator == OperatorChoice::Expansion;
+        if !forced && self.settings.operator != OperatorChoice::Auto {
+            return Ok(None);
+        }
+        let case = match self.off_lattice_case(rows, forced) {
+            Ok(case) => case,
+            Err(not) => return refusal(forced, "expansion", not),
+        };
+        let pitch = case.pitch_mm;
+        let bbox = case.bbox;
+        let r = self.tif.support_radius_mm();
+        let fine = pitch;
+        let pad = 2.0 * r / fine;
+        let lattice = ((bbox.x_max_mm - bbox.x_min_mm) / fine + pad)
+            * ((bbox.y_max_mm - bbox.y_min_mm) / fine + pad);
+        let spread_ns = EXPANSION_TERMS * SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2();
+        let sparse_ns = self.sparse_normal_ns(rows, &case);
+        if !forced && spread_ns >= sparse_ns {
+            return Ok(None);
+        }
+        let exact = self.assemble(rows, observer)?;
+        let shapes = ColumnShape::of(
+            self.path.x_mm(),
+            self.path.y_mm(),
+            self.swept.as_ref().map(|s| &s.0),
+        );
+        let tolerance = self.settings.spread_tolerance;
+        let op = match ExpansionOperator::new(
+            rows.x_mm(),
+            rows.y_mm(),
+            &shapes,
+            &exact,
+            pitch,
+            1,
+            &self.tif,
+            tolerance,
+        ) {
+            Ok(op) => op,
+            Err(e) if forced => return Err(e).at(SetupInput::Map),
+            Err(e) => {
+                warnings.push(format!(
+                    "operator auto: the expansion operator does not apply ({e}); assembling R"
+                ));
+                return Ok(Some(ExpansionPlan::Assembled(exact)));
+            }
+        };
+        let ns = spread_ns + 2.0 * SPARSE_NS_PER_NNZ * op.correction_nnz() as f64;
+        let what = format!(
+            "each column the TIF and its second-order expansion along its stretch ({:.3} mm \
+             reference), spread onto the {:.4} mm map lattice, with {:.1}% of R's entries exact \
+             (a cut TIF's edge, odd stretches); operator error {:.1e} <= {tolerance:.0e} over \
+             every entry",
+            op.reference_mm(),
+            pitch,
+            100.0 * op.correction_share(),
+            op.estimated_error()
+        );
+        if forced {
+            warnings.push(super::note(format!("operator expansion: {what}")));
+            return Ok(Some(ExpansionPlan::Taken(op)));
+        }
+        if ns >= sparse_ns {
+            warnings.push(super::note(format!(
+                "operator auto: the expansion operator ({what}) is predicted no cheaper than \
+                 R's {:.2e} non-zeros; assembling R",
+                case.nnz
+            )));
+            return Ok(Some(ExpansionPlan::Assembled(exact)));
+        }
+        warnings.push(super::note(format!(
+            "operator auto: dwell points off the map lattice with stretches of their own; {what}, \
+             predicted {:.1}x cheaper per product than R (operator = \"sparse\" assembles R)",
+            sparse_ns / ns
+        )));
+        Ok(Some(ExpansionPlan::Taken(op)))
     }
 }
 
