@@ -14,6 +14,10 @@
 //!   predicted cheaper than the assembled `R`.
 //! - With `auto` and none of those, the spreading operator at `spread_tolerance` (approximate,
 //!   the residual reported the exact `R`'s) where it is predicted cheaper than the assembled `R`.
+//! - Where still none serves (a spiral or a random path under the swept model, whose stretches
+//!   turn, or a TIF cut at a radius, whose jump no spreading resolves), the direction-expansion
+//!   operator ([`ExpansionOperator`], [`Setup::expansion_plan`]): its error within
+//!   `spread_tolerance` by construction, taken where predicted cheaper than the assembled `R`.
 //!
 //! Cost model (per `R^T R t`, the first-order solver's product): the sparse operator makes two
 //! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
@@ -555,6 +559,10 @@ pub(super) enum ExpansionPlan {
 
 /// Spreading products per expansion product (the TIF and its three direction terms).
 pub const EXPANSION_TERMS: f64 = 4.0;
+/// Expansion operator `R^T R t`: nanoseconds per entry of its exact correction (two passes, 2
+/// cores): about twice the assembled `R`'s per non-zero, measured on the 60 mm round part of
+/// `scripts/round_part.py` (the correction's rows are scattered over every dwell point).
+pub const CORRECTION_NS_PER_ENTRY: f64 = 2.0 * SPARSE_NS_PER_NNZ;
 
 impl Setup {
     /// The direction-expansion operator ([`ExpansionOperator`]) over the problem rows `rows`
@@ -617,7 +625,7 @@ impl Setup {
                 return Ok(Some(ExpansionPlan::Assembled(exact)));
             }
         };
-        let ns = spread_ns + 2.0 * SPARSE_NS_PER_NNZ * op.correction_nnz() as f64;
+        let ns = spread_ns + 2.0 * CORRECTION_NS_PER_ENTRY * op.correction_nnz() as f64;
         let what = format!(
             "each column the TIF and its second-order expansion along its stretch ({:.3} mm \
              reference), spread onto the {:.4} mm map lattice, with {:.1}% of R's entries exact \

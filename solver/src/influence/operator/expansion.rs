@@ -609,10 +609,12 @@ impl LinearOperator for ExpansionOperator {
             .enumerate()
             .with_min_len(1024)
             .for_each(|(i, o)| {
-                let mut acc = 0.0;
-                for k in c.row_start[i]..c.row_start[i + 1] {
-                    acc += c.row_vals[k] * t[c.row_cols[k] as usize];
-                }
+                let range = c.row_start[i]..c.row_start[i + 1];
+                let acc: f64 = c.row_vals[range.clone()]
+                    .iter()
+                    .zip(&c.row_cols[range])
+                    .map(|(v, &j)| v * t[j as usize])
+                    .sum();
                 *o += acc;
             });
     }
@@ -633,10 +635,12 @@ impl LinearOperator for ExpansionOperator {
             .enumerate()
             .with_min_len(256)
             .for_each(|(j, o)| {
-                let mut acc = 0.0;
-                for k in c.col_start[j]..c.col_start[j + 1] {
-                    acc += c.col_vals[k] * y[c.col_rows[k] as usize];
-                }
+                let range = c.col_start[j]..c.col_start[j + 1];
+                let acc: f64 = c.col_vals[range.clone()]
+                    .iter()
+                    .zip(&c.col_rows[range])
+                    .map(|(v, &i)| v * y[i as usize])
+                    .sum();
                 *o += acc;
             });
     }
