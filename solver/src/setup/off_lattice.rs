@@ -142,6 +142,18 @@ impl Setup {
     /// lattice, and (unless `forced`) the first-order solver would run and the dwell points are
     /// off the lattice.
     fn off_lattice_case(&self, rows: &HeightMap, forced: bool) -> Result<OffLattice, NotServed> {
+        self.matrix_free_case(rows, forced, false)
+    }
+
+    /// [`Setup::off_lattice_case`], with dwell points on the map lattice served too where
+    /// `on_lattice` (the expansion operator: a random path on the lattice whose swept stretches
+    /// turn, which the FFT operator's shared kernel does not serve).
+    fn matrix_free_case(
+        &self,
+        rows: &HeightMap,
+        forced: bool,
+        on_lattice: bool,
+    ) -> Result<OffLattice, NotServed> {
         if let Some(why) = self.fft_blocker() {
             return Err(NotServed::Cannot(format!("with {why}")));
         }
@@ -182,7 +194,7 @@ impl Setup {
                         == SolverKind::FirstOrder
                 }
             };
-            if !first_order || self.dwell_on_map_lattice(&bbox, pitch_mm) {
+            if !first_order || (!on_lattice && self.dwell_on_map_lattice(&bbox, pitch_mm)) {
                 return Err(NotServed::Declined);
             }
         }
@@ -583,7 +595,7 @@ impl Setup {
         if !forced && self.settings.operator != OperatorChoice::Auto {
             return Ok(None);
         }
-        let case = match self.off_lattice_case(rows, forced) {
+        let case = match self.matrix_free_case(rows, forced, true) {
             Ok(case) => case,
             Err(not) => return refusal(forced, "expansion", not),
         };
