@@ -459,7 +459,8 @@ impl Setup {
         if self.settings.operator == OperatorChoice::Auto && share > MAX_CORRECTED_SHARE {
             warnings.push(format!(
                 "operator auto: {:.0}% of the dwell points' stretches differ from the lattice \
-                 operator's shared swept kernel; assembling R",
+                 operator's shared swept kernel; the expansion operator where it pays, else \
+                 assembling R",
                 100.0 * share
             ));
             return Ok(None);
