@@ -42,8 +42,8 @@ use crate::influence::operator::spread::MAX_OVERSAMPLING;
 use crate::influence::{
     ColumnShape, ExpansionOperator, InfluenceMatrix, NufftOperator, SpreadOperator, StencilOperator,
 };
-use crate::observer::Observer;
 use crate::map::{BoundingBox, HeightMap};
+use crate::observer::Observer;
 use crate::tif::InfluenceFunction;
 
 /// Sparse `R^T R t`: nanoseconds per stored non-zero (two passes, 2 cores).
@@ -606,7 +606,8 @@ impl Setup {
         let pad = 2.0 * r / fine;
         let lattice = ((bbox.x_max_mm - bbox.x_min_mm) / fine + pad)
             * ((bbox.y_max_mm - bbox.y_min_mm) / fine + pad);
-        let spread_ns = EXPANSION_TERMS * SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2();
+        let spread_ns =
+            EXPANSION_TERMS * SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2();
         let sparse_ns = self.sparse_normal_ns(rows, &case);
         if !forced && spread_ns >= sparse_ns {
             return Ok(None);

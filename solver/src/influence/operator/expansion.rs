@@ -53,11 +53,14 @@ const BINS: usize = 4800;
 /// Columns per fixed chunk of the histogram's sums.
 const HISTOGRAM_CHUNK: usize = 64;
 
+/// A coefficient and a stretch's midpoint samples `(dx, dy, weight)` and piece halves.
+type Part = (f64, Vec<[f64; 3]>, Vec<[f64; 2]>);
+
 /// One of the three derivative kernels: the TIF's exact swept kernels along straight stretches,
 /// combined with coefficients (`(coefficient, direction in radians)`).
 struct DirectionKernel<'a, T: ?Sized> {
     tif: &'a T,
-    parts: Vec<(f64, Vec<[f64; 3]>, Vec<[f64; 2]>)>,
+    parts: Vec<Part>,
     reach_mm: f64,
 }
 
@@ -269,7 +272,10 @@ impl ExpansionOperator {
             ));
         }
         if !(tolerance.is_finite() && tolerance >= 0.0) {
-            return Err(Error::invalid("expansion tolerance", format!("{tolerance}")));
+            return Err(Error::invalid(
+                "expansion tolerance",
+                format!("{tolerance}"),
+            ));
         }
         if oversampling == 0 || map_x_mm.is_empty() || shapes.is_empty() {
             return Err(Error::invalid(
@@ -357,12 +363,7 @@ impl ExpansionOperator {
         let entries = |j: usize, pos: &mut Vec<u32>| -> Vec<(u32, f64, f64)> {
             let b = &cells[j];
             let nodes = b.nodes();
-            let w = [
-                1.0,
-                weights_ref[0][j],
-                weights_ref[1][j],
-                weights_ref[2][j],
-            ];
+            let w = [1.0, weights_ref[0][j], weights_ref[1][j], weights_ref[2][j]];
             let mut out: Vec<(u32, f64, f64)> = Vec::new();
             let a0 = (b.i - kr).div_euclid(s).max(0);
             let a1 = (b.i + 1 + kr).div_euclid(s).min(box_w as i64 - 1);
@@ -747,7 +748,11 @@ mod tests {
         for tolerance in [1e-3, 1e-4, 1e-6] {
             let (op, exact) = build(3.0, tolerance);
             let measured = dense_error(&op, &exact);
-            assert!(op.estimated_error() <= tolerance, "{}", op.estimated_error());
+            assert!(
+                op.estimated_error() <= tolerance,
+                "{}",
+                op.estimated_error()
+            );
             assert!(
                 measured <= op.estimated_error() * 1.0001 + 1e-12,
                 "tolerance {tolerance}: measured {measured} above the reported {}",
@@ -762,12 +767,20 @@ mod tests {
             op.apply_transpose(&y, &mut rty);
             let lhs: f64 = rt.iter().zip(&y).map(|(a, b)| a * b).sum();
             let rhs: f64 = rty.iter().zip(&t).map(|(a, b)| a * b).sum();
-            assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+            assert!(
+                (lhs - rhs).abs() <= 1e-10 * lhs.abs().max(1.0),
+                "{lhs} vs {rhs}"
+            );
             let mut want = vec![0.0; n];
             let csc = exact.csc();
             for (j, w) in want.iter_mut().enumerate() {
                 let c = csc.col(j);
-                *w = c.row_indices().iter().zip(c.values()).map(|(&i, v)| v * y[i]).sum();
+                *w = c
+                    .row_indices()
+                    .iter()
+                    .zip(c.values())
+                    .map(|(&i, v)| v * y[i])
+                    .sum();
             }
             let diff: f64 = want.iter().zip(&rty).map(|(a, b)| (a - b).powi(2)).sum();
             let size: f64 = want.iter().map(|a| a * a).sum();
