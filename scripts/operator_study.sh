@@ -22,7 +22,7 @@ TIF=data/tif_fluid_jet_10mm.csv
 SAMPLE=data/mirror_error_118x8mm.csv
 IBF="$SHARED/ibf_sim_70x30mm_0.1mm.csv"
 MIRROR="$SHARED/mirror_sim_210x30mm.csv"
-OPERATORS="${OPERATORS:-auto sparse fft stencil nufft fft-spread}"
+OPERATORS="${OPERATORS:-auto sparse fft stencil nufft fft-spread expansion}"
 
 # The IBF map at 0.2 mm (every other node) with two holes: a central one of radius 6 mm and a
 # mounting hole of radius 3 mm, so that the lattice operators meet apertures.

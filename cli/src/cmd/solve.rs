@@ -366,6 +366,9 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
             OperatorKind::FftSpread => "matrix-free, spread onto the map lattice + FFT",
             OperatorKind::Stencil => "matrix-free, phase stencils on the map lattice",
             OperatorKind::Nufft => "matrix-free, ES spreading onto a fine lattice + FFT (NUFFT)",
+            OperatorKind::Expansion => {
+                "matrix-free, direction expansion spread onto the map lattice + FFT, exact correction"
+            }
             OperatorKind::Sparse => "assembled",
         },
         if r.skipped_rows > 0 {

@@ -93,6 +93,16 @@ pub enum OperatorChoice {
     /// [`crate::influence::operator::nufft::DEFAULT_NUFFT_TOLERANCE`] for `auto`). Needs map points on a
     /// regular lattice (dwell points anywhere) and the first-order solver.
     Nufft,
+    /// Never form R for products: each column the TIF and its second-order expansion in the
+    /// stretch's direction, spread from the stretch's centroid (four FFT convolutions), with the
+    /// exact entries where the expansion is poor (a cut TIF's edge, odd stretches); error summed
+    /// over every entry, within the spread tolerance (map on a lattice, first-order solver).
+    ///
+    /// Never form `R` for products ([`crate::influence::ExpansionOperator`]): the build assembles
+    /// `R` once to choose the exact correction. For spirals and random paths under the swept
+    /// model, and TIFs cut at a radius. Needs map points on a regular lattice and the first-order
+    /// solver.
+    Expansion,
 }
 
 impl Problem {

@@ -33,6 +33,7 @@ pub use model::surface::{
     SEARCH_RADIUS_FACTOR,
 };
 pub use model::swept::{assemble_swept, InfluenceModel, Stretches, SweptTif};
+pub use operator::expansion::{ColumnShape, ExpansionOperator};
 pub use operator::fft::FftOperator;
 pub use operator::gram::{GramMatrix, GramOperator};
 pub use operator::matrix::{InfluenceMatrix, NNZ_BYTES};

@@ -14,6 +14,10 @@
 //!   predicted cheaper than the assembled `R`.
 //! - With `auto` and none of those, the spreading operator at `spread_tolerance` (approximate,
 //!   the residual reported the exact `R`'s) where it is predicted cheaper than the assembled `R`.
+//! - Where still none serves (a spiral or a random path under the swept model, whose stretches
+//!   turn, or a TIF cut at a radius, whose jump no spreading resolves), the direction-expansion
+//!   operator ([`ExpansionOperator`], [`Setup::expansion_plan`]): its error within
+//!   `spread_tolerance` by construction, taken where predicted cheaper than the assembled `R`.
 //!
 //! Cost model (per `R^T R t`, the first-order solver's product): the sparse operator makes two
 //! passes over the non-zeros, `2 nnz` multiply-adds at about [`SPARSE_NS_PER_NNZ`] (or one over
@@ -35,8 +39,11 @@ use crate::influence::operator::fft::FftOperator;
 use crate::influence::operator::lattice::lattice_index;
 use crate::influence::operator::nufft::{EsKernel, DEFAULT_NUFFT_TOLERANCE, UPSAMPLING};
 use crate::influence::operator::spread::MAX_OVERSAMPLING;
-use crate::influence::{NufftOperator, SpreadOperator, StencilOperator};
+use crate::influence::{
+    ColumnShape, ExpansionOperator, InfluenceMatrix, NufftOperator, SpreadOperator, StencilOperator,
+};
 use crate::map::{BoundingBox, HeightMap};
+use crate::observer::Observer;
 use crate::tif::InfluenceFunction;
 
 /// Sparse `R^T R t`: nanoseconds per stored non-zero (two passes, 2 cores).
@@ -135,6 +142,18 @@ impl Setup {
     /// lattice, and (unless `forced`) the first-order solver would run and the dwell points are
     /// off the lattice.
     fn off_lattice_case(&self, rows: &HeightMap, forced: bool) -> Result<OffLattice, NotServed> {
+        self.matrix_free_case(rows, forced, false)
+    }
+
+    /// [`Setup::off_lattice_case`], with dwell points on the map lattice served too where
+    /// `on_lattice` (the expansion operator: a random path on the lattice whose swept stretches
+    /// turn, which the FFT operator's shared kernel does not serve).
+    fn matrix_free_case(
+        &self,
+        rows: &HeightMap,
+        forced: bool,
+        on_lattice: bool,
+    ) -> Result<OffLattice, NotServed> {
         if let Some(why) = self.fft_blocker() {
             return Err(NotServed::Cannot(format!("with {why}")));
         }
@@ -175,7 +194,7 @@ impl Setup {
                         == SolverKind::FirstOrder
                 }
             };
-            if !first_order || self.dwell_on_map_lattice(&bbox, pitch_mm) {
+            if !first_order || (!on_lattice && self.dwell_on_map_lattice(&bbox, pitch_mm)) {
                 return Err(NotServed::Declined);
             }
         }
@@ -538,6 +557,116 @@ impl Setup {
                 Ok(None)
             }
         }
+    }
+}
+
+/// What [`Setup::expansion_plan`] found: the expansion operator, or the exact `R` it assembled
+/// (to solve on where the operator is not predicted faster).
+pub(super) enum ExpansionPlan {
+    /// The expansion operator, taken.
+    Taken(ExpansionOperator),
+    /// The assembled `R`, taken.
+    Assembled(InfluenceMatrix),
+}
+
+/// Spreading products per expansion product (the TIF and its three direction terms).
+pub const EXPANSION_TERMS: f64 = 4.0;
+/// Expansion operator `R^T R t`: nanoseconds per entry of its exact correction (two passes, 2
+/// cores): about twice the assembled `R`'s per non-zero, measured on the 60 mm round part of
+/// `scripts/round_part.py` (the correction's rows are scattered over every dwell point).
+pub const CORRECTION_NS_PER_ENTRY: f64 = 2.0 * SPARSE_NS_PER_NNZ;
+
+impl Setup {
+    /// The direction-expansion operator ([`ExpansionOperator`]) over the problem rows `rows`
+    /// where no other matrix-free operator serves (a spiral or a random path under the swept
+    /// model, a TIF cut at a radius): `None` when it does not apply (assemble `R` as usual).
+    /// Under `auto` it is taken only where predicted cheaper per normal product than the
+    /// assembled `R` (four spreading products on the map lattice and two passes over the
+    /// correction, against two passes over `R`, [`Setup::sparse_normal_ns`]); its error is
+    /// within `spread_tolerance` by construction (summed over every entry). The build assembles
+    /// `R`, which is returned to solve on where the operator is declined.
+    pub(super) fn expansion_plan(
+        &self,
+        rows: &HeightMap,
+        warnings: &mut Vec<String>,
+        observer: &dyn Observer,
+    ) -> SetupResult<Option<ExpansionPlan>> {
+        let forced = self.settings.operator == OperatorChoice::Expansion;
+        if !forced && self.settings.operator != OperatorChoice::Auto {
+            return Ok(None);
+        }
+        let case = match self.matrix_free_case(rows, forced, true) {
+            Ok(case) => case,
+            Err(not) => return refusal(forced, "expansion", not),
+        };
+        let pitch = case.pitch_mm;
+        let bbox = case.bbox;
+        let r = self.tif.support_radius_mm();
+        let fine = pitch;
+        let pad = 2.0 * r / fine;
+        let lattice = ((bbox.x_max_mm - bbox.x_min_mm) / fine + pad)
+            * ((bbox.y_max_mm - bbox.y_min_mm) / fine + pad);
+        let spread_ns =
+            EXPANSION_TERMS * SPREAD_NS_PER_CELL_LOG * lattice * lattice.max(2.0).log2();
+        let sparse_ns = self.sparse_normal_ns(rows, &case);
+        if !forced && spread_ns >= sparse_ns {
+            return Ok(None);
+        }
+        let exact = self.assemble(rows, observer)?;
+        let shapes = ColumnShape::of(
+            self.path.x_mm(),
+            self.path.y_mm(),
+            self.swept.as_ref().map(|s| &s.0),
+        );
+        let tolerance = self.settings.spread_tolerance;
+        let op = match ExpansionOperator::new(
+            rows.x_mm(),
+            rows.y_mm(),
+            &shapes,
+            &exact,
+            pitch,
+            1,
+            &self.tif,
+            tolerance,
+        ) {
+            Ok(op) => op,
+            Err(e) if forced => return Err(e).at(SetupInput::Map),
+            Err(e) => {
+                warnings.push(format!(
+                    "operator auto: the expansion operator does not apply ({e}); assembling R"
+                ));
+                return Ok(Some(ExpansionPlan::Assembled(exact)));
+            }
+        };
+        let ns = spread_ns + 2.0 * CORRECTION_NS_PER_ENTRY * op.correction_nnz() as f64;
+        let what = format!(
+            "each column the TIF and its second-order expansion along its stretch ({:.3} mm \
+             reference), spread onto the {:.4} mm map lattice, with {:.1}% of R's entries exact \
+             (a cut TIF's edge, odd stretches); operator error {:.1e} <= {tolerance:.0e} over \
+             every entry",
+            op.reference_mm(),
+            pitch,
+            100.0 * op.correction_share(),
+            op.estimated_error()
+        );
+        if forced {
+            warnings.push(super::note(format!("operator expansion: {what}")));
+            return Ok(Some(ExpansionPlan::Taken(op)));
+        }
+        if ns >= sparse_ns {
+            warnings.push(super::note(format!(
+                "operator auto: the expansion operator ({what}) is predicted no cheaper than \
+                 R's {:.2e} non-zeros; assembling R",
+                case.nnz
+            )));
+            return Ok(Some(ExpansionPlan::Assembled(exact)));
+        }
+        warnings.push(super::note(format!(
+            "operator auto: dwell points off the map lattice with stretches of their own; {what}, \
+             predicted {:.1}x cheaper per product than R (operator = \"sparse\" assembles R)",
+            sparse_ns / ns
+        )));
+        Ok(Some(ExpansionPlan::Taken(op)))
     }
 }
 

@@ -1,7 +1,7 @@
 //! [`Setup::problem`]: the rows (map and edge model), how `R` is held (assembled, FFT, off-lattice
 //! operators, or the robust plan's stacked scenarios) and the [`Problem`] built on them.
 
-use super::off_lattice::OffLatticeOperator;
+use super::off_lattice::{ExpansionPlan, OffLatticeOperator};
 use super::*;
 use crate::influence::model::curvature::hertz_tifs_on_surface;
 use crate::influence::model::piece::piece_rate;
@@ -139,6 +139,7 @@ impl Setup {
                 | OperatorChoice::FftSpread
                 | OperatorChoice::Stencil
                 | OperatorChoice::Nufft
+                | OperatorChoice::Expansion
         ) {
             return Ok(OperatorPlan::Assembled);
         }
@@ -340,7 +341,11 @@ impl Setup {
         };
         let problem = match lattice {
             Some(op) => Problem::from_boxed(op, z_nm, bounds, rho, lambda),
-            None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+            None => match self.expansion_plan(&rows, &mut warnings, observer)? {
+                Some(ExpansionPlan::Taken(op)) => Problem::new(op, z_nm, bounds, rho, lambda),
+                Some(ExpansionPlan::Assembled(r)) => Problem::new(r, z_nm, bounds, rho, lambda),
+                None => Problem::new(self.assemble(&rows, observer)?, z_nm, bounds, rho, lambda),
+            },
         }
         .and_then(|p| {
             p.with_dwell_lattice(DwellLattice::detect(self.path.x_mm(), self.path.y_mm()))
@@ -454,7 +459,8 @@ impl Setup {
         if self.settings.operator == OperatorChoice::Auto && share > MAX_CORRECTED_SHARE {
             warnings.push(format!(
                 "operator auto: {:.0}% of the dwell points' stretches differ from the lattice \
-                 operator's shared swept kernel; assembling R",
+                 operator's shared swept kernel; the expansion operator where it pays, else \
+                 assembling R",
                 100.0 * share
             ));
             return Ok(None);
@@ -764,5 +770,6 @@ fn kind_label(kind: OperatorKind) -> &'static str {
         OperatorKind::FftSpread => "spreading",
         OperatorKind::Stencil => "stencil",
         OperatorKind::Nufft => "NUFFT",
+        OperatorKind::Expansion => "direction expansion",
     }
 }

@@ -293,7 +293,7 @@ impl Setup {
     ) -> Result<Option<Exact>> {
         use crate::influence::operator::OperatorKind;
         let tolerance = match problem.operator_kind() {
-            OperatorKind::FftSpread => self.settings.spread_tolerance,
+            OperatorKind::FftSpread | OperatorKind::Expansion => self.settings.spread_tolerance,
             OperatorKind::Nufft => crate::influence::operator::nufft::DEFAULT_NUFFT_TOLERANCE,
             _ => return Ok(None),
         };

@@ -17,12 +17,17 @@
 //!   onto a fine lattice, deconvolved FFT convolution);
 //! - [`stencil`]: exact and matrix-free for dwell points at few distinct positions within a map
 //!   cell (one tabulated stencil per position);
+//! - [`expansion`]: dwell points anywhere with columns of their own shape (the swept model on a
+//!   spiral or random path, a TIF cut at a radius): four spreading products, the TIF and its
+//!   swept kernels' second-order terms in the stretch's direction, and an exact sparse correction
+//!   where the expansion is poor (the cut circle, odd stretches), its error summed over every entry;
 //! - [`stacked`]: several tools' operators side by side (one solve over all their dwell times).
 //!
 //! Every product is computed entry by entry in a fixed order (one dot product per output entry,
 //! outputs distributed over threads), so results are bit-identical for any thread count.
 
 mod complement;
+pub mod expansion;
 pub mod fft;
 pub mod gram;
 pub(crate) mod lattice;
@@ -53,6 +58,9 @@ pub enum OperatorKind {
     /// Dwell points spread by the exponential-of-semicircle kernel onto a fine lattice, then a
     /// deconvolved FFT convolution (non-uniform FFT; error measured against the exact `R`).
     Nufft,
+    /// The TIF and its direction expansion spread from each stretch's centroid, with an exact
+    /// sparse correction where the expansion is poor (error summed over every entry).
+    Expansion,
 }
 
 /// The influence operator `R` (m x n, nm/s) as a dwell problem holds it. The assembled matrix,

@@ -46,6 +46,56 @@ pub const MAX_OVERSAMPLING: usize = 4;
 /// tolerances are a user's explicit trade of accuracy for speed.
 pub const DEFAULT_SPREAD_TOLERANCE: f64 = 1e-4;
 
+/// A point's place in the fine lattice of pitch `fine` through `(x0, y0)`: the node `(i, j)`
+/// below and left of it and its fractions `(fx, fy)` of the cell (a fraction within rounding of
+/// a node snapped onto it: one node, not two).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Bilinear {
+    pub(crate) i: i64,
+    pub(crate) j: i64,
+    pub(crate) fx: f64,
+    pub(crate) fy: f64,
+}
+
+impl Bilinear {
+    /// The four corner nodes and their bilinear weights.
+    pub(crate) fn nodes(&self) -> [((i64, i64), f64); 4] {
+        let (i, j, fx, fy) = (self.i, self.j, self.fx, self.fy);
+        [
+            ((i, j), (1.0 - fx) * (1.0 - fy)),
+            ((i + 1, j), fx * (1.0 - fy)),
+            ((i, j + 1), (1.0 - fx) * fy),
+            ((i + 1, j + 1), fx * fy),
+        ]
+    }
+}
+
+/// The bilinear cell of `(x, y)` on the fine lattice of pitch `fine` through `(x0, y0)`; `None`
+/// when the point is too far away (or not finite). The spreading operator's weights, shared with
+/// [`super::expansion`].
+pub(crate) fn bilinear_nodes(x: f64, y: f64, x0: f64, y0: f64, fine: f64) -> Option<Bilinear> {
+    let (u, v) = ((x - x0) / fine, (y - y0) / fine);
+    if !(u.is_finite() && v.is_finite() && u.abs() < 1e9 && v.abs() < 1e9) {
+        return None;
+    }
+    let (i, j) = (u.floor(), v.floor());
+    let snap = |f: f64| {
+        if f < ON_LATTICE_TOL {
+            0.0
+        } else if f > 1.0 - ON_LATTICE_TOL {
+            1.0
+        } else {
+            f
+        }
+    };
+    Some(Bilinear {
+        i: i as i64,
+        j: j as i64,
+        fx: snap(u - i),
+        fy: snap(v - j),
+    })
+}
+
 /// The spreading operator (see the module documentation).
 pub struct SpreadOperator {
     inner: FftOperator,
@@ -163,33 +213,14 @@ impl Layout {
             .zip(dwell_y_mm)
             .enumerate()
             .map(|(k, (&x, &y))| {
-                let (u, v) = ((x - x0) / fine, (y - y0) / fine);
-                if !(u.is_finite() && v.is_finite() && u.abs() < 1e9 && v.abs() < 1e9) {
-                    return Err(Error::invalid(
-                        "dwell point",
-                        format!("{k} at ({x}, {y}) mm is too far from the map"),
-                    ));
-                }
-                let (i, j) = (u.floor(), v.floor());
-                let (fx, fy) = (u - i, v - j);
-                // Snap a coordinate within rounding of a node onto it (one node, not two).
-                let snap = |f: f64| {
-                    if f < ON_LATTICE_TOL {
-                        0.0
-                    } else if f > 1.0 - ON_LATTICE_TOL {
-                        1.0
-                    } else {
-                        f
-                    }
-                };
-                let (fx, fy) = (snap(fx), snap(fy));
-                let (i, j) = (i as i64, j as i64);
-                Ok([
-                    ((i, j), (1.0 - fx) * (1.0 - fy)),
-                    ((i + 1, j), fx * (1.0 - fy)),
-                    ((i, j + 1), (1.0 - fx) * fy),
-                    ((i + 1, j + 1), fx * fy),
-                ])
+                bilinear_nodes(x, y, x0, y0, fine)
+                    .map(|b| b.nodes())
+                    .ok_or_else(|| {
+                        Error::invalid(
+                            "dwell point",
+                            format!("{k} at ({x}, {y}) mm is too far from the map"),
+                        )
+                    })
             })
             .collect::<Result<Vec<_>>>()?;
         let kr = lattice_reach(tif.support_radius_mm(), fine) as i64;
