@@ -97,6 +97,26 @@ const PLAN_ARGS: [&str; 12] = [
     "correction-passes",
 ];
 
+/// Runs `program` on the part `surface` in the shop with its true tool, the interferometer's
+/// noise seeded by `seed`, into `out`.
+fn run_in_shop(surface: &Path, program: &Path, seed: u64, out: &Path) {
+    ok(&preston_cmd()
+        .args(["shop", "--quiet", "--surface", s(surface)])
+        .args(["--program", s(program)])
+        .args(gaussian_args())
+        .args(["--a-max-mm-per-s2", "1000"])
+        .args(["--tool-rate-factor", &TRUE_RATE.to_string()])
+        .args(["--tool-width-factor", &TRUE_WIDTH.to_string()])
+        .arg(format!(
+            "--tool-offset-mm={},{}",
+            TRUE_OFFSET_MM.0, TRUE_OFFSET_MM.1
+        ))
+        .args(["--noise-rms-nm", &NOISE_RMS_NM.to_string()])
+        .args(["--seed", &seed.to_string(), "--out", s(out)])
+        .output()
+        .unwrap());
+}
+
 /// The run made once for the whole file: the measured maps, the program, the shop's record and
 /// the calibration's folder.
 struct Run {
@@ -140,26 +160,7 @@ fn run_loop() -> Run {
         .output()
         .unwrap());
     let shop = root.join("shop");
-    ok(&preston_cmd()
-        .args([
-            "shop",
-            "--quiet",
-            "--surface",
-            s(&v0.join("surface_after.csv")),
-        ])
-        .args(["--program", s(&program)])
-        .args(&g)
-        .args(["--a-max-mm-per-s2", "1000"])
-        .args(["--tool-rate-factor", &TRUE_RATE.to_string()])
-        .args(["--tool-width-factor", &TRUE_WIDTH.to_string()])
-        .arg(format!(
-            "--tool-offset-mm={},{}",
-            TRUE_OFFSET_MM.0, TRUE_OFFSET_MM.1
-        ))
-        .args(["--noise-rms-nm", &NOISE_RMS_NM.to_string(), "--seed", "4"])
-        .args(["--out", s(&shop)])
-        .output()
-        .unwrap());
+    run_in_shop(&v0.join("surface_after.csv"), &program, 4, &shop);
     let after = shop.join("measured.csv");
     let calibration = root.join("calibration");
     ok(&preston_cmd()
@@ -345,22 +346,12 @@ fn calibrate_learns_the_shop_tool_and_solve_plans_with_it() {
         .output()
         .unwrap());
     let shop2 = run.root.join("shop2");
-    ok(&preston_cmd()
-        .args(["shop", "--quiet", "--surface"])
-        .arg(run.root.join("shop").join("surface_after.csv"))
-        .args(["--program", s(&program2)])
-        .args(gaussian_args())
-        .args(["--a-max-mm-per-s2", "1000"])
-        .args(["--tool-rate-factor", &TRUE_RATE.to_string()])
-        .args(["--tool-width-factor", &TRUE_WIDTH.to_string()])
-        .arg(format!(
-            "--tool-offset-mm={},{}",
-            TRUE_OFFSET_MM.0, TRUE_OFFSET_MM.1
-        ))
-        .args(["--noise-rms-nm", &NOISE_RMS_NM.to_string(), "--seed", "5"])
-        .args(["--out", s(&shop2)])
-        .output()
-        .unwrap());
+    run_in_shop(
+        &run.root.join("shop").join("surface_after.csv"),
+        &program2,
+        5,
+        &shop2,
+    );
     let read = num(&read_json(&shop2.join("shop.json")), "measured_rms_nm");
     assert!(
         (read - expected).abs() <= EXPECTED_READING_TOL * read,

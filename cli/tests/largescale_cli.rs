@@ -525,7 +525,8 @@ fn operator_auto_assembles_r_for_a_spiral_under_the_swept_model() {
 }
 
 /// Dwell points far from the map make the stencils' image of the lattice huge (its clearing
-/// dominates each product): `auto` assembles `R` instead, and the far points stay unreachable.
+/// dominates each product): `auto` assembles `R` or takes the expansion operator, which spreads
+/// onto the map's own lattice (its error reported), and the far points stay unreachable.
 #[test]
 fn operator_auto_declines_the_stencils_when_their_image_would_dwarf_the_map() {
     let dir = tempfile::tempdir().unwrap();
@@ -546,7 +547,11 @@ fn operator_auto_declines_the_stencils_when_their_image_would_dwarf_the_map() {
     let o = solve_gaussian(&map, &args, &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let r = report(&out);
-    assert_eq!(r["operator"], "sparse");
+    let op = r["operator"].as_str().unwrap();
+    assert!(op == "sparse" || op == "expansion", "{r}");
+    if op == "expansion" {
+        assert!(r["operator_error"].is_object(), "{r}");
+    }
     assert_eq!(r["solver"], "first-order");
     assert_eq!(r["unreachable_dwell_points"], 2);
 }
