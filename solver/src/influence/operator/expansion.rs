@@ -606,18 +606,7 @@ impl LinearOperator for ExpansionOperator {
                 .for_each(|(o, p)| *o += p);
         }
         let c = &self.correction;
-        out.par_iter_mut()
-            .enumerate()
-            .with_min_len(1024)
-            .for_each(|(i, o)| {
-                let range = c.row_start[i]..c.row_start[i + 1];
-                let acc: f64 = c.row_vals[range.clone()]
-                    .iter()
-                    .zip(&c.row_cols[range])
-                    .map(|(v, &j)| v * t[j as usize])
-                    .sum();
-                *o += acc;
-            });
+        add_compressed_product(&c.row_start, &c.row_cols, &c.row_vals, t, out, 1024);
     }
 
     fn apply_transpose(&self, y: &[f64], out: &mut [f64]) {
@@ -632,23 +621,36 @@ impl LinearOperator for ExpansionOperator {
                 .for_each(|(o, (p, w))| *o += w * p);
         }
         let c = &self.correction;
-        out.par_iter_mut()
-            .enumerate()
-            .with_min_len(256)
-            .for_each(|(j, o)| {
-                let range = c.col_start[j]..c.col_start[j + 1];
-                let acc: f64 = c.col_vals[range.clone()]
-                    .iter()
-                    .zip(&c.col_rows[range])
-                    .map(|(v, &i)| v * y[i as usize])
-                    .sum();
-                *o += acc;
-            });
+        add_compressed_product(&c.col_start, &c.col_rows, &c.col_vals, y, out, 256);
     }
 
     fn centred_column_norms_sq(&self) -> Vec<f64> {
         self.columns.centred_norms_sq()
     }
+}
+
+/// `out[k] += Σ_e vals[e] x[index[e]]` over the entries `e` in `start[k]..start[k + 1]`: the
+/// correction's product by rows (CSR) or, with its columns, its transpose (CSC).
+fn add_compressed_product(
+    start: &[usize],
+    index: &[u32],
+    vals: &[f64],
+    x: &[f64],
+    out: &mut [f64],
+    min_len: usize,
+) {
+    out.par_iter_mut()
+        .enumerate()
+        .with_min_len(min_len)
+        .for_each(|(k, o)| {
+            let range = start[k]..start[k + 1];
+            let acc: f64 = vals[range.clone()]
+                .iter()
+                .zip(&index[range])
+                .map(|(v, &i)| v * x[i as usize])
+                .sum();
+            *o += acc;
+        });
 }
 
 impl InfluenceOperator for ExpansionOperator {
