@@ -1,7 +1,9 @@
 //! `preston solve` plans a run that pays: where the plan of the whole map is not expected to
 //! improve the part by more than its risk (the tool known only to a spot test's uncertainty),
-//! the correctable band is planned alone; where no plan pays, the run says so with the floor's
-//! cause, and the plan is still written.
+//! the correctable band is planned alone; near the floor, where the job's plan spends its dwell
+//! imprinting the map's noise, a lighter plan (a heavier time weight) is kept when its expected
+//! cost is lower; where no plan pays, the run says so with the floor's cause, and the plan is
+//! still written.
 
 mod common;
 
@@ -29,8 +31,16 @@ fn map_text(smooth_nm: f64, ripple_nm: f64, noise_nm: f64) -> String {
 }
 
 fn solve(dir: &std::path::Path, map: &std::path::Path) -> std::process::Output {
-    run_ok(preston_cmd().args([
-        "solve",
+    solve_with(dir, map, "out", &[])
+}
+
+fn solve_with(
+    dir: &std::path::Path,
+    map: &std::path::Path,
+    out: &str,
+    extra: &[&str],
+) -> std::process::Output {
+    run_ok(preston_cmd().arg("solve").args(extra).args([
         "--map",
         s(map),
         "--gaussian-sigma-mm",
@@ -44,7 +54,7 @@ fn solve(dir: &std::path::Path, map: &std::path::Path) -> std::process::Output {
         "--v-min",
         "1",
         "--out",
-        s(&dir.join("out")),
+        s(&dir.join(out)),
     ]))
 }
 
@@ -53,33 +63,50 @@ fn num(r: &serde_json::Value, key: &str) -> f64 {
 }
 
 /// A ripple the tool cannot size or place well enough: the whole map's plan chases it and its
-/// reading's 95th percentile is not below the part's measurement (the plan is a band plan only
-/// then); the band plan leaves the ripple (and the noise) alone, corrects the form, and is
-/// expected to read below the whole map's plan and, at its 95th percentile, below the
-/// measurement.
+/// reading's 95th percentile is not below the part's measurement. A lighter plan (a heavier time
+/// weight) stops chasing it, is expected to read below the whole map's plan and, at its 95th
+/// percentile, below the measurement; its figures are those of a separate solve at the weight
+/// it reports (whose own plan of the whole map it is, whether or not a still lighter plan then
+/// replaces that).
 #[test]
-fn the_band_is_planned_alone_where_the_whole_map_would_not_pay() {
+fn a_lighter_plan_replaces_the_whole_map_s_where_that_would_not_pay() {
     let dir = tempfile::tempdir().unwrap();
     let map = write(dir.path(), "map.csv", &map_text(2.0, 2.0, 0.3));
-    solve(dir.path(), &map);
+    let out = solve(dir.path(), &map);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("planned with the time weight"), "{stderr}");
     let r = report(&dir.path().join("out"));
-    assert_eq!(r["plan_scope"]["kind"], "band", "{:#}", r["plan_scope"]);
+    assert_eq!(r["plan_scope"]["kind"], "map", "{:#}", r["plan_scope"]);
+    let plan_rho = num(&r, "plan_rho_nm2_per_s");
+    assert!(plan_rho > 0.0, "{r:#}");
     let measured = num(&r["expected"], "measured_rms_nm");
     let whole = num(&r, "map_plan_expected_rms_nm");
     let expected = num(&r, "expected_rms_nm");
-    assert!(expected < whole, "band {expected} against whole {whole}");
+    assert!(expected < whole, "lighter {expected} against whole {whole}");
     assert_eq!(r["run_pays"], true);
     let high = r["expected_rms_range_nm"][1].as_f64().unwrap();
     assert!(high < measured, "95th percentile {high} against {measured}");
-    // The band plan leaves out the ripple and the noise: the nominal tool's residual on the
-    // measured map is at least what the band leaves out (less what the form's fit shares).
-    let left_out = num(&r["plan_scope"], "left_out_rms_nm");
-    let ripple_rms = 2.0 / 2.0;
-    assert!(
-        left_out > 0.9 * (ripple_rms * ripple_rms + 0.09f64).sqrt(),
-        "{left_out}"
+    let kept_dwell = num(&r, "total_dwell_s");
+    assert!(kept_dwell < num(&r, "map_plan_dwell_s"), "{r:#}");
+
+    solve_with(
+        dir.path(),
+        &map,
+        "lighter",
+        &["--rho", &format!("{plan_rho}")],
     );
-    assert!(num(&r, "rms_after_nm") >= 0.9 * left_out, "{r:#}");
+    let l = report(&dir.path().join("lighter"));
+    let job_plan = |key: &str, replaced: &str| l[replaced].as_f64().unwrap_or_else(|| num(&l, key));
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1.0);
+    let (alone_rms, alone_dwell) = (
+        job_plan("expected_rms_nm", "map_plan_expected_rms_nm"),
+        job_plan("total_dwell_s", "map_plan_dwell_s"),
+    );
+    assert!(
+        close(alone_dwell, kept_dwell),
+        "{alone_dwell} against {kept_dwell}"
+    );
+    assert!(close(alone_rms, expected), "{alone_rms} against {expected}");
 }
 
 /// Noise alone: nothing the tool can correct, so no run pays; `solve` says so with the floor's
@@ -101,4 +128,41 @@ fn a_map_of_noise_pays_no_run_and_says_why() {
     let measured = num(&r["expected"], "measured_rms_nm");
     assert!(num(&r, "expected_rms_nm") > measured, "{r:#}");
     assert!(dir.path().join("out/dwell.csv").is_file());
+}
+
+/// Near the floor (a little low-order form under the map's noise) the job's plan imprints the
+/// noise with deep, fine modulations of its dwell. The band plan corrects the form alone, leaves
+/// the noise (what it leaves out is at least the noise), and is kept for its expected cost
+/// `E[rms^2] + (2 rho / m) T`, with a fraction of the dwell.
+#[test]
+fn near_the_floor_the_band_is_planned_alone_for_its_expected_cost() {
+    let dir = tempfile::tempdir().unwrap();
+    let map = write(dir.path(), "map.csv", &map_text(0.8, 0.0, 0.3));
+    let rho = 0.01;
+    let out = solve_with(dir.path(), &map, "out", &["--rho", &format!("{rho}")]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("planned for the correctable band only"),
+        "{stderr}"
+    );
+    let r = report(&dir.path().join("out"));
+    assert_eq!(r["plan_scope"]["kind"], "band", "{:#}", r["plan_scope"]);
+    assert_eq!(num(&r, "plan_rho_nm2_per_s"), rho);
+    let m = 41.0 * 41.0;
+    let cost = |e: f64, t: f64| e * e + 2.0 * rho / m * t;
+    let (kept_rms, kept_dwell) = (num(&r, "expected_rms_nm"), num(&r, "total_dwell_s"));
+    let (job_rms, job_dwell) = (
+        num(&r, "map_plan_expected_rms_nm"),
+        num(&r, "map_plan_dwell_s"),
+    );
+    assert!(
+        cost(kept_rms, kept_dwell) < cost(job_rms, job_dwell),
+        "kept {kept_rms} nm in {kept_dwell} s, job's {job_rms} nm in {job_dwell} s"
+    );
+    assert!(
+        kept_dwell < 0.5 * job_dwell,
+        "{kept_dwell} s against {job_dwell} s"
+    );
+    let left_out = num(&r["plan_scope"], "left_out_rms_nm");
+    assert!(left_out > 0.9 * 0.3, "{left_out}");
 }

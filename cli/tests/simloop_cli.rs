@@ -73,7 +73,8 @@ fn simulate_reproduces_the_solver_and_converges_in_continuous_mode() {
             || k == "run_pays"
             || k.starts_with("expected")
             || k == "plan_scope"
-            || k == "map_plan_expected_rms_nm"
+            || k == "plan_rho_nm2_per_s"
+            || k.starts_with("map_plan_")
     };
     let keys = |v: &serde_json::Value| {
         let mut k: Vec<String> = v

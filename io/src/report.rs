@@ -126,12 +126,19 @@ pub struct Report {
     pub run_pays: Option<bool>,
     /// What the plan corrects: the whole map (`map`), or the correctable band alone (`band`,
     /// with its cap's transfer gain, cut-off frequency in 1/mm, fit degrees and the RMS it
-    /// leaves out, nm) where the whole map's plan did not pay and the band's reads lower.
+    /// leaves out, nm) where its expected cost is below the whole map's plan's.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub plan_scope: Option<preston_solver::setup::pays::PlanScope>,
-    /// The expected RMS of the whole map's plan where a band plan replaced it, nm.
+    /// The time weight the plan kept was solved with, nm^2 per s: the job's `rho`, or a lighter
+    /// plan's larger weight where its expected cost is below the job's plan's.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub plan_rho_nm2_per_s: Option<f64>,
+    /// The expected RMS of the job's plan of the whole map where another plan replaced it, nm.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub map_plan_expected_rms_nm: Option<f64>,
+    /// The dwell of the job's plan of the whole map where another plan replaced it, s.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub map_plan_dwell_s: Option<f64>,
     /// The largest part of the expected reading (`expected.parts`): what keeps the run from
     /// doing better (`band`, `tool_uncertainty` or `noise`).
     #[serde(skip_serializing_if = "Option::is_none", default)]
@@ -593,7 +600,9 @@ impl Report {
             expected: None,
             run_pays: None,
             plan_scope: None,
+            plan_rho_nm2_per_s: None,
             map_plan_expected_rms_nm: None,
+            map_plan_dwell_s: None,
             expected_floor_cause: None,
             machining_time_s: 0.0,
             max_accel_mm_per_s2: 0.0,
@@ -625,7 +634,9 @@ impl Report {
         self.expected_floor_cause = expected.map(|e| e.parts.cause());
         self.expected = expected.cloned();
         self.plan_scope = expected.map(|_| paying.scope);
+        self.plan_rho_nm2_per_s = expected.map(|_| paying.rho);
         self.map_plan_expected_rms_nm = paying.map_plan_expected_rms_nm;
+        self.map_plan_dwell_s = paying.map_plan_dwell_s;
     }
 
     /// Adds the machine keys: machining time and largest acceleration from `schedule`, and the

@@ -444,23 +444,31 @@ fn print_summary(solved: &pipeline::Solved, early_warnings: usize, out: &std::pa
             p.noise_nm,
             p.noise_imprint_nm
         );
-        if let (
-            Some(PlanScope::Band {
-                min_gain,
-                cutoff_per_mm,
-                left_out_rms_nm,
-                ..
-            }),
-            Some(whole),
-        ) = (r.plan_scope, r.map_plan_expected_rms_nm)
+        if let (Some(scope), Some(whole_rms_nm), Some(whole_dwell_s)) =
+            (r.plan_scope, r.map_plan_expected_rms_nm, r.map_plan_dwell_s)
         {
-            crate::note!(
-                "  planned for the correctable band only (up to {:.3} /mm, where the tool's transfer is {:.0}% of its rate; {:.3} nm RMS left out): the whole map's plan was expected to read {:.3} nm, above what it would gain",
-                cutoff_per_mm,
-                100.0 * min_gain,
-                left_out_rms_nm,
-                whole
+            let instead = format!(
+                "the job's plan of the whole map was expected to read {whole_rms_nm:.3} nm with {whole_dwell_s:.0} s of dwell, this one {:.3} nm with {:.0} s",
+                e.expected_rms_nm, r.total_dwell_s
             );
+            match scope {
+                PlanScope::Band {
+                    min_gain,
+                    cutoff_per_mm,
+                    left_out_rms_nm,
+                    ..
+                } => crate::note!(
+                    "  planned for the correctable band only (up to {:.3} /mm, where the tool's transfer is {:.0}% of its rate; {:.3} nm RMS left out): {instead}",
+                    cutoff_per_mm,
+                    100.0 * min_gain,
+                    left_out_rms_nm,
+                ),
+                PlanScope::Map => crate::note!(
+                    "  planned with the time weight rho = {:.4} nm^2/s (the job's {:.4}), which stops chasing what the run cannot pay for: {instead}",
+                    r.plan_rho_nm2_per_s.unwrap_or(f64::NAN),
+                    solved.prepared.setup.rho,
+                ),
+            }
         }
         if r.run_pays == Some(false) {
             crate::errln!(

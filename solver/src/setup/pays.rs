@@ -1,5 +1,5 @@
-//! Runs that pay: the expected reading of a plan's run, and a plan of the correctable band when
-//! the plan of the whole map is not expected to improve the part.
+//! Runs that pay: the expected reading of a plan's run, and a lighter plan or a plan of the
+//! correctable band where the plan of the whole map spends dwell its run cannot pay for.
 //!
 //! The reading the interferometer is expected to give after the run
 //! ([`crate::calibrate::expect`]) is drawn from the tool's uncertainty along the run's contact
@@ -10,15 +10,25 @@
 //! below the RMS measured before the run. A plan of the whole map chases every feature, those
 //! the tool cannot place or size well enough included (structure near the tool's width under a
 //! width or placement uncertainty, noise), and removes as deep as the deepest of them needs.
-//! When it does not pay, or when the map's noise it would imprint on the part
-//! ([`crate::calibrate::ReadingParts::noise_imprint_nm`]) outweighs what it leaves and what the
-//! tool's uncertainty adds, the measured error is split into the smooth part the tool corrects
-//! at transfer gains of at least `g` and the rest ([`crate::band`]), for each `g` of
-//! [`BAND_GAINS`], and the same set-up plans against the band alone (the problem's target the
-//! band, its edge rows extrapolated from it; every figure of the outcome still on the measured
-//! map). The plan kept is the one with the smallest expected reading, the whole map's included.
-//! When none pays, the outcome says so with the floor (the smallest expected reading) and its
-//! cause ([`crate::calibrate::FloorCause`]).
+//!
+//! Plans are compared by their *expected cost*, the job's objective `0.5 sum r_i^2 + rho sum
+//! t_j` with the expected reading in place of the model's residual: `E[rms^2] + (2 rho / m) T`
+//! per map point. When the plan of the whole map does not pay, when the map's noise it would
+//! imprint on the part ([`crate::calibrate::ReadingParts::noise_imprint_nm`]) outweighs what it
+//! leaves and what the tool's uncertainty adds, or when its dwell weighs at least
+//! [`DWELL_WEIGHS`] of its expected mean square, two kinds of plan are tried beside it:
+//! - *lighter plans* of the whole map, the time weight raised to [`LIGHTER_STEPS`] times
+//!   `rho_n = m sigma^2 / (2 T)`, the weight at which the plan's dwell `T` costs as much as the
+//!   map's noise `sigma^2`: a plan chasing noise spends its dwell on modulations that imprint the
+//!   noise, and a heavier time weight stops it where a second of dwell gains too little;
+//! - *band plans*: the measured error split into the smooth part the tool corrects at transfer
+//!   gains of at least `g` and the rest ([`crate::band`]), for each `g` of [`BAND_GAINS`], the
+//!   same set-up planned against the band alone (the problem's target the band, its edge rows
+//!   extrapolated from it).
+//!
+//! Every figure of an outcome stays on the measured map; the plan kept is the one with the
+//! smallest expected cost, of those that converged. When it does not pay, the outcome says so with the floor (its
+//! expected reading) and its cause ([`crate::calibrate::FloorCause`]).
 
 use super::{Outcome, Setup};
 use crate::band::{self, CorrectableBand};
@@ -59,6 +69,15 @@ pub enum PlanScope {
     },
 }
 
+/// The share of a plan's expected mean square its dwell must weigh, in the job's time weight,
+/// before the band plans are tried for a plan that pays and does not chase noise: below it no
+/// plan can lower the combined cost by more than this share.
+pub const DWELL_WEIGHS: f64 = 0.01;
+
+/// The lighter plans' time weights, in multiples of the weight at which the whole map's plan's
+/// dwell costs as much as the map's noise.
+pub const LIGHTER_STEPS: [f64; 3] = [1.0, 10.0, 100.0];
+
 /// Whether a run pays, and the plan chosen for it.
 #[derive(Debug, Clone)]
 pub struct PayingPlan {
@@ -69,8 +88,13 @@ pub struct PayingPlan {
     pub expected: Option<Expected>,
     /// What the plan corrects.
     pub scope: PlanScope,
-    /// The expected RMS of the whole map's plan where a band plan replaced it, nm.
+    /// The time weight the plan was solved with, nm^2 per s (the job's `rho` unless a lighter
+    /// plan of the whole map was kept).
+    pub rho: f64,
+    /// The expected RMS of the job's plan of the whole map where another plan replaced it, nm.
     pub map_plan_expected_rms_nm: Option<f64>,
+    /// The dwell of the job's plan of the whole map where another plan replaced it, s.
+    pub map_plan_dwell_s: Option<f64>,
 }
 
 impl PayingPlan {
@@ -89,6 +113,11 @@ impl PayingPlan {
     }
 }
 
+/// The planned dwell of an outcome, s.
+fn dwell_s(outcome: &Outcome) -> f64 {
+    outcome.solution.dwell_s.iter().sum()
+}
+
 /// Whether an expected reading pays: its 95th percentile below the measured RMS.
 pub fn pays(e: &Expected) -> bool {
     e.expected_rms_range_nm[1] < e.measured_rms_nm
@@ -102,6 +131,13 @@ fn chases_noise(e: &Expected) -> bool {
 }
 
 impl Setup {
+    /// The job's time weight on the mean square of the map: `2 rho / m` nm^2 per s of dwell,
+    /// the exchange rate of the objective `0.5 sum r_i^2 + rho sum t_j` between dwell and the
+    /// mean square residual over the `m` map points.
+    pub fn time_weight_nm2_per_s(&self) -> f64 {
+        2.0 * self.rho / self.map.len().max(1) as f64
+    }
+
     /// The expected reading after the run of `outcome` with the tool known to `uncertainty`
     /// (module documentation); `None` on a curved part or where the plan spends no time in
     /// contact.
@@ -158,8 +194,9 @@ impl Setup {
     }
 
     /// The plan of a run that pays (module documentation): `outcome`, this set-up's solve,
-    /// where its run pays and it does not chase the map's noise; else the plan of the whole map
-    /// or of one of the bands, whichever has the smallest expected reading.
+    /// where its run pays, it does not chase the map's noise and its dwell weighs little in the
+    /// job's time weight; else, of the whole map's plan, the lighter plans and the band plans,
+    /// the one with the smallest expected cost ([`Setup::expected_cost_nm2`]).
     pub fn plan_that_pays(
         &self,
         outcome: Outcome,
@@ -167,20 +204,64 @@ impl Setup {
         observer: &dyn Observer,
     ) -> Result<PayingPlan> {
         let expected = self.expected_reading(&outcome, uncertainty)?;
+        let map_dwell_s = dwell_s(&outcome);
         let mut best = PayingPlan {
             outcome,
             expected,
             scope: PlanScope::Map,
+            rho: self.rho,
             map_plan_expected_rms_nm: None,
+            map_plan_dwell_s: None,
         };
-        let Some(map_expected) = best
-            .expected
-            .as_ref()
-            .filter(|e| !pays(e) || chases_noise(e))
-        else {
+        let Some(map_expected) = best.expected.clone().filter(|e| {
+            !pays(e)
+                || chases_noise(e)
+                || self.time_weight_nm2_per_s() * map_dwell_s
+                    >= DWELL_WEIGHS * e.expected_rms_nm.powi(2)
+        }) else {
             return Ok(best);
         };
-        let map_expected_rms_nm = map_expected.expected_rms_nm;
+        let mut best_cost = self.expected_cost_nm2(&map_expected, map_dwell_s);
+        let mut consider = |outcome: Outcome, scope: PlanScope, rho: f64| -> Result<()> {
+            if !outcome.solution.status.is_converged() {
+                return Ok(());
+            }
+            let Some(expected) = self.expected_reading(&outcome, uncertainty)? else {
+                return Ok(());
+            };
+            let cost = self.expected_cost_nm2(&expected, dwell_s(&outcome));
+            if cost < best_cost {
+                best_cost = cost;
+                best = PayingPlan {
+                    outcome,
+                    expected: Some(expected),
+                    scope,
+                    rho,
+                    map_plan_expected_rms_nm: Some(map_expected.expected_rms_nm),
+                    map_plan_dwell_s: Some(map_dwell_s),
+                };
+            }
+            Ok(())
+        };
+        // Lighter plans of the whole map: the time weight raised from where the plan's dwell
+        // costs as much as the map's noise (`c T = sigma^2`, `rho = m sigma^2 / (2 T)`).
+        let noise_rho = 0.5 * self.map.len() as f64 * map_expected.uncertainty.noise_rms_nm.powi(2)
+            / map_dwell_s;
+        for step in LIGHTER_STEPS {
+            let rho = noise_rho * step;
+            if !(rho.is_finite() && rho > self.rho) {
+                continue;
+            }
+            check_cancelled(observer)?;
+            let mut lighter = self.clone();
+            lighter.rho = rho;
+            let built = lighter.problem(observer).map_err(|e| e.source)?;
+            consider(
+                lighter.solve(&built.problem, observer)?,
+                PlanScope::Map,
+                rho,
+            )?;
+        }
         let (x, y, z) = (self.map.x_mm(), self.map.y_mm(), self.map.z_nm());
         for min_gain in BAND_GAINS {
             check_cancelled(observer)?;
@@ -208,27 +289,21 @@ impl Setup {
                 outcome.solution.objective =
                     0.5 * d.iter().map(|v| (v - piston_nm).powi(2)).sum::<f64>();
             }
-            let Some(expected) = self.expected_reading(&outcome, uncertainty)? else {
-                continue;
+            let scope = PlanScope::Band {
+                min_gain,
+                cutoff_per_mm: split.cutoff_per_mm.unwrap_or(f64::NAN),
+                degrees: split.degrees,
+                left_out_rms_nm: HeightStats::of(&split.uncorrectable_nm).rms_nm,
             };
-            let better = best
-                .expected
-                .as_ref()
-                .is_none_or(|b| expected.expected_rms_nm < b.expected_rms_nm);
-            if better {
-                best = PayingPlan {
-                    outcome,
-                    expected: Some(expected),
-                    scope: PlanScope::Band {
-                        min_gain,
-                        cutoff_per_mm: split.cutoff_per_mm.unwrap_or(f64::NAN),
-                        degrees: split.degrees,
-                        left_out_rms_nm: HeightStats::of(&split.uncorrectable_nm).rms_nm,
-                    },
-                    map_plan_expected_rms_nm: Some(map_expected_rms_nm),
-                };
-            }
+            consider(outcome, scope, self.rho)?;
         }
         Ok(best)
+    }
+
+    /// The expected cost of a plan in the job's objective `0.5 sum r_i^2 + rho sum t_j` with
+    /// the expected reading in place of the model's residual, per map point and doubled:
+    /// `E[rms^2] + (2 rho / m) T`, nm^2.
+    pub fn expected_cost_nm2(&self, expected: &Expected, dwell_s: f64) -> f64 {
+        expected.expected_rms_nm.powi(2) + self.time_weight_nm2_per_s() * dwell_s
     }
 }

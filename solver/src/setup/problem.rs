@@ -720,7 +720,7 @@ impl Setup {
         let weights = match self.settings.robust_weighting {
             crate::dwell::RobustWeighting::Mean => vec![1.0; scenarios],
             crate::dwell::RobustWeighting::Minimax => {
-                let time_nm2_per_s = 2.0 * self.rho / self.map.len().max(1) as f64;
+                let time_nm2_per_s = self.time_weight_nm2_per_s();
                 let rounds = robust::minimax_weights(scenarios, time_nm2_per_s, |weights, warm| {
                     let problem = weighted(weights)?;
                     let warm = warm.or(self.warm_start_s.as_deref());
