@@ -7,7 +7,8 @@
 # Default tool: rate 1.08, width 1.05, offset (0.15, -0.12) mm, linear skew 0.1, drift 3% per
 # run; the rate wanders by -1% per run. Another shop: RATE= (the first run's rate factor),
 # TOOL_FLAGS= (the `preston shop --tool-*` flags in place of the default tool's) and SEED= (the
-# first measurement's noise). Prints one line per run: measured RMS before, the plan's expected
+# first measurement's noise). Another part: SURFACE= (its true surface, x_mm,y_mm,z_nm) and JOB=
+# (the job each run plans with, its map replaced by the run's measurement). Prints one line per run: measured RMS before, the plan's expected
 # RMS and range, the measured RMS after, the dwell.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -16,11 +17,11 @@ RUNS=${2:-3}
 shift $(( $# > 1 ? 2 : 1 ))
 P=${PRESTON:-target/release/preston}
 TIF=data/tif_fluid_jet_10mm.csv
-JOB=data/job.toml
+JOB=${JOB:-data/job.toml}
 RATE=${RATE:-1.08}
 TOOL=(${TOOL_FLAGS:---tool-width-factor 1.05 --tool-offset-mm 0.15,-0.12 --tool-skew 0.1 --tool-skew-angle-deg 30 --tool-drift-per-run 0.03} "$@")
 mkdir -p "$OUT"
-"$P" shop --quiet --surface data/mirror_error_118x8mm.csv --tif "$TIF" --seed ${SEED:-100} --out "$OUT/v0"
+"$P" shop --quiet --surface "${SURFACE:-data/mirror_error_118x8mm.csv}" --tif "$TIF" --seed ${SEED:-100} --out "$OUT/v0"
 surface="$OUT/v0/surface_after.csv"
 measured="$OUT/v0/measured.csv"
 calibration=()
