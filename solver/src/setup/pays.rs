@@ -19,16 +19,17 @@
 //! [`DWELL_WEIGHS`] of its expected mean square, two kinds of plan are tried beside it:
 //! - *lighter plans* of the whole map, the time weight raised to [`LIGHTER_STEPS`] times
 //!   `rho_n = m sigma^2 / (2 T)`, the weight at which the plan's dwell `T` costs as much as the
-//!   map's noise `sigma^2`: a plan chasing noise spends its dwell on modulations that imprint the
-//!   noise, and a heavier time weight stops it where a second of dwell gains too little;
-//! - *band plans*: the measured error split into the smooth part the tool corrects at transfer
+//!   map's noise `sigma^2`, step by step while the expected cost falls: a plan chasing noise
+//!   spends its dwell on modulations that imprint the noise, and a heavier time weight stops it
+//!   where a second of dwell gains too little;
+//! - where the job's plan does not pay or chases the noise, *band plans*: the measured error split into the smooth part the tool corrects at transfer
 //!   gains of at least `g` and the rest ([`crate::band`]), for each `g` of [`BAND_GAINS`], the
 //!   same set-up planned against the band alone (the problem's target the band, its edge rows
 //!   extrapolated from it).
 //!
 //! Every figure of an outcome stays on the measured map; the plan kept is the one with the
-//! smallest expected cost, of those that converged. When it does not pay, the outcome says so with the floor (its
-//! expected reading) and its cause ([`crate::calibrate::FloorCause`]).
+//! smallest expected cost, of those that converged. When it does not pay, the outcome says so
+//! with the floor (its expected reading) and its cause ([`crate::calibrate::FloorCause`]).
 
 use super::{Outcome, Setup};
 use crate::band::{self, CorrectableBand};
@@ -221,13 +222,16 @@ impl Setup {
         }) else {
             return Ok(best);
         };
-        let mut best_cost = self.expected_cost_nm2(&map_expected, map_dwell_s);
-        let mut consider = |outcome: Outcome, scope: PlanScope, rho: f64| -> Result<()> {
+        let map_cost = self.expected_cost_nm2(&map_expected, map_dwell_s);
+        let mut best_cost = map_cost;
+        // The candidate's expected cost (`None` where it did not converge or has no expected
+        // reading), kept where it is the smallest yet.
+        let mut consider = |outcome: Outcome, scope: PlanScope, rho: f64| -> Result<Option<f64>> {
             if !outcome.solution.status.is_converged() {
-                return Ok(());
+                return Ok(None);
             }
             let Some(expected) = self.expected_reading(&outcome, uncertainty)? else {
-                return Ok(());
+                return Ok(None);
             };
             let cost = self.expected_cost_nm2(&expected, dwell_s(&outcome));
             if cost < best_cost {
@@ -241,12 +245,14 @@ impl Setup {
                     map_plan_dwell_s: Some(map_dwell_s),
                 };
             }
-            Ok(())
+            Ok(Some(cost))
         };
         // Lighter plans of the whole map: the time weight raised from where the plan's dwell
-        // costs as much as the map's noise (`c T = sigma^2`, `rho = m sigma^2 / (2 T)`).
+        // costs as much as the map's noise (`c T = sigma^2`, `rho = m sigma^2 / (2 T)`), step by
+        // step while the expected cost falls.
         let noise_rho = 0.5 * self.map.len() as f64 * map_expected.uncertainty.noise_rms_nm.powi(2)
             / map_dwell_s;
+        let mut previous_cost = map_cost;
         for step in LIGHTER_STEPS {
             let rho = noise_rho * step;
             if !(rho.is_finite() && rho > self.rho) {
@@ -256,11 +262,15 @@ impl Setup {
             let mut lighter = self.clone();
             lighter.rho = rho;
             let built = lighter.problem(observer).map_err(|e| e.source)?;
-            consider(
-                lighter.solve(&built.problem, observer)?,
-                PlanScope::Map,
-                rho,
-            )?;
+            let outcome = lighter.solve(&built.problem, observer)?;
+            match consider(outcome, PlanScope::Map, rho)? {
+                Some(cost) if cost < previous_cost => previous_cost = cost,
+                _ => break,
+            }
+        }
+        // Band plans where the job's plan does not pay or chases the map's noise.
+        if pays(&map_expected) && !chases_noise(&map_expected) {
+            return Ok(best);
         }
         let (x, y, z) = (self.map.x_mm(), self.map.y_mm(), self.map.z_nm());
         for min_gain in BAND_GAINS {
