@@ -19,7 +19,8 @@
 //! [`DWELL_WEIGHS`] of its expected mean square, two kinds of plan are tried beside it:
 //! - *lighter plans* of the whole map, the time weight raised to [`LIGHTER_STEPS`] times
 //!   `rho_n = m sigma^2 / (2 T)`, the weight at which the plan's dwell `T` costs as much as the
-//!   map's noise `sigma^2`, step by step while the expected cost falls: a plan chasing noise
+//!   map's noise `sigma^2`, step by step until the expected cost rises (a step that does not
+//!   converge is passed over): a plan chasing noise
 //!   spends its dwell on modulations that imprint the noise, and a heavier time weight stops it
 //!   where a second of dwell gains too little;
 //! - where the job's plan does not pay or chases the noise, *band plans*: the measured error split into the smooth part the tool corrects at transfer
@@ -264,8 +265,9 @@ impl Setup {
             let built = lighter.problem(observer).map_err(|e| e.source)?;
             let outcome = lighter.solve(&built.problem, observer)?;
             match consider(outcome, PlanScope::Map, rho)? {
-                Some(cost) if cost < previous_cost => previous_cost = cost,
-                _ => break,
+                Some(cost) if cost >= previous_cost => break,
+                Some(cost) => previous_cost = cost,
+                None => {}
             }
         }
         // Band plans where the job's plan does not pay or chases the map's noise.
