@@ -17,16 +17,15 @@
 //! imprint on the part ([`crate::calibrate::ReadingParts::noise_imprint_nm`]) outweighs what it
 //! leaves and what the tool's uncertainty adds, or when its dwell weighs at least
 //! [`DWELL_WEIGHS`] of its expected mean square, two kinds of plan are tried beside it:
-//! - *lighter plans* of the whole map, the time weight raised to [`LIGHTER_STEPS`] times
-//!   `rho_n = m sigma^2 / (2 T)`, the weight at which the plan's dwell `T` costs as much as the
-//!   map's noise `sigma^2`, step by step until the expected cost rises (a step that does not
-//!   converge is passed over): a plan chasing noise
-//!   spends its dwell on modulations that imprint the noise, and a heavier time weight stops it
-//!   where a second of dwell gains too little;
-//! - where the job's plan does not pay or chases the noise, *band plans*: the measured error split into the smooth part the tool corrects at transfer
-//!   gains of at least `g` and the rest ([`crate::band`]), for each `g` of [`BAND_GAINS`], the
-//!   same set-up planned against the band alone (the problem's target the band, its edge rows
-//!   extrapolated from it).
+//! - *lighter plans* of the whole map, the time weight raised to [`LIGHTER_STEPS`] times `rho_n = m
+//!   sigma^2 / (2 T)`, the weight at which the plan's dwell `T` costs as much as the map's noise
+//!   `sigma^2`, step by step until the expected cost rises (a step that does not converge is passed
+//!   over): a plan chasing noise spends its dwell on modulations that imprint the noise, and a
+//!   heavier time weight stops it where a second of dwell gains too little;
+//! - where the job's plan does not pay or chases the noise, *band plans*: the measured error split
+//!   into the smooth part the tool corrects at transfer gains of at least `g` and the rest
+//!   ([`crate::band`]), for each `g` of [`BAND_GAINS`], the same set-up planned against the band
+//!   alone (the problem's target the band, its edge rows extrapolated from it).
 //!
 //! Every figure of an outcome stays on the measured map; the plan kept is the one with the
 //! smallest expected cost, of those that converged. When it does not pay, the outcome says so
@@ -72,8 +71,8 @@ pub enum PlanScope {
 }
 
 /// The share of a plan's expected mean square its dwell must weigh, in the job's time weight,
-/// before the band plans are tried for a plan that pays and does not chase noise: below it no
-/// plan can lower the combined cost by more than this share.
+/// before lighter plans are tried for a plan that pays and does not chase noise: below it no
+/// plan can lower the expected cost by more than this share.
 pub const DWELL_WEIGHS: f64 = 0.01;
 
 /// The lighter plans' time weights, in multiples of the weight at which the whole map's plan's
@@ -250,7 +249,7 @@ impl Setup {
         };
         // Lighter plans of the whole map: the time weight raised from where the plan's dwell
         // costs as much as the map's noise (`c T = sigma^2`, `rho = m sigma^2 / (2 T)`), step by
-        // step while the expected cost falls.
+        // step until the expected cost rises.
         let noise_rho = 0.5 * self.map.len() as f64 * map_expected.uncertainty.noise_rms_nm.powi(2)
             / map_dwell_s;
         let mut previous_cost = map_cost;
