@@ -97,6 +97,16 @@ const PLAN_ARGS: [&str; 12] = [
     "correction-passes",
 ];
 
+/// The NC program of a plan's `dwell.csv` for the shop's machine (3000 mm/min, 1000 mm/s^2).
+fn write_program(dwell: &Path, program: &Path) {
+    ok(&preston_cmd()
+        .args(["nc", "--quiet", "--dwell", s(dwell)])
+        .args(["--v-max", "3000", "--a-max-mm-per-s2", "1000"])
+        .args(["--out", s(program)])
+        .output()
+        .unwrap());
+}
+
 /// Runs `program` on the part `surface` in the shop with its true tool, the interferometer's
 /// noise seeded by `seed`, into `out`.
 fn run_in_shop(surface: &Path, program: &Path, seed: u64, out: &Path) {
@@ -153,12 +163,7 @@ fn run_loop() -> Run {
         .output()
         .unwrap());
     let program = root.join("prog.nc");
-    ok(&preston_cmd()
-        .args(["nc", "--quiet", "--dwell", s(&plan.join("dwell.csv"))])
-        .args(["--v-max", "3000", "--a-max-mm-per-s2", "1000"])
-        .args(["--out", s(&program)])
-        .output()
-        .unwrap());
+    write_program(&plan.join("dwell.csv"), &program);
     let shop = root.join("shop");
     run_in_shop(&v0.join("surface_after.csv"), &program, 4, &shop);
     let after = shop.join("measured.csv");
@@ -339,12 +344,7 @@ fn calibrate_learns_the_shop_tool_and_solve_plans_with_it() {
     // noise and leaves that on the part; the reading is neither the noise alone nor the noise
     // counted twice.
     let program2 = run.root.join("prog2.nc");
-    ok(&preston_cmd()
-        .args(["nc", "--quiet", "--dwell", s(&next.join("dwell.csv"))])
-        .args(["--v-max", "3000", "--a-max-mm-per-s2", "1000"])
-        .args(["--out", s(&program2)])
-        .output()
-        .unwrap());
+    write_program(&next.join("dwell.csv"), &program2);
     let shop2 = run.root.join("shop2");
     run_in_shop(
         &run.root.join("shop").join("surface_after.csv"),
